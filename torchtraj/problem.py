@@ -1,0 +1,261 @@
+"""The one problem representation every solver shares.
+
+A :class:`Problem` states a discrete-time optimal control problem with per-instance
+functions (no batch dimension; the library vmaps them over batch and time)::
+
+    minimize    sum_{k=0}^{N-1} l(x_k, u_k, p) + l_N(x_N, p)
+    subject to  x_{k+1} = f(x_k, u_k, p),                   k = 0..N-1,  x_0 given
+                h(x_k, u_k, p) = 0,  g(x_k, u_k, p) <= 0,   k = 0..N-1   (path, mixed)
+                s(x_k, p) <= 0,  x_lower <= x_k <= x_upper,  k = 1..N-1  (state path)
+                u_lower <= u_k <= u_upper,                  k = 0..N-1
+                h_N(x_N, p) = 0,  g_N(x_N, p) <= 0                      (terminal)
+
+State-only path constraints start at knot 1 because x_0 is fixed (PROBLEMS.md);
+put a state constraint on x_N in the terminal functions.
+
+``p`` is a dict of tensors. Each entry has a per-instance shape (``param_shapes``,
+by default the shape given at construction) and may carry one extra leading batch
+dimension; gradients flow to these tensors in differentiable solves.
+
+The problem is checked at construction by a probe call of every function:
+wrong output shapes, non-finite outputs and mismatched dimensions raise a
+``ValueError`` naming the function and the shapes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Callable, Mapping, Optional
+
+import torch
+from torch import Tensor
+
+Params = Mapping[str, Tensor]
+StageFn = Callable[[Tensor, Tensor, Params], Tensor]
+StateFn = Callable[[Tensor, Params], Tensor]
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A trajectory optimisation problem; see the module docstring for its mathematics.
+
+    Args:
+        dynamics: ``f(x (nx,), u (nu,), p) -> x_next (nx,)``.
+        stage_cost: ``l(x, u, p) -> ()``.
+        terminal_cost: ``l_N(x, p) -> ()``.
+        x0: default initial state ``(nx,)``.
+        horizon: number of intervals N (N+1 knots).
+        nu: number of controls.
+        params: ``p``, a dict of tensors (per-instance shape, optional leading batch dim).
+        stage_eq / stage_ineq: ``(x, u, p) -> (m,)``, on knots 0..N-1 (``g <= 0``).
+        state_ineq: ``(x, p) -> (m,)`` on knots 1..N-1.
+        terminal_eq / terminal_ineq: ``(x, p) -> (m,)`` on knot N.
+        u_lower, u_upper: ``(nu,)`` control bounds, ``±inf`` where unbounded.
+        x_lower, x_upper: ``(nx,)`` state bounds on knots 1..N-1, ``±inf`` where unbounded.
+        u_init: ``(nu,)`` or ``(N, nu)`` default initial control guess.
+        X_init: optional ``(N+1, nx)`` default initial state guess.
+        dt: duration of one interval, when the problem has one (for plots and time penalties).
+        name: a label for reports.
+        param_shapes: per-instance shape of each parameter; defaults to the given shapes.
+    """
+
+    dynamics: StageFn
+    stage_cost: StageFn
+    terminal_cost: StateFn
+    x0: Tensor
+    horizon: int
+    nu: int
+    params: dict = field(default_factory=dict)
+    stage_eq: Optional[StageFn] = None
+    stage_ineq: Optional[StageFn] = None
+    state_ineq: Optional[StateFn] = None
+    terminal_eq: Optional[StateFn] = None
+    terminal_ineq: Optional[StateFn] = None
+    u_lower: Optional[Tensor] = None
+    u_upper: Optional[Tensor] = None
+    x_lower: Optional[Tensor] = None
+    x_upper: Optional[Tensor] = None
+    u_init: Optional[Tensor] = None
+    X_init: Optional[Tensor] = None
+    dt: Optional[float] = None
+    name: str = "problem"
+    param_shapes: Optional[dict] = None
+
+    def __post_init__(self) -> None:
+        x0 = torch.as_tensor(self.x0)
+        if not x0.is_floating_point():
+            x0 = x0.to(torch.get_default_dtype())
+        if x0.dim() != 1:
+            raise ValueError(f"Problem.x0 must have shape (nx,), got {tuple(x0.shape)}")
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
+        set_("x0", x0)
+        if not isinstance(self.horizon, int) or self.horizon < 1:
+            raise ValueError(f"Problem.horizon must be a positive int, got {self.horizon!r}")
+        if not isinstance(self.nu, int) or self.nu < 1:
+            raise ValueError(f"Problem.nu must be a positive int, got {self.nu!r}")
+        params = {k: torch.as_tensor(v, dtype=x0.dtype, device=x0.device) for k, v in self.params.items()}
+        set_("params", params)
+        if self.param_shapes is None:
+            set_("param_shapes", {k: tuple(v.shape) for k, v in params.items()})
+        for k, v in params.items():
+            shape = tuple(self.param_shapes.get(k, v.shape))
+            if tuple(v.shape) != shape and tuple(v.shape[1:]) != shape:
+                raise ValueError(
+                    f"parameter {k!r} has shape {tuple(v.shape)}; expected {shape} or (B, *{shape})"
+                )
+        nx, nu = self.nx, self.nu
+        for name, n in (("u_lower", nu), ("u_upper", nu), ("x_lower", nx), ("x_upper", nx)):
+            value = getattr(self, name)
+            if value is not None:
+                value = torch.as_tensor(value, dtype=x0.dtype, device=x0.device)
+                if value.shape != (n,):
+                    raise ValueError(f"Problem.{name} must have shape ({n},), got {tuple(value.shape)}")
+                set_(name, value)
+        for lo, hi in (("u_lower", "u_upper"), ("x_lower", "x_upper")):
+            a, b = getattr(self, lo), getattr(self, hi)
+            if a is not None and b is not None and bool((a > b).any()):
+                raise ValueError(f"Problem.{lo} exceeds Problem.{hi}: {a.tolist()} > {b.tolist()}")
+        u_init = self.u_init if self.u_init is not None else torch.zeros(nu)
+        u_init = torch.as_tensor(u_init, dtype=x0.dtype, device=x0.device)
+        if u_init.shape == (nu,):
+            u_init = u_init.expand(self.horizon, nu).clone()
+        if u_init.shape != (self.horizon, nu):
+            raise ValueError(
+                f"Problem.u_init must have shape ({nu},) or ({self.horizon}, {nu}), got {tuple(u_init.shape)}"
+            )
+        set_("u_init", u_init)
+        if self.X_init is not None:
+            X_init = torch.as_tensor(self.X_init, dtype=x0.dtype, device=x0.device)
+            if X_init.shape != (self.horizon + 1, nx):
+                raise ValueError(
+                    f"Problem.X_init must have shape ({self.horizon + 1}, {nx}), got {tuple(X_init.shape)}"
+                )
+            set_("X_init", X_init)
+        self._probe()
+
+    # ----------------------------------------------------------------- sizes
+    @property
+    def nx(self) -> int:
+        return int(self.x0.shape[0])
+
+    @property
+    def N(self) -> int:
+        return self.horizon
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.x0.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.x0.device
+
+    @property
+    def has_constraints(self) -> bool:
+        bounds = (self.u_lower, self.u_upper, self.x_lower, self.x_upper)
+        funcs = (self.stage_eq, self.stage_ineq, self.state_ineq, self.terminal_eq, self.terminal_ineq)
+        return any(f is not None for f in funcs) or any(
+            b is not None and bool(torch.isfinite(b).any()) for b in bounds
+        )
+
+    # ------------------------------------------------------------ transforms
+    def replace(self, **changes) -> "Problem":
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def with_params(self, **params: Tensor) -> "Problem":
+        """A copy whose parameters ``params`` are replaced (per-instance or batched)."""
+        unknown = set(params) - set(self.params)
+        if unknown:
+            raise ValueError(f"unknown parameters {sorted(unknown)}; this problem has {sorted(self.params)}")
+        return self.replace(params={**self.params, **params})
+
+    def to(self, dtype: Optional[torch.dtype] = None, device=None) -> "Problem":
+        """A copy with every tensor moved to ``dtype`` / ``device``."""
+        def move(t):
+            return None if t is None else t.to(dtype=dtype or t.dtype, device=device or t.device)
+
+        return self.replace(
+            x0=move(self.x0),
+            params={k: move(v) for k, v in self.params.items()},
+            u_lower=move(self.u_lower), u_upper=move(self.u_upper),
+            x_lower=move(self.x_lower), x_upper=move(self.x_upper),
+            u_init=move(self.u_init), X_init=move(self.X_init),
+        )
+
+    def instance_params(self) -> dict:
+        """Parameters of one instance (the first along a batch dimension), for probes."""
+        out = {}
+        for k, v in self.params.items():
+            out[k] = v[0] if tuple(v.shape) != tuple(self.param_shapes[k]) else v
+        return out
+
+    def param_batch_size(self) -> int:
+        """The batch size carried by batched parameters (1 when none is batched)."""
+        sizes = {
+            int(v.shape[0]) for k, v in self.params.items() if tuple(v.shape) != tuple(self.param_shapes[k])
+        }
+        if len(sizes) > 1:
+            raise ValueError(f"batched parameters disagree on the batch size: {sorted(sizes)}")
+        return sizes.pop() if sizes else 1
+
+    def batched_params(self, batch: int) -> dict:
+        """Every parameter expanded to a leading batch dimension of size ``batch`` (no copy)."""
+        out = {}
+        for k, v in self.params.items():
+            shape = tuple(self.param_shapes[k])
+            if tuple(v.shape) == shape:
+                v = v.expand(batch, *shape)
+            elif v.shape[0] == 1 and batch != 1:
+                v = v.expand(batch, *shape)
+            elif v.shape[0] != batch:
+                raise ValueError(f"parameter {k!r} has batch size {v.shape[0]}, but the solve has {batch}")
+            out[k] = v
+        return out
+
+    # ---------------------------------------------------------------- probing
+    def _probe(self) -> None:
+        """Call every function once on x0 / u_init[0]; raise ValueError on misuse."""
+        nx, nu = self.nx, self.nu
+        x, u, p = self.x0, self.u_init[0], self.instance_params()
+
+        def call(name, fn, *args):
+            try:
+                out = fn(*args)
+            except Exception as exc:  # re-raised with the function named
+                raise ValueError(f"Problem.{name} failed on a probe call: {exc}") from exc
+            if not isinstance(out, Tensor):
+                raise ValueError(f"Problem.{name} must return a torch.Tensor, got {type(out).__name__}")
+            if not bool(torch.isfinite(out).all()):
+                raise ValueError(f"Problem.{name} returned non-finite values at x0, u_init[0]: {out}")
+            return out
+
+        out = call("dynamics", self.dynamics, x, u, p)
+        if out.shape != (nx,):
+            raise ValueError(f"Problem.dynamics must return shape ({nx},) for x of shape ({nx},), got {tuple(out.shape)}")
+        for name, fn, args in (("stage_cost", self.stage_cost, (x, u, p)), ("terminal_cost", self.terminal_cost, (x, p))):
+            out = call(name, fn, *args)
+            if out.shape != ():
+                raise ValueError(f"Problem.{name} must return a scalar (shape ()), got {tuple(out.shape)}")
+        for name in ("stage_eq", "stage_ineq", "state_ineq", "terminal_eq", "terminal_ineq"):
+            fn = getattr(self, name)
+            if fn is None:
+                continue
+            args = (x, u, p) if name.startswith("stage") else (x, p)
+            out = call(name, fn, *args)
+            if out.dim() != 1:
+                raise ValueError(f"Problem.{name} must return a vector (m,), got shape {tuple(out.shape)}")
+
+    def constraint_sizes(self) -> dict:
+        """Number of rows of each constraint function (0 when absent)."""
+        x, u, p = self.x0, self.u_init[0], self.instance_params()
+        sizes = {}
+        for name in ("stage_eq", "stage_ineq", "state_ineq", "terminal_eq", "terminal_ineq"):
+            fn = getattr(self, name)
+            if fn is None:
+                sizes[name] = 0
+            else:
+                args = (x, u, p) if name.startswith("stage") else (x, p)
+                sizes[name] = int(fn(*args).shape[0])
+        return sizes
