@@ -1,0 +1,1 @@
+"""Benchmarks and independent references (CasADi IPOPT / FATROP); needs ``pip install torchtraj[bench]``."""
