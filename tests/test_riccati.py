@@ -1,0 +1,186 @@
+"""The Riccati core against a dense KKT solve and against the discrete algebraic Riccati equation."""
+
+import pytest
+import torch
+
+from torchtraj.riccati import LQR, LQRVectors, factorize, solve_lqr
+
+
+def random_lqr(B, N, nx, nu, m=0, mN=0, dtype=torch.float64, seed=0, deficient=False):
+    g = torch.Generator().manual_seed(seed)
+
+    def rand(*shape):
+        return torch.randn(*shape, generator=g, dtype=dtype)
+
+    A = torch.eye(nx, dtype=dtype) + 0.3 * rand(B, N, nx, nx)
+    Bu = rand(B, N, nx, nu)
+    # a strictly convex stage cost [[Q, S'], [S, R]] with cross terms
+    W = rand(B, N, nx + nu, nx + nu)
+    H = W @ W.transpose(-1, -2) / (nx + nu) + 0.5 * torch.eye(nx + nu, dtype=dtype)
+    Q, S, R = H[..., :nx, :nx], H[..., nx:, :nx], H[..., nx:, nx:]
+    WN = rand(B, nx, nx)
+    QN = WN @ WN.transpose(-1, -2) / nx + 0.5 * torch.eye(nx, dtype=dtype)
+    lqr = LQR(A=A, B=Bu, Q=Q, R=R, S=S, QN=QN)
+    rhs = LQRVectors(q=rand(B, N, nx), r=rand(B, N, nu), qN=rand(B, nx), c=0.1 * rand(B, N, nx), x0=rand(B, nx))
+    if m:
+        C, D = rand(B, N, m, nx), rand(B, N, m, nu)
+        if deficient:
+            # rank-deficient stage blocks: on every other stage the last row involves the state
+            # only, so that only the controls of earlier stages can satisfy it
+            D[:, 1::2, -1] = 0.0
+        mask = torch.rand(B, N, m, generator=g, dtype=dtype) > 0.3
+        lqr.C, lqr.D, lqr.mask = C, D, mask.to(dtype)
+        rhs.e = rand(B, N, m)
+    if mN:
+        lqr.CN, lqr.maskN = rand(B, mN, nx), torch.ones(B, mN, dtype=dtype)
+        rhs.eN = rand(B, mN)
+    return lqr, rhs
+
+
+def dense_kkt(lqr, rhs, b):
+    """Solve instance b by one dense KKT system; variables [x0, u0, x1, u1, ..., xN]."""
+    N, nx, nu = lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
+    dtype = lqr.A.dtype
+    nz = N * (nx + nu) + nx
+    xi = lambda k: slice(k * (nx + nu), k * (nx + nu) + nx)  # noqa: E731
+    ui = lambda k: slice(k * (nx + nu) + nx, (k + 1) * (nx + nu))  # noqa: E731
+    H = torch.zeros(nz, nz, dtype=dtype)
+    h = torch.zeros(nz, dtype=dtype)
+    rows, rhs_rows, kinds = [], [], []
+    row = torch.zeros(nz, dtype=dtype)
+    for k in range(N):
+        H[xi(k), xi(k)] = lqr.Q[b, k]
+        H[ui(k), ui(k)] = lqr.R[b, k]
+        H[ui(k), xi(k)] = lqr.S[b, k]
+        H[xi(k), ui(k)] = lqr.S[b, k].T
+        h[xi(k)], h[ui(k)] = rhs.q[b, k], rhs.r[b, k]
+    H[xi(N), xi(N)] = lqr.QN[b]
+    h[xi(N)] = rhs.qN[b]
+    # initial condition -x0 + xbar = 0, then dynamics A x + B u - x' + c = 0
+    for i in range(nx):
+        r = row.clone(); r[xi(0).start + i] = -1.0
+        rows.append(r); rhs_rows.append(rhs.x0[b, i]); kinds.append(("init", 0, i))
+    for k in range(N):
+        for i in range(nx):
+            r = row.clone()
+            r[xi(k)] = lqr.A[b, k, i]; r[ui(k)] = lqr.B[b, k, i]; r[xi(k + 1).start + i] = -1.0
+            rows.append(r); rhs_rows.append(rhs.c[b, k, i]); kinds.append(("dyn", k + 1, i))
+    if lqr.C is not None:
+        for k in range(N):
+            for i in range(lqr.C.shape[2]):
+                if lqr.mask[b, k, i] > 0:
+                    r = row.clone(); r[xi(k)] = lqr.C[b, k, i]; r[ui(k)] = lqr.D[b, k, i]
+                    rows.append(r); rhs_rows.append(rhs.e[b, k, i]); kinds.append(("stage", k, i))
+    if lqr.CN is not None:
+        for i in range(lqr.CN.shape[1]):
+            r = row.clone(); r[xi(N)] = lqr.CN[b, i]
+            rows.append(r); rhs_rows.append(rhs.eN[b, i]); kinds.append(("term", N, i))
+    J = torch.stack(rows)
+    e = torch.stack(rhs_rows)
+    nc = J.shape[0]
+    KKT = torch.zeros(nz + nc, nz + nc, dtype=dtype)
+    KKT[:nz, :nz], KKT[:nz, nz:], KKT[nz:, :nz] = H, J.T, J
+    sol = torch.linalg.solve(KKT, -torch.cat([h, e]))
+    z, y = sol[:nz], sol[nz:]
+    X = torch.stack([z[xi(k)] for k in range(N + 1)])
+    U = torch.stack([z[ui(k)] for k in range(N)])
+    lam = torch.zeros(N + 1, nx, dtype=dtype)
+    nu_stage = torch.zeros(N, lqr.C.shape[2] if lqr.C is not None else 0, dtype=dtype)
+    nuN = torch.zeros(lqr.CN.shape[1] if lqr.CN is not None else 0, dtype=dtype)
+    for (kind, k, i), val in zip(kinds, y):
+        if kind in ("init", "dyn"):
+            lam[k, i] = val
+        elif kind == "stage":
+            nu_stage[k, i] = val
+        else:
+            nuN[i] = val
+    return X, U, lam, nu_stage, nuN
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-9), (torch.float32, 2e-3)])
+def test_unconstrained_matches_dense_kkt(dtype, tol):
+    lqr, rhs = random_lqr(B=3, N=12, nx=4, nu=2, dtype=dtype)
+    sol = solve_lqr(lqr, rhs, multipliers=True)
+    for b in range(3):
+        lqr64 = LQR(**{k: (v.double() if v is not None else None) for k, v in vars(lqr).items()})
+        rhs64 = LQRVectors(**{k: (v.double() if v is not None else None) for k, v in vars(rhs).items()})
+        X, U, lam, _, _ = dense_kkt(lqr64, rhs64, b)
+        scale = 1 + X.abs().max()
+        assert (sol.dx[b].double() - X).abs().max() / scale < tol
+        assert (sol.du[b].double() - U).abs().max() / scale < tol
+        assert (sol.costate[b].double() - lam).abs().max() / (1 + lam.abs().max()) < tol
+
+
+@pytest.mark.parametrize("deficient", [False, True])
+def test_equality_constrained_matches_dense_kkt(deficient):
+    # m = 2 rows per stage with nu = 3, terminal rows mN = 2: every constraint is satisfiable
+    lqr, rhs = random_lqr(B=4, N=10, nx=4, nu=3, m=2, mN=2, seed=1, deficient=deficient)
+    sol = solve_lqr(lqr, rhs, multipliers=True)
+    for b in range(4):
+        X, U, lam, nus, nuN = dense_kkt(lqr, rhs, b)
+        assert torch.allclose(sol.dx[b], X, atol=1e-9, rtol=0)
+        assert torch.allclose(sol.du[b], U, atol=1e-9, rtol=0)
+        assert torch.allclose(sol.costate[b], lam, atol=1e-9 * (1 + lam.abs().max()), rtol=0)
+        assert torch.allclose(sol.nu[b], nus, atol=1e-9 * (1 + nus.abs().max()), rtol=0)
+        assert torch.allclose(sol.nuN[b], nuN, atol=1e-9 * (1 + nuN.abs().max()), rtol=0)
+
+
+def test_state_only_constraints_satisfied_by_earlier_controls():
+    """nu = 1 and two state rows on a middle stage: they can only be met by earlier controls."""
+    lqr, rhs = random_lqr(B=2, N=8, nx=3, nu=1, seed=2)
+    m = 2
+    C = torch.zeros(2, 8, m, 3, dtype=torch.float64)
+    C[:, 5] = torch.randn(2, m, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    lqr.C, lqr.D = C, torch.zeros(2, 8, m, 1, dtype=torch.float64)
+    lqr.mask = torch.zeros(2, 8, m, dtype=torch.float64)
+    lqr.mask[:, 5] = 1.0
+    rhs.e = torch.zeros(2, 8, m, dtype=torch.float64)
+    rhs.e[:, 5] = torch.tensor([0.3, -0.2], dtype=torch.float64)
+    sol = solve_lqr(lqr, rhs, multipliers=True)
+    residual = (C[:, 5] @ sol.dx[:, 5].unsqueeze(-1)).squeeze(-1) + rhs.e[:, 5]
+    assert residual.abs().max() < 1e-9
+    for b in range(2):
+        X, U, lam, nus, _ = dense_kkt(lqr, rhs, b)
+        assert torch.allclose(sol.dx[b], X, atol=1e-9, rtol=0)
+        assert torch.allclose(sol.nu[b], nus, atol=1e-8 * (1 + nus.abs().max()), rtol=0)
+
+
+def test_new_right_hand_side_reuses_the_factor():
+    lqr, rhs = random_lqr(B=2, N=9, nx=3, nu=2, m=1, mN=1, seed=4)
+    factor = factorize(lqr)
+    _, rhs2 = random_lqr(B=2, N=9, nx=3, nu=2, m=1, mN=1, seed=5)
+    sol = factor.solve(rhs2, multipliers=True)
+    for b in range(2):
+        X, U, lam, _, _ = dense_kkt(lqr, rhs2, b)
+        assert torch.allclose(sol.dx[b], X, atol=1e-9, rtol=0)
+        assert torch.allclose(sol.du[b], U, atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-9), (torch.float32, 1e-4)])
+def test_stationary_gain_matches_scipy_dare(dtype, tol):
+    scipy_linalg = pytest.importorskip("scipy.linalg")
+    g = torch.Generator().manual_seed(7)
+    nx, nu, N = 4, 2, 400
+    A = torch.eye(nx, dtype=torch.float64) + 0.1 * torch.randn(nx, nx, generator=g, dtype=torch.float64)
+    Bm = torch.randn(nx, nu, generator=g, dtype=torch.float64)
+    Q = torch.eye(nx, dtype=torch.float64)
+    R = 0.5 * torch.eye(nu, dtype=torch.float64)
+    P = torch.as_tensor(scipy_linalg.solve_discrete_are(A.numpy(), Bm.numpy(), Q.numpy(), R.numpy()))
+    K_dare = -torch.linalg.solve(R + Bm.T @ P @ Bm, Bm.T @ P @ A)
+    rep = lambda M: M.to(dtype).expand(1, N, *M.shape).contiguous()  # noqa: E731
+    lqr = LQR(A=rep(A), B=rep(Bm), Q=rep(Q), R=rep(R), S=rep(torch.zeros(nu, nx, dtype=torch.float64)),
+              QN=Q.to(dtype).unsqueeze(0))
+    factor = factorize(lqr)
+    assert (factor.K[0, 0].double() - K_dare).abs().max() < tol * (1 + K_dare.abs().max())
+    assert (factor.P[0, 0].double() - P).abs().max() < tol * (1 + P.abs().max())
+
+
+def test_masked_rows_and_non_finite_instances_are_isolated():
+    lqr, rhs = random_lqr(B=3, N=6, nx=3, nu=2, m=1, mN=1, seed=8)
+    ref = solve_lqr(lqr, rhs)
+    lqr.A = lqr.A.clone()
+    lqr.A[1, 2, 0, 0] = float("nan")
+    factor = factorize(lqr)
+    sol = factor.solve(rhs)
+    assert torch.equal(sol.dx[0], ref.dx[0]) and torch.equal(sol.dx[2], ref.dx[2])
+    assert not bool(factor.ok[1])

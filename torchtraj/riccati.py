@@ -1,0 +1,426 @@
+r"""The batched Riccati (LQR) core that every solver and the implicit backward pass share.
+
+It solves, for a batch of B instances at once, the time-varying LQR problem
+
+.. math::
+
+    \min_{\delta x, \delta u}\; \sum_{k=0}^{N-1} \tfrac12 \delta x_k^T Q_k \delta x_k
+        + \delta u_k^T S_k \delta x_k + \tfrac12 \delta u_k^T R_k \delta u_k
+        + q_k^T \delta x_k + r_k^T \delta u_k
+        \;+\; \tfrac12 \delta x_N^T Q_N \delta x_N + q_N^T \delta x_N
+
+    \text{s.t.}\quad \delta x_{k+1} = A_k \delta x_k + B_k \delta u_k + c_k,
+    \quad \delta x_0 = \bar x_0,
+    \quad C_k \delta x_k + D_k \delta u_k + e_k = 0,
+    \quad C_N \delta x_N + e_N = 0,
+
+with cross terms ``S``, affine dynamics terms ``c`` (multiple-shooting defects) and stagewise
+equality constraints whose rows may be switched off per instance by a mask.
+
+Equality constraints are handled by the generalised Riccati recursion with constraint
+back-propagation (Horizon eILQR, papers/horizon-eilqr.md §II-B/C; FATROP, papers/fatrop.md,
+its reference [30]). At stage k the stage rows and the rows propagated from stage k+1,
+
+.. math::  M_x \delta x + M_u \delta u + m = 0,\quad
+           M = \begin{bmatrix} C_k & D_k \\ G_{k+1} A_k & G_{k+1} B_k \end{bmatrix},
+
+are rotated by the SVD ``M_u = U \Sigma V^T``. Directions with a singular value above a relative
+tolerance fix the matching components of ``δu``; the remaining rows involve ``δx`` only and are
+compressed (a second SVD) into at most ``nx`` rows ``G_k δx + g_k = 0`` passed to stage k-1.
+The free control directions ``V_f`` minimise the stage's Q-function:
+
+.. math::  \delta u = K \delta x + k,\quad K = K_c + V_f K_w,\quad
+           K_w = -(V_f^T (Q_{uu} + \rho I) V_f + \Pi_{fixed})^{-1} V_f^T (Q_{ux} + Q_{uu} K_c).
+
+The value function ``V_k(δx) = ½ δxᵀ P_k δx + p_kᵀ δx`` follows by substitution
+(ALTRO eqs. 14-15), and the costate obeys ``λ_k = P_k δx_k + p_k + G_kᵀ η_k`` (Horizon eq. 5a).
+
+The recursion is split into :func:`factorize` (matrices only) and
+:meth:`RiccatiFactor.solve` (right-hand sides only), so a new right-hand side — the adjoint
+system of implicit differentiation, a second-order correction — costs one cheap sweep.
+Multipliers (costates ``λ``, constraint multipliers ``ν``) are recovered by a forward sweep.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+
+def _mT(a: Tensor) -> Tensor:
+    return a.transpose(-1, -2)
+
+
+def _mv(a: Tensor, v: Tensor) -> Tensor:
+    return (a @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def _sym(a: Tensor) -> Tensor:
+    return 0.5 * (a + _mT(a))
+
+
+def default_rank_tolerance(dtype: torch.dtype) -> float:
+    """Relative singular-value threshold that separates satisfiable from back-propagated rows."""
+    return float(torch.finfo(dtype).eps) ** 0.75
+
+
+@dataclass
+class LQR:
+    """Matrices of a batched LQR problem (the right-hand sides live in :class:`LQRVectors`).
+
+    Shapes: ``A (B, N, nx, nx)``, ``B (B, N, nx, nu)``, ``Q (B, N, nx, nx)``, ``R (B, N, nu, nu)``,
+    ``S (B, N, nu, nx)``, ``QN (B, nx, nx)``; optional equality constraints ``C (B, N, m, nx)``,
+    ``D (B, N, m, nu)`` with row mask ``mask (B, N, m)``, and ``CN (B, mN, nx)`` with ``maskN (B, mN)``.
+    """
+
+    A: Tensor
+    B: Tensor
+    Q: Tensor
+    R: Tensor
+    S: Tensor
+    QN: Tensor
+    C: Optional[Tensor] = None
+    D: Optional[Tensor] = None
+    mask: Optional[Tensor] = None
+    CN: Optional[Tensor] = None
+    maskN: Optional[Tensor] = None
+
+    @property
+    def constrained(self) -> bool:
+        return self.C is not None or self.CN is not None
+
+
+@dataclass
+class LQRVectors:
+    """Right-hand sides: ``q (B, N, nx)``, ``r (B, N, nu)``, ``qN (B, nx)``, ``c (B, N, nx)``,
+    ``x0 (B, nx)``, and for constrained problems ``e (B, N, m)``, ``eN (B, mN)``."""
+
+    q: Tensor
+    r: Tensor
+    qN: Tensor
+    c: Tensor
+    x0: Tensor
+    e: Optional[Tensor] = None
+    eN: Optional[Tensor] = None
+
+
+@dataclass
+class LQRSolution:
+    """Solution of one right-hand side.
+
+    ``dx (B, N+1, nx)``, ``du (B, N, nu)``, feedforward ``k (B, N, nu)``, value-function gradients
+    ``p (B, N+1, nx)``, expected change of the quadratic model along the step,
+    ``dV = (dV1, dV2)`` with ``ΔV(α) = α dV1 + α² dV2`` (ALTRO eq. 16, zero defects), and — when
+    asked for — costates ``costate (B, N+1, nx)`` (``costate[:, 0]`` is the multiplier of the
+    initial condition), stage multipliers ``nu (B, N, m)`` and terminal multipliers ``nuN (B, mN)``.
+    """
+
+    dx: Tensor
+    du: Tensor
+    k: Tensor
+    p: Tensor
+    dV1: Tensor
+    dV2: Tensor
+    costate: Optional[Tensor] = None
+    nu: Optional[Tensor] = None
+    nuN: Optional[Tensor] = None
+
+
+@dataclass
+class _Constraint:
+    """Per-stage data of the constraint back-propagation (all batched over B)."""
+
+    U: Tensor  # (B, mt, mt) left singular vectors of M_u
+    inv_s: Tensor  # (B, nu) 1/σ on fixed directions, 0 elsewhere
+    V: Tensor  # (B, nu, nu) right singular vectors of M_u
+    rest: Tensor  # (B, mt) rows left for earlier stages
+    U2: Tensor  # (B, mt, nx) left singular vectors of the propagated rows (padded)
+    gmask: Tensor  # (B, nx) propagated rows that are kept
+    G: Tensor  # (B, nx, nx) propagated constraint matrix on δx_k
+
+
+@dataclass
+class RiccatiFactor:
+    """Matrix part of the recursion, reusable for any right-hand side.
+
+    ``K (B, N, nu, nx)`` feedback gains, ``P (B, N+1, nx, nx)`` value-function Hessians,
+    ``ok (B,)`` whether every stage's reduced Hessian was positive definite.
+    """
+
+    lqr: LQR
+    K: Tensor
+    P: Tensor
+    ok: Tensor
+    Quu: Tensor
+    Qux: Tensor
+    chol: Tensor
+    free: Optional[Tensor]  # (B, N, nu, nu) V_f
+    stage: Optional[list]  # list of _Constraint per stage k
+    terminal: Optional[_Constraint]
+
+    def solve(self, rhs: LQRVectors, multipliers: bool = False) -> LQRSolution:
+        """Solve the LQR problem for the right-hand side ``rhs`` (one backward and one forward sweep)."""
+        lqr = self.lqr
+        Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
+        constrained = lqr.constrained
+        p_next = rhs.qN
+        g_next = None
+        ks, ps = [None] * N, [None] * (N + 1)
+        gs = [None] * (N + 1)
+        Qus = [None] * N
+        ps[N] = p_next
+        if constrained:
+            g_next = self._terminal_rhs(rhs)
+            gs[N] = g_next
+        dV1 = rhs.qN.new_zeros(Bsz)
+        dV2 = rhs.qN.new_zeros(Bsz)
+        for t in range(N - 1, -1, -1):
+            A, Bu, P_next = lqr.A[:, t], lqr.B[:, t], self.P[:, t + 1]
+            c = rhs.c[:, t]
+            v = _mv(P_next, c) + p_next
+            Qx = rhs.q[:, t] + _mv(_mT(A), v)
+            Qu = rhs.r[:, t] + _mv(_mT(Bu), v)
+            Quu, Qux, K = self.Quu[:, t], self.Qux[:, t], self.K[:, t]
+            if constrained:
+                con = self.stage[t]
+                e = rhs.e[:, t] * lqr.mask[:, t] if rhs.e is not None else Qu.new_zeros(Bsz, 0)
+                m0 = torch.cat([e, _mv(self.stage[t + 1].G if t + 1 < N else self.terminal.G, c) + g_next], -1)
+                t0 = _mv(_mT(con.U), m0)
+                top = _pad_rows(t0.unsqueeze(-1), nu).squeeze(-1)
+                kc = -_mv(con.V, con.inv_s * top)
+                Vf = self.free[:, t]
+                grad = _mv(Quu, kc) + Qu
+                kw = -torch.cholesky_solve(_mv(_mT(Vf), grad).unsqueeze(-1), self.chol[:, t]).squeeze(-1)
+                k = kc + _mv(Vf, kw)
+                g_next = _mv(_mT(con.U2), con.rest * t0) * con.gmask
+                gs[t] = g_next
+            else:
+                k = -torch.cholesky_solve(Qu.unsqueeze(-1), self.chol[:, t]).squeeze(-1)
+            Quuk = _mv(Quu, k)
+            p_next = Qx + _mv(_mT(K), Quuk + Qu) + _mv(_mT(Qux), k)
+            dV1 = dV1 + (k * Qu).sum(-1)
+            dV2 = dV2 + 0.5 * (k * Quuk).sum(-1)
+            ks[t], ps[t], Qus[t] = k, p_next, Qu
+        k_all = torch.stack(ks, 1)
+        p_all = torch.stack(ps, 1)
+        dx, du = self._forward(rhs, k_all)
+        out = LQRSolution(dx=dx, du=du, k=k_all, p=p_all, dV1=dV1, dV2=dV2)
+        if multipliers:
+            self._multipliers(rhs, out, Qus)
+        return out
+
+    # ------------------------------------------------------------------ helpers
+    def _terminal_rhs(self, rhs: LQRVectors) -> Tensor:
+        con = self.terminal
+        eN = rhs.eN * self.lqr.maskN if rhs.eN is not None else rhs.qN.new_zeros(rhs.qN.shape[0], 0)
+        return _mv(_mT(con.U2), eN) * con.gmask
+
+    def _forward(self, rhs: LQRVectors, k: Tensor):
+        lqr = self.lqr
+        N = lqr.A.shape[1]
+        x = rhs.x0
+        xs, us = [x], []
+        for t in range(N):
+            u = _mv(self.K[:, t], x) + k[:, t]
+            x = _mv(lqr.A[:, t], x) + _mv(lqr.B[:, t], u) + rhs.c[:, t]
+            xs.append(x)
+            us.append(u)
+        return torch.stack(xs, 1), torch.stack(us, 1)
+
+    def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qus: list) -> None:
+        """Recover ν (forward, from the u-stationarity of each stage) and λ (backward)."""
+        lqr = self.lqr
+        Bsz, N, nx = lqr.A.shape[0], lqr.A.shape[1], lqr.A.shape[-1]
+        dx, du = out.dx, out.du
+        nus = [None] * N
+        nuN = None
+        if lqr.constrained:
+            m = lqr.C.shape[2] if lqr.C is not None else 0
+            eta = dx.new_zeros(Bsz, nx)  # multiplier of G_0 rows: absorbed by the initial condition
+            for t in range(N):
+                con = self.stage[t]
+                grad_u = _mv(self.Quu[:, t], du[:, t]) + _mv(self.Qux[:, t], dx[:, t]) + Qus[t]
+                fixed = -con.inv_s * _mv(_mT(con.V), grad_u)  # (B, nu)
+                mt = con.U.shape[-1]
+                nu_hat = _pad_rows(fixed.unsqueeze(-1), mt).squeeze(-1) + _mv(con.U2, eta * con.gmask)
+                nu_tilde = _mv(con.U, nu_hat)
+                nus[t] = nu_tilde[:, :m] * lqr.mask[:, t] if m else nu_tilde[:, :0]
+                eta = nu_tilde[:, m:]
+            con = self.terminal
+            nuN = _mv(con.U2, eta * con.gmask)
+            nuN = nuN * lqr.maskN if lqr.maskN is not None else nuN
+        lam = _mv(lqr.QN, dx[:, N]) + rhs.qN
+        if nuN is not None and lqr.CN is not None:
+            lam = lam + _mv(_mT(lqr.CN * lqr.maskN.unsqueeze(-1)), nuN)
+        lams = [None] * (N + 1)
+        lams[N] = lam
+        for t in range(N - 1, -1, -1):
+            lam = (
+                _mv(lqr.Q[:, t], dx[:, t]) + _mv(_mT(lqr.S[:, t]), du[:, t]) + rhs.q[:, t]
+                + _mv(_mT(lqr.A[:, t]), lam)
+            )
+            if lqr.C is not None and nus[t] is not None:
+                lam = lam + _mv(_mT(lqr.C[:, t] * lqr.mask[:, t].unsqueeze(-1)), nus[t])
+            lams[t] = lam
+        out.costate = torch.stack(lams, 1)
+        if lqr.C is not None:
+            out.nu = torch.stack(nus, 1)
+        if lqr.CN is not None:
+            out.nuN = nuN
+
+
+def _pad_rows(a: Tensor, rows: int) -> Tensor:
+    """Truncate or zero-pad the second-to-last dimension of ``a`` to ``rows``."""
+    n = a.shape[-2]
+    if n >= rows:
+        return a[..., :rows, :]
+    pad = a.new_zeros(*a.shape[:-2], rows - n, a.shape[-1])
+    return torch.cat([a, pad], -2)
+
+
+def _pad_cols(a: Tensor, cols: int) -> Tensor:
+    return _mT(_pad_rows(_mT(a), cols))
+
+
+def _compress(R: Tensor, nx: int, tol: float, scale: Tensor):
+    """Rows ``R (B, mt, nx)`` acting on δx compressed to ``G (B, nx, nx)`` by an SVD.
+
+    Rows with a singular value below ``tol * scale`` (``scale (B,)``: the magnitude of the
+    constraint rows before elimination) are round-off and dropped.
+    Returns ``(U2 (B, mt, nx), gmask (B, nx), G)`` with ``G = diag(σ) V2ᵀ`` on kept rows."""
+    if R.shape[-2] == 0:  # no rows: nothing to propagate (a shape, not a value, decides)
+        zeros = R.new_zeros(R.shape[0], nx)
+        return R.new_zeros(R.shape[0], 0, nx), zeros, R.new_zeros(R.shape[0], nx, nx)
+    U2, s2, V2h = torch.linalg.svd(R, full_matrices=True)
+    r = s2.shape[-1]
+    s_pad = _pad_rows(s2.unsqueeze(-1), nx).squeeze(-1)
+    gmask = (s_pad > tol * scale.unsqueeze(-1)).to(R.dtype)
+    G = _pad_rows(s2.unsqueeze(-1) * V2h[..., :r, :], nx) * gmask.unsqueeze(-1)
+    return _pad_cols(U2, nx), gmask, G
+
+
+def _sanitize(lqr: LQR):
+    """Replace the matrices of instances with non-finite entries by a benign problem.
+
+    LAPACK's SVD may fail for a whole batch when one instance holds a NaN; swapping such an
+    instance for ``A = 0, B = 0, Q = R = I`` keeps the others' answers unchanged, and the
+    returned mask ``finite (B,)`` marks it as failed."""
+    Bsz = lqr.A.shape[0]
+    finite = torch.ones(Bsz, dtype=torch.bool, device=lqr.A.device)
+    for name in ("A", "B", "Q", "R", "S", "QN", "C", "D", "CN"):
+        value = getattr(lqr, name)
+        if value is not None:
+            finite = finite & torch.isfinite(value.reshape(Bsz, -1)).all(-1)
+
+    def clean(value, benign):
+        if value is None:
+            return None
+        keep = finite.reshape(Bsz, *([1] * (value.dim() - 1)))
+        return torch.where(keep, value, benign(value))
+
+    zero = torch.zeros_like
+
+    def eye(v):
+        return torch.eye(v.shape[-1], dtype=v.dtype, device=v.device).expand_as(v)
+
+    cleaned = LQR(
+        A=clean(lqr.A, zero), B=clean(lqr.B, zero), Q=clean(lqr.Q, eye), R=clean(lqr.R, eye),
+        S=clean(lqr.S, zero), QN=clean(lqr.QN, eye), C=clean(lqr.C, zero), D=clean(lqr.D, zero),
+        mask=clean(lqr.mask, zero), CN=clean(lqr.CN, zero), maskN=clean(lqr.maskN, zero),
+    )
+    return cleaned, finite
+
+
+def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance: Optional[float] = None) -> RiccatiFactor:
+    """Backward Riccati sweep over the matrices of ``lqr``.
+
+    Args:
+        lqr: the batched LQR matrices.
+        regularization: ``ρ (B,)`` added to ``Q_uu`` (ALTRO eq. 13) for the gains; the value function
+            uses the unregularised ``Q_uu``.
+        rank_tolerance: relative singular-value threshold for constraint rows; default
+            :func:`default_rank_tolerance`.
+    """
+    lqr, finite = _sanitize(lqr)
+    Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
+    dtype = lqr.A.dtype
+    tol = default_rank_tolerance(dtype) if rank_tolerance is None else rank_tolerance
+    if regularization is None:
+        regularization = lqr.A.new_zeros(Bsz)
+    eye_u = torch.eye(nu, dtype=dtype, device=lqr.A.device)
+    rho = regularization.reshape(Bsz, 1, 1) * eye_u
+    constrained = lqr.constrained
+    P = lqr.QN
+    Ps, Ks, Quus, Quxs, chols = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N
+    frees = [None] * N
+    stage = [None] * N if constrained else None
+    terminal = None
+    Ps[N] = P
+    ok = finite
+    G_next = None
+    if constrained:
+        CN = lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.CN is not None else lqr.A.new_zeros(Bsz, 0, nx)
+        scale = CN.abs().amax(dim=(-1, -2)) if CN.shape[1] else CN.new_zeros(Bsz)
+        U2, gmask, G_next = _compress(CN, nx, tol, scale.clamp_min(torch.finfo(dtype).tiny))
+        terminal = _Constraint(U=None, inv_s=None, V=None, rest=None, U2=U2, gmask=gmask, G=G_next)
+    for t in range(N - 1, -1, -1):
+        A, Bu = lqr.A[:, t], lqr.B[:, t]
+        PA, PB = P @ A, P @ Bu
+        Qxx = lqr.Q[:, t] + _mT(A) @ PA
+        Quu = _sym(lqr.R[:, t] + _mT(Bu) @ PB)
+        Qux = lqr.S[:, t] + _mT(Bu) @ PA
+        if constrained:
+            C = lqr.C[:, t] * lqr.mask[:, t].unsqueeze(-1) if lqr.C is not None else A.new_zeros(Bsz, 0, nx)
+            D = lqr.D[:, t] * lqr.mask[:, t].unsqueeze(-1) if lqr.D is not None else A.new_zeros(Bsz, 0, nu)
+            Mx = torch.cat([C, G_next @ A], -2)
+            Mu = torch.cat([D, G_next @ Bu], -2)
+            mt = Mx.shape[-2]
+            U, s, Vh = torch.linalg.svd(Mu, full_matrices=True)
+            scale = torch.maximum(Mx.abs().amax(dim=(-1, -2)), Mu.abs().amax(dim=(-1, -2)))
+            scale = scale.clamp_min(torch.finfo(dtype).tiny)
+            s_pad = _pad_rows(s.unsqueeze(-1), nu).squeeze(-1)
+            fixed = s_pad > tol * scale.unsqueeze(-1)
+            inv_s = torch.where(fixed, 1.0 / torch.where(fixed, s_pad, torch.ones_like(s_pad)), torch.zeros_like(s_pad))
+            V = _mT(Vh)
+            T = _mT(U) @ Mx  # (B, mt, nx)
+            Kc = -V @ (inv_s.unsqueeze(-1) * _pad_rows(T, nu))
+            rest = torch.ones(Bsz, mt, dtype=dtype, device=A.device)
+            rest[:, : min(mt, nu)] = (~fixed[:, : min(mt, nu)]).to(dtype)
+            U2, gmask, G = _compress(T * rest.unsqueeze(-1), nx, tol, scale)
+            Vf = V * (~fixed).to(dtype).unsqueeze(-2)
+            H = _mT(Vf) @ (Quu + rho) @ Vf + torch.diag_embed(fixed.to(dtype))
+            L, info = torch.linalg.cholesky_ex(_sym(H))
+            L = torch.where((info == 0).reshape(Bsz, 1, 1), L, torch.eye(nu, dtype=dtype, device=A.device))
+            Kw = -torch.cholesky_solve(_mT(Vf) @ (Qux + Quu @ Kc), L)
+            K = Kc + Vf @ Kw
+            stage[t] = _Constraint(U=U, inv_s=inv_s, V=V, rest=rest, U2=U2, gmask=gmask, G=G)
+            frees[t] = Vf
+            G_next = G
+        else:
+            L, info = torch.linalg.cholesky_ex(Quu + rho)
+            L = torch.where((info == 0).reshape(Bsz, 1, 1), L, torch.eye(nu, dtype=dtype, device=A.device))
+            K = -torch.cholesky_solve(Qux, L)
+        ok = ok & (info == 0)
+        KtQuu = _mT(K) @ Quu
+        P = _sym(Qxx + KtQuu @ K + _mT(K) @ Qux + _mT(Qux) @ K)
+        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t] = P, K, Quu, Qux, L
+    return RiccatiFactor(
+        lqr=lqr,
+        K=torch.stack(Ks, 1),
+        P=torch.stack(Ps, 1),
+        ok=ok,
+        Quu=torch.stack(Quus, 1),
+        Qux=torch.stack(Quxs, 1),
+        chol=torch.stack(chols, 1),
+        free=torch.stack(frees, 1) if constrained else None,
+        stage=stage,
+        terminal=terminal,
+    )
+
+
+def solve_lqr(lqr: LQR, rhs: LQRVectors, regularization: Optional[Tensor] = None, multipliers: bool = False) -> LQRSolution:
+    """Factorise and solve in one call (see :func:`factorize` and :meth:`RiccatiFactor.solve`)."""
+    return factorize(lqr, regularization).solve(rhs, multipliers=multipliers)

@@ -1,0 +1,95 @@
+"""The one result type every solver returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from .status import Status
+
+
+@dataclass
+class History:
+    """Per-iteration record of a batched solve; every field is ``(B, T)`` for T iterations.
+
+    Entries after an instance stopped repeat its final values (its status says why it stopped).
+    """
+
+    cost: Tensor
+    max_violation: Tensor
+    step_size: Tensor
+    regularization: Tensor
+    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_rows(cls, rows: list) -> "History":
+        """Stack a list of per-iteration dicts of ``(B,)`` tensors."""
+        if not rows:
+            empty = torch.zeros(0, 0)
+            return cls(empty, empty, empty, empty)
+        keys = rows[0].keys()
+        stacked = {k: torch.stack([r[k] for r in rows], dim=1) for k in keys}
+        base = {k: stacked.pop(k) for k in ("cost", "max_violation", "step_size", "regularization")}
+        return cls(**base, extra=stacked)
+
+    def __len__(self) -> int:
+        return int(self.cost.shape[-1])
+
+
+@dataclass
+class Solution:
+    """Result of ``tt.solve`` for a batch of B instances.
+
+    Attributes:
+        X: states ``(B, N+1, nx)``.
+        U: controls ``(B, N, nu)``.
+        K: feedback gains ``(B, N, nu, nx)`` of the last backward pass (``u = U + K (x - X)``).
+        cost: objective ``(B,)`` at ``(X, U)``.
+        max_violation: largest constraint violation ``(B,)`` (dynamics defects included).
+        status: ``(B,)`` integer codes of :class:`~torchtraj.Status`.
+        iterations: ``(B,)`` iterations each instance took.
+        history: per-iteration :class:`History`.
+        costate: multipliers of the dynamics ``(B, N+1, nx)`` where the method computes them.
+        multipliers: multipliers of each constraint block, keyed by block name.
+        penalties: final penalty weights of each block (augmented-Lagrangian methods).
+        method: the method's name.
+    """
+
+    X: Tensor
+    U: Tensor
+    K: Tensor
+    cost: Tensor
+    max_violation: Tensor
+    status: Tensor
+    iterations: Tensor
+    history: History
+    costate: Optional[Tensor] = None
+    multipliers: dict = field(default_factory=dict)
+    penalties: dict = field(default_factory=dict)
+    method: str = ""
+
+    @property
+    def converged(self) -> Tensor:
+        """Boolean mask ``(B,)`` of the instances that converged."""
+        return self.status == Status.CONVERGED
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.X.shape[0])
+
+    def summary(self) -> str:
+        """A few lines a person can read: status counts, cost and violation ranges."""
+        counts = ", ".join(f"{k}: {v}" for k, v in Status.counts(self.status).items())
+        finite = torch.isfinite(self.cost)
+        cost = self.cost[finite]
+        lines = [
+            f"{self.method} on {self.batch_size} instance(s): {counts}",
+            f"  iterations {int(self.iterations.min())}..{int(self.iterations.max())}",
+        ]
+        if cost.numel():
+            lines.append(f"  cost {float(cost.min()):.8g}..{float(cost.max()):.8g}")
+            lines.append(f"  max violation {float(self.max_violation[finite].max()):.3g}")
+        return "\n".join(lines)
