@@ -57,9 +57,9 @@ class Model:
     nx: int
     nu: int
     dynamics: ContinuousDynamics
-    params: dict
-    state_names: tuple
-    control_names: tuple
+    params: dict[str, Tensor]
+    state_names: tuple[str, ...]
+    control_names: tuple[str, ...]
 
     def discrete(self, dt: Union[float, str], integrator: str = "rk4") -> StepFn:
         """The discrete step ``(x, u, p) -> x_next`` over ``dt`` (a float or a parameter name)."""
@@ -68,7 +68,7 @@ class Model:
         return _INTEGRATORS[integrator](self.dynamics, dt)
 
 
-def _params(**values: float) -> dict:
+def _params(**values: float) -> dict[str, Tensor]:
     return {k: torch.tensor(float(v), dtype=torch.float64) for k, v in values.items()}
 
 
@@ -212,7 +212,7 @@ def acrobot(
 
 
 # ------------------------------------------------------------------------------ registry
-_REGISTRY: dict = {
+_REGISTRY: dict[str, Callable[..., Model]] = {
     "double_integrator": double_integrator,
     "pendulum": pendulum,
     "cartpole": cartpole,
@@ -222,7 +222,7 @@ _REGISTRY: dict = {
 }
 
 
-def names() -> list:
+def names() -> list[str]:
     """Names of the registered models."""
     return list(_REGISTRY)
 

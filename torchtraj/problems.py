@@ -45,7 +45,7 @@ class ProblemSpec:
         model: name of the model in :mod:`torchtraj.models` (default physical parameters).
         N: number of intervals; ``tf``: horizon length in seconds (``dt = tf / N``).
         x0, goal: ``(nx,)`` initial and goal state.
-        Q, R, Qf: ``(nx, nx)``, ``(nu, nu)``, ``(nx, nx)`` cost weights.
+        Q, R, Qf: ``(nx, nx)``, ``(nu, nu)``, ``(nx, nx)`` cost weights as used (Q, R include PROBLEMS.md's dt).
         u_lower, u_upper: ``(nu,)`` control bounds (±inf where unbounded).
         x_lower, x_upper: ``(nx,)`` state bounds on knots 1..N-1 (±inf where unbounded).
         circles: ``(n, 3)`` circle obstacles ``(cx, cy, r)`` on knots 1..N-1 (n may be 0).
@@ -53,6 +53,8 @@ class ProblemSpec:
         u_init: ``(nu,)`` constant initial control guess.
         X_init: optional ``(N+1, nx)`` initial state guess (else the rollout of ``u_init``).
         spread: optional ``(nx,)`` half-width of the batch of initial states (:func:`sample_x0`).
+
+    Properties ``nx``, ``nu`` and ``dt = tf / N`` follow from these.
     """
 
     name: str
@@ -144,7 +146,7 @@ def _car_escape_X_init(N: int) -> np.ndarray:
     return np.stack([np.interp(knots, at, waypoints[:, i]) for i in range(waypoints.shape[1])], 1)
 
 
-def _build_specs() -> dict:
+def _build_specs() -> dict[str, ProblemSpec]:
     pi, eye = np.pi, np.eye
     specs = [
         _spec("double_integrator", "double_integrator", 20, 2.0, [0.0, 0.0], [1.0, 0.0],
@@ -186,7 +188,7 @@ def _build_specs() -> dict:
 _SPECS = _build_specs()
 
 
-def names() -> list:
+def names() -> list[str]:
     """Names of all benchmark problems, in PROBLEMS.md's order, then the two unconstrained twins."""
     return list(_SPECS)
 

@@ -93,7 +93,7 @@ def acrobot(x, u, p: Mapping[str, float]):
     return ca.vertcat(dq1, dq2, qddot)
 
 
-_REGISTRY: dict = {
+_REGISTRY: dict[str, CasadiDynamics] = {
     "double_integrator": double_integrator,
     "pendulum": pendulum,
     "cartpole": cartpole,
@@ -110,7 +110,7 @@ def get(name: str) -> CasadiDynamics:
     return _REGISTRY[name]
 
 
-def default_params(name: str) -> dict:
+def default_params(name: str) -> dict[str, float]:
     """The torch model's default physical parameters as floats."""
     return {k: float(v) for k, v in models.get(name).params.items()}
 
