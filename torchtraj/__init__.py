@@ -1,7 +1,20 @@
 """torchtraj: batched, differentiable trajectory optimisation in PyTorch."""
 
+from .ilqr import ILQROptions
 from .integrators import euler, rk4
 from .problem import Problem
+from .solution import History, Solution
+from .solve import Method, solve
+from .status import Status
 
-__all__ = ["Problem", "euler", "rk4"]
+__all__ = ["History", "ILQROptions", "Method", "Problem", "Solution", "Status", "euler", "rk4", "solve"]
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # the model zoo and the problem set are imported on first use
+    if name in ("models", "problems"):
+        import importlib
+
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'torchtraj' has no attribute {name!r}")

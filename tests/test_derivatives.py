@@ -1,0 +1,110 @@
+"""Batched torch.func derivatives against central finite differences."""
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj.constraints import Constraints
+from torchtraj.derivatives import (
+    linearize_dynamics,
+    problem_lagrangian_hessian,
+    quadratize_cost,
+    stage_jacobian,
+    terminal_jacobian,
+)
+
+EPS = 1e-6
+
+
+def _random_trajectory(problem, B, seed):
+    g = torch.Generator().manual_seed(seed)
+    X = problem.x0 + 0.5 * torch.randn(B, problem.N + 1, problem.nx, generator=g, dtype=torch.float64)
+    U = problem.u_init + 0.5 * torch.randn(B, problem.N, problem.nu, generator=g, dtype=torch.float64)
+    return X, U
+
+
+def _fd_stage(fn, x, u, p):
+    """Central differences of fn(x, u, p) with respect to z = (x, u): (m, nz)."""
+    z = torch.cat([x, u])
+    nx = x.shape[0]
+    cols = []
+    for i in range(z.shape[0]):
+        e = torch.zeros_like(z)
+        e[i] = EPS
+        plus, minus = fn((z + e)[:nx], (z + e)[nx:], p), fn((z - e)[:nx], (z - e)[nx:], p)
+        cols.append((plus - minus) / (2 * EPS))
+    return torch.stack(cols, -1)
+
+
+@pytest.mark.parametrize("name", ["cartpole", "car_3obs", "quadrotor2d"])
+def test_dynamics_and_cost_derivatives_match_finite_differences(name):
+    prob = tt.problems.get(name)
+    X, U = _random_trajectory(prob, B=2, seed=0)
+    P = prob.batched_params(2)
+    p = prob.params
+    f, A, Bm = linearize_dynamics(prob.dynamics, X, U, P)
+    l, lz, lzz, lN, lNx, lNxx = quadratize_cost(prob.stage_cost, prob.terminal_cost, X, U, P)
+    for b, k in [(0, 0), (1, prob.N // 2), (1, prob.N - 1)]:
+        x, u = X[b, k], U[b, k]
+        assert torch.allclose(f[b, k], prob.dynamics(x, u, p), atol=1e-14)
+        jac = _fd_stage(prob.dynamics, x, u, p)
+        assert torch.allclose(torch.cat([A[b, k], Bm[b, k]], -1), jac, atol=1e-7, rtol=1e-6)
+        grad = _fd_stage(lambda x_, u_, p_: prob.stage_cost(x_, u_, p_).reshape(1), x, u, p)[0]
+        assert torch.allclose(lz[b, k], grad, atol=1e-7, rtol=1e-6)
+        hess = _fd_stage(lambda x_, u_, p_: torch.func.jacrev(
+            lambda z: prob.stage_cost(z[:prob.nx], z[prob.nx:], p_))(torch.cat([x_, u_])), x, u, p)
+        assert torch.allclose(lzz[b, k], hess, atol=1e-6, rtol=1e-6)
+    xN = X[1, -1]
+    gN = _fd_stage(lambda x_, u_, p_: prob.terminal_cost(x_, p_).reshape(1), xN, xN.new_zeros(0), p)[0]
+    assert torch.allclose(lNx[1], gN, atol=1e-7, rtol=1e-6)
+
+
+def test_constraint_jacobians_match_finite_differences():
+    prob = tt.problems.get("car_3obs")
+    cons = Constraints(prob)
+    X, U = _random_trajectory(prob, B=2, seed=1)
+    P = prob.batched_params(2)
+    c, cz = stage_jacobian(cons.stage_ineq, X, U, P)
+    assert c.shape == (2, prob.N, cons.mi) and cz.shape == (2, prob.N, cons.mi, prob.nx + prob.nu)
+    x, u = X[1, 7], U[1, 7]
+    assert torch.allclose(cz[1, 7], _fd_stage(cons.stage_ineq, x, u, prob.params), atol=1e-7, rtol=1e-6)
+    cN, cNx = terminal_jacobian(cons.terminal_eq, X[:, -1], P)
+    fd = _fd_stage(lambda x_, u_, p_: cons.terminal_eq(x_, p_), X[0, -1], X.new_zeros(0), prob.params)
+    assert torch.allclose(cNx[0], fd, atol=1e-7)
+
+
+def test_lagrangian_hessian_matches_finite_differences():
+    prob = tt.problems.get("car_3obs")
+    cons = Constraints(prob)
+    B, N = 2, prob.N
+    X, U = _random_trajectory(prob, B=B, seed=2)
+    P = prob.batched_params(B)
+    g = torch.Generator().manual_seed(3)
+    lam = torch.randn(B, N + 1, prob.nx, generator=g, dtype=torch.float64)
+    mu = torch.rand(B, N, cons.mi, generator=g, dtype=torch.float64)
+    nuN = torch.randn(B, cons.meN, generator=g, dtype=torch.float64)
+    H, HN = problem_lagrangian_hessian(prob, cons, X, U, P, lam, mu=mu, nuN=nuN)
+    b, k = 1, 11
+    p = prob.params
+    nx = prob.nx
+
+    def grad_L(x, u, p_):
+        def L(z):
+            xx, uu = z[:nx], z[nx:]
+            return (prob.stage_cost(xx, uu, p_) + (lam[b, k + 1] * prob.dynamics(xx, uu, p_)).sum()
+                    + (mu[b, k] * cons.ineq_knot_mask[k] * cons.stage_ineq(xx, uu, p_)).sum())
+        return torch.func.grad(L)(torch.cat([x, u]))
+
+    fd = _fd_stage(grad_L, X[b, k], U[b, k], p)
+    assert torch.allclose(H[b, k], fd, atol=1e-6, rtol=1e-6)
+    assert torch.allclose(HN[0], torch.zeros_like(HN[0]) + torch.func.hessian(lambda x: prob.terminal_cost(x, p))(X[0, -1]),
+                          atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_derivatives_keep_dtype_and_batch_shapes(dtype):
+    prob = tt.problems.get("pendulum").to(dtype)
+    X, U = _random_trajectory(prob.to(torch.float64), B=3, seed=4)
+    X, U = X.to(dtype), U.to(dtype)
+    f, A, Bm = linearize_dynamics(prob.dynamics, X, U, prob.batched_params(3))
+    assert A.dtype == dtype and A.shape == (3, prob.N, 2, 2) and Bm.shape == (3, prob.N, 2, 1)

@@ -1,0 +1,133 @@
+"""The constraints of a problem gathered into stage and terminal blocks.
+
+Every solver sees the constraints of a :class:`~torchtraj.Problem` in one layout:
+
+* stage equalities   ``h_k(x, u) = 0``  (``stage_eq``),                         k = 0..N-1
+* stage inequalities ``g_k(x, u) <= 0`` stacked from the blocks
+  ``stage_ineq``, ``u_upper`` (u - u_max), ``u_lower`` (u_min - u), ``state_ineq``,
+  ``x_upper`` (x - x_max), ``x_lower`` (x_min - x), only the finite bounds;
+  the state blocks are switched off at knot 0 by a row mask (x_0 is fixed),
+* terminal equalities ``h_N(x) = 0`` and inequalities ``g_N(x) <= 0``.
+
+:class:`Constraints` records which rows belong to which named block, so solutions can
+report multipliers per block.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .batching import map_stage, map_state
+from .problem import Problem
+
+STAGE_INEQ_BLOCKS = ("stage_ineq", "u_upper", "u_lower", "state_ineq", "x_upper", "x_lower")
+STATE_BLOCKS = ("state_ineq", "x_upper", "x_lower")
+
+
+@dataclass
+class ConstraintValues:
+    """Constraint values at a trajectory: ``eq (B, N, me)``, ``ineq (B, N, mi)``,
+    ``eqN (B, meN)``, ``ineqN (B, miN)``; masked-off inequality rows hold ``-inf``."""
+
+    eq: Tensor
+    ineq: Tensor
+    eqN: Tensor
+    ineqN: Tensor
+
+    def max_violation(self) -> Tensor:
+        """Largest violation ``(B,)``: ``|h|`` for equalities, ``max(g, 0)`` for inequalities."""
+        B = self.eq.shape[0]
+        parts = [self.eq.abs().reshape(B, -1), self.ineq.clamp_min(0).reshape(B, -1),
+                 self.eqN.abs().reshape(B, -1), self.ineqN.clamp_min(0).reshape(B, -1)]
+        return torch.cat(parts, -1).amax(-1, keepdim=False) if sum(p.shape[1] for p in parts) else self.eq.new_zeros(B)
+
+
+class Constraints:
+    """Stage and terminal constraint functions of ``problem`` in the solver layout."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        sizes = problem.constraint_sizes()
+        self.u_upper_idx = self._finite(problem.u_upper)
+        self.u_lower_idx = self._finite(problem.u_lower)
+        self.x_upper_idx = self._finite(problem.x_upper)
+        self.x_lower_idx = self._finite(problem.x_lower)
+        counts = {
+            "stage_ineq": sizes["stage_ineq"],
+            "u_upper": len(self.u_upper_idx), "u_lower": len(self.u_lower_idx),
+            "state_ineq": sizes["state_ineq"],
+            "x_upper": len(self.x_upper_idx), "x_lower": len(self.x_lower_idx),
+        }
+        self.ineq_blocks = {}
+        start = 0
+        for name in STAGE_INEQ_BLOCKS:
+            self.ineq_blocks[name] = slice(start, start + counts[name])
+            start += counts[name]
+        self.me, self.mi = sizes["stage_eq"], start
+        self.meN, self.miN = sizes["terminal_eq"], sizes["terminal_ineq"]
+        knot_mask = torch.ones(problem.N, self.mi, dtype=problem.dtype, device=problem.device)
+        for name in STATE_BLOCKS:
+            knot_mask[0, self.ineq_blocks[name]] = 0.0
+        #: ``(N, mi)``: 1 where a stage inequality row applies at knot k.
+        self.ineq_knot_mask = knot_mask
+
+    @staticmethod
+    def _finite(bound):
+        if bound is None:
+            return []
+        return [i for i, v in enumerate(bound.tolist()) if abs(v) != float("inf")]
+
+    @property
+    def empty(self) -> bool:
+        return self.me + self.mi + self.meN + self.miN == 0
+
+    # per-instance functions (vmapped and differentiated by the solvers)
+    def stage_eq(self, x: Tensor, u: Tensor, p) -> Tensor:
+        if self.problem.stage_eq is None:
+            return x.new_zeros(0)
+        return self.problem.stage_eq(x, u, p)
+
+    def stage_ineq(self, x: Tensor, u: Tensor, p) -> Tensor:
+        prob = self.problem
+        parts = []
+        if prob.stage_ineq is not None:
+            parts.append(prob.stage_ineq(x, u, p))
+        if self.u_upper_idx:
+            parts.append(u[self.u_upper_idx] - prob.u_upper[self.u_upper_idx])
+        if self.u_lower_idx:
+            parts.append(prob.u_lower[self.u_lower_idx] - u[self.u_lower_idx])
+        if prob.state_ineq is not None:
+            parts.append(prob.state_ineq(x, p))
+        if self.x_upper_idx:
+            parts.append(x[self.x_upper_idx] - prob.x_upper[self.x_upper_idx])
+        if self.x_lower_idx:
+            parts.append(prob.x_lower[self.x_lower_idx] - x[self.x_lower_idx])
+        return torch.cat(parts) if parts else x.new_zeros(0)
+
+    def terminal_eq(self, x: Tensor, p) -> Tensor:
+        return x.new_zeros(0) if self.problem.terminal_eq is None else self.problem.terminal_eq(x, p)
+
+    def terminal_ineq(self, x: Tensor, p) -> Tensor:
+        return x.new_zeros(0) if self.problem.terminal_ineq is None else self.problem.terminal_ineq(x, p)
+
+    # batched evaluation
+    def evaluate(self, X: Tensor, U: Tensor, params) -> ConstraintValues:
+        """All constraint values at ``X (B, N+1, nx)``, ``U (B, N, nu)``."""
+        B, N = U.shape[0], U.shape[1]
+        Xs = X[:, :-1]
+        eq = map_stage(self.stage_eq, Xs, U, params) if self.me else X.new_zeros(B, N, 0)
+        if self.mi:
+            ineq = map_stage(self.stage_ineq, Xs, U, params)
+            ineq = torch.where(self.ineq_knot_mask > 0, ineq, torch.full_like(ineq, -float("inf")))
+        else:
+            ineq = X.new_zeros(B, N, 0)
+        eqN = map_state(self.terminal_eq, X[:, -1], params) if self.meN else X.new_zeros(B, 0)
+        ineqN = map_state(self.terminal_ineq, X[:, -1], params) if self.miN else X.new_zeros(B, 0)
+        return ConstraintValues(eq=eq, ineq=ineq, eqN=eqN, ineqN=ineqN)
+
+    def split_ineq(self, values: Tensor) -> dict:
+        """``{block: values[..., rows]}`` for a stage-inequality tensor ``(..., mi)``."""
+        return {name: values[..., rows] for name, rows in self.ineq_blocks.items() if rows.stop > rows.start}

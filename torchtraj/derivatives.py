@@ -1,0 +1,178 @@
+r"""Batched derivatives of the problem functions with ``torch.func``.
+
+At every stage point ``z_k = (x_k, u_k)``, k = 0..N-1, of every instance at once:
+
+* dynamics:   ``f(z_k)`` and its Jacobian ``f_z = [A_k  B_k]``            (``jacfwd``)
+* stage cost: ``l(z_k)``, ``l_z``, ``l_zz``                                   (``jacfwd(jacrev)``)
+* terminal:   ``l_N(x_N)``, ``l_Nx``, ``l_Nxx``
+* constraints: values and Jacobians ``c_z`` of any stage or terminal function
+* the Hessian of the stage Lagrangian
+  ``L_k(z) = l(z) + λ_{k+1}ᵀ f(z) + ν_kᵀ h(z) + μ_kᵀ g(z)`` and of the terminal one
+  ``L_N(x) = l_N(x) + ν_Nᵀ h_N(x) + μ_Nᵀ g_N(x)`` (for the Newton-type solvers and the
+  implicit-differentiation backward pass).
+
+Every function is the user's per-instance function wrapped by ``jacfwd``/``jacrev`` and
+mapped over batch and time by :mod:`torchtraj.batching`; nothing is differentiated by hand.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Mapping
+
+import torch
+from torch import Tensor
+from torch.func import jacfwd, jacrev
+
+from .batching import map_stage, map_state
+
+Params = Mapping[str, Tensor]
+
+
+def _on_z(fn: Callable, nx: int) -> Callable:
+    """``fn(x, u, p)`` as a function of the stacked point ``z = (x, u)``."""
+    return lambda z, p: fn(z[:nx], z[nx:], p)
+
+
+def _value_and_jacobian(g: Callable) -> Callable:
+    def wrapped(z, p):
+        def aux(z_):
+            out = g(z_, p)
+            return out, out
+
+        jac, value = jacfwd(aux, has_aux=True)(z)
+        return value, jac
+
+    return wrapped
+
+
+def _value_gradient_hessian(g: Callable) -> Callable:
+    def wrapped(z, p):
+        def value(z_):
+            out = g(z_, p)
+            return out, out
+
+        def gradient(z_):
+            grad, val = jacrev(value, has_aux=True)(z_)
+            return grad, (grad, val)
+
+        hess, (grad, val) = jacfwd(gradient, has_aux=True)(z)
+        return val, grad, hess
+
+    return wrapped
+
+
+def _stage_points(X: Tensor, U: Tensor) -> Tensor:
+    return torch.cat([X[:, : U.shape[1]], U], -1)
+
+
+def stage_jacobian(fn: Callable, X: Tensor, U: Tensor, params: Params):
+    """Values ``(B, N, m)`` and Jacobians ``(B, N, m, nx+nu)`` of ``fn(x, u, p)`` at every stage."""
+    nx = X.shape[-1]
+    g = _value_and_jacobian(_on_z(fn, nx))
+    Z = _stage_points(X, U)
+    return map_state(g, Z, params)
+
+
+def terminal_jacobian(fn: Callable, xN: Tensor, params: Params):
+    """Values ``(B, m)`` and Jacobians ``(B, m, nx)`` of ``fn(x, p)`` at ``xN (B, nx)``."""
+    return map_state(_value_and_jacobian(fn), xN, params)
+
+
+def stage_hessian(fn: Callable, X: Tensor, U: Tensor, params: Params):
+    """Value ``(B, N)``, gradient ``(B, N, nz)`` and Hessian ``(B, N, nz, nz)`` of a scalar ``fn(x, u, p)``."""
+    nx = X.shape[-1]
+    g = _value_gradient_hessian(_on_z(fn, nx))
+    return map_state(g, _stage_points(X, U), params)
+
+
+def terminal_hessian(fn: Callable, xN: Tensor, params: Params):
+    """Value ``(B,)``, gradient ``(B, nx)`` and Hessian ``(B, nx, nx)`` of a scalar ``fn(x, p)``."""
+    return map_state(_value_gradient_hessian(fn), xN, params)
+
+
+def linearize_dynamics(dynamics: Callable, X: Tensor, U: Tensor, params: Params):
+    """``f (B, N, nx)``, ``A (B, N, nx, nx)``, ``B (B, N, nx, nu)`` at every stage of ``(X, U)``."""
+    nx = X.shape[-1]
+    f, fz = stage_jacobian(dynamics, X, U, params)
+    return f, fz[..., :nx], fz[..., nx:]
+
+
+def quadratize_cost(stage_cost: Callable, terminal_cost: Callable, X: Tensor, U: Tensor, params: Params):
+    """Second-order expansion of the costs.
+
+    Returns ``(l (B, N), l_z (B, N, nz), l_zz (B, N, nz, nz), l_N (B,), l_Nx (B, nx), l_Nxx (B, nx, nx))``.
+    """
+    l, lz, lzz = stage_hessian(stage_cost, X, U, params)
+    lN, lNx, lNxx = terminal_hessian(terminal_cost, X[:, -1], params)
+    return l, lz, lzz, lN, lNx, lNxx
+
+
+def lagrangian_hessian(
+    stage_lagrangian: Callable,
+    terminal_lagrangian: Callable,
+    X: Tensor,
+    U: Tensor,
+    params: Params,
+    stage_weights: Tensor,
+    terminal_weights: Tensor,
+):
+    """Hessians of the stage and terminal Lagrangians.
+
+    ``stage_lagrangian(x, u, w, p) -> ()`` and ``terminal_lagrangian(x, w, p) -> ()`` take per-stage
+    multiplier vectors ``w`` (``stage_weights (B, N, mw)``, ``terminal_weights (B, mwN)``), e.g.
+    ``w = (λ_{k+1}, ν_k, μ_k)``. Returns ``(H (B, N, nz, nz), H_N (B, nx, nx))``.
+    """
+    nx = X.shape[-1]
+    Z = _stage_points(X, U)
+    nz = Z.shape[-1]
+
+    def stage(zw, p):
+        z, w = zw[:nz], zw[nz:]
+        return torch.func.hessian(lambda z_: stage_lagrangian(z_[:nx], z_[nx:], w, p))(z)
+
+    def terminal(xw, p):
+        x, w = xw[:nx], xw[nx:]
+        return torch.func.hessian(lambda x_: terminal_lagrangian(x_, w, p))(x)
+
+    H = map_state(stage, torch.cat([Z, stage_weights], -1), params)
+    HN = map_state(terminal, torch.cat([X[:, -1], terminal_weights], -1), params)
+    return H, HN
+
+
+def problem_lagrangian_hessian(problem, constraints, X, U, params, costate, nu=None, mu=None, nuN=None, muN=None):
+    """Hessians of the Lagrangian of ``problem`` at ``(X, U)``.
+
+    ``L_k = l(x, u) + λ_{k+1}ᵀ f(x, u) + ν_kᵀ h(x, u) + μ_kᵀ g(x, u)`` and
+    ``L_N = l_N(x) + ν_Nᵀ h_N(x) + μ_Nᵀ g_N(x)`` with ``costate (B, N+1, nx)`` (λ), stage
+    multipliers ``nu (B, N, me)``, ``mu (B, N, mi)`` and terminal ``nuN (B, meN)``, ``muN (B, miN)``
+    in the layout of :class:`~torchtraj.constraints.Constraints` (missing ones are zero).
+    Returns ``(H (B, N, nx+nu, nx+nu), H_N (B, nx, nx))``.
+    """
+    B, N, nx = X.shape[0], U.shape[1], X.shape[-1]
+    zeros = X.new_zeros
+    nu = zeros(B, N, constraints.me) if nu is None else nu
+    mu = zeros(B, N, constraints.mi) if mu is None else mu * constraints.ineq_knot_mask
+    nuN = zeros(B, constraints.meN) if nuN is None else nuN
+    muN = zeros(B, constraints.miN) if muN is None else muN
+    me, mi = constraints.me, constraints.mi
+
+    def stage(x, u, w, p):
+        lam, v, m = w[:nx], w[nx:nx + me], w[nx + me:]
+        out = problem.stage_cost(x, u, p) + (lam * problem.dynamics(x, u, p)).sum()
+        if me:
+            out = out + (v * constraints.stage_eq(x, u, p)).sum()
+        if mi:
+            out = out + (m * constraints.stage_ineq(x, u, p)).sum()
+        return out
+
+    def terminal(x, w, p):
+        v, m = w[:constraints.meN], w[constraints.meN:]
+        out = problem.terminal_cost(x, p)
+        if constraints.meN:
+            out = out + (v * constraints.terminal_eq(x, p)).sum()
+        if constraints.miN:
+            out = out + (m * constraints.terminal_ineq(x, p)).sum()
+        return out
+
+    stage_w = torch.cat([costate[:, 1:], nu, mu], -1)
+    return lagrangian_hessian(stage, terminal, X, U, params, stage_w, torch.cat([nuN, muN], -1))

@@ -1,0 +1,245 @@
+r"""iLQR for batches of unconstrained problems (ALTRO §II-A, papers/altro.md).
+
+Each iteration, for every instance still running:
+
+1. expand the problem around the current rollout ``(X, U)``: ``A_k, B_k`` from the dynamics,
+   ``l_z, l_zz`` from the costs (:mod:`torchtraj.derivatives`);
+2. backward pass (:mod:`torchtraj.riccati`) with the regularisation ``ρ`` added to ``Q_uu``
+   (eq. 13): gains ``K_k``, feedforward ``d_k``, expected change ``ΔV(α) = α dV1 + α² dV2``
+   (eq. 16). A failed Cholesky factorisation raises ``ρ`` and skips the step;
+3. forward pass with line search: the closed-loop rollouts
+   ``u_k = U_k + α d_k + K_k (x_k − X_k)`` for every ``α ∈ {1, β, β², …}`` are simulated
+   *together* (one batched rollout), and each instance takes the largest ``α`` whose ratio
+   ``z = (J − J(α)) / (−ΔV(α))`` lies in ``[z_lo, z_hi]``. If none does, ``ρ`` is raised.
+4. ``ρ`` follows the schedule of Tassa et al. used by ALTRO: on success
+   ``δ ← min(δ/φ, 1/φ), ρ ← ρ δ`` (set to 0 below ``ρ_min``); on failure
+   ``δ ← max(δ φ, φ), ρ ← max(ρ δ, ρ_min)``.
+
+An instance converges when an accepted step changes the cost by less than
+``cost_tolerance`` and the scaled control step ``mean_k max_i |d_ki| / (|u_ki| + 1)`` is below
+``gradient_tolerance``, or when the model predicts a decrease below
+``expected_decrease_tolerance``. Converged and failed instances are frozen by masks; the
+batch stops when no instance is running.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from .batching import map_stage, map_state, rollout
+from .constraints import Constraints
+from .derivatives import linearize_dynamics, quadratize_cost
+from .problem import Problem
+from .riccati import LQR, LQRVectors, factorize
+from .solution import History, Solution
+from .status import Status
+
+logger = logging.getLogger("torchtraj")
+
+
+@dataclass
+class ILQROptions:
+    """Options of :func:`solve_ilqr`; defaults are ALTRO's (Altro.jl ``SolverOptions``)."""
+
+    #: Maximum iterations (``iterations_inner``).
+    iterations: int = 300
+    #: Converged when an accepted step changes the cost by less than this (``cost_tolerance``).
+    cost_tolerance: float = 1e-4
+    #: ... and the scaled control step is below this (``gradient_tolerance``).
+    gradient_tolerance: float = 10.0
+    #: Converged when the predicted decrease ``-dV1`` is below this.
+    expected_decrease_tolerance: float = 1e-10
+    #: Initial regularisation ``ρ`` (``bp_reg_initial``).
+    regularization_initial: float = 0.0
+    #: Scaling ``φ`` of the regularisation schedule (``bp_reg_increase_factor``).
+    regularization_increase: float = 1.6
+    #: Smallest nonzero ``ρ`` (``bp_reg_min``).
+    regularization_min: float = 1e-8
+    #: Largest ``ρ`` before the instance fails (``bp_reg_max``).
+    regularization_max: float = 1e8
+    #: Line-search step shrink factor ``β`` (``line_search_decrease_factor``).
+    line_search_decrease: float = 0.5
+    #: Accepted ratio of actual to expected decrease, lower bound (``line_search_lower_bound``).
+    line_search_lower: float = 1e-8
+    #: ... upper bound (``line_search_upper_bound``).
+    line_search_upper: float = 10.0
+    #: Number of step sizes tried, all in one batched rollout (``iterations_linesearch``).
+    line_search_steps: int = 20
+    #: Step sizes simulated together per round; 0 picks ``min(steps, 8192 // B)``.
+    line_search_parallel: int = 0
+    #: Divergence limits on the cost and on |x| (``max_cost_value``, ``max_state_value``).
+    max_cost: float = 1e8
+    max_state: float = 1e8
+    #: Log one line per iteration through the ``torchtraj`` logger.
+    verbose: bool = False
+
+
+def total_cost(problem: Problem, X: Tensor, U: Tensor, params) -> Tensor:
+    """Objective of ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``."""
+    stage = map_stage(problem.stage_cost, X[..., :-1, :], U, params).sum(-1)
+    return stage + map_state(problem.terminal_cost, X[..., -1, :], params)
+
+
+def expand(problem: Problem, X: Tensor, U: Tensor, params):
+    """The LQR model of ``problem`` around ``(X, U)``: matrices and gradient right-hand sides."""
+    nx = X.shape[-1]
+    _, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
+    _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
+    lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx)
+    rhs = LQRVectors(
+        q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=torch.zeros_like(X[:, 1:]), x0=torch.zeros_like(X[:, 0])
+    )
+    return lqr, rhs
+
+
+def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+
+
+def _update_regularization(rho, drho, success, opts: ILQROptions):
+    phi = opts.regularization_increase
+    # decrease on success
+    d_dec = torch.clamp(drho / phi, max=1.0 / phi)
+    r_dec = rho * d_dec
+    r_dec = torch.where(r_dec > opts.regularization_min, r_dec, torch.zeros_like(r_dec))
+    # increase on failure
+    d_inc = torch.clamp(drho * phi, min=phi)
+    r_inc = torch.clamp(rho * d_inc, min=opts.regularization_min)
+    return torch.where(success, r_dec, r_inc), torch.where(success, d_dec, d_inc)
+
+
+def _scaled_step(d: Tensor, U: Tensor) -> Tensor:
+    """ALTRO's gradient measure ``mean_k max_i |d_ki| / (|u_ki| + 1)``: ``(B,)``."""
+    return (d.abs() / (U.abs() + 1.0)).amax(-1).mean(-1)
+
+
+def _candidates(problem, params, x0, X, U, K, d, alphas):
+    """Closed-loop rollouts ``u = U + α d + K (x − X)`` for every ``α`` at once: ``(B, L, ...)``."""
+    B, N, L = U.shape[0], U.shape[1], alphas.shape[0]
+    x = x0.unsqueeze(1).expand(B, L, x0.shape[-1])
+    xs, us = [x], []
+    a = alphas.reshape(1, L, 1)
+    for k in range(N):
+        dxk = (x - X[:, k].unsqueeze(1)).unsqueeze(-1)
+        u = U[:, k].unsqueeze(1) + a * d[:, k].unsqueeze(1) + (K[:, k].unsqueeze(1) @ dxk).squeeze(-1)
+        x = map_stage(problem.dynamics, x, u, params)
+        xs.append(x)
+        us.append(u)
+    return torch.stack(xs, 2), torch.stack(us, 2)
+
+
+def _line_search(problem, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQROptions):
+    """Backtracking line search on the step size; returns the accepted ``(X, U, J, alpha)`` and a found mask.
+
+    The candidates ``α = β^j`` are simulated in rounds of ``opts.line_search_parallel`` step sizes,
+    all instances and step sizes of a round in one batched rollout; a new round starts only if some
+    running instance has not yet found an acceptable step.
+    """
+    B = U.shape[0]
+    L = opts.line_search_steps
+    per_round = opts.line_search_parallel or max(1, min(L, 8192 // max(B, 1)))
+    all_alphas = opts.line_search_decrease ** torch.arange(L, dtype=X.dtype, device=X.device)
+    rows = torch.arange(B, device=X.device)
+    found = torch.zeros(B, dtype=torch.bool, device=X.device)
+    Xa, Ua, Ja, alpha = X, U, J, torch.zeros_like(J)
+    for start in range(0, L, per_round):
+        alphas = all_alphas[start:start + per_round]
+        Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
+        Jc = total_cost(problem, Xc, Uc, params)  # (B, l)
+        expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
+        ratio = (J.unsqueeze(1) - Jc) / expected
+        bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
+        accept = (torch.isfinite(Jc) & bounded & (expected > 0)
+                  & (ratio > opts.line_search_lower) & (ratio < opts.line_search_upper))
+        idx = torch.argmax(accept.to(torch.int8), dim=1)  # first (largest) accepted step of the round
+        new = accept.any(1) & ~found
+        Xa, Ua = _where(new, Xc[rows, idx], Xa), _where(new, Uc[rows, idx], Ua)
+        Ja, alpha = torch.where(new, Jc[rows, idx], Ja), torch.where(new, alphas[idx], alpha)
+        found = found | new
+        if start + per_round < L and bool((found | ~active).all()):
+            break
+    return Xa, Ua, Ja, alpha, found
+
+
+def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ILQROptions] = None) -> Solution:
+    """Solve ``problem`` from ``x0 (B, nx)`` and controls ``U0 (B, N, nu)`` by iLQR; constraints are ignored.
+
+    ``params`` are the problem's parameters expanded to the batch (``Problem.batched_params``).
+    """
+    opts = options or ILQROptions()
+    B = x0.shape[0]
+    constraints = Constraints(problem)
+    status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
+    X = rollout(problem.dynamics, x0, U0, params)
+    U = U0
+    J = total_cost(problem, X, U, params)
+    x0_finite = torch.isfinite(x0).all(-1)
+    start_ok = torch.isfinite(J) & torch.isfinite(X).reshape(B, -1).all(-1) & (J < opts.max_cost)
+    status = torch.where(~x0_finite, int(Status.NON_FINITE), status)
+    status = torch.where(x0_finite & ~start_ok, int(Status.INFEASIBLE_START), status)
+    active = status == Status.RUNNING
+    rho = torch.full((B,), opts.regularization_initial, dtype=x0.dtype, device=x0.device)
+    drho = torch.zeros_like(rho)
+    iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
+    rows = []
+    for it in range(opts.iterations):
+        if not bool(active.any()):  # the only host synchronisation of an iteration
+            break
+        lqr, rhs = expand(problem, X, U, params)
+        factor = factorize(lqr, rho)
+        step = factor.solve(rhs)
+        stationary = -step.dV1 < opts.expected_decrease_tolerance
+        Xn, Un, Jn, alpha, found = _line_search(
+            problem, params, x0, X, U, J, factor.K, step.k, step.dV1, step.dV2, active & factor.ok, opts
+        )
+        success = factor.ok & found
+        take = active & success & ~stationary
+        dJ = J - Jn
+        grad = _scaled_step(step.k, U)
+        X, U, J = _where(take, Xn, X), _where(take, Un, U), torch.where(take, Jn, J)
+        rho_new, drho_new = _update_regularization(rho, drho, success | stationary, opts)
+        rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)
+        iterations = iterations + active.long()
+        converged = active & factor.ok & (
+            stationary | (take & (dJ.abs() < opts.cost_tolerance) & (grad < opts.gradient_tolerance))
+        )
+        blown = active & ~converged & (rho > opts.regularization_max)
+        status = torch.where(converged, int(Status.CONVERGED), status)
+        status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
+        active = status == Status.RUNNING
+        rows.append({
+            "cost": J, "max_violation": constraints.evaluate(X, U, params).max_violation() if not constraints.empty else torch.zeros_like(J),
+            "step_size": torch.where(take, alpha, torch.zeros_like(alpha)), "regularization": rho,
+        })
+        if opts.verbose:
+            _log_iteration(it, J, rho, active)
+    status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
+    lqr, rhs = expand(problem, X, U, params)
+    factor = factorize(lqr, rho)
+    costate = _adjoint(lqr, rhs)
+    violation = constraints.evaluate(X, U, params).max_violation() if not constraints.empty else torch.zeros_like(J)
+    return Solution(
+        X=X, U=U, K=factor.K, cost=J, max_violation=violation, status=status, iterations=iterations,
+        history=History.from_rows(rows), costate=costate, method="ilqr",
+    )
+
+
+def _adjoint(lqr: LQR, rhs: LQRVectors) -> Tensor:
+    """Costates of the unconstrained problem: ``λ_N = l_Nx``, ``λ_k = l_x + A_kᵀ λ_{k+1}``."""
+    lam = rhs.qN
+    lams = [lam]
+    for k in range(lqr.A.shape[1] - 1, -1, -1):
+        lam = rhs.q[:, k] + (lqr.A[:, k].transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
+        lams.append(lam)
+    return torch.stack(lams[::-1], 1)
+
+
+def _log_iteration(it: int, J: Tensor, rho: Tensor, active: Tensor) -> None:
+    running = active.sum().item()
+    logger.info("ilqr %4d  cost %.10g..%.10g  reg %.2e  running %d", it, J.min().item(), J.max().item(),
+                rho.max().item(), running)

@@ -1,0 +1,118 @@
+"""``tt.solve``: one entry point for every method.
+
+It checks and broadcasts the user's inputs to the batch (``x0 (B, nx)``, ``U0 (B, N, nu)``,
+``X0 (B, N+1, nx)``, batched parameters), moves them to the problem's dtype and device,
+and hands them to the method's solver.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import warnings
+from typing import Optional, Union
+
+import torch
+from torch import Tensor
+
+from .ilqr import ILQROptions, solve_ilqr
+from .problem import Problem
+from .solution import Solution
+
+
+class Method(str, enum.Enum):
+    """Solver methods; strings are accepted too (``method="ilqr"``)."""
+
+    ILQR = "ilqr"
+
+
+OPTIONS = {Method.ILQR: ILQROptions}
+
+
+def _batched(value, name: str, shape: tuple, problem: Problem) -> Optional[Tensor]:
+    """``value`` as a tensor of shape ``(B, *shape)`` (B = 1 when it had no batch dimension)."""
+    if value is None:
+        return None
+    t = torch.as_tensor(value, dtype=problem.dtype, device=problem.device)
+    if tuple(t.shape) == shape:
+        return t.unsqueeze(0)
+    if t.dim() == len(shape) + 1 and tuple(t.shape[1:]) == shape:
+        return t
+    raise ValueError(f"{name} must have shape {shape} or (B, *{shape}), got {tuple(t.shape)}")
+
+
+def _batch_size(named: dict) -> int:
+    sizes = {name: int(t.shape[0]) for name, t in named.items() if t is not None and t.shape[0] != 1}
+    if len(set(sizes.values())) > 1:
+        raise ValueError(f"batch sizes disagree: {sizes}")
+    return next(iter(sizes.values()), 1)
+
+
+def _options(method: Method, options):
+    cls = OPTIONS[method]
+    if options is None:
+        return cls()
+    if isinstance(options, dict):
+        return cls(**options)
+    if not isinstance(options, cls):
+        raise TypeError(f"options for method {method.value!r} must be {cls.__name__} or a dict, got {type(options).__name__}")
+    return options
+
+
+def solve(
+    problem: Problem,
+    x0=None,
+    method: Union[str, Method] = "ilqr",
+    U0=None,
+    X0=None,
+    options=None,
+) -> Solution:
+    """Solve a batch of instances of ``problem``.
+
+    Args:
+        problem: the :class:`~torchtraj.Problem`.
+        x0: initial states ``(nx,)`` or ``(B, nx)``; ``None`` uses ``problem.x0``.
+        method: a :class:`Method` or its name.
+        U0: initial control guess ``(N, nu)`` or ``(B, N, nu)``; ``None`` uses ``problem.u_init``.
+        X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one.
+        options: the method's options dataclass (or a dict of its fields).
+
+    Returns:
+        A :class:`~torchtraj.Solution` with per-instance status. The batch size B is the common
+        leading dimension of ``x0``, ``U0``, ``X0`` and the batched parameters (1 if none has one).
+    """
+    if not isinstance(problem, Problem):
+        raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
+    try:
+        method = Method(method)
+    except ValueError:
+        raise ValueError(f"unknown method {method!r}; choose one of {[m.value for m in Method]}") from None
+    opts = _options(method, options)
+    N, nx, nu = problem.N, problem.nx, problem.nu
+    x0 = _batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)
+    U0 = _batched(problem.u_init if U0 is None else U0, "U0", (N, nu), problem)
+    X0 = _batched(X0, "X0", (N + 1, nx), problem)
+    pb = problem.param_batch_size()
+    B = _batch_size({"x0": x0, "U0": U0, "X0": X0, "params": torch.empty(pb)})
+    x0, U0 = x0.expand(B, nx), U0.expand(B, N, nu)
+    params = problem.batched_params(B)
+    if getattr(opts, "verbose", False):
+        _ensure_log_handler()
+    if method is Method.ILQR:
+        if X0 is not None:
+            raise ValueError("method 'ilqr' simulates its states from x0 and cannot take X0; use a method that "
+                             "accepts an infeasible state guess")
+        if problem.has_constraints:
+            warnings.warn(f"method 'ilqr' ignores the constraints of problem {problem.name!r}; "
+                          "Solution.max_violation reports them", stacklevel=2)
+        return solve_ilqr(problem, x0.contiguous(), U0.contiguous(), params, opts)
+    raise AssertionError(method)  # pragma: no cover - every Method is handled above
+
+
+def _ensure_log_handler() -> None:
+    logger = logging.getLogger("torchtraj")
+    if not logger.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
