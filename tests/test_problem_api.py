@@ -1,0 +1,73 @@
+"""The problem API: construction-time checks, clear errors, and input broadcasting in tt.solve."""
+
+import pytest
+import torch
+
+import torchtraj as tt
+
+
+def make(**changes):
+    base = dict(
+        dynamics=tt.rk4(lambda x, u, p: torch.stack([x[1], u[0] - p["k"] * x[0]]), 0.1),
+        stage_cost=lambda x, u, p: 0.5 * (x * x).sum() + 0.5 * (u * u).sum(),
+        terminal_cost=lambda x, p: 10.0 * (x * x).sum(),
+        x0=torch.tensor([1.0, 0.0], dtype=torch.float64),
+        horizon=10,
+        nu=1,
+        params={"k": torch.tensor(2.0, dtype=torch.float64)},
+    )
+    base.update(changes)
+    return tt.Problem(**base)
+
+
+def test_wrong_dynamics_shape_names_the_function():
+    with pytest.raises(ValueError, match=r"dynamics must return shape \(2,\)"):
+        make(dynamics=lambda x, u, p: torch.cat([x, u]))
+
+
+def test_non_scalar_cost_and_non_finite_output_are_rejected():
+    with pytest.raises(ValueError, match="stage_cost must return a scalar"):
+        make(stage_cost=lambda x, u, p: x * x)
+    with pytest.raises(ValueError, match="terminal_cost returned non-finite"):
+        make(terminal_cost=lambda x, p: (x * x).sum() / 0.0)
+
+
+def test_a_failing_function_is_named():
+    with pytest.raises(ValueError, match="stage_eq failed on a probe call"):
+        make(stage_eq=lambda x, u, p: x[5])
+
+
+def test_bad_bounds_and_guesses_are_rejected():
+    with pytest.raises(ValueError, match=r"u_lower must have shape \(1,\)"):
+        make(u_lower=torch.zeros(2))
+    with pytest.raises(ValueError, match="u_lower exceeds"):
+        make(u_lower=torch.ones(1), u_upper=-torch.ones(1))
+    with pytest.raises(ValueError, match="u_init must have shape"):
+        make(u_init=torch.zeros(3, 1))
+
+
+def test_solve_checks_and_broadcasts_inputs():
+    prob = make()
+    with pytest.raises(ValueError, match=r"x0 must have shape \(2,\) or \(B, \*\(2,\)\)"):
+        tt.solve(prob, x0=torch.zeros(3))
+    with pytest.raises(ValueError, match="batch sizes disagree"):
+        tt.solve(prob, x0=torch.zeros(3, 2), U0=torch.zeros(4, 10, 1))
+    with pytest.raises(ValueError, match="unknown method"):
+        tt.solve(prob, method="newton")
+    with pytest.raises(TypeError, match="options for method 'ilqr'"):
+        tt.solve(prob, options=3)
+    with pytest.raises(ValueError, match="cannot take X0"):
+        tt.solve(prob, X0=torch.zeros(11, 2))
+    sol = tt.solve(prob, x0=torch.randn(3, 2, dtype=torch.float64), options={"cost_tolerance": 1e-10})
+    assert sol.X.shape == (3, 11, 2) and sol.status.shape == (3,)
+
+
+def test_batched_parameters_solve_each_instance_with_its_own_value():
+    prob = make()
+    stiff = torch.tensor([0.5, 2.0, 4.0], dtype=torch.float64)
+    batched = tt.solve(prob.with_params(k=stiff), options={"cost_tolerance": 1e-12})
+    for i in range(3):
+        alone = tt.solve(prob.with_params(k=stiff[i]), options={"cost_tolerance": 1e-12})
+        assert torch.allclose(batched.U[i], alone.U[0], atol=1e-9)
+    with pytest.raises(ValueError, match="unknown parameters"):
+        prob.with_params(mass=stiff)
