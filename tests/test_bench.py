@@ -1,0 +1,89 @@
+"""The benchmark CLI: its rows report what tt.solve and the CasADi references really return."""
+
+import importlib.util
+import io
+import json
+
+import pytest
+
+import torchtraj as tt
+from torchtraj import problems
+from torchtraj.bench import __main__ as bench_main
+from torchtraj.bench.__main__ import main
+
+# loose enough that a pendulum instance converges in about 8 iterations (~0.5 s)
+LOOSE = ["--cost-tolerance", "1e-3", "--gradient-tolerance", "1e-1", "--iterations", "20", "--warmup-iterations", "2"]
+HAS_CASADI = importlib.util.find_spec("casadi") is not None
+
+
+def run(args):
+    out = io.StringIO()
+    code = main(args, out=out)
+    return code, out.getvalue()
+
+
+def rows_of(text, problem):
+    return [line.split() for line in text.splitlines() if line.startswith(problem + " ")]
+
+
+def test_torchtraj_row_matches_a_direct_solve(tmp_path):
+    path = tmp_path / "rows.json"
+    code, text = run(["--problems", "pendulum_unconstrained", "--batch", "2", "--no-reference", "--json", str(path)]
+                     + LOOSE)
+    assert code == 0, text
+    assert "cost_tolerance=0.001, gradient_tolerance=0.1, iterations=20" in text  # the header names the tolerances
+    header = next(line for line in text.splitlines() if line.startswith("problem "))
+    assert header.split()[-1] == "status"
+    (row,) = rows_of(text, "pendulum_unconstrained")
+    assert row[1:4] == ["ilqr", "2", "2"]
+    data = json.loads(path.read_text())
+    (jrow,) = data["rows"]
+    assert data["header"]["settings"] == {"cost_tolerance": 1e-3, "gradient_tolerance": 1e-1, "iterations": 20}
+
+    # the same instances solved here: the row must report exactly this solution
+    options = tt.ILQROptions(cost_tolerance=1e-3, gradient_tolerance=1e-1, iterations=20)
+    sol = tt.solve(problems.get("pendulum_unconstrained"), problems.sample_x0("pendulum_unconstrained", 2, 0),
+                   options=options)
+    assert jrow["costs"] == pytest.approx(sol.cost.tolist(), rel=1e-12)
+    assert jrow["iterations_max"] == int(sol.iterations.max())
+    assert jrow["status"] == tt.Status.counts(sol.status)
+    line = next(line for line in text.splitlines() if line.startswith("pendulum_unconstrained "))
+    assert line.endswith(", ".join(f"{k} {v}" for k, v in jrow["status"].items()))
+    assert jrow["ms_per_instance"] == pytest.approx(1e3 * jrow["seconds"] / 2)
+    assert "no FATROP result" in text
+
+
+def test_constrained_problems_are_skipped_with_the_reason():
+    code, text = run(["--problems", "pendulum", "--batch", "1", "--no-reference"] + LOOSE)
+    assert code == 0
+    assert "skipped (ilqr ignores constraints, which these problems have): pendulum" in text
+    assert rows_of(text, "pendulum") == []
+
+
+def test_a_failing_row_is_reported_and_the_run_goes_on(monkeypatch):
+    # sample_x0 is undefined for car_escape (no spread), so its B > 1 row fails; let ilqr try it anyway
+    monkeypatch.setattr(bench_main, "skip_reason", lambda method, problem: None)
+    code, text = run(["--problems", "car_escape", "pendulum_unconstrained", "--batch", "2", "--no-reference"] + LOOSE)
+    assert code == 1
+    (failed,) = rows_of(text, "car_escape")
+    assert failed[:5] == ["car_escape", "ilqr", "2", "ERROR", "ValueError:"]
+    (row,) = rows_of(text, "pendulum_unconstrained")
+    assert row[-2:] == ["converged", "2"]
+
+
+@pytest.mark.skipif(not HAS_CASADI, reason="casadi is not installed")
+def test_reference_rows_reproduce_ipopt_and_fatrop(reference, tmp_path):
+    path = tmp_path / "rows.json"
+    code, text = run(["--problems", "pendulum_unconstrained", "--batch", "1", "--json", str(path)] + LOOSE)
+    assert code == 0, text
+    methods = [row[1] for row in rows_of(text, "pendulum_unconstrained")]
+    assert methods == ["ilqr", "ipopt", "fatrop"]
+    rows = {r["method"]: r for r in json.loads(path.read_text())["rows"]}
+    for solver in ("ipopt", "fatrop"):
+        expected = reference["pendulum_unconstrained"][solver]
+        assert rows[solver]["status"] == {"ok": 1}
+        assert rows[solver]["costs"][0] == pytest.approx(expected["cost"], rel=1e-8)
+        assert rows[solver]["iterations_max"] == expected["iterations"]
+    ours, ipopt = rows["ilqr"]["costs"][0], rows["ipopt"]["costs"][0]
+    assert rows["ilqr"]["vs_ipopt"] == pytest.approx(abs(ours - ipopt) / abs(ipopt))
+    assert "ratio ilqr/FATROP" in text

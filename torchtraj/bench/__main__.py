@@ -1,0 +1,186 @@
+"""``python -m torchtraj.bench``: time torchtraj on the benchmark problems, next to IPOPT and FATROP.
+
+For every problem and batch size B it prints one row for the torchtraj method and, when CasADi is
+installed, one row each for IPOPT and FATROP solving the same initial states, then per problem a
+throughput line comparing torchtraj's ms/instance at the largest B with FATROP's. B = 1 uses the
+problem's own x0; B > 1 uses ``torchtraj.problems.sample_x0(problem, B, seed)``. Nothing is written
+unless ``--json PATH`` is given. Exit status: 0, or 1 if some row failed (its error is in the row).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+from typing import Optional, TextIO
+
+import torch
+
+from .. import problems
+from ..solve import Method
+from . import table
+from .runs import Row, make_options, relative_difference, run_reference, run_torchtraj, skip_reason
+
+REFERENCE_SOLVERS = ("ipopt", "fatrop")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m torchtraj.bench", description=__doc__.split("\n\n", 1)[1],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--problems", nargs="+", metavar="NAME", choices=problems.names(),
+                   help=f"problems to run, from {problems.names()}; default: every problem the method can solve "
+                        "(ilqr: those without constraints); the others are listed as skipped, with the reason")
+    p.add_argument("--method", default=Method.ILQR.value, choices=[m.value for m in Method], help="torchtraj method")
+    p.add_argument("--batch", nargs="+", type=int, default=[1, 64, 1024], metavar="B", help="batch sizes")
+    p.add_argument("--seed", type=int, default=0, help="seed of sample_x0 for B > 1")
+    p.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--cost-tolerance", type=float, default=1e-8, help="the method options' cost_tolerance")
+    p.add_argument("--gradient-tolerance", type=float, default=1e-6, help="the method options' gradient_tolerance")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="the method options' iteration cap (default: the options' own default)")
+    p.add_argument("--warmup-iterations", type=int, default=5,
+                   help="iteration cap of the untimed one-instance warm-up solve before each timed row")
+    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
+    p.add_argument("--no-reference", action="store_true", help="skip the CasADi IPOPT / FATROP rows")
+    p.add_argument("--reference-instances", type=int, default=16,
+                   help="IPOPT / FATROP solve the first min(B, this) of a row's initial states")
+    p.add_argument("--reference-tolerance", type=float, default=1e-8, help="IPOPT / FATROP tol")
+    p.add_argument("--json", metavar="PATH", help="also write the header and all rows as JSON to PATH")
+    return p
+
+
+def _check(p: argparse.ArgumentParser, args) -> None:
+    if any(b < 1 for b in args.batch):
+        p.error(f"--batch sizes must be >= 1, got {args.batch}")
+    if args.reference_instances < 1 or args.warmup_iterations < 1:
+        p.error("--reference-instances and --warmup-iterations must be >= 1")
+    if args.threads is not None and args.threads < 1:
+        p.error(f"--threads must be >= 1, got {args.threads}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        p.error("--device cuda: torch.cuda.is_available() is False")
+
+
+def _reference_available(args) -> tuple:
+    """``(available, why not / casadi version)``."""
+    if args.no_reference:
+        return False, "off (--no-reference)"
+    try:
+        from .casadi_models import import_casadi
+        return True, f"casadi {import_casadi().__version__}"
+    except ImportError:
+        return False, "off (casadi is not importable: pip install torchtraj[bench])"
+
+
+def _build_references(name: str, tol: float) -> dict:
+    """``{solver: ReferenceSolver or the exception text of its construction}``."""
+    from .reference import ReferenceSolver
+
+    built = {}
+    for solver in REFERENCE_SOLVERS:
+        try:
+            built[solver] = ReferenceSolver(name, solver, tol=tol)
+        except Exception as exc:  # reported in each of its rows
+            built[solver] = f"{type(exc).__name__}: {exc}"
+    return built
+
+
+def _throughput(name: str, rows: list, largest: int) -> str:
+    ours = next((r for r in rows if r.batch == largest and r.method not in REFERENCE_SOLVERS), None)
+    fatrop = next((r for r in rows if r.batch == largest and r.method == "fatrop"), None)
+    if ours is None or ours.error:
+        return f"throughput {name}: no torchtraj result at B={largest}"
+    text = f"throughput {name}: {ours.method} {ours.ms_per_instance:.3f} ms/instance at B={largest}"
+    if fatrop is None or fatrop.error:
+        return text + "; no FATROP result to compare"
+    ratio = ours.ms_per_instance / fatrop.ms_per_instance
+    return (text + f" vs FATROP {fatrop.ms_per_instance:.3f} ms/instance (median of {fatrop.instances}); "
+            f"ratio {ours.method}/FATROP = {ratio:.3g} ({'<' if ratio < 1 else '>='}1: "
+            f"{ours.method} {'faster' if ratio < 1 else 'not faster'} per instance)")
+
+
+def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
+    p = parser()
+    args = p.parse_args(argv)
+    _check(p, args)
+    out = out or sys.stdout
+
+    def say(text: str = "") -> None:
+        print(text, file=out, flush=True)
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    dtype, device = getattr(torch, args.dtype), torch.device(args.device)
+    method = Method(args.method)
+    options, applied = make_options(method, cost_tolerance=args.cost_tolerance,
+                                    gradient_tolerance=args.gradient_tolerance, iterations=args.iterations)
+    ignored = sorted({"cost_tolerance", "gradient_tolerance"} - set(applied))
+    with_reference, reference_note = _reference_available(args)
+
+    todo, skipped = [], []
+    for name in args.problems or problems.names():
+        problem = problems.get(name, dtype=dtype, device=device)
+        reason = skip_reason(method, problem)
+        if reason:
+            skipped.append((name, reason))
+        else:
+            todo.append(problem)
+
+    settings = {k: getattr(options, k) for k in ("cost_tolerance", "gradient_tolerance", "iterations")
+                if hasattr(options, k)}
+    head = {
+        "method": method.value, "options": type(options).__name__, "settings": settings,
+        "dtype": args.dtype, "device": str(device), "threads": torch.get_num_threads(), "seed": args.seed,
+        "batch": args.batch, "torch": torch.__version__, "python": platform.python_version(),
+        "reference": reference_note, "reference_tolerance": args.reference_tolerance,
+        "reference_instances": args.reference_instances, "skipped": dict(skipped),
+    }
+    say(f"torchtraj bench: method {method.value}, {type(options).__name__}("
+        + ", ".join(f"{k}={v:g}" for k, v in settings.items()) + ")"
+        + (f"; {type(options).__name__} has no {', '.join(ignored)}, not applied" if ignored else ""))
+    say(f"{args.dtype} on {device}, {torch.get_num_threads()} threads, torch {torch.__version__}, seed {args.seed}; "
+        f"reference IPOPT/FATROP: " + (f"{reference_note}, tol {args.reference_tolerance:g}, up to "
+                                       f"{args.reference_instances} instances per row" if with_reference
+                                       else reference_note))
+    for reason in dict.fromkeys(r for _, r in skipped):
+        say(f"skipped ({reason}): " + ", ".join(n for n, r in skipped if r == reason))
+    say()
+    say(table.header())
+
+    rows: list = []
+    throughput: list = []
+    for problem in todo:
+        refs = _build_references(problem.name, args.reference_tolerance) if with_reference else {}
+        problem_rows = []
+        for batch in args.batch:
+            ours = run_torchtraj(problem, method, batch, args.seed, options, args.warmup_iterations)
+            group = [ours]
+            for solver, built in refs.items():
+                if isinstance(built, str):
+                    group.append(Row(problem.name, solver, batch, error=built))
+                else:
+                    group.append(run_reference(built, problem.name, batch, args.seed, args.reference_instances))
+            ipopt = next((r for r in group if r.method == "ipopt"), None)
+            for row in group:
+                if ipopt is not None and row is not ipopt:
+                    row.vs_ipopt = relative_difference(row, ipopt)
+                say(table.format_row(row))
+            problem_rows += group
+        throughput.append(_throughput(problem.name, problem_rows, max(args.batch)))
+        rows += problem_rows
+    say()
+    for line in throughput:
+        say(line)
+    say(table.legend())
+
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"header": head, "rows": [r.to_json() for r in rows], "throughput": throughput}, f, indent=1)
+    return 1 if any(r.error for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

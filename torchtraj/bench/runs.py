@@ -1,0 +1,148 @@
+"""One benchmark row: a timed batched ``tt.solve``, or IPOPT / FATROP solving the same instances.
+
+A :class:`Row` summarises B instances of one problem solved by one method: iterations (median, max),
+cost (median, and every instance's), the largest constraint violation, status counts and time.
+Rows never raise: an exception is caught and kept in ``Row.error`` so the rest of a run goes on.
+
+Timing. torchtraj is timed around one ``tt.solve`` of the whole batch (``time.perf_counter``, with
+``torch.cuda.synchronize`` on CUDA) after an untimed warm-up solve of one instance; its
+``ms_per_instance`` is the total divided by B. A reference solver is timed around each solve call
+alone (its NLP is built once beforehand, :class:`~torchtraj.bench.reference.ReferenceSolver`); its
+``ms_per_instance`` is the median over instances and ``seconds`` their sum.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .. import problems
+from ..problem import Problem
+from ..solve import OPTIONS, Method, solve
+from ..status import Status
+
+
+@dataclass
+class Row:
+    """Summary of one (problem, method, batch size) run; see the module docstring for the timing."""
+
+    problem: str
+    method: str
+    batch: int
+    instances: int = 0
+    iterations_median: float = float("nan")
+    iterations_max: int = -1
+    cost_median: float = float("nan")
+    costs: list = field(default_factory=list)
+    max_violation: float = float("nan")
+    status: dict = field(default_factory=dict)
+    #: per instance: torchtraj converged / the reference solver reported success.
+    instance_ok: list = field(default_factory=list)
+    seconds: float = float("nan")
+    ms_per_instance: float = float("nan")
+    #: max over the compared instances of ``|J − J_ipopt| / |J_ipopt|`` (None where not compared).
+    vs_ipopt: Optional[float] = None
+    error: Optional[str] = None
+
+    def to_json(self) -> dict:
+        out = dataclasses.asdict(self)
+        for key, value in out.items():  # JSON has no NaN
+            if isinstance(value, float) and not np.isfinite(value):
+                out[key] = None
+        out["costs"] = [c if np.isfinite(c) else None for c in self.costs]
+        return out
+
+
+def skip_reason(method: Method, problem: Problem) -> Optional[str]:
+    """Why ``method`` cannot solve ``problem`` (None if it can)."""
+    if method is Method.ILQR and problem.has_constraints:
+        return "ilqr ignores constraints, which these problems have"
+    return None
+
+
+def make_options(method: Method, **values) -> tuple:
+    """The method's options dataclass with those of ``values`` that it has as fields (None values skipped).
+
+    Returns ``(options, applied)``, ``applied`` the dict of the values actually set.
+    """
+    cls = OPTIONS[method]
+    names = {f.name for f in dataclasses.fields(cls)}
+    applied = {k: v for k, v in values.items() if v is not None and k in names}
+    return cls(**applied), applied
+
+
+def batch_x0(name: str, batch: int, seed: int) -> Optional[torch.Tensor]:
+    """The initial states of a row: None (the problem's own x0) for B = 1, else ``sample_x0``'s ``(B, nx)``."""
+    return None if batch == 1 else problems.sample_x0(name, batch, seed)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def run_torchtraj(problem: Problem, method: Method, batch: int, seed: int, options,
+                  warmup_iterations: int) -> Row:
+    """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch."""
+    row = Row(problem.name, method.value, batch)
+    try:
+        x0 = batch_x0(problem.name, batch, seed)
+        warm = dataclasses.replace(options, iterations=min(options.iterations, warmup_iterations)) \
+            if hasattr(options, "iterations") else options
+        solve(problem, None, method, options=warm)
+        _sync(problem.device)
+        start = time.perf_counter()
+        sol = solve(problem, x0, method, options=options)
+        _sync(problem.device)
+        row.seconds = time.perf_counter() - start
+        iters = sol.iterations.cpu().tolist()
+        row.instances = len(iters)
+        row.iterations_median, row.iterations_max = float(statistics.median(iters)), int(max(iters))
+        row.costs = sol.cost.double().cpu().tolist()
+        row.cost_median = float(statistics.median(row.costs))
+        row.max_violation = float(sol.max_violation.max())
+        row.status = Status.counts(sol.status.cpu())
+        row.instance_ok = (sol.status == Status.CONVERGED).cpu().tolist()
+        row.ms_per_instance = 1e3 * row.seconds / row.instances
+    except Exception as exc:  # one failing row must not stop the run
+        row.error = f"{type(exc).__name__}: {exc}"
+    return row
+
+
+def run_reference(solver, name: str, batch: int, seed: int, instances: int) -> Row:
+    """Solve the first ``min(batch, instances)`` of the row's initial states with a built ``ReferenceSolver``."""
+    row = Row(name, solver.solver_name, batch)
+    try:
+        x0 = batch_x0(name, batch, seed)
+        starts = [None] if x0 is None else list(x0[: min(batch, instances)].numpy())
+        results = [solver.solve(x) for x in starts]
+        row.instances = len(results)
+        iters = [r.iterations for r in results]
+        row.iterations_median, row.iterations_max = float(statistics.median(iters)), int(max(iters))
+        row.costs = [r.cost for r in results]
+        row.cost_median = float(statistics.median(row.costs))
+        row.max_violation = max(r.max_violation for r in results)
+        ok = sum(r.ok for r in results)
+        row.status = {k: v for k, v in (("ok", ok), ("failed", len(results) - ok)) if v}
+        times = [r.seconds for r in results]
+        row.seconds, row.ms_per_instance = sum(times), 1e3 * statistics.median(times)
+        row.instance_ok = [r.ok for r in results]
+    except Exception as exc:
+        row.error = f"{type(exc).__name__}: {exc}"
+    return row
+
+
+def relative_difference(row: Row, ipopt: Row) -> Optional[float]:
+    """Max over the instances IPOPT solved (``ok``) of ``|J − J_ipopt| / |J_ipopt|``; None if none compares."""
+    if row.error or ipopt.error:
+        return None
+    pairs = [(j, ji) for j, ji, good in zip(row.costs, ipopt.costs, ipopt.instance_ok) if good]
+    diffs = [abs(j - ji) / max(abs(ji), 1e-300) for j, ji in pairs]
+    # a NaN cost must show as a failure, not vanish inside max()
+    return max((d if np.isfinite(d) else float("inf") for d in diffs), default=None)
