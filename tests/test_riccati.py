@@ -184,3 +184,19 @@ def test_masked_rows_and_non_finite_instances_are_isolated():
     sol = factor.solve(rhs)
     assert torch.equal(sol.dx[0], ref.dx[0]) and torch.equal(sol.dx[2], ref.dx[2])
     assert not bool(factor.ok[1])
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6])
+def test_small_cholesky_matches_lapack_and_flags_indefinite_matrices(n):
+    from torchtraj.riccati import _cholesky, _cholesky_solve
+
+    g = torch.Generator().manual_seed(n)
+    W = torch.randn(5, n, n, generator=g, dtype=torch.float64)
+    H = W @ W.transpose(-1, -2) + 0.1 * torch.eye(n, dtype=torch.float64)
+    H[3] = -H[3]  # not positive definite
+    L, info = _cholesky(H)
+    assert info.tolist() == [0, 0, 0, 1, 0]
+    ok = [0, 1, 2, 4]
+    assert torch.allclose(L[ok], torch.linalg.cholesky(H[ok]), atol=1e-12)
+    b = torch.randn(5, n, 3, generator=g, dtype=torch.float64)
+    assert torch.allclose(_cholesky_solve(b, L)[ok], torch.linalg.solve(H[ok], b[ok]), atol=1e-9)

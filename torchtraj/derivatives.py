@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 from torch.func import jacfwd, jacrev
 
-from .batching import map_stage, map_state
+from .batching import map_state
 
 Params = Mapping[str, Tensor]
 

@@ -217,7 +217,7 @@ class Problem:
     # ---------------------------------------------------------------- probing
     def _probe(self) -> None:
         """Call every function once on x0 / u_init[0]; raise ValueError on misuse."""
-        nx, nu = self.nx, self.nu
+        nx = self.nx
         x, u, p = self.x0, self.u_init[0], self.instance_params()
 
         def call(name, fn, *args):

@@ -164,7 +164,7 @@ class RiccatiFactor:
     def solve(self, rhs: LQRVectors, multipliers: bool = False) -> LQRSolution:
         """Solve the LQR problem for the right-hand side ``rhs`` (one backward and one forward sweep)."""
         lqr = self.lqr
-        Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
+        Bsz, N, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.B.shape[-1]
         constrained = lqr.constrained
         p_next = rhs.qN
         g_next = None
@@ -193,12 +193,12 @@ class RiccatiFactor:
                 kc = -_mv(con.V, con.inv_s * top)
                 Vf = self.free[:, t]
                 grad = _mv(Quu, kc) + Qu
-                kw = -torch.cholesky_solve(_mv(_mT(Vf), grad).unsqueeze(-1), self.chol[:, t]).squeeze(-1)
+                kw = -_cholesky_solve(_mv(_mT(Vf), grad).unsqueeze(-1), self.chol[:, t]).squeeze(-1)
                 k = kc + _mv(Vf, kw)
                 g_next = _mv(_mT(con.U2), con.rest * t0) * con.gmask
                 gs[t] = g_next
             else:
-                k = -torch.cholesky_solve(Qu.unsqueeze(-1), self.chol[:, t]).squeeze(-1)
+                k = -_cholesky_solve(Qu.unsqueeze(-1), self.chol[:, t]).squeeze(-1)
             Quuk = _mv(Quu, k)
             p_next = Qx + _mv(_mT(K), Quuk + Qu) + _mv(_mT(Qux), k)
             dV1 = dV1 + (k * Qu).sum(-1)
@@ -270,6 +270,61 @@ class RiccatiFactor:
             out.nu = torch.stack(nus, 1)
         if lqr.CN is not None:
             out.nuN = nuN
+
+
+# LAPACK's batched Cholesky costs ~0.5 µs per tiny matrix plus overhead (0.7 ms for 1024 2×2
+# matrices on CPU); for the few controls of a trajectory problem, elementwise formulas are cheaper.
+_SMALL = 4
+
+
+def _cholesky(H: Tensor):
+    """Lower Cholesky factor of ``H (..., n, n)`` and ``info (...)`` (0 where positive definite).
+
+    Where ``H`` is not positive definite the returned factor is the identity."""
+    n = H.shape[-1]
+    if n > _SMALL:
+        L, info = torch.linalg.cholesky_ex(H)
+        eye = torch.eye(n, dtype=H.dtype, device=H.device)
+        return torch.where((info == 0).unsqueeze(-1).unsqueeze(-1), L, eye), info
+    cols = [[None] * n for _ in range(n)]
+    ok = torch.ones(H.shape[:-2], dtype=torch.bool, device=H.device)
+    for j in range(n):
+        pivot = H[..., j, j]
+        for k in range(j):
+            pivot = pivot - cols[j][k] * cols[j][k]
+        ok = ok & (pivot > 0)
+        d = torch.sqrt(torch.where(pivot > 0, pivot, torch.ones_like(pivot)))
+        cols[j][j] = d
+        for i in range(j + 1, n):
+            v = H[..., i, j]
+            for k in range(j):
+                v = v - cols[i][k] * cols[j][k]
+            cols[i][j] = v / d
+    zero = torch.zeros_like(H[..., 0, 0])
+    L = torch.stack([torch.stack([cols[i][j] if j <= i else zero for j in range(n)], -1) for i in range(n)], -2)
+    eye = torch.eye(n, dtype=H.dtype, device=H.device)
+    L = torch.where(ok.unsqueeze(-1).unsqueeze(-1), L, eye)
+    return L, (~ok).to(torch.int32)
+
+
+def _cholesky_solve(b: Tensor, L: Tensor) -> Tensor:
+    """Solve ``L Lᵀ x = b`` for ``b (..., n, m)`` with the factor of :func:`_cholesky`."""
+    n = L.shape[-1]
+    if n > _SMALL:
+        return torch.cholesky_solve(b, L)
+    y = [None] * n
+    for i in range(n):
+        v = b[..., i, :]
+        for k in range(i):
+            v = v - L[..., i, k].unsqueeze(-1) * y[k]
+        y[i] = v / L[..., i, i].unsqueeze(-1)
+    x = [None] * n
+    for i in range(n - 1, -1, -1):
+        v = y[i]
+        for k in range(i + 1, n):
+            v = v - L[..., k, i].unsqueeze(-1) * x[k]
+        x[i] = v / L[..., i, i].unsqueeze(-1)
+    return torch.stack(x, -2)
 
 
 def _pad_rows(a: Tensor, rows: int) -> Tensor:
@@ -392,17 +447,15 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
             U2, gmask, G = _compress(T * rest.unsqueeze(-1), nx, tol, scale)
             Vf = V * (~fixed).to(dtype).unsqueeze(-2)
             H = _mT(Vf) @ (Quu + rho) @ Vf + torch.diag_embed(fixed.to(dtype))
-            L, info = torch.linalg.cholesky_ex(_sym(H))
-            L = torch.where((info == 0).reshape(Bsz, 1, 1), L, torch.eye(nu, dtype=dtype, device=A.device))
-            Kw = -torch.cholesky_solve(_mT(Vf) @ (Qux + Quu @ Kc), L)
+            L, info = _cholesky(_sym(H))
+            Kw = -_cholesky_solve(_mT(Vf) @ (Qux + Quu @ Kc), L)
             K = Kc + Vf @ Kw
             stage[t] = _Constraint(U=U, inv_s=inv_s, V=V, rest=rest, U2=U2, gmask=gmask, G=G)
             frees[t] = Vf
             G_next = G
         else:
-            L, info = torch.linalg.cholesky_ex(Quu + rho)
-            L = torch.where((info == 0).reshape(Bsz, 1, 1), L, torch.eye(nu, dtype=dtype, device=A.device))
-            K = -torch.cholesky_solve(Qux, L)
+            L, info = _cholesky(Quu + rho)
+            K = -_cholesky_solve(Qux, L)
         ok = ok & (info == 0)
         KtQuu = _mT(K) @ Quu
         P = _sym(Qxx + KtQuu @ K + _mT(K) @ Qux + _mT(Qux) @ K)
