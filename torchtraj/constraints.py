@@ -40,9 +40,10 @@ class ConstraintValues:
     def max_violation(self) -> Tensor:
         """Largest violation ``(B,)``: ``|h|`` for equalities, ``max(g, 0)`` for inequalities."""
         B = self.eq.shape[0]
-        parts = [self.eq.abs().reshape(B, -1), self.ineq.clamp_min(0).reshape(B, -1),
+        parts = [self.eq.new_zeros(B, 1),  # no constraint: no violation
+                 self.eq.abs().reshape(B, -1), self.ineq.clamp_min(0).reshape(B, -1),
                  self.eqN.abs().reshape(B, -1), self.ineqN.clamp_min(0).reshape(B, -1)]
-        return torch.cat(parts, -1).amax(-1, keepdim=False) if sum(p.shape[1] for p in parts) else self.eq.new_zeros(B)
+        return torch.cat(parts, -1).amax(-1)
 
 
 class Constraints:
@@ -127,6 +128,12 @@ class Constraints:
         eqN = map_state(self.terminal_eq, X[:, -1], params) if self.meN else X.new_zeros(B, 0)
         ineqN = map_state(self.terminal_ineq, X[:, -1], params) if self.miN else X.new_zeros(B, 0)
         return ConstraintValues(eq=eq, ineq=ineq, eqN=eqN, ineqN=ineqN)
+
+    def max_violation(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """Largest constraint violation ``(B,)`` of the trajectory (zero when there are no constraints)."""
+        if self.empty:
+            return X.new_zeros(X.shape[0])
+        return self.evaluate(X, U, params).max_violation()
 
     def split_ineq(self, values: Tensor) -> dict:
         """``{block: values[..., rows]}`` for a stage-inequality tensor ``(..., mi)``."""

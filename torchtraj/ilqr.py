@@ -213,7 +213,7 @@ def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Option
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         active = status == Status.RUNNING
         rows.append({
-            "cost": J, "max_violation": constraints.evaluate(X, U, params).max_violation() if not constraints.empty else torch.zeros_like(J),
+            "cost": J, "max_violation": constraints.max_violation(X, U, params),
             "step_size": torch.where(take, alpha, torch.zeros_like(alpha)), "regularization": rho,
         })
         if opts.verbose:
@@ -222,7 +222,7 @@ def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Option
     lqr, rhs = expand(problem, X, U, params)
     factor = factorize(lqr, rho)
     costate = _adjoint(lqr, rhs)
-    violation = constraints.evaluate(X, U, params).max_violation() if not constraints.empty else torch.zeros_like(J)
+    violation = constraints.max_violation(X, U, params)
     return Solution(
         X=X, U=U, K=factor.K, cost=J, max_violation=violation, status=status, iterations=iterations,
         history=History.from_rows(rows), costate=costate, method="ilqr",

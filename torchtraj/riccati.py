@@ -169,12 +169,10 @@ class RiccatiFactor:
         p_next = rhs.qN
         g_next = None
         ks, ps = [None] * N, [None] * (N + 1)
-        gs = [None] * (N + 1)
         Qus = [None] * N
         ps[N] = p_next
         if constrained:
             g_next = self._terminal_rhs(rhs)
-            gs[N] = g_next
         dV1 = rhs.qN.new_zeros(Bsz)
         dV2 = rhs.qN.new_zeros(Bsz)
         for t in range(N - 1, -1, -1):
@@ -196,7 +194,6 @@ class RiccatiFactor:
                 kw = -_cholesky_solve(_mv(_mT(Vf), grad).unsqueeze(-1), self.chol[:, t]).squeeze(-1)
                 k = kc + _mv(Vf, kw)
                 g_next = _mv(_mT(con.U2), con.rest * t0) * con.gmask
-                gs[t] = g_next
             else:
                 k = -_cholesky_solve(Qu.unsqueeze(-1), self.chol[:, t]).squeeze(-1)
             Quuk = _mv(Quu, k)
