@@ -1,0 +1,430 @@
+r"""Implicit differentiation of solutions: a solve is a differentiable layer.
+
+At a returned solution ``w = (X, U)`` of a batch instance with parameters ``θ = (x̄_0, p)``, the
+first-order (KKT) conditions of the problem with its *active* inequality rows held as equalities
+read ``F(w, y, θ) = 0``:
+
+.. math::
+
+    \nabla_w \mathcal L(w, y, θ) = 0, \qquad c(w, θ) = 0,
+
+with the Lagrangian (the sign conventions of :mod:`torchtraj.riccati` and
+:func:`torchtraj.derivatives.problem_lagrangian_hessian`)
+
+.. math::
+
+    \mathcal L = \sum_{k<N} \big[\, l(z_k) + λ_{k+1}^T (f(z_k) - x_{k+1}) + ν_k^T h(z_k) + μ_k^T g_A(z_k) \big]
+        + l_N(x_N) + ν_N^T h_N(x_N) + μ_N^T g_{N,A}(x_N) + λ_0^T (\bar x_0 - x_0),
+
+``z_k = (x_k, u_k)``, all ``y = (λ, ν, μ)``. The constraints ``c`` are the initial condition, the
+dynamics, the equalities and the active rows ``g_A`` of the inequalities. By the implicit function
+theorem ``∂(w, y)/∂θ = -K^{-1} ∂F/∂θ`` with the symmetric KKT matrix
+``K = [[∇²_w \mathcal L, ∂c/∂w^T], [∂c/∂w, 0]]``. For a loss with cotangents ``w̄ = (X̄, Ū)``
+the reverse-mode product is therefore
+
+.. math::
+
+    \bar θ = (∂F/∂θ)^T s,\qquad K s = -\begin{bmatrix} \bar w \\ 0 \end{bmatrix}.
+
+The system ``K s = -(w̄, 0)`` is exactly the KKT system of the equality-constrained LQR problem
+with Hessian ``∇²\mathcal L`` (:func:`~torchtraj.derivatives.problem_lagrangian_hessian`), the
+linearised dynamics, the active constraint rows as stagewise equalities (inactive rows masked
+off), linear terms ``(q, r, q_N) = w̄`` and zero defects, initial state and constraint
+offsets. It is solved by the batched Riccati core (:func:`torchtraj.riccati.factorize` and
+:meth:`~torchtraj.riccati.RiccatiFactor.solve` with ``multipliers=True``), whose primal step and
+multipliers are ``s`` — no dense KKT matrix is formed. The product ``(∂F/∂θ)^T s`` is
+``∂/∂θ`` of the directional derivative of the Lagrangian along ``s``,
+
+.. math::
+
+    \bar θ = \nabla_θ \Big[ \sum_k \tfrac{d}{dε} \mathcal L_k(z_k + ε s_{z_k},\, y_k + ε s_{y_k}, θ)
+        + \tfrac{d}{dε} \mathcal L_N(\dots) \Big]_{ε=0}, \qquad \bar x_0 = s_{λ_0},
+
+evaluated with ``torch.func.jvp`` inside ``torch.func.vjp``, mapped over batch and time.
+
+The multipliers ``y`` are computed here, not taken from the solver, so every method that returns a
+KKT point gets the same gradients: at a KKT point, the Riccati solve of the constrained LQR problem
+with the cost gradient as linear term and zero defects gives a (near) zero step and the multipliers
+as its dual part (with the cost Hessian; the Hessian does not change the multipliers where the step
+is zero). The Lagrangian Hessian is then built with them.
+
+Active set: an inequality row is active where ``g > -active_tolerance``; the default
+:func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)`` (``1e-6`` in float64, ``1.2e-3`` in
+float32). ALTRO's final projection leaves active rows at ``|g| ≲ 1e-8`` and inactive rows of a
+converged solve are far below ``-1e-6`` unless they are (weakly) active; a weakly active row (zero
+multiplier) is held as an equality, which gives the one-sided derivative in which it stays active.
+
+Instances that did not converge (``status != CONVERGED``), whose reduced Hessian is not positive
+definite, or whose gradient is not finite get a **zero gradient**, and a ``RuntimeWarning`` names
+them (at the solve for the status, at the backward pass for the others); other instances of the batch
+are unaffected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from typing import Mapping, Optional
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+from torch.func import grad, jvp, vmap
+
+from .batching import map_stage, map_state
+from .constraints import Constraints
+from .derivatives import (linearize_dynamics, problem_lagrangian_hessian, quadratize_cost, stage_jacobian,
+                          terminal_jacobian)
+from .problem import Problem
+from .riccati import LQR, LQRVectors, factorize
+from .solution import Solution
+from .status import Status
+
+#: Methods whose solutions ignore the problem's constraints: their KKT conditions are the unconstrained ones.
+UNCONSTRAINED_METHODS = frozenset({"ilqr"})
+
+
+def default_active_tolerance(dtype: torch.dtype) -> float:
+    """Rows with ``g > -tolerance`` are active: ``max(1e-6, 1e4 * eps)`` of ``dtype``."""
+    return max(1e-6, 1e4 * float(torch.finfo(dtype).eps))
+
+
+def requires_gradients(x0: Tensor, params: Mapping[str, Tensor]) -> bool:
+    """Whether a solve from ``x0`` with ``params`` must return differentiable ``X``, ``U``, ``cost``."""
+    if not torch.is_grad_enabled():
+        return False
+    return x0.requires_grad or any(v.requires_grad for v in params.values())
+
+
+# ----------------------------------------------------------------------------- linearisation
+def _constraints(problem: Problem, constrained: bool) -> Constraints:
+    cons = Constraints(problem)
+    if not constrained:  # the method ignores them: so do its KKT conditions
+        cons.me = cons.mi = cons.meN = cons.miN = 0
+    return cons
+
+
+@dataclasses.dataclass
+class KKTSystem:
+    """The constrained LQR model of the KKT conditions at ``(X, U)``, batched over B.
+
+    ``lqr`` holds the Lagrangian Hessian, the linearised dynamics and the constraint rows with the
+    active ones unmasked (stage rows: ``me`` equalities then ``mi`` inequalities; terminal rows: ``meN``
+    then ``miN``); ``factor`` factorises it. ``newton`` is the right-hand side of a Newton step on the
+    KKT conditions (cost gradient, defects ``f(x_k, u_k) − x_{k+1}``, constraint values); ``costate
+    (B, N+1, nx)``, ``nu (B, N, me+mi)`` and ``nuN (B, meN+miN)`` are the multipliers (zero on inactive
+    rows; ``None`` without rows); ``inactive (B,)`` is the largest inactive inequality value; ``ok (B,)``
+    marks the instances whose two factorisations succeeded.
+    """
+
+    lqr: LQR
+    factor: object
+    newton: LQRVectors
+    costate: Tensor
+    nu: Optional[Tensor]
+    nuN: Optional[Tensor]
+    ok: Tensor
+
+
+def _rows(cons: Constraints, X: Tensor, U: Tensor, params, tol: float):
+    """Values, Jacobians and active masks of the stage rows ``(B, N, m)`` and terminal rows ``(B, mN)``.
+
+    Returns ``(e, C, D, mask, eN, CN, maskN)``, ``None`` where there are no rows."""
+    nx = X.shape[-1]
+    vals, jacs, masks = [], [], []
+    if cons.me:
+        h, J = stage_jacobian(cons.stage_eq, X, U, params)
+        vals.append(h), jacs.append(J), masks.append(torch.ones_like(h))
+    if cons.mi:
+        g, J = stage_jacobian(cons.stage_ineq, X, U, params)
+        applies = cons.ineq_knot_mask > 0
+        vals.append(torch.where(applies, g, torch.zeros_like(g))), jacs.append(J)
+        masks.append(((g > -tol) & applies).to(X.dtype))
+    e = C = D = mask = None
+    if vals:
+        J = torch.cat(jacs, -2)
+        e, C, D, mask = torch.cat(vals, -1), J[..., :nx], J[..., nx:], torch.cat(masks, -1)
+    vals, jacs, masks = [], [], []
+    if cons.meN:
+        h, J = terminal_jacobian(cons.terminal_eq, X[:, -1], params)
+        vals.append(h), jacs.append(J), masks.append(torch.ones_like(h))
+    if cons.miN:
+        g, J = terminal_jacobian(cons.terminal_ineq, X[:, -1], params)
+        vals.append(g), jacs.append(J), masks.append((g > -tol).to(X.dtype))
+    eN = CN = maskN = None
+    if vals:
+        eN, CN, maskN = torch.cat(vals, -1), torch.cat(jacs, -2), torch.cat(masks, -1)
+    return e, C, D, mask, eN, CN, maskN
+
+
+def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool = True,
+               active_tolerance: Optional[float] = None) -> KKTSystem:
+    """Multipliers and the factorised KKT system at ``X (B, N+1, nx)``, ``U (B, N, nu)`` from ``x0 (B, nx)``.
+
+    ``params`` are batched to B. With ``constrained=False`` the constraints are left out (the KKT
+    conditions of the unconstrained problem, for methods that ignore constraints).
+    """
+    cons = _constraints(problem, constrained)
+    tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
+    nx = X.shape[-1]
+    f, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
+    _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
+    e, C, D, mask, eN, CN, maskN = _rows(cons, X, U, params, tol)
+    zeros = torch.zeros_like
+    # 1. multipliers: cost Hessian, cost gradient, zero defects and offsets
+    lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx,
+              C=C, D=D, mask=mask, CN=CN, maskN=maskN)
+    gradient = LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=zeros(X[:, 1:]), x0=zeros(x0),
+                          e=None if e is None else zeros(e), eN=None if eN is None else zeros(eN))
+    first = factorize(lqr)
+    step = first.solve(gradient, multipliers=True)
+    # 2. the Lagrangian Hessian with these multipliers
+    me, meN = cons.me, cons.meN
+    nu_eq = nu_in = nuN_eq = nuN_in = None
+    if step.nu is not None:
+        nu_eq, nu_in = step.nu[..., :me], step.nu[..., me:]
+    if step.nuN is not None:
+        nuN_eq, nuN_in = step.nuN[..., :meN], step.nuN[..., meN:]
+    H, HN = problem_lagrangian_hessian(problem, cons, X, U, params, step.costate, nu_eq, nu_in, nuN_eq, nuN_in)
+    lqr = dataclasses.replace(lqr, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=HN)
+    factor = factorize(lqr)
+    newton = dataclasses.replace(gradient, c=f - X[:, 1:], x0=x0 - X[:, 0], e=e, eN=eN)
+    return KKTSystem(lqr=lqr, factor=factor, newton=newton, costate=step.costate, nu=step.nu, nuN=step.nuN,
+                     ok=first.ok & factor.ok)
+
+
+def _inactive_violation(cons: Constraints, X: Tensor, U: Tensor, params, mask, maskN) -> Tensor:
+    """Largest value ``(B,)`` of the inequality rows outside the masks (−inf without such rows)."""
+    B = X.shape[0]
+    parts = [X.new_full((B, 1), -float("inf"))]
+    if cons.mi:
+        g = map_stage(cons.stage_ineq, X[:, :-1], U, params)
+        inactive = (mask[..., cons.me:] == 0) & (cons.ineq_knot_mask > 0)
+        parts.append(torch.where(inactive, g, torch.full_like(g, -float("inf"))).reshape(B, -1))
+    if cons.miN:
+        g = map_state(cons.terminal_ineq, X[:, -1], params)
+        parts.append(torch.where(maskN[..., cons.meN:] == 0, g, torch.full_like(g, -float("inf"))))
+    return torch.cat(parts, -1).amax(-1)
+
+
+def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: int = 2, constrained: bool = True,
+           active_tolerance: Optional[float] = None, mask: Optional[Tensor] = None):
+    """Newton steps on the KKT conditions with the active set held fixed; returns ``(X, U)``.
+
+    Implicit gradients are exact at an exact KKT point; a solver stops at its tolerances (the line
+    search of iLQR cannot resolve cost changes below round-off, which leaves controls accurate only to
+    about ``sqrt(eps / σ_min)``). From a converged solution the Newton iteration converges
+    quadratically, so one or two steps reach round-off. A step of an instance is taken only if it
+    is finite, small (``|δw|∞ ≤ 1e-2 (1 + |w|∞)``), contracts (smaller than the instance's previous
+    step) and leaves every inactive inequality row satisfied; otherwise the instance keeps its point
+    and stops refining. Only the instances in ``mask (B,)`` (default: all) move.
+    """
+    cons = _constraints(problem, constrained)
+    B = X.shape[0]
+    moving = torch.ones(B, dtype=torch.bool, device=X.device) if mask is None else mask.clone()
+    previous = X.new_full((B,), float("inf"))
+
+    def expand(t, like):
+        return t.reshape(B, *([1] * (like.dim() - 1)))
+
+    for _ in range(steps):
+        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance)
+        s = kkt.factor.solve(kkt.newton)
+        size = torch.maximum(s.dx.abs().flatten(1).amax(-1), s.du.abs().flatten(1).amax(-1))
+        scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
+        Xn, Un = X + s.dx, U + s.du
+        safe = _inactive_violation(cons, Xn, Un, params, kkt.lqr.mask, kkt.lqr.maskN) <= 0
+        take = moving & kkt.ok & torch.isfinite(size) & (size <= 1e-2 * scale) & (size < previous) & safe
+        X, U = torch.where(expand(take, X), Xn, X), torch.where(expand(take, U), Un, U)
+        previous = torch.where(take, size, previous)
+        moving = take
+        if not bool(moving.any()):
+            break
+    return X, U
+
+
+# ------------------------------------------------------------------------------ the adjoint
+def _lagrangians(problem: Problem, cons: Constraints):
+    """Per-instance stage and terminal Lagrangians ``L_k(x, u, y, p)``, ``L_N(x, y, p)``,
+    ``y = (λ_{k+1}, ν_k, μ_k)`` and ``y_N = (ν_N, μ_N)``."""
+    nx, me, meN = problem.nx, cons.me, cons.meN
+
+    def stage(x, u, y, p):
+        out = problem.stage_cost(x, u, p) + (y[:nx] * problem.dynamics(x, u, p)).sum()
+        if me:
+            out = out + (y[nx:nx + me] * cons.stage_eq(x, u, p)).sum()
+        if cons.mi:
+            out = out + (y[nx + me:] * cons.stage_ineq(x, u, p)).sum()
+        return out
+
+    def terminal(x, y, p):
+        out = problem.terminal_cost(x, p)
+        if meN:
+            out = out + (y[:meN] * cons.terminal_eq(x, p)).sum()
+        if cons.miN:
+            out = out + (y[meN:] * cons.terminal_ineq(x, p)).sum()
+        return out
+
+    return stage, terminal
+
+
+def parameter_gradients(problem: Problem, cons: Constraints, X: Tensor, U: Tensor, params: dict,
+                        y: Tensor, yN: Tensor, s: tuple) -> dict:
+    """``(∂F/∂p)^T s`` for every parameter: ``{name: (B, *shape)}``.
+
+    ``y (B, N, nx+m)`` and ``yN (B, mN)`` are the stage / terminal multipliers, ``s = (sX, sU, sy, syN)``
+    the adjoint in the same layout. ``params`` are batched to B.
+    """
+    stage, terminal = _lagrangians(problem, cons)
+
+    def stage_dir(x, u, yk, sx, su, syk, p):
+        return jvp(lambda x_, u_, y_: stage(x_, u_, y_, p), (x, u, yk), (sx, su, syk))[1]
+
+    def terminal_dir(x, yk, sx, syk, p):
+        return jvp(lambda x_, y_: terminal(x_, y_, p), (x, yk), (sx, syk))[1]
+
+    sX, sU, sy, syN = s
+    over_time = vmap(stage_dir, in_dims=(0, 0, 0, 0, 0, 0, None))
+    per_stage = vmap(over_time, in_dims=(0, 0, 0, 0, 0, 0, 0))
+    per_terminal = vmap(terminal_dir, in_dims=(0, 0, 0, 0, 0))
+
+    def total(p):
+        out = per_stage(X[:, :-1], U, y, sX[:, :-1], sU, sy, p).sum()
+        return out + per_terminal(X[:, -1], yN, sX[:, -1], syN, p).sum()
+
+    return grad(total)(params)
+
+
+def _stack_multipliers(costate: Tensor, nu: Optional[Tensor], nuN: Optional[Tensor], B: int, N: int):
+    y = torch.cat([costate[:, 1:]] + ([nu] if nu is not None else []), -1)
+    yN = nuN if nuN is not None else costate.new_zeros(B, 0)
+    return y, yN
+
+
+def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor,
+                   U_bar: Tensor, constrained: bool = True, active_tolerance: Optional[float] = None):
+    """Gradients ``(x0_bar (B, nx), {name: (B, *shape)}, ok (B,))`` of a loss with cotangents
+    ``X_bar (B, N+1, nx)``, ``U_bar (B, N, nu)`` at the solution ``(X, U)`` from ``x0 (B, nx)``;
+    ``params`` batched to B. ``ok`` is False where the KKT system could not be factorised."""
+    B, N = U.shape[0], U.shape[1]
+    cons = _constraints(problem, constrained)
+    kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance)
+    zeros = torch.zeros_like
+    rhs = dataclasses.replace(kkt.newton, q=X_bar[:, :-1], r=U_bar, qN=X_bar[:, -1], c=zeros(X[:, 1:]),
+                              x0=zeros(x0), e=None if kkt.newton.e is None else zeros(kkt.newton.e),
+                              eN=None if kkt.newton.eN is None else zeros(kkt.newton.eN))
+    s = kkt.factor.solve(rhs, multipliers=True)
+    y, yN = _stack_multipliers(kkt.costate, kkt.nu, kkt.nuN, B, N)
+    sy, syN = _stack_multipliers(s.costate, s.nu, s.nuN, B, N)
+    p_bar = parameter_gradients(problem, cons, X, U, params, y, yN, (s.dx, s.du, sy, syN)) if params else {}
+    return s.costate[:, 0], p_bar, kkt.ok
+
+
+# --------------------------------------------------------------------------- the autograd layer
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Spec:
+    """What the backward pass needs besides tensors."""
+
+    problem: Problem
+    names: tuple
+    usable: Tensor  # (B,) bool: instances that converged
+    constrained: bool
+    active_tolerance: Optional[float]
+
+
+class ImplicitSolution(torch.autograd.Function):
+    """``(X, U)`` of a solved batch as a function of ``(x0, *params)``; the backward pass is
+    :func:`backward_solve` (the implicit function theorem on the KKT conditions)."""
+
+    @staticmethod
+    def forward(spec: _Spec, X: Tensor, U: Tensor, x0: Tensor, *params: Tensor):
+        return X.clone(), U.clone()
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        spec, X, U, x0, *params = inputs
+        ctx.spec = spec
+        ctx.save_for_backward(X, U, x0, *params)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, X_bar: Tensor, U_bar: Tensor):
+        spec: _Spec = ctx.spec
+        X, U, x0, *values = ctx.saved_tensors
+        params = dict(zip(spec.names, values))
+        x0_bar, p_bar, ok = backward_solve(spec.problem, x0, X, U, params, X_bar, U_bar, spec.constrained,
+                                           spec.active_tolerance)
+        B = X.shape[0]
+        finite = torch.isfinite(x0_bar).all(-1)
+        for v in p_bar.values():
+            finite = finite & torch.isfinite(v.reshape(B, -1)).all(-1)
+        keep = spec.usable & ok & finite
+        bad = spec.usable & ~keep
+        if bool(bad.any()):
+            warnings.warn(f"implicit gradients: the KKT system of instance(s) {_indices(bad)} could not be "
+                          "factorised (reduced Hessian not positive definite, or non-finite values); "
+                          "their gradients are zero", RuntimeWarning, stacklevel=2)
+
+        def masked(g):
+            return torch.where(keep.reshape(B, *([1] * (g.dim() - 1))), g, torch.zeros_like(g))
+
+        grads = [masked(p_bar[n]) if ctx.needs_input_grad[4 + i] else None for i, n in enumerate(spec.names)]
+        x0_grad = masked(x0_bar) if ctx.needs_input_grad[3] else None
+        return (None, None, None, x0_grad, *grads)
+
+
+def _indices(mask: Tensor) -> list:
+    return torch.nonzero(mask).reshape(-1).tolist()
+
+
+def objective(problem: Problem, X: Tensor, U: Tensor, params) -> Tensor:
+    """``sum_k l(x_k, u_k, p) + l_N(x_N, p)``: ``(B,)`` for ``X (B, N+1, nx)``, differentiable in all inputs."""
+    stage = map_stage(problem.stage_cost, X[:, :-1], U, params).sum(-1)
+    return stage + map_state(problem.terminal_cost, X[:, -1], params)
+
+
+def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor], solution: Solution,
+                     refine_steps: int = 2, active_tolerance: Optional[float] = None) -> Solution:
+    """``solution`` with ``X``, ``U`` and ``cost`` differentiable with respect to ``x0`` and ``params``.
+
+    Args:
+        problem: the solved problem.
+        x0: ``(B, nx)`` initial states, possibly requiring grad.
+        params: the problem's parameters batched to B (``Problem.batched_params``), possibly requiring grad.
+        solution: the method's result, computed from detached ``x0`` and ``params``.
+        refine_steps: Newton steps of :func:`refine` on the converged instances before differentiating
+            (0: differentiate at the solver's point as it is).
+        active_tolerance: inequality rows with ``g > -active_tolerance`` are held active;
+            default :func:`default_active_tolerance`.
+
+    Instances whose status is not ``CONVERGED`` get zero gradients (and are not refined); a
+    ``RuntimeWarning`` names them. ``max_violation`` is re-evaluated at the refined point.
+    """
+    usable = solution.status == Status.CONVERGED
+    if not bool(usable.all()):
+        warnings.warn(f"implicit gradients: instance(s) {_indices(~usable)} did not converge (status "
+                      f"{Status.describe(solution.status[~usable])}); their gradients will be zero",
+                      RuntimeWarning, stacklevel=3)
+    constrained = solution.method not in UNCONSTRAINED_METHODS
+    detached = {k: v.detach() for k, v in params.items()}
+    X, U = solution.X.detach(), solution.U.detach()
+    violation = solution.max_violation
+    if refine_steps > 0 and bool(usable.any()):
+        X, U = refine(problem, x0.detach(), X, U, detached, refine_steps, constrained, active_tolerance, usable)
+        violation = torch.where(usable, _violation(problem, x0.detach(), X, U, detached), violation)
+    names = tuple(params)
+    spec = _Spec(problem=problem, names=names, usable=usable, constrained=constrained,
+                 active_tolerance=active_tolerance)
+    X, U = ImplicitSolution.apply(spec, X, U, x0, *(params[n] for n in names))
+    cost = objective(problem, X, U, params)
+    # where an instance gets no gradient, its cost gets none either (not even the explicit ∂l/∂p)
+    keep = usable.to(cost.dtype)
+    cost = keep * cost + (1 - keep) * cost.detach()
+    return dataclasses.replace(solution, X=X, U=U, cost=cost, max_violation=violation)
+
+
+def _violation(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params) -> Tensor:
+    """Largest constraint violation (as reported by every method), dynamics and initial-state defect ``(B,)``."""
+    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
+    defect = torch.maximum(defect, (x0 - X[:, 0]).abs().amax(-1))
+    return torch.maximum(defect, Constraints(problem).max_violation(X, U, params))
