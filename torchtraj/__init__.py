@@ -1,13 +1,15 @@
 """torchtraj: batched, differentiable trajectory optimisation in PyTorch."""
 
+from .altro import ALTROOptions
 from .ilqr import ILQROptions
+from .projection import ProjectionOptions
 from .integrators import euler, rk4
 from .problem import Problem
 from .solution import History, Solution
 from .solve import Method, solve
 from .status import Status
 
-__all__ = ["History", "ILQROptions", "Method", "Problem", "Solution", "Status", "euler", "rk4", "solve"]
+__all__ = ["ALTROOptions", "History", "ILQROptions", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "euler", "rk4", "solve"]
 __version__ = "0.1.0"
 
 

@@ -133,7 +133,7 @@ def _candidates(problem, params, x0, X, U, K, d, alphas):
     return torch.stack(xs, 2), torch.stack(us, 2)
 
 
-def _line_search(problem, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQROptions):
+def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQROptions):
     """Backtracking line search on the step size; returns the accepted ``(X, U, J, alpha)`` and a found mask.
 
     The candidates ``α = β^j`` are simulated in rounds of ``opts.line_search_parallel`` step sizes,
@@ -150,7 +150,7 @@ def _line_search(problem, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQ
     for start in range(0, L, per_round):
         alphas = all_alphas[start:start + per_round]
         Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
-        Jc = total_cost(problem, Xc, Uc, params)  # (B, l)
+        Jc = objective.value(Xc, Uc, params)  # (B, l)
         expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
         ratio = (J.unsqueeze(1) - Jc) / expected
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
@@ -166,6 +166,81 @@ def _line_search(problem, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQ
     return Xa, Ua, Ja, alpha, found
 
 
+class CostObjective:
+    """The problem's own objective, as the iLQR loop sees it: a value and an LQR expansion.
+
+    The augmented-Lagrangian objective of :mod:`torchtraj.augmented_lagrangian` has the same two methods.
+    """
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+
+    def value(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """``(B, *E)`` for ``X (B, *E, N+1, nx)``."""
+        return total_cost(self.problem, X, U, params)
+
+    def expand(self, X: Tensor, U: Tensor, params):
+        return expand(self.problem, X, U, params)
+
+
+@dataclass
+class Step:
+    """Outcome of one iLQR iteration for every instance (all ``(B, ...)``)."""
+
+    X: Tensor
+    U: Tensor
+    J: Tensor
+    rho: Tensor
+    drho: Tensor
+    took: Tensor  # accepted a step
+    converged: Tensor  # met the convergence test this iteration
+    blown: Tensor  # regularisation above its maximum
+    alpha: Tensor
+    K: Tensor
+    dJ: Tensor
+
+
+def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions,
+              backward=None, cost_tolerance=None) -> Step:
+    """One iteration (expansion, backward pass, line search, regularisation update) on the instances in ``active``.
+
+    ``backward(lqr, rho)`` returns a :class:`~torchtraj.riccati.RiccatiFactor`; the default is
+    :func:`~torchtraj.riccati.factorize`. ``cost_tolerance`` (a float or ``(B,)``) overrides
+    ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged.
+    """
+    cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
+    lqr, rhs = objective.expand(X, U, params)
+    factor = (backward or factorize)(lqr, rho)
+    step = factor.solve(rhs)
+    stationary = -step.dV1 < opts.expected_decrease_tolerance
+    Xn, Un, Jn, alpha, found = _line_search(
+        problem, objective, params, x0, X, U, J, factor.K, step.k, step.dV1, step.dV2, active & factor.ok, opts
+    )
+    success = factor.ok & found
+    take = active & success & ~stationary
+    dJ = J - Jn
+    grad = _scaled_step(step.k, U)
+    X, U, J = _where(take, Xn, X), _where(take, Un, U), torch.where(take, Jn, J)
+    rho_new, drho_new = _update_regularization(rho, drho, success | stationary, opts)
+    rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)
+    converged = active & factor.ok & (
+        stationary | (take & (dJ.abs() < cost_tolerance) & (grad < opts.gradient_tolerance))
+    )
+    blown = active & ~converged & (rho > opts.regularization_max)
+    alpha = torch.where(take, alpha, torch.zeros_like(alpha))
+    return Step(X, U, J, rho, drho, take, converged, blown, alpha, factor.K, torch.where(take, dJ, 0.0))
+
+
+def start_status(x0: Tensor, X: Tensor, J: Tensor, opts: ILQROptions) -> Tensor:
+    """``RUNNING``, or ``NON_FINITE`` (x0 not finite) / ``INFEASIBLE_START`` (initial rollout unusable)."""
+    B = x0.shape[0]
+    status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
+    x0_finite = torch.isfinite(x0).all(-1)
+    start_ok = torch.isfinite(J) & torch.isfinite(X).reshape(B, -1).all(-1) & (J < opts.max_cost)
+    status = torch.where(~x0_finite, int(Status.NON_FINITE), status)
+    return torch.where(x0_finite & ~start_ok, int(Status.INFEASIBLE_START), status)
+
+
 def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ILQROptions] = None) -> Solution:
     """Solve ``problem`` from ``x0 (B, nx)`` and controls ``U0 (B, N, nu)`` by iLQR; constraints are ignored.
 
@@ -174,14 +249,11 @@ def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Option
     opts = options or ILQROptions()
     B = x0.shape[0]
     constraints = Constraints(problem)
-    status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
+    objective = CostObjective(problem)
     X = rollout(problem.dynamics, x0, U0, params)
     U = U0
     J = total_cost(problem, X, U, params)
-    x0_finite = torch.isfinite(x0).all(-1)
-    start_ok = torch.isfinite(J) & torch.isfinite(X).reshape(B, -1).all(-1) & (J < opts.max_cost)
-    status = torch.where(~x0_finite, int(Status.NON_FINITE), status)
-    status = torch.where(x0_finite & ~start_ok, int(Status.INFEASIBLE_START), status)
+    status = start_status(x0, X, J, opts)
     active = status == Status.RUNNING
     rho = torch.full((B,), opts.regularization_initial, dtype=x0.dtype, device=x0.device)
     drho = torch.zeros_like(rho)
@@ -190,34 +262,18 @@ def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Option
     for it in range(opts.iterations):
         if not bool(active.any()):  # the only host synchronisation of an iteration
             break
-        lqr, rhs = expand(problem, X, U, params)
-        factor = factorize(lqr, rho)
-        step = factor.solve(rhs)
-        stationary = -step.dV1 < opts.expected_decrease_tolerance
-        Xn, Un, Jn, alpha, found = _line_search(
-            problem, params, x0, X, U, J, factor.K, step.k, step.dV1, step.dV2, active & factor.ok, opts
-        )
-        success = factor.ok & found
-        take = active & success & ~stationary
-        dJ = J - Jn
-        grad = _scaled_step(step.k, U)
-        X, U, J = _where(take, Xn, X), _where(take, Un, U), torch.where(take, Jn, J)
-        rho_new, drho_new = _update_regularization(rho, drho, success | stationary, opts)
-        rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)
+        s = ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts)
+        X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
         iterations = iterations + active.long()
-        converged = active & factor.ok & (
-            stationary | (take & (dJ.abs() < opts.cost_tolerance) & (grad < opts.gradient_tolerance))
-        )
-        blown = active & ~converged & (rho > opts.regularization_max)
-        status = torch.where(converged, int(Status.CONVERGED), status)
-        status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
+        status = torch.where(s.converged, int(Status.CONVERGED), status)
+        status = torch.where(s.blown, int(Status.MAX_REGULARIZATION), status)
         active = status == Status.RUNNING
         rows.append({
             "cost": J, "max_violation": constraints.max_violation(X, U, params),
-            "step_size": torch.where(take, alpha, torch.zeros_like(alpha)), "regularization": rho,
+            "step_size": s.alpha, "regularization": rho,
         })
         if opts.verbose:
-            _log_iteration(it, J, rho, active)
+            _log_iteration("ilqr", it, J, rho, active)
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
     lqr, rhs = expand(problem, X, U, params)
     factor = factorize(lqr, rho)
@@ -239,7 +295,7 @@ def _adjoint(lqr: LQR, rhs: LQRVectors) -> Tensor:
     return torch.stack(lams[::-1], 1)
 
 
-def _log_iteration(it: int, J: Tensor, rho: Tensor, active: Tensor) -> None:
+def _log_iteration(name: str, it: int, J: Tensor, rho: Tensor, active: Tensor) -> None:
     running = active.sum().item()
-    logger.info("ilqr %4d  cost %.10g..%.10g  reg %.2e  running %d", it, J.min().item(), J.max().item(),
+    logger.info("%s %4d  cost %.10g..%.10g  reg %.2e  running %d", name, it, J.min().item(), J.max().item(),
                 rho.max().item(), running)

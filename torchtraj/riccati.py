@@ -74,6 +74,9 @@ class LQR:
     Shapes: ``A (B, N, nx, nx)``, ``B (B, N, nx, nu)``, ``Q (B, N, nx, nx)``, ``R (B, N, nu, nu)``,
     ``S (B, N, nu, nx)``, ``QN (B, nx, nx)``; optional equality constraints ``C (B, N, m, nx)``,
     ``D (B, N, m, nu)`` with row mask ``mask (B, N, m)``, and ``CN (B, mN, nx)`` with ``maskN (B, mN)``.
+    The square-root pass (:mod:`torchtraj.sqrt_riccati`) may be given square roots of the cost
+    Hessians: rows ``root (B, N, r, nx+nu)`` with ``[[Q, Sᵀ], [S, R]] = rootᵀ root`` and
+    ``rootN (B, rN, nx)`` with ``QN = rootNᵀ rootN``.
     """
 
     A: Tensor
@@ -87,6 +90,8 @@ class LQR:
     mask: Optional[Tensor] = None
     CN: Optional[Tensor] = None
     maskN: Optional[Tensor] = None
+    root: Optional[Tensor] = None
+    rootN: Optional[Tensor] = None
 
     @property
     def constrained(self) -> bool:
@@ -382,6 +387,7 @@ def _sanitize(lqr: LQR):
         A=clean(lqr.A, zero), B=clean(lqr.B, zero), Q=clean(lqr.Q, eye), R=clean(lqr.R, eye),
         S=clean(lqr.S, zero), QN=clean(lqr.QN, eye), C=clean(lqr.C, zero), D=clean(lqr.D, zero),
         mask=clean(lqr.mask, zero), CN=clean(lqr.CN, zero), maskN=clean(lqr.maskN, zero),
+        root=clean(lqr.root, zero), rootN=clean(lqr.rootN, zero),
     )
     return cleaned, finite
 

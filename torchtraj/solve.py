@@ -7,6 +7,7 @@ and hands them to the method's solver.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import warnings
@@ -15,6 +16,7 @@ from typing import Optional, Union
 import torch
 from torch import Tensor
 
+from .altro import ALTROOptions, solve_altro
 from .ilqr import ILQROptions, solve_ilqr
 from .problem import Problem
 from .solution import Solution
@@ -24,9 +26,11 @@ class Method(str, enum.Enum):
     """Solver methods; strings are accepted too (``method="ilqr"``)."""
 
     ILQR = "ilqr"
+    ALTRO = "altro"
+    AL_ILQR = "al-ilqr"
 
 
-OPTIONS = {Method.ILQR: ILQROptions}
+OPTIONS = {Method.ILQR: ILQROptions, Method.ALTRO: ALTROOptions, Method.AL_ILQR: ALTROOptions}
 
 
 def _batched(value, name: str, shape: tuple, problem: Problem) -> Optional[Tensor]:
@@ -74,7 +78,8 @@ def solve(
         x0: initial states ``(nx,)`` or ``(B, nx)``; ``None`` uses ``problem.x0``.
         method: a :class:`Method` or its name.
         U0: initial control guess ``(N, nu)`` or ``(B, N, nu)``; ``None`` uses ``problem.u_init``.
-        X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one.
+        X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one; for
+            ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B).
         options: the method's options dataclass (or a dict of its fields).
 
     Returns:
@@ -98,14 +103,25 @@ def solve(
     params = problem.batched_params(B)
     if getattr(opts, "verbose", False):
         _ensure_log_handler()
+    return _dispatch(problem, method, opts, x0.contiguous(), U0.contiguous(), X0, params, B)
+
+
+def _dispatch(problem: Problem, method: Method, opts, x0: Tensor, U0: Tensor, X0: Optional[Tensor], params,
+              B: int) -> Solution:
+    """Run the method's solver on the checked, batched inputs."""
+    if method in (Method.ALTRO, Method.AL_ILQR):
+        if method is Method.AL_ILQR:
+            opts = dataclasses.replace(opts, projection=False)
+        X0 = None if X0 is None else X0.expand(B, *X0.shape[1:]).contiguous()
+        return solve_altro(problem, x0, U0, params, opts, X0=X0, method=method.value)
     if method is Method.ILQR:
         if X0 is not None:
             raise ValueError("method 'ilqr' simulates its states from x0 and cannot take X0; use a method that "
                              "accepts an infeasible state guess")
         if problem.has_constraints:
             warnings.warn(f"method 'ilqr' ignores the constraints of problem {problem.name!r}; "
-                          "Solution.max_violation reports them", stacklevel=2)
-        return solve_ilqr(problem, x0.contiguous(), U0.contiguous(), params, opts)
+                          "Solution.max_violation reports them", stacklevel=3)
+        return solve_ilqr(problem, x0, U0, params, opts)
     raise AssertionError(method)  # pragma: no cover - every Method is handled above
 
 

@@ -1,0 +1,197 @@
+r"""ALTRO for batches of constrained problems (papers/altro.md, Algorithm 4).
+
+1. **AL-iLQR** (§II-A, Algorithm 1): iLQR on the augmented Lagrangian
+   (:mod:`torchtraj.augmented_lagrangian`) for fixed multipliers ``λ`` and penalties ``μ``; when an
+   instance's inner solve converges (or reaches ``iterations_inner``), and its largest violation is still
+   above ``constraint_tolerance``, its duals are updated by eqs. (17)-(18) and the inner solve goes on.
+   The outer and inner loops are flattened into one batched loop: every instance takes one iLQR
+   iteration per pass and is at its own place in its own outer loop, so a fast instance never waits for
+   a slow one's inner solve; instances that finished are frozen by masks.
+2. **Projection** (§III-D, :mod:`torchtraj.projection`) of the coarse solution onto the active
+   constraints to ``projection.tolerance`` (1e-8).
+
+Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem
+(:mod:`torchtraj.infeasible`, :mod:`torchtraj.time_penalty`); the square-root backward pass (§III-A)
+is :func:`torchtraj.sqrt_riccati.factorize_sqrt`, chosen by ``square_root=True``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from .augmented_lagrangian import AugmentedLagrangian, Duals
+from .batching import map_stage, rollout
+from .constraints import Constraints
+from .ilqr import ILQROptions, _log_iteration, ilqr_step, start_status, total_cost
+from .problem import Problem
+from .projection import ProjectionOptions, project
+from .riccati import factorize
+from .solution import History, Solution
+from .sqrt_riccati import factorize_sqrt
+from .status import Status
+
+
+@dataclass
+class ALTROOptions:
+    """Options of :func:`solve_altro`; defaults are Altro.jl's ``SolverOptions``."""
+
+    #: Options of the inner iLQR (its ``iterations`` is unused: see ``iterations_inner``).
+    ilqr: ILQROptions = field(default_factory=ILQROptions)
+    #: The AL stage stops once the largest violation is below this (``constraint_tolerance``).
+    constraint_tolerance: float = 1e-6
+    #: Inner convergence on the cost change while the constraints are not met (``cost_tolerance_intermediate``),
+    cost_tolerance_intermediate: float = 1e-4
+    #: ... and once they are (``cost_tolerance``).
+    cost_tolerance: float = 1e-4
+    #: Initial penalty ``μ`` (``penalty_initial``), its scaling ``φ`` (``penalty_scaling``) and cap.
+    penalty_initial: float = 1.0
+    penalty_scaling: float = 10.0
+    penalty_max: float = 1e8
+    #: Multipliers are clipped to ``±dual_max``.
+    dual_max: float = 1e8
+    #: Outer (dual update) iterations and iLQR iterations per outer iteration.
+    iterations_outer: int = 30
+    iterations_inner: int = 300
+    #: Square-root backward pass (§III-A) instead of the standard one.
+    square_root: bool = False
+    #: Run the projection stage (``False`` gives plain AL-iLQR, method ``"al-ilqr"``).
+    projection: bool = True
+    projection_options: ProjectionOptions = field(default_factory=ProjectionOptions)
+    #: Cost ``½ R_s |s|²`` on the slack controls of an infeasible start (§III-B, eq. 32).
+    slack_cost: float = 1.0
+    #: Log one line per iteration through the ``torchtraj`` logger.
+    verbose: bool = False
+
+
+def multiplier_blocks(constraints: Constraints, stage: Tensor, terminal: Tensor) -> dict:
+    """Stacked ``(B, N, mi + me)`` / ``(B, miN + meN)`` duals split into named blocks."""
+    c = constraints
+    out = {name: v for name, v in c.split_ineq(stage[..., :c.mi]).items()}
+    if c.me:
+        out["stage_eq"] = stage[..., c.mi:]
+    if c.miN:
+        out["terminal_ineq"] = terminal[..., :c.miN]
+    if c.meN:
+        out["terminal_eq"] = terminal[..., c.miN:]
+    return out
+
+
+def solve_altro(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ALTROOptions] = None,
+                X0: Optional[Tensor] = None, method: str = "altro") -> Solution:
+    """Solve ``problem`` from ``x0 (B, nx)``, ``U0 (B, N, nu)`` (and, for an infeasible start, states
+    ``X0 (B, N+1, nx)``) by ALTRO. ``params`` are the batched parameters."""
+    opts = options or ALTROOptions()
+    if X0 is not None:
+        from .infeasible import solve_infeasible
+
+        return solve_infeasible(problem, x0, U0, X0, params, opts, method)
+    X = rollout(problem.dynamics, x0, U0, params)
+    return run_altro(problem, x0, X, U0, params, opts, method)
+
+
+@dataclass
+class ALStage:
+    """State of the batch when the AL stage ends (inputs of the projection)."""
+
+    problem: Problem
+    al: AugmentedLagrangian
+    X: Tensor
+    U: Tensor
+    status: Tensor
+    al_done: Tensor
+    iterations: Tensor
+    rows: list
+
+
+def run_altro(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
+              method: str) -> Solution:
+    """The AL stage from a dynamically consistent ``(X, U)`` of ``problem``, then the projection."""
+    stage = al_stage(problem, x0, X, U, params, opts, method)
+    return finish(stage, x0, params, opts, method)
+
+
+def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
+             method: str) -> ALStage:
+    """AL-iLQR (Algorithm 1) on the whole batch, outer and inner loops flattened (module docstring)."""
+    B = x0.shape[0]
+    inner = opts.ilqr
+    constraints = Constraints(problem)
+    duals = Duals.initial(constraints, B, opts.penalty_initial, x0)
+    al = AugmentedLagrangian(constraints, duals, opts.square_root)
+    backward = factorize_sqrt if opts.square_root else factorize
+    J = al.value(X, U, params)
+    status = start_status(x0, X, J, inner)
+    running = status == Status.RUNNING
+    al_done = torch.zeros_like(running)
+    rho = torch.full((B,), inner.regularization_initial, dtype=x0.dtype, device=x0.device)
+    drho = torch.zeros_like(rho)
+    iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
+    inner_count = torch.zeros_like(iterations)
+    outer_count = torch.zeros_like(iterations)
+    violation = al.violation(X, U, params)
+    rows = []
+    for it in range(opts.iterations_outer * opts.iterations_inner):
+        if not bool(running.any()):
+            break
+        tol = torch.where(violation < opts.constraint_tolerance, opts.cost_tolerance, opts.cost_tolerance_intermediate)
+        s = ilqr_step(problem, al, params, x0, X, U, J, rho, drho, running, inner, backward, tol)
+        X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
+        iterations = iterations + running.long()
+        inner_count = inner_count + running.long()
+        violation = al.violation(X, U, params)
+        inner_done = running & (s.converged | (inner_count >= opts.iterations_inner))
+        finished = inner_done & s.converged & (violation < opts.constraint_tolerance)
+        update = inner_done & ~finished
+        status = torch.where(s.blown & ~finished, int(Status.MAX_REGULARIZATION), status)
+        status = torch.where(update & (outer_count + 1 >= opts.iterations_outer), int(Status.MAX_ITERATIONS), status)
+        al_done = al_done | finished
+        new_duals = al.updated_duals(X, U, params, opts.penalty_scaling, opts.penalty_max, opts.dual_max)
+        al = AugmentedLagrangian(constraints, new_duals.where(update, al.duals), opts.square_root)
+        J = torch.where(update, al.value(X, U, params), J)  # the objective changed with the duals
+        outer_count = outer_count + update.long()
+        inner_count = torch.where(update, 0, inner_count)
+        running = (status == Status.RUNNING) & ~al_done
+        rows.append({"cost": J, "max_violation": violation, "step_size": s.alpha, "regularization": rho,
+                     "penalty": _largest_penalty(al.duals),
+                     "outer_iteration": outer_count.to(J.dtype)})
+        if opts.verbose:
+            _log_iteration(method, it, J, rho, running)
+    status = torch.where(running, int(Status.MAX_ITERATIONS), status)
+    return ALStage(problem, al, X, U, status, al_done, iterations, rows)
+
+
+def _largest_penalty(duals: Duals) -> Tensor:
+    both = torch.cat([duals.stage_penalty.flatten(1), duals.terminal_penalty, duals.terminal.new_zeros(duals.terminal.shape[0], 1)], -1)
+    return both.amax(-1)
+
+
+def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str) -> Solution:
+    """Projection (if ``opts.projection``), final status, multipliers, gains and the Solution."""
+    problem, al, X, U, status, al_done = coarse.problem, coarse.al, coarse.X, coarse.U, coarse.status, coarse.al_done
+    constraints = al.constraints
+    if opts.projection:
+        result = project(al, params, x0, X, U, al_done, opts.projection_options)
+        X, U = result.X, result.U
+        status = torch.where(result.converged, int(Status.CONVERGED), status)
+        status = torch.where(al_done & ~result.converged, int(Status.MAX_ITERATIONS), status)
+        stage, terminal, costate, K = result.stage, result.terminal, result.costate, result.K
+    else:
+        status = torch.where(al_done, int(Status.CONVERGED), status)
+        stage, terminal = al.duals.stage, al.duals.terminal
+        costate = None
+        lqr, _ = al.expand(X, U, params)
+        K = factorize(lqr).K
+    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
+    violation = torch.maximum(constraints.max_violation(X, U, params), defect)
+    cost = total_cost(problem, X, U, params)
+    return Solution(
+        X=X, U=U, K=K, cost=cost, max_violation=violation, status=status, iterations=coarse.iterations,
+        history=History.from_rows(coarse.rows), costate=costate,
+        multipliers=multiplier_blocks(constraints, stage, terminal),
+        penalties=multiplier_blocks(constraints, al.duals.stage_penalty, al.duals.terminal_penalty),
+        method=method,
+    )

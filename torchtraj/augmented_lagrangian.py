@@ -1,0 +1,190 @@
+r"""The augmented Lagrangian of ALTRO (papers/altro.md §II-A, eqs. 2-3, 5-12, 17-18).
+
+With the stage constraints stacked as ``c_k = (g_k, h_k)`` (inequalities first, then equalities)
+and the terminal ones as ``c_N``, the objective the inner iLQR minimises is
+
+.. math::
+
+    \mathcal L_A = \ell_N(x_N) + (\lambda_N + \tfrac12 I_{\mu_N} c_N)^T c_N
+        + \sum_{k<N} \ell_k(x_k, u_k) + (\lambda_k + \tfrac12 I_{\mu_k} c_k)^T c_k,
+
+    I_{\mu, ii} = 0 \text{ if } c_i < 0 \wedge \lambda_i = 0 \ (i \in \mathcal I), \quad \mu_i \text{ otherwise.}
+
+Its LQR expansion adds, with linearised constraints (eqs. 5-6, 8-12),
+``c_zᵀ I_μ c_z`` to the cost Hessian and ``c_zᵀ (λ + I_μ c)`` to the gradient. Between inner solves the
+multipliers follow eq. (17), ``λ ← λ + μ c`` (equalities) and ``λ ← max(0, λ + μ c)``
+(inequalities), clipped to ``±dual_max``, and the penalties eq. (18), ``μ ← min(φ μ, μ_max)``.
+
+Inequality rows that do not apply at a knot (state constraints at ``k = 0``, where ``x_0`` is fixed)
+are multiplied by zero, so they never contribute and their multipliers stay zero.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .batching import map_stage, map_state
+from .constraints import Constraints
+from .derivatives import stage_jacobian, terminal_jacobian
+from .ilqr import expand, total_cost
+from .sqrt_riccati import psd_root
+
+
+def _joint(lqr) -> Tensor:
+    """``[[Q, Sᵀ], [S, R]] (B, N, nx+nu, nx+nu)``."""
+    return torch.cat([torch.cat([lqr.Q, lqr.S.transpose(-1, -2)], -1), torch.cat([lqr.S, lqr.R], -1)], -2)
+
+
+@dataclass
+class Duals:
+    """Multipliers ``λ`` and penalties ``μ``: stage ``(B, N, mi + me)``, terminal ``(B, miN + meN)``."""
+
+    stage: Tensor
+    terminal: Tensor
+    stage_penalty: Tensor
+    terminal_penalty: Tensor
+
+    @classmethod
+    def initial(cls, constraints: Constraints, batch: int, penalty: float, like: Tensor) -> "Duals":
+        N = constraints.problem.N
+        m, mN = constraints.mi + constraints.me, constraints.miN + constraints.meN
+        stage = like.new_zeros(batch, N, m)
+        terminal = like.new_zeros(batch, mN)
+        return cls(stage, terminal, torch.full_like(stage, penalty), torch.full_like(terminal, penalty))
+
+    def where(self, mask: Tensor, other: "Duals") -> "Duals":
+        """``self`` for the instances in ``mask (B,)``, ``other`` elsewhere."""
+        m3, m2 = mask.reshape(-1, 1, 1), mask.reshape(-1, 1)
+        return Duals(torch.where(m3, self.stage, other.stage), torch.where(m2, self.terminal, other.terminal),
+                     torch.where(m3, self.stage_penalty, other.stage_penalty),
+                     torch.where(m2, self.terminal_penalty, other.terminal_penalty))
+
+
+def _lift(t: Tensor, extra: int) -> Tensor:
+    """``(B, ...)`` → ``(B, 1, ..., 1, ...)`` with ``extra`` singleton dimensions after B."""
+    return t.reshape(t.shape[0], *([1] * extra), *t.shape[1:])
+
+
+class AugmentedLagrangian:
+    """``L_A`` of ``problem`` for fixed duals; same interface as :class:`~torchtraj.ilqr.CostObjective`."""
+
+    def __init__(self, constraints: Constraints, duals: Duals, square_root: bool = False):
+        self.constraints = constraints
+        #: also give the square-root pass the roots of the Hessian terms (``LQR.root``, eqs. 19-21)
+        self.square_root = square_root
+        self.problem = constraints.problem
+        self.duals = duals
+        c = constraints
+        ones = torch.ones(self.problem.N, c.me, dtype=self.problem.dtype, device=self.problem.device)
+        #: ``(N, m)``: 1 where a stage row applies.
+        self.knot_mask = torch.cat([c.ineq_knot_mask, ones], -1)
+        self.is_ineq = torch.arange(c.mi + c.me, device=self.problem.device) < c.mi
+        self.is_ineqN = torch.arange(c.miN + c.meN, device=self.problem.device) < c.miN
+
+    # the stacked per-instance constraint functions
+    def stage_fn(self, x: Tensor, u: Tensor, p) -> Tensor:
+        return torch.cat([self.constraints.stage_ineq(x, u, p), self.constraints.stage_eq(x, u, p)])
+
+    def terminal_fn(self, x: Tensor, p) -> Tensor:
+        return torch.cat([self.constraints.terminal_ineq(x, p), self.constraints.terminal_eq(x, p)])
+
+    @property
+    def m(self) -> int:
+        return self.constraints.mi + self.constraints.me
+
+    @property
+    def mN(self) -> int:
+        return self.constraints.miN + self.constraints.meN
+
+    def stage_values(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """``c_k`` at every stage, ``(B, *E, N, m)``; rows that do not apply are 0."""
+        if self.m == 0:
+            return X.new_zeros(*U.shape[:-1], 0)
+        return map_stage(self.stage_fn, X[..., :-1, :], U, params) * self.knot_mask
+
+    def terminal_values(self, X: Tensor, params) -> Tensor:
+        if self.mN == 0:
+            return X.new_zeros(*X.shape[:-2], 0)
+        return map_state(self.terminal_fn, X[..., -1, :], params)
+
+    def _weights(self, c: Tensor, lam: Tensor, mu: Tensor, is_ineq: Tensor) -> Tensor:
+        """Diagonal of ``I_μ`` (eq. 3)."""
+        inactive = is_ineq & (c < 0) & (lam == 0)
+        return torch.where(inactive, torch.zeros_like(mu), mu)
+
+    def _penalty_terms(self, c, lam, mu, is_ineq, mask=None):
+        w = self._weights(c, lam, mu, is_ineq)
+        if mask is not None:
+            w = w * mask
+        return ((lam + 0.5 * w * c) * c).sum(-1)
+
+    def value(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """``L_A`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``."""
+        extra = X.dim() - 3
+        d = self.duals
+        J = total_cost(self.problem, X, U, params)
+        if self.m:
+            c = self.stage_values(X, U, params)
+            J = J + self._penalty_terms(c, _lift(d.stage, extra), _lift(d.stage_penalty, extra), self.is_ineq,
+                                        self.knot_mask).sum(-1)
+        if self.mN:
+            cN = self.terminal_values(X, params)
+            J = J + self._penalty_terms(cN, _lift(d.terminal, extra), _lift(d.terminal_penalty, extra), self.is_ineqN)
+        return J
+
+    def expand(self, X: Tensor, U: Tensor, params):
+        """LQR model of ``L_A`` around ``(X, U)`` (eqs. 5-12)."""
+        lqr, rhs = expand(self.problem, X, U, params)
+        nx = X.shape[-1]
+        d = self.duals
+        if self.m:
+            c, Cz = stage_jacobian(self.stage_fn, X, U, params)
+            c, Cz = c * self.knot_mask, Cz * self.knot_mask.unsqueeze(-1)
+            w = self._weights(c, d.stage, d.stage_penalty, self.is_ineq) * self.knot_mask
+            H = Cz.transpose(-1, -2) @ (w.unsqueeze(-1) * Cz)
+            g = (Cz.transpose(-1, -2) @ (d.stage + w * c).unsqueeze(-1)).squeeze(-1)
+            if self.square_root:
+                lqr.root = torch.cat([psd_root(_joint(lqr)), w.clamp_min(0).sqrt().unsqueeze(-1) * Cz], -2)
+            lqr.Q = lqr.Q + H[..., :nx, :nx]
+            lqr.R = lqr.R + H[..., nx:, nx:]
+            lqr.S = lqr.S + H[..., nx:, :nx]
+            rhs.q = rhs.q + g[..., :nx]
+            rhs.r = rhs.r + g[..., nx:]
+        if self.mN:
+            cN, CN = terminal_jacobian(self.terminal_fn, X[:, -1], params)
+            wN = self._weights(cN, d.terminal, d.terminal_penalty, self.is_ineqN)
+            if self.square_root:
+                lqr.rootN = torch.cat([psd_root(lqr.QN), wN.clamp_min(0).sqrt().unsqueeze(-1) * CN], -2)
+            lqr.QN = lqr.QN + CN.transpose(-1, -2) @ (wN.unsqueeze(-1) * CN)
+            rhs.qN = rhs.qN + (CN.transpose(-1, -2) @ (d.terminal + wN * cN).unsqueeze(-1)).squeeze(-1)
+        return lqr, rhs
+
+    def violation(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """Largest violation ``(B,)`` of the stacked constraints (``max(g, 0)``, ``|h|``)."""
+        parts = [X.new_zeros(X.shape[0], 1)]
+        if self.m:
+            c = self.stage_values(X, U, params)
+            parts.append(torch.where(self.is_ineq, c.clamp_min(0), c.abs()).flatten(1))
+        if self.mN:
+            cN = self.terminal_values(X, params)
+            parts.append(torch.where(self.is_ineqN, cN.clamp_min(0), cN.abs()))
+        return torch.cat(parts, -1).amax(-1)
+
+    def updated_duals(self, X: Tensor, U: Tensor, params, scaling: float, penalty_max: float,
+                      dual_max: float) -> Duals:
+        """Eqs. (17)-(18) at ``(X, U)`` for every instance (the caller masks)."""
+        d = self.duals
+        lam, lamN = d.stage, d.terminal
+        if self.m:
+            c = self.stage_values(X, U, params)
+            lam = d.stage + d.stage_penalty * c
+            lam = torch.where(self.is_ineq, lam.clamp_min(0), lam).clamp(-dual_max, dual_max)
+        if self.mN:
+            cN = self.terminal_values(X, params)
+            lamN = d.terminal + d.terminal_penalty * cN
+            lamN = torch.where(self.is_ineqN, lamN.clamp_min(0), lamN).clamp(-dual_max, dual_max)
+        return Duals(lam, lamN, (d.stage_penalty * scaling).clamp_max(penalty_max),
+                     (d.terminal_penalty * scaling).clamp_max(penalty_max))

@@ -1,0 +1,175 @@
+r"""ALTRO's active-set projection (papers/altro.md §III-D, Algorithms 2-3), in sequential form.
+
+The coarse AL-iLQR solution ``Y = (X, U)`` is projected onto the manifold of the active constraints
+``d(Y) = 0`` — the dynamics ``f(x_k, u_k) − x_{k+1}``, the initial condition, every equality and the
+inequalities held active — in the norm of the objective's Hessian ``H``:
+
+.. math::  \delta Y = -H^{-1} D^T (D H^{-1} D^T)^{-1} d
+           = \arg\min_{\delta Y} \tfrac12 \delta Y^T H \delta Y \ \text{s.t.}\ D\,\delta Y + d = 0.
+
+Instead of building ``D H^{-1} D^T`` (Algorithm 2's ``S``), the minimisation is solved as an
+equality-constrained LQR by the shared Riccati core (the "sequential" form the paper points to,
+its ref. [16]): ``Q, R, S, Q_N`` from the cost Hessian, the linearised dynamics with the defects as
+affine terms, the active rows as stagewise equality constraints. The factorisation plays the part of
+``S``: it is computed when the constraints are linearised and reused for further Newton steps with
+new right-hand sides while the convergence rate ``r = log v⁺ / log v`` stays above
+``convergence_rate`` (Algorithm 2, line 8); then the constraints are linearised again.
+
+Each step is a line search on ``v = ‖d‖_∞`` (Algorithm 3): ``α ∈ {1, γ, γ², …}``, all candidates
+evaluated in one batched call, the largest ``α`` with ``v(α) < v`` taken.
+
+An inequality row is active when it is violated or nearly so (``g > −active_tolerance``) or its
+multiplier is positive. The multipliers of the projected point are then the least-squares
+solution of stationarity, ``∇ℓ + Dᵀ ν = 0``, from one more solve with the same factorisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from .augmented_lagrangian import AugmentedLagrangian
+from .batching import map_stage
+from .derivatives import linearize_dynamics, quadratize_cost, stage_jacobian, terminal_jacobian
+from .riccati import LQR, LQRVectors, factorize
+
+
+@dataclass
+class ProjectionOptions:
+    """Options of :func:`project` (Altro.jl ``SolverOptions`` where it has them)."""
+
+    #: Target largest violation of the active constraints and the dynamics.
+    tolerance: float = 1e-8
+    #: Inequalities with ``g > −active_tolerance`` (or a positive multiplier) are held as equalities.
+    active_tolerance: float = 1e-6
+    #: Re-linearise when ``log v⁺ / log v`` falls below this (Altro.jl ``r_threshold``).
+    convergence_rate: float = 1.1
+    #: Linearisations (outer loop of Algorithm 2).
+    iterations: int = 10
+    #: Newton steps per linearisation.
+    inner_iterations: int = 10
+    #: Line-search step shrink ``γ`` and number of step sizes.
+    line_search_decrease: float = 0.5
+    line_search_steps: int = 10
+    #: Added to ``Q_uu`` so the objective Hessian is definite on the controls.
+    regularization: float = 1e-8
+    #: Relative singular value below which an active row counts as dependent on the others (``None``:
+    #: ``√eps``). Near-degenerate active sets (a car pinned in a corner of its box, where the
+    #: linearised rows differ by ``dt·v ≈ 0``) would otherwise get steps of size ``1/σ``.
+    rank_tolerance: Optional[float] = None
+
+
+@dataclass
+class Projected:
+    """Projected trajectories and the multipliers of the projected point.
+
+    ``violation (B,)`` is the largest violation of the active set and dynamics; ``costate (B, N+1, nx)``,
+    ``stage (B, N, m)`` and ``terminal (B, mN)`` are multipliers in the stacked layout of
+    :class:`~torchtraj.augmented_lagrangian.AugmentedLagrangian` (zero on inactive rows).
+    """
+
+    X: Tensor
+    U: Tensor
+    violation: Tensor
+    converged: Tensor
+    costate: Tensor
+    stage: Tensor
+    terminal: Tensor
+    K: Tensor
+
+
+def _residuals(al: AugmentedLagrangian, dynamics, params, x0, X, U, stage_active, terminal_active):
+    """Defects ``(B, *E, N, nx)``, initial defect, active stage/terminal values, and ``v = ‖d‖_∞`` ``(B, *E)``."""
+    defect = map_stage(dynamics, X[..., :-1, :], U, params) - X[..., 1:, :]
+    init = x0.reshape(x0.shape[0], *([1] * (X.dim() - 3)), -1) - X[..., 0, :]
+    c = al.stage_values(X, U, params)
+    cN = al.terminal_values(X, params)
+    extra = X.dim() - 3
+    sa = stage_active.reshape(stage_active.shape[0], *([1] * extra), *stage_active.shape[1:])
+    ta = terminal_active.reshape(terminal_active.shape[0], *([1] * extra), *terminal_active.shape[1:])
+    c, cN = c * sa, cN * ta
+    parts = [defect.abs().flatten(-2), init.abs(), c.abs().flatten(-2), cN.abs()]
+    v = torch.cat(parts, -1).amax(-1)
+    return defect, init, c, cN, v
+
+
+def _active_rows(al: AugmentedLagrangian, X, U, params, opts: ProjectionOptions):
+    d = al.duals
+    c = al.stage_values(X, U, params)
+    cN = al.terminal_values(X, params)
+    stage = (~al.is_ineq | (c > -opts.active_tolerance) | (d.stage > 0)) & (al.knot_mask > 0)
+    terminal = ~al.is_ineqN | (cN > -opts.active_tolerance) | (d.terminal > 0)
+    return stage.to(X.dtype), terminal.to(X.dtype)
+
+
+def _linearize(al: AugmentedLagrangian, params, X, U, stage_active, terminal_active, reg, rank_tolerance):
+    problem = al.problem
+    nx = X.shape[-1]
+    _, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
+    _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
+    B, N = U.shape[0], U.shape[1]
+    if al.m:
+        _, Cz = stage_jacobian(al.stage_fn, X, U, params)
+    else:
+        Cz = X.new_zeros(B, N, 0, nx + U.shape[-1])
+    if al.mN:
+        _, CN = terminal_jacobian(al.terminal_fn, X[:, -1], params)
+    else:
+        CN = X.new_zeros(B, 0, nx)
+    lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx,
+              C=Cz[..., :nx], D=Cz[..., nx:], mask=stage_active, CN=CN, maskN=terminal_active)
+    return factorize(lqr, reg, rank_tolerance=rank_tolerance), lz, lNx
+
+
+def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, mask: Tensor,
+            opts: ProjectionOptions) -> Projected:
+    """Project the instances in ``mask (B,)`` of ``(X, U)``; the others are returned unchanged."""
+    problem = al.problem
+    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    reg = X.new_full((B,), opts.regularization)
+    eps = torch.finfo(X.dtype).eps
+    rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
+    alphas = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
+    rows = torch.arange(B, device=X.device)
+    v = X.new_full((B,), float("inf"))
+    for _ in range(opts.iterations):
+        stage_active, terminal_active = _active_rows(al, X, U, params, opts)
+        defect, init, c, cN, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
+        pending = mask & (v > opts.tolerance)
+        if not bool(pending.any()):
+            break
+        factor, _, _ = _linearize(al, params, X, U, stage_active, terminal_active, reg, rank_tol)
+        stepping = pending & factor.ok
+        for _ in range(opts.inner_iterations):
+            if not bool(stepping.any()):
+                break
+            rhs = LQRVectors(q=X.new_zeros(B, N, nx), r=torch.zeros_like(U), qN=X.new_zeros(B, nx), c=defect,
+                             x0=init, e=c, eN=cN)
+            step = factor.solve(rhs)
+            Xc = X.unsqueeze(1) + alphas.reshape(1, -1, 1, 1) * step.dx.unsqueeze(1)
+            Uc = U.unsqueeze(1) + alphas.reshape(1, -1, 1, 1) * step.du.unsqueeze(1)
+            dc, ic, cc, cNc, vc = _residuals(al, problem.dynamics, params, x0, Xc, Uc, stage_active, terminal_active)
+            accept = torch.isfinite(vc) & (vc < v.unsqueeze(1))
+            idx = torch.argmax(accept.to(torch.int8), dim=1)  # the largest step that reduces v
+            take = stepping & accept.any(1)
+            v_new = torch.where(take, vc[rows, idx], v)
+            t3, t2 = take.reshape(B, 1, 1), take.reshape(B, 1)
+            X, U = torch.where(t3, Xc[rows, idx], X), torch.where(t3, Uc[rows, idx], U)
+            defect, c = torch.where(t3, dc[rows, idx], defect), torch.where(t3, cc[rows, idx], c)
+            init, cN = torch.where(t2, ic[rows, idx], init), torch.where(t2, cNc[rows, idx], cN)
+            rate = torch.log(v_new) / torch.log(v)
+            v = v_new
+            # reuse the factorisation only while convergence stays fast (Algorithm 2, line 8)
+            stepping = take & (v > opts.tolerance) & (rate > opts.convergence_rate)
+    stage_active, terminal_active = _active_rows(al, X, U, params, opts)
+    factor, lz, lNx = _linearize(al, params, X, U, stage_active, terminal_active, reg, rank_tol)
+    _, _, _, _, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
+    duals = factor.solve(LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=X.new_zeros(B, N, nx),
+                                    x0=X.new_zeros(B, nx), e=torch.zeros_like(stage_active),
+                                    eN=torch.zeros_like(terminal_active)), multipliers=True)
+    converged = mask & (v <= opts.tolerance)
+    return Projected(X=X, U=U, violation=v, converged=converged, costate=duals.costate,
+                     stage=duals.nu * stage_active, terminal=duals.nuN * terminal_active, K=factor.K)
