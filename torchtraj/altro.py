@@ -80,17 +80,51 @@ def multiplier_blocks(constraints: Constraints, stage: Tensor, terminal: Tensor)
     return out
 
 
+def stack_blocks(constraints: Constraints, blocks: dict, fill: float, like: Tensor):
+    """Inverse of :func:`multiplier_blocks`: per-block tensors (missing ones filled) → stacked layout."""
+    c = constraints
+    B, N = like.shape[0], c.problem.N
+
+    def get(name, shape):
+        value = blocks.get(name)
+        if value is None:
+            return like.new_full(shape, fill)
+        return torch.as_tensor(value, dtype=like.dtype, device=like.device).expand(shape)
+
+    parts = [get(name, (B, N, rows.stop - rows.start)) for name, rows in c.ineq_blocks.items()]
+    stage = torch.cat(parts + [get("stage_eq", (B, N, c.me))], -1)
+    terminal = torch.cat([get("terminal_ineq", (B, c.miN)), get("terminal_eq", (B, c.meN))], -1)
+    return stage, terminal
+
+
+def initial_duals(constraints: Constraints, opts: ALTROOptions, like: Tensor, warm: Optional[dict]) -> Duals:
+    """Zero multipliers and ``penalty_initial``, or the warm start ``{"multipliers", "penalties"}``."""
+    duals = Duals.initial(constraints, like.shape[0], opts.penalty_initial, like)
+    if not warm:
+        return duals
+    lam, lamN = stack_blocks(constraints, warm.get("multipliers") or {}, 0.0, like)
+    mu, muN = stack_blocks(constraints, warm.get("penalties") or {}, opts.penalty_initial, like)
+    knots = torch.cat([constraints.ineq_knot_mask, like.new_ones(constraints.problem.N, constraints.me)], -1)
+    is_ineq = torch.arange(lam.shape[-1], device=like.device) < constraints.mi
+    is_ineqN = torch.arange(lamN.shape[-1], device=like.device) < constraints.miN
+    # inequality multipliers are non-negative (eq. 17); rows that do not apply keep zero
+    lam = torch.where(is_ineq, lam.clamp_min(0), lam) * knots
+    lamN = torch.where(is_ineqN, lamN.clamp_min(0), lamN)
+    return Duals(lam, lamN, mu, muN)
+
+
 def solve_altro(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ALTROOptions] = None,
-                X0: Optional[Tensor] = None, method: str = "altro") -> Solution:
+                X0: Optional[Tensor] = None, method: str = "altro", duals: Optional[dict] = None) -> Solution:
     """Solve ``problem`` from ``x0 (B, nx)``, ``U0 (B, N, nu)`` (and, for an infeasible start, states
-    ``X0 (B, N+1, nx)``) by ALTRO. ``params`` are the batched parameters."""
+    ``X0 (B, N+1, nx)``) by ALTRO. ``params`` are the batched parameters; ``duals`` an optional warm
+    start of the multipliers and penalties (see :func:`torchtraj.solve`)."""
     opts = options or ALTROOptions()
     if X0 is not None:
         from .infeasible import solve_infeasible
 
         return solve_infeasible(problem, x0, U0, X0, params, opts, method)
     X = rollout(problem.dynamics, x0, U0, params)
-    return run_altro(problem, x0, X, U0, params, opts, method)
+    return run_altro(problem, x0, X, U0, params, opts, method, duals)
 
 
 @dataclass
@@ -108,19 +142,19 @@ class ALStage:
 
 
 def run_altro(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
-              method: str) -> Solution:
+              method: str, duals: Optional[dict] = None) -> Solution:
     """The AL stage from a dynamically consistent ``(X, U)`` of ``problem``, then the projection."""
-    stage = al_stage(problem, x0, X, U, params, opts, method)
+    stage = al_stage(problem, x0, X, U, params, opts, method, duals)
     return finish(stage, x0, params, opts, method)
 
 
 def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
-             method: str) -> ALStage:
+             method: str, warm: Optional[dict] = None) -> ALStage:
     """AL-iLQR (Algorithm 1) on the whole batch, outer and inner loops flattened (module docstring)."""
     B = x0.shape[0]
     inner = opts.ilqr
     constraints = Constraints(problem)
-    duals = Duals.initial(constraints, B, opts.penalty_initial, x0)
+    duals = initial_duals(constraints, opts, x0, warm)
     al = AugmentedLagrangian(constraints, duals, opts.square_root)
     backward = factorize_sqrt if opts.square_root else factorize
     J = al.value(X, U, params)

@@ -70,6 +70,7 @@ def solve(
     U0=None,
     X0=None,
     options=None,
+    duals: Optional[dict] = None,
 ) -> Solution:
     """Solve a batch of instances of ``problem``.
 
@@ -81,6 +82,9 @@ def solve(
         X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one; for
             ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B).
         options: the method's options dataclass (or a dict of its fields).
+        duals: warm start of the augmented-Lagrangian methods: ``{"multipliers": ..., "penalties": ...}``,
+            each a dict of per-block tensors laid out like :attr:`Solution.multipliers` (a previous
+            solution's, shifted by MPC for instance); missing blocks start at 0 and ``penalty_initial``.
 
     Returns:
         A :class:`~torchtraj.Solution` with per-instance status. The batch size B is the common
@@ -103,17 +107,19 @@ def solve(
     params = problem.batched_params(B)
     if getattr(opts, "verbose", False):
         _ensure_log_handler()
-    return _dispatch(problem, method, opts, x0.contiguous(), U0.contiguous(), X0, params, B)
+    if duals is not None and method is Method.ILQR:
+        raise ValueError("method 'ilqr' has no multipliers to warm-start; duals is for 'altro' / 'al-ilqr'")
+    return _dispatch(problem, method, opts, x0.contiguous(), U0.contiguous(), X0, params, B, duals)
 
 
 def _dispatch(problem: Problem, method: Method, opts, x0: Tensor, U0: Tensor, X0: Optional[Tensor], params,
-              B: int) -> Solution:
+              B: int, duals: Optional[dict] = None) -> Solution:
     """Run the method's solver on the checked, batched inputs."""
     if method in (Method.ALTRO, Method.AL_ILQR):
         if method is Method.AL_ILQR:
             opts = dataclasses.replace(opts, projection=False)
         X0 = None if X0 is None else X0.expand(B, *X0.shape[1:]).contiguous()
-        return solve_altro(problem, x0, U0, params, opts, X0=X0, method=method.value)
+        return solve_altro(problem, x0, U0, params, opts, X0=X0, method=method.value, duals=duals)
     if method is Method.ILQR:
         if X0 is not None:
             raise ValueError("method 'ilqr' simulates its states from x0 and cannot take X0; use a method that "
