@@ -15,8 +15,10 @@ from torch.func import hessian, jacrev
 
 import torchtraj as tt
 from torchtraj import implicit
+from torchtraj.altro import ALTROOptions
 from torchtraj.batching import rollout
 from torchtraj.constraints import Constraints
+from torchtraj.projection import ProjectionOptions
 from torchtraj.solution import History
 
 F64 = torch.float64
@@ -174,12 +176,201 @@ def test_kkt_multipliers_match_the_dense_solve():
     kkt = implicit.kkt_system(problem, x0.unsqueeze(0), X.unsqueeze(0), U.unsqueeze(0), problem.batched_params(1))
     N, nx = problem.N, problem.nx
     lam = y[: (N + 1) * nx].reshape(N + 1, nx)
-    assert torch.allclose(kkt.costate[0], lam, atol=1e-10)
+    assert torch.allclose(kkt.multipliers.costate[0], lam, atol=1e-10)
     # the multipliers of the active inequality rows, in the dense solve's order (knot by knot)
     cons = Constraints(problem)
-    rows = kkt.nu[0][cons.ineq_knot_mask > 0]
+    rows = kkt.multipliers.nu[0][cons.ineq_knot_mask > 0]
     mu = torch.zeros(active.numel(), dtype=F64)
     mu[active] = y[y.shape[0] - int(active.sum()):]
     goal = y[(N + 1) * nx:(N + 2) * nx]  # the goal rows come before the active inequality rows
     assert int(active.sum()) > 0 and torch.allclose(rows, mu, atol=1e-10)
-    assert torch.allclose(kkt.nuN[0], goal, atol=1e-10)
+    assert torch.allclose(kkt.multipliers.nuN[0], goal, atol=1e-10)
+
+
+# ------------------------------------------------------------------- gradcheck through tt.solve
+def pendulum(N=10, **changes):
+    """The pendulum swinging to 2 rad with O(1) weights (well conditioned, N = 10)."""
+    model = tt.models.get("pendulum")
+
+    def stage_cost(x, u, p):
+        e = x - p["goal"]
+        return 0.5 * (e @ p["Q"] @ e) + 0.5 * p["R"] * (u @ u)
+
+    def terminal_cost(x, p):
+        e = x - p["goal"]
+        return 0.5 * (e @ p["Qf"] @ e)
+
+    params = dict(model.params, goal=torch.tensor([2.0, 0.0], dtype=F64),
+                  Q=torch.diag(torch.tensor([1.0, 0.1], dtype=F64)), R=torch.tensor(0.1, dtype=F64),
+                  Qf=10 * torch.eye(2, dtype=F64))
+    problem = tt.Problem(dynamics=model.discrete(0.1), stage_cost=stage_cost, terminal_cost=terminal_cost,
+                         x0=torch.zeros(2, dtype=F64), horizon=N, nu=1, params=params, name="pendulum10")
+    return problem.replace(**changes)
+
+
+def car(N=10):
+    """A unicycle with a speed ``gain`` (a dynamics parameter) passing a circle obstacle of radius 0.3."""
+    def dynamics(x, u, p):
+        v = p["gain"] * u[0]
+        return torch.stack([v * torch.cos(x[2]), v * torch.sin(x[2]), u[1]])
+
+    def stage_cost(x, u, p):
+        e = x - p["goal"]
+        return 0.5 * p["w"] * (e @ e) + 0.25 * (u @ u)
+
+    def terminal_cost(x, p):
+        e = x - p["goal"]
+        return 5.0 * (e @ e)
+
+    def outside(x, p):
+        c = p["obstacle"]
+        return (0.09 - (x[0] - c[0]) ** 2 - (x[1] - c[1]) ** 2).reshape(1)
+
+    params = {"gain": torch.tensor(1.0, dtype=F64), "goal": torch.tensor([2.0, 0.0, 0.0], dtype=F64),
+              "w": torch.tensor(0.1, dtype=F64), "obstacle": torch.tensor([1.0, 0.1], dtype=F64)}
+    return tt.Problem(dynamics=tt.rk4(dynamics, 0.2), stage_cost=stage_cost, terminal_cost=terminal_cost,
+                      x0=torch.zeros(3, dtype=F64), horizon=N, nu=2, params=params, state_ineq=outside,
+                      u_init=torch.tensor([0.5, 0.0], dtype=F64), name="car10")
+
+
+def pendulum_theta(problem):
+    """x0, mass (dynamics), Q (a cost weight) and goal packed in one vector; and its unpacking."""
+    theta = torch.cat([torch.tensor([0.1, 0.2], dtype=F64), problem.params["mass"].reshape(1),
+                       problem.params["Q"].reshape(-1), problem.params["goal"]])
+
+    def unpack(th):
+        return th[:2], dict(mass=th[2], Q=th[3:7].reshape(2, 2), goal=th[7:9])
+
+    return theta, unpack
+
+
+def car_theta(problem):
+    """x0, gain (dynamics), w (a cost weight), goal and the obstacle centre in one vector."""
+    p = problem.params
+    theta = torch.cat([torch.tensor([0.0, -0.05, 0.0], dtype=F64), p["gain"].reshape(1), p["w"].reshape(1),
+                       p["goal"], p["obstacle"]])
+
+    def unpack(th):
+        return th[:3], dict(gain=th[3], w=th[4], goal=th[5:8], obstacle=th[8:10])
+
+    return theta, unpack
+
+
+GRADCHECK_CASES = {
+    "unconstrained": (lambda: pendulum(), pendulum_theta, "ilqr"),
+    "control_bounds": (lambda: pendulum(u_lower=torch.tensor([-3.0], dtype=F64),
+                                        u_upper=torch.tensor([3.0], dtype=F64)), pendulum_theta, "altro"),
+    "goal_equality": (lambda: pendulum(terminal_eq=lambda x, p: x - p["goal"]), pendulum_theta, "altro"),
+    "circle_obstacle": (car, car_theta, "altro"),
+}
+
+
+@pytest.mark.parametrize("case", list(GRADCHECK_CASES))
+def test_gradcheck_through_solve(case):
+    """gradcheck (central differences of whole re-solves) of X, U and cost with respect to x0, a
+    dynamics parameter, a cost weight, the goal and, for the car, the obstacle centre, packed in one
+    vector so that fast mode checks one random direction of all of them at once."""
+    make, pack, method = GRADCHECK_CASES[case]
+    problem = make()
+    theta, unpack = pack(problem)
+
+    def layer(th):
+        x0, params = unpack(th)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # ilqr on ... (no constraints here)
+            sol = tt.solve(problem.with_params(**params), x0, method=method)
+        assert bool(sol.converged.all())
+        return sol.X, sol.U, sol.cost
+
+    theta.requires_grad_(True)
+    X, U, _ = layer(theta)
+    # the constraints this case is about are active at the solution
+    cons = Constraints(problem)
+    values = cons.evaluate(X.detach(), U.detach(), problem.batched_params(1))
+    if case == "control_bounds":
+        assert int((values.ineq > -1e-9).sum()) >= 1 and int((values.ineq < -1e-3).sum()) >= 1
+    if case == "circle_obstacle":
+        assert int((values.ineq > -1e-9).sum()) >= 1
+    assert torch.autograd.gradcheck(layer, (theta,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+
+
+# ------------------------------------------------------------------- batches, failures, float32
+def test_batch_gradients_equal_single_instance_gradients():
+    """Three instances with their own x0 and mass solved together: each one's gradients equal those of
+    the instance solved alone (with control bounds active, through ALTRO)."""
+    problem = pendulum(u_lower=torch.tensor([-3.0], dtype=F64), u_upper=torch.tensor([3.0], dtype=F64))
+    x0s = torch.tensor([[0.1, 0.2], [0.3, -0.1], [-0.2, 0.0]], dtype=F64)
+    masses = torch.tensor([1.0, 1.2, 0.9], dtype=F64)
+    Q = problem.params["Q"]
+
+    def grads(x0, mass):
+        x0, mass, q = x0.clone().requires_grad_(True), mass.clone().requires_grad_(True), Q.clone().requires_grad_(True)
+        sol = tt.solve(problem.with_params(mass=mass, Q=q), x0, method="altro")
+        assert bool(sol.converged.all())
+        loss = sol.U.sum() + sol.X[:, -5:].pow(2).sum() + sol.cost.sum()
+        return torch.autograd.grad(loss, [x0, mass, q])
+
+    gx, gm, gq = grads(x0s, masses)
+    for b in range(3):
+        sx, sm, sq = grads(x0s[b], masses[b:b + 1])
+        assert torch.allclose(gx[b], sx, rtol=1e-8, atol=1e-10)
+        assert torch.allclose(gm[b], sm[0], rtol=1e-8, atol=1e-10)
+        gq = gq - sq
+    assert gq.abs().max() < 1e-8 * (1 + Q.abs().max())  # the shared weight's gradient is the sum
+
+
+def test_non_converged_instances_get_zero_gradient_and_a_warning():
+    """An instance with a NaN initial state does not converge: its gradients are zero, a RuntimeWarning
+    names it, and the other instance's gradients are those of its solve alone."""
+    problem = pendulum()
+    x0 = torch.tensor([[0.1, 0.2], [float("nan"), 0.0]], dtype=F64, requires_grad=True)
+    mass = torch.tensor([1.0, 1.0], dtype=F64, requires_grad=True)
+    with pytest.warns(RuntimeWarning, match=r"instance\(s\) \[1\] did not converge"):
+        sol = tt.solve(problem.with_params(mass=mass), x0)
+    assert sol.status.tolist() == [tt.Status.CONVERGED, tt.Status.NON_FINITE]
+    gx, gm = torch.autograd.grad(sol.U.nan_to_num().sum() + sol.cost.nan_to_num().sum(), [x0, mass])
+    assert bool((gx[1] == 0).all()) and gm[1] == 0
+    x1 = x0[:1].detach().clone().requires_grad_(True)
+    m1 = mass[:1].detach().clone().requires_grad_(True)
+    alone = tt.solve(problem.with_params(mass=m1), x1)
+    ax, am = torch.autograd.grad(alone.U.sum() + alone.cost.sum(), [x1, m1])
+    assert torch.allclose(gx[0], ax[0], rtol=1e-9) and torch.allclose(gm[0], am[0], rtol=1e-9)
+    assert gx[0].abs().max() > 0
+
+
+def test_float32_gradients_agree_with_float64():
+    problem = pendulum(u_lower=torch.tensor([-3.0], dtype=F64), u_upper=torch.tensor([3.0], dtype=F64))
+    out = {}
+    for dtype in (torch.float64, torch.float32):
+        p = problem.to(dtype)
+        x0 = torch.tensor([0.1, 0.2], dtype=dtype, requires_grad=True)
+        mass = p.params["mass"].clone().requires_grad_(True)
+        # ALTRO's default projection tolerance (1e-8) is below float32's resolution
+        options = None if dtype == torch.float64 else ALTROOptions(
+            constraint_tolerance=1e-4, projection_options=ProjectionOptions(tolerance=1e-5))
+        sol = tt.solve(p.with_params(mass=mass), x0, method="altro", options=options)
+        assert bool(sol.converged.all()) and sol.U.dtype == dtype
+        out[dtype] = torch.autograd.grad(sol.U.sum() + sol.X[:, -5:].pow(2).sum(), [x0, mass])
+    for a, b in zip(out[torch.float32], out[torch.float64]):
+        assert torch.allclose(a.double(), b, rtol=2e-3, atol=2e-3 * b.abs().max())
+
+
+def test_refine_reaches_round_off_stationarity():
+    """iLQR at its default tolerances stops with a reduced gradient of about 2e-3 here; the Newton
+    refinement makes the reduced gradient, computed independently by autograd through a rollout,
+    vanish to round-off."""
+    problem = pendulum()
+    sol = tt.solve(problem)
+    assert bool(sol.converged.all())
+    params = problem.batched_params(1)
+    x0 = problem.x0.unsqueeze(0)
+
+    def reduced_gradient(U):
+        U = U.detach().clone().requires_grad_(True)
+        J = implicit.objective(problem, rollout(problem.dynamics, x0, U, params), U, params)
+        return torch.autograd.grad(J.sum(), U)[0]
+
+    refined = implicit.refine(problem, x0, sol.X, sol.U, params, constrained=False)
+    before, after = reduced_gradient(sol.U).abs().max(), reduced_gradient(refined.U).abs().max()
+    assert before > 1e-4 and after < 1e-13, (before, after)
+    assert int(refined.steps[0]) >= 1 and refined.kkt is not None

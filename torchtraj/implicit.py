@@ -48,6 +48,15 @@ with the cost gradient as linear term and zero defects gives a (near) zero step 
 as its dual part (with the cost Hessian; the Hessian does not change the multipliers where the step
 is zero). The Lagrangian Hessian is then built with them.
 
+Refinement. The gradient is exact at an exact KKT point, but solvers stop at their tolerances, and
+the line search of iLQR cannot resolve cost changes below round-off: controls are accurate only to
+about ``sqrt(ε J / σ_min(∇²J))`` (``1e-5`` relative on the pendulum, whose control weight is
+``6e-5``). So a differentiable solve first takes Newton (SQP) steps on the KKT conditions with the
+active set held fixed — the same LQR system with the cost gradient, the dynamics defects and the
+active constraint values as right-hand side — until the step reaches round-off
+(:func:`refine`). From a converged solution they converge quadratically (on the pendulum: steps
+``1e-3, 2e-7, 4e-14``), and the last factorisation is reused by the backward pass.
+
 Active set: an inequality row is active where ``g > -active_tolerance``; the default
 :func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)`` (``1e-6`` in float64, ``1.2e-3`` in
 float32). ALTRO's final projection leaves active rows at ``|g| ≲ 1e-8`` and inactive rows of a
@@ -57,7 +66,8 @@ multiplier) is held as an equality, which gives the one-sided derivative in whic
 Instances that did not converge (``status != CONVERGED``), whose reduced Hessian is not positive
 definite, or whose gradient is not finite get a **zero gradient**, and a ``RuntimeWarning`` names
 them (at the solve for the status, at the backward pass for the others); other instances of the batch
-are unaffected.
+are unaffected. Gradients flow to ``x0`` and the tensors of ``Problem.params``; bounds, initial guesses
+and options get none.
 """
 
 from __future__ import annotations
@@ -76,7 +86,7 @@ from .constraints import Constraints
 from .derivatives import (linearize_dynamics, problem_lagrangian_hessian, quadratize_cost, stage_jacobian,
                           terminal_jacobian)
 from .problem import Problem
-from .riccati import LQR, LQRVectors, factorize
+from .riccati import LQR, LQRVectors, RiccatiFactor, factorize
 from .solution import Solution
 from .status import Status
 
@@ -105,24 +115,36 @@ def _constraints(problem: Problem, constrained: bool) -> Constraints:
 
 
 @dataclasses.dataclass
-class KKTSystem:
-    """The constrained LQR model of the KKT conditions at ``(X, U)``, batched over B.
+class Multipliers:
+    """``costate (B, N+1, nx)``, stage rows ``nu (B, N, me+mi)`` and terminal rows ``nuN (B, meN+miN)``
+    (equalities first, then inequalities; zero on inactive rows; ``None`` where there are no rows)."""
 
-    ``lqr`` holds the Lagrangian Hessian, the linearised dynamics and the constraint rows with the
-    active ones unmasked (stage rows: ``me`` equalities then ``mi`` inequalities; terminal rows: ``meN``
-    then ``miN``); ``factor`` factorises it. ``newton`` is the right-hand side of a Newton step on the
-    KKT conditions (cost gradient, defects ``f(x_k, u_k) − x_{k+1}``, constraint values); ``costate
-    (B, N+1, nx)``, ``nu (B, N, me+mi)`` and ``nuN (B, meN+miN)`` are the multipliers (zero on inactive
-    rows; ``None`` without rows); ``inactive (B,)`` is the largest inactive inequality value; ``ok (B,)``
-    marks the instances whose two factorisations succeeded.
-    """
-
-    lqr: LQR
-    factor: object
-    newton: LQRVectors
     costate: Tensor
     nu: Optional[Tensor]
     nuN: Optional[Tensor]
+
+    def where(self, mask: Tensor, other: "Multipliers") -> "Multipliers":
+        def pick(a, b):
+            return None if a is None else torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+
+        return Multipliers(pick(self.costate, other.costate), pick(self.nu, other.nu), pick(self.nuN, other.nuN))
+
+
+@dataclasses.dataclass
+class KKTSystem:
+    """The constrained LQR model of the KKT conditions at ``(X, U)``, batched over B.
+
+    ``lqr`` holds the Lagrangian Hessian (built with ``multipliers``), the linearised dynamics and the
+    constraint rows with the active ones unmasked; ``factor`` factorises it. ``newton`` is the
+    right-hand side of a Newton step on the KKT conditions (cost gradient, defects
+    ``f(x_k, u_k) − x_{k+1}``, initial-state defect, constraint values); ``ok (B,)`` marks the instances
+    whose factorisations succeeded.
+    """
+
+    lqr: LQR
+    factor: RiccatiFactor
+    newton: LQRVectors
+    multipliers: Multipliers
     ok: Tensor
 
 
@@ -158,11 +180,12 @@ def _rows(cons: Constraints, X: Tensor, U: Tensor, params, tol: float):
 
 
 def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool = True,
-               active_tolerance: Optional[float] = None) -> KKTSystem:
-    """Multipliers and the factorised KKT system at ``X (B, N+1, nx)``, ``U (B, N, nu)`` from ``x0 (B, nx)``.
+               active_tolerance: Optional[float] = None, multipliers: Optional[Multipliers] = None) -> KKTSystem:
+    """The factorised KKT system at ``X (B, N+1, nx)``, ``U (B, N, nu)`` from ``x0 (B, nx)``.
 
-    ``params`` are batched to B. With ``constrained=False`` the constraints are left out (the KKT
-    conditions of the unconstrained problem, for methods that ignore constraints).
+    ``params`` are batched to B. Without ``multipliers`` they are computed from the cost Hessian (one
+    more factorisation, module docstring). With ``constrained=False`` the constraints are left out (the
+    KKT conditions of the unconstrained problem, for methods that ignore constraints).
     """
     cons = _constraints(problem, constrained)
     tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
@@ -171,28 +194,31 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
     e, C, D, mask, eN, CN, maskN = _rows(cons, X, U, params, tol)
     zeros = torch.zeros_like
-    # 1. multipliers: cost Hessian, cost gradient, zero defects and offsets
     lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx,
               C=C, D=D, mask=mask, CN=CN, maskN=maskN)
     gradient = LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=zeros(X[:, 1:]), x0=zeros(x0),
                           e=None if e is None else zeros(e), eN=None if eN is None else zeros(eN))
-    first = factorize(lqr)
-    step = first.solve(gradient, multipliers=True)
-    # 2. the Lagrangian Hessian with these multipliers
+    ok = torch.ones(X.shape[0], dtype=torch.bool, device=X.device)
+    if multipliers is None:
+        first = factorize(lqr)
+        step = first.solve(gradient, multipliers=True)
+        multipliers, ok = Multipliers(step.costate, step.nu, step.nuN), first.ok
+    else:  # the rows' activity may have changed: a multiplier lives on active rows only
+        multipliers = Multipliers(multipliers.costate, None if mask is None else multipliers.nu * mask,
+                                  None if maskN is None else multipliers.nuN * maskN)
     me, meN = cons.me, cons.meN
-    nu_eq = nu_in = nuN_eq = nuN_in = None
-    if step.nu is not None:
-        nu_eq, nu_in = step.nu[..., :me], step.nu[..., me:]
-    if step.nuN is not None:
-        nuN_eq, nuN_in = step.nuN[..., :meN], step.nuN[..., meN:]
-    H, HN = problem_lagrangian_hessian(problem, cons, X, U, params, step.costate, nu_eq, nu_in, nuN_eq, nuN_in)
+    nu, nuN = multipliers.nu, multipliers.nuN
+    H, HN = problem_lagrangian_hessian(
+        problem, cons, X, U, params, multipliers.costate,
+        None if nu is None else nu[..., :me], None if nu is None else nu[..., me:],
+        None if nuN is None else nuN[..., :meN], None if nuN is None else nuN[..., meN:])
     lqr = dataclasses.replace(lqr, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=HN)
     factor = factorize(lqr)
     newton = dataclasses.replace(gradient, c=f - X[:, 1:], x0=x0 - X[:, 0], e=e, eN=eN)
-    return KKTSystem(lqr=lqr, factor=factor, newton=newton, costate=step.costate, nu=step.nu, nuN=step.nuN,
-                     ok=first.ok & factor.ok)
+    return KKTSystem(lqr=lqr, factor=factor, newton=newton, multipliers=multipliers, ok=ok & factor.ok)
 
 
+# -------------------------------------------------------------------------------- refinement
 def _inactive_violation(cons: Constraints, X: Tensor, U: Tensor, params, mask, maskN) -> Tensor:
     """Largest value ``(B,)`` of the inequality rows outside the masks (−inf without such rows)."""
     B = X.shape[0]
@@ -207,40 +233,60 @@ def _inactive_violation(cons: Constraints, X: Tensor, U: Tensor, params, mask, m
     return torch.cat(parts, -1).amax(-1)
 
 
-def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: int = 2, constrained: bool = True,
-           active_tolerance: Optional[float] = None, mask: Optional[Tensor] = None):
-    """Newton steps on the KKT conditions with the active set held fixed; returns ``(X, U)``.
+@dataclasses.dataclass
+class Refined:
+    """Result of :func:`refine`: the point ``X``, ``U``, its ``multipliers``, the Newton ``steps (B,)``
+    taken and the size of the last one computed (``residual (B,)``, ``|δw|∞``); ``kkt`` is the KKT
+    system at the point (within round-off), or ``None`` when the last steps were still large."""
 
-    Implicit gradients are exact at an exact KKT point; a solver stops at its tolerances (the line
-    search of iLQR cannot resolve cost changes below round-off, which leaves controls accurate only to
-    about ``sqrt(eps / σ_min)``). From a converged solution the Newton iteration converges
-    quadratically, so one or two steps reach round-off. A step of an instance is taken only if it
-    is finite, small (``|δw|∞ ≤ 1e-2 (1 + |w|∞)``), contracts (smaller than the instance's previous
-    step) and leaves every inactive inequality row satisfied; otherwise the instance keeps its point
-    and stops refining. Only the instances in ``mask (B,)`` (default: all) move.
+    X: Tensor
+    U: Tensor
+    multipliers: Multipliers
+    steps: Tensor
+    residual: Tensor
+    kkt: Optional[KKTSystem]
+
+
+def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: int = 4, constrained: bool = True,
+           active_tolerance: Optional[float] = None, mask: Optional[Tensor] = None) -> Refined:
+    """Newton (SQP) steps on the KKT conditions with the active set held fixed (module docstring).
+
+    ``x0 (B, nx)``, ``X (B, N+1, nx)``, ``U (B, N, nu)``, ``params`` batched to B. A step of an
+    instance is taken only if it is finite, small (``|δw|∞ ≤ 1e-2 (1 + |w|∞)``), contracts (smaller
+    than the instance's previous step) and leaves every inactive inequality row satisfied; otherwise
+    the instance keeps its point and stops. An instance also stops once its step is at round-off
+    (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``). Only the instances in ``mask (B,)`` (default: all) move.
     """
     cons = _constraints(problem, constrained)
     B = X.shape[0]
     moving = torch.ones(B, dtype=torch.bool, device=X.device) if mask is None else mask.clone()
     previous = X.new_full((B,), float("inf"))
+    taken = torch.zeros(B, dtype=torch.long, device=X.device)
+    eps = float(torch.finfo(X.dtype).eps)
 
     def expand(t, like):
         return t.reshape(B, *([1] * (like.dim() - 1)))
 
-    for _ in range(steps):
-        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance)
-        s = kkt.factor.solve(kkt.newton)
+    multipliers = None
+    for _ in range(max(steps, 1)):
+        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers)
+        s = kkt.factor.solve(kkt.newton, multipliers=True)
         size = torch.maximum(s.dx.abs().flatten(1).amax(-1), s.du.abs().flatten(1).amax(-1))
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
         Xn, Un = X + s.dx, U + s.du
         safe = _inactive_violation(cons, Xn, Un, params, kkt.lqr.mask, kkt.lqr.maskN) <= 0
         take = moving & kkt.ok & torch.isfinite(size) & (size <= 1e-2 * scale) & (size < previous) & safe
+        if steps == 0:
+            take = torch.zeros_like(take)
         X, U = torch.where(expand(take, X), Xn, X), torch.where(expand(take, U), Un, U)
+        multipliers = Multipliers(s.costate, s.nu, s.nuN).where(take, kkt.multipliers)
         previous = torch.where(take, size, previous)
-        moving = take
+        taken = taken + take.long()
+        # where a step was taken, kkt is stale by that step: fine at round-off, else go on
+        moving = take & (size > 1e3 * eps * scale)
         if not bool(moving.any()):
-            break
-    return X, U
+            return Refined(X, U, multipliers, taken, size, kkt)
+    return Refined(X, U, multipliers, taken, size, None)
 
 
 # ------------------------------------------------------------------------------ the adjoint
@@ -268,12 +314,19 @@ def _lagrangians(problem: Problem, cons: Constraints):
     return stage, terminal
 
 
+def _stacked(m: Multipliers):
+    """Stage ``(B, N, nx + m)`` (``λ_{k+1}`` first) and terminal ``(B, mN)`` multiplier vectors."""
+    y = m.costate[:, 1:] if m.nu is None else torch.cat([m.costate[:, 1:], m.nu], -1)
+    yN = m.costate.new_zeros(m.costate.shape[0], 0) if m.nuN is None else m.nuN
+    return y, yN
+
+
 def parameter_gradients(problem: Problem, cons: Constraints, X: Tensor, U: Tensor, params: dict,
-                        y: Tensor, yN: Tensor, s: tuple) -> dict:
+                        y: Multipliers, s: tuple) -> dict:
     """``(∂F/∂p)^T s`` for every parameter: ``{name: (B, *shape)}``.
 
-    ``y (B, N, nx+m)`` and ``yN (B, mN)`` are the stage / terminal multipliers, ``s = (sX, sU, sy, syN)``
-    the adjoint in the same layout. ``params`` are batched to B.
+    ``y`` are the multipliers at ``(X, U)``; ``s = (sX, sU, sy)`` the adjoint (``sy`` multipliers in the
+    same layout). ``params`` are batched to B.
     """
     stage, terminal = _lagrangians(problem, cons)
 
@@ -283,53 +336,52 @@ def parameter_gradients(problem: Problem, cons: Constraints, X: Tensor, U: Tenso
     def terminal_dir(x, yk, sx, syk, p):
         return jvp(lambda x_, y_: terminal(x_, y_, p), (x, yk), (sx, syk))[1]
 
-    sX, sU, sy, syN = s
-    over_time = vmap(stage_dir, in_dims=(0, 0, 0, 0, 0, 0, None))
-    per_stage = vmap(over_time, in_dims=(0, 0, 0, 0, 0, 0, 0))
-    per_terminal = vmap(terminal_dir, in_dims=(0, 0, 0, 0, 0))
+    sX, sU, sy = s
+    (yk, yN), (syk, syN) = _stacked(y), _stacked(sy)
+    per_stage = vmap(vmap(stage_dir, in_dims=(0, 0, 0, 0, 0, 0, None)))
+    per_terminal = vmap(terminal_dir)
 
     def total(p):
-        out = per_stage(X[:, :-1], U, y, sX[:, :-1], sU, sy, p).sum()
+        out = per_stage(X[:, :-1], U, yk, sX[:, :-1], sU, syk, p).sum()
         return out + per_terminal(X[:, -1], yN, sX[:, -1], syN, p).sum()
 
     return grad(total)(params)
 
 
-def _stack_multipliers(costate: Tensor, nu: Optional[Tensor], nuN: Optional[Tensor], B: int, N: int):
-    y = torch.cat([costate[:, 1:]] + ([nu] if nu is not None else []), -1)
-    yN = nuN if nuN is not None else costate.new_zeros(B, 0)
-    return y, yN
-
-
 def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor,
-                   U_bar: Tensor, constrained: bool = True, active_tolerance: Optional[float] = None):
+                   U_bar: Tensor, constrained: bool = True, active_tolerance: Optional[float] = None,
+                   kkt: Optional[KKTSystem] = None, multipliers: Optional[Multipliers] = None):
     """Gradients ``(x0_bar (B, nx), {name: (B, *shape)}, ok (B,))`` of a loss with cotangents
-    ``X_bar (B, N+1, nx)``, ``U_bar (B, N, nu)`` at the solution ``(X, U)`` from ``x0 (B, nx)``;
-    ``params`` batched to B. ``ok`` is False where the KKT system could not be factorised."""
-    B, N = U.shape[0], U.shape[1]
+    ``X_bar (B, N+1, nx)``, ``U_bar (B, N, nu)`` at the solution ``(X, U)`` from ``x0 (B, nx)``.
+
+    ``params`` are batched to B; ``kkt`` and ``multipliers`` at ``(X, U)`` are reused when given (from
+    :func:`refine`). ``ok`` is False where the KKT system could not be factorised.
+    """
     cons = _constraints(problem, constrained)
-    kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance)
+    if kkt is None:
+        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers)
+    multipliers = kkt.multipliers if multipliers is None else multipliers
     zeros = torch.zeros_like
-    rhs = dataclasses.replace(kkt.newton, q=X_bar[:, :-1], r=U_bar, qN=X_bar[:, -1], c=zeros(X[:, 1:]),
-                              x0=zeros(x0), e=None if kkt.newton.e is None else zeros(kkt.newton.e),
-                              eN=None if kkt.newton.eN is None else zeros(kkt.newton.eN))
+    rhs = LQRVectors(q=X_bar[:, :-1], r=U_bar, qN=X_bar[:, -1], c=zeros(X[:, 1:]), x0=zeros(x0),
+                     e=None if kkt.newton.e is None else zeros(kkt.newton.e),
+                     eN=None if kkt.newton.eN is None else zeros(kkt.newton.eN))
     s = kkt.factor.solve(rhs, multipliers=True)
-    y, yN = _stack_multipliers(kkt.costate, kkt.nu, kkt.nuN, B, N)
-    sy, syN = _stack_multipliers(s.costate, s.nu, s.nuN, B, N)
-    p_bar = parameter_gradients(problem, cons, X, U, params, y, yN, (s.dx, s.du, sy, syN)) if params else {}
+    sy = Multipliers(s.costate, s.nu, s.nuN)
+    p_bar = parameter_gradients(problem, cons, X, U, params, multipliers, (s.dx, s.du, sy)) if params else {}
     return s.costate[:, 0], p_bar, kkt.ok
 
 
 # --------------------------------------------------------------------------- the autograd layer
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Spec:
-    """What the backward pass needs besides tensors."""
+    """What the backward pass needs besides the saved tensors."""
 
     problem: Problem
     names: tuple
     usable: Tensor  # (B,) bool: instances that converged
     constrained: bool
     active_tolerance: Optional[float]
+    refined: Optional[Refined]
 
 
 class ImplicitSolution(torch.autograd.Function):
@@ -352,8 +404,10 @@ class ImplicitSolution(torch.autograd.Function):
         spec: _Spec = ctx.spec
         X, U, x0, *values = ctx.saved_tensors
         params = dict(zip(spec.names, values))
-        x0_bar, p_bar, ok = backward_solve(spec.problem, x0, X, U, params, X_bar, U_bar, spec.constrained,
-                                           spec.active_tolerance)
+        refined = spec.refined
+        x0_bar, p_bar, ok = backward_solve(
+            spec.problem, x0, X, U, params, X_bar, U_bar, spec.constrained, spec.active_tolerance,
+            None if refined is None else refined.kkt, None if refined is None else refined.multipliers)
         B = X.shape[0]
         finite = torch.isfinite(x0_bar).all(-1)
         for v in p_bar.values():
@@ -383,8 +437,15 @@ def objective(problem: Problem, X: Tensor, U: Tensor, params) -> Tensor:
     return stage + map_state(problem.terminal_cost, X[:, -1], params)
 
 
+def _violation(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params) -> Tensor:
+    """Largest constraint violation (as every method reports it), dynamics and initial-state defect ``(B,)``."""
+    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
+    defect = torch.maximum(defect, (x0 - X[:, 0]).abs().amax(-1))
+    return torch.maximum(defect, Constraints(problem).max_violation(X, U, params))
+
+
 def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor], solution: Solution,
-                     refine_steps: int = 2, active_tolerance: Optional[float] = None) -> Solution:
+                     refine_steps: int = 4, active_tolerance: Optional[float] = None) -> Solution:
     """``solution`` with ``X``, ``U`` and ``cost`` differentiable with respect to ``x0`` and ``params``.
 
     Args:
@@ -392,8 +453,8 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
         x0: ``(B, nx)`` initial states, possibly requiring grad.
         params: the problem's parameters batched to B (``Problem.batched_params``), possibly requiring grad.
         solution: the method's result, computed from detached ``x0`` and ``params``.
-        refine_steps: Newton steps of :func:`refine` on the converged instances before differentiating
-            (0: differentiate at the solver's point as it is).
+        refine_steps: at most this many Newton steps of :func:`refine` on the converged instances before
+            differentiating (0: differentiate at the solver's point as it is).
         active_tolerance: inequality rows with ``g > -active_tolerance`` are held active;
             default :func:`default_active_tolerance`.
 
@@ -406,25 +467,20 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
                       f"{Status.describe(solution.status[~usable])}); their gradients will be zero",
                       RuntimeWarning, stacklevel=3)
     constrained = solution.method not in UNCONSTRAINED_METHODS
+    x0_d = x0.detach()
     detached = {k: v.detach() for k, v in params.items()}
     X, U = solution.X.detach(), solution.U.detach()
-    violation = solution.max_violation
+    violation, refined = solution.max_violation, None
     if refine_steps > 0 and bool(usable.any()):
-        X, U = refine(problem, x0.detach(), X, U, detached, refine_steps, constrained, active_tolerance, usable)
-        violation = torch.where(usable, _violation(problem, x0.detach(), X, U, detached), violation)
+        refined = refine(problem, x0_d, X, U, detached, refine_steps, constrained, active_tolerance, usable)
+        X, U = refined.X, refined.U
+        violation = torch.where(usable, _violation(problem, x0_d, X, U, detached), violation)
     names = tuple(params)
     spec = _Spec(problem=problem, names=names, usable=usable, constrained=constrained,
-                 active_tolerance=active_tolerance)
+                 active_tolerance=active_tolerance, refined=refined)
     X, U = ImplicitSolution.apply(spec, X, U, x0, *(params[n] for n in names))
     cost = objective(problem, X, U, params)
     # where an instance gets no gradient, its cost gets none either (not even the explicit ∂l/∂p)
     keep = usable.to(cost.dtype)
     cost = keep * cost + (1 - keep) * cost.detach()
     return dataclasses.replace(solution, X=X, U=U, cost=cost, max_violation=violation)
-
-
-def _violation(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params) -> Tensor:
-    """Largest constraint violation (as reported by every method), dynamics and initial-state defect ``(B,)``."""
-    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
-    defect = torch.maximum(defect, (x0 - X[:, 0]).abs().amax(-1))
-    return torch.maximum(defect, Constraints(problem).max_violation(X, U, params))

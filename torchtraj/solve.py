@@ -16,6 +16,7 @@ from typing import Optional, Union
 import torch
 from torch import Tensor
 
+from . import implicit
 from .altro import ALTROOptions, solve_altro
 from .ilqr import ILQROptions, solve_ilqr
 from .problem import Problem
@@ -89,6 +90,10 @@ def solve(
     Returns:
         A :class:`~torchtraj.Solution` with per-instance status. The batch size B is the common
         leading dimension of ``x0``, ``U0``, ``X0`` and the batched parameters (1 if none has one).
+        When grad is enabled and ``x0`` or a tensor of ``problem.params`` requires grad, ``X``, ``U``
+        and ``cost`` are differentiable with respect to them by implicit differentiation of the KKT
+        conditions, at the solution refined by Newton steps (:mod:`torchtraj.implicit`; instances
+        that did not converge get zero gradients and a warning).
     """
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
@@ -109,7 +114,13 @@ def solve(
         _ensure_log_handler()
     if duals is not None and method is Method.ILQR:
         raise ValueError("method 'ilqr' has no multipliers to warm-start; duals is for 'altro' / 'al-ilqr'")
-    return _dispatch(problem, method, opts, x0.contiguous(), U0.contiguous(), X0, params, B, duals)
+    if not implicit.requires_gradients(x0, params):
+        return _dispatch(problem, method, opts, x0.contiguous(), U0.contiguous(), X0, params, B, duals)
+    # a differentiable solve: the method runs on detached inputs, gradients come from its KKT point
+    detached = {k: v.detach() for k, v in params.items()}
+    solution = _dispatch(problem, method, opts, x0.detach().contiguous(), U0.detach().contiguous(),
+                         None if X0 is None else X0.detach(), detached, B, duals)
+    return implicit.attach_gradients(problem, x0, params, solution)
 
 
 def _dispatch(problem: Problem, method: Method, opts, x0: Tensor, U0: Tensor, X0: Optional[Tensor], params,
