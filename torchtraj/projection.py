@@ -60,6 +60,8 @@ class ProjectionOptions:
     #: ``√eps``). Near-degenerate active sets (a car pinned in a corner of its box, where the
     #: linearised rows differ by ``dt·v ≈ 0``) would otherwise get steps of size ``1/σ``.
     rank_tolerance: Optional[float] = None
+    #: Multiplier solves: after each, active inequalities with a negative multiplier are released.
+    multiplier_passes: int = 4
 
 
 @dataclass
@@ -165,11 +167,21 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
             # reuse the factorisation only while convergence stays fast (Algorithm 2, line 8)
             stepping = take & (v > opts.tolerance) & (rate > opts.convergence_rate)
     stage_active, terminal_active = _active_rows(al, X, U, params, opts)
-    factor, lz, lNx = _linearize(al, params, X, U, stage_active, terminal_active, reg, rank_tol)
     _, _, _, _, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
-    duals = factor.solve(LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=X.new_zeros(B, N, nx),
-                                    x0=X.new_zeros(B, nx), e=torch.zeros_like(stage_active),
-                                    eN=torch.zeros_like(terminal_active)), multipliers=True)
+    duals, factor = None, None
+    for _ in range(opts.multiplier_passes):
+        factor, lz, lNx = _linearize(al, params, X, U, stage_active, terminal_active, reg, rank_tol)
+        duals = factor.solve(LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=X.new_zeros(B, N, nx),
+                                        x0=X.new_zeros(B, nx), e=torch.zeros_like(stage_active),
+                                        eN=torch.zeros_like(terminal_active)), multipliers=True)
+        # Dependent active rows (a car parked in a corner of its box) leave the multipliers non-unique
+        # and the least-squares ones may be negative; such rows are released and the others take over.
+        wrong = al.is_ineq & (duals.nu * stage_active < 0)
+        wrongN = al.is_ineqN & (duals.nuN * terminal_active < 0)
+        if not bool(wrong.any() | wrongN.any()):
+            break
+        stage_active = stage_active * (~wrong).to(X.dtype)
+        terminal_active = terminal_active * (~wrongN).to(X.dtype)
     converged = mask & (v <= opts.tolerance)
     return Projected(X=X, U=U, violation=v, converged=converged, costate=duals.costate,
                      stage=duals.nu * stage_active, terminal=duals.nuN * terminal_active, K=factor.K)
