@@ -10,6 +10,7 @@ unless ``--json PATH`` is given. Exit status: 0, or 1 if some row failed (its er
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import sys
@@ -23,6 +24,8 @@ from . import table
 from .runs import Row, make_options, relative_difference, run_reference, run_torchtraj, skip_reason
 
 REFERENCE_SOLVERS = ("ipopt", "fatrop")
+#: Batch of the ALTRO throughput line (issue: pendulum, sample_x0 seed 0, B = 1024 in one batch).
+THROUGHPUT_BATCH = 1024
 
 
 def parser() -> argparse.ArgumentParser:
@@ -50,6 +53,10 @@ def parser() -> argparse.ArgumentParser:
                    help="IPOPT / FATROP solve the first min(B, this) of a row's initial states")
     p.add_argument("--reference-tolerance", type=float, default=1e-8, help="IPOPT / FATROP tol")
     p.add_argument("--json", metavar="PATH", help="also write the header and all rows as JSON to PATH")
+    p.add_argument("--grad", action="store_true",
+                   help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
+                        "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
+                        "16 64 256 and --method to altro")
     return p
 
 
@@ -114,10 +121,20 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dtype, device = getattr(torch, args.dtype), torch.device(args.device)
+    if args.grad:
+        from . import grad
+        batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]
+        name = args.method if args.method != p.get_default("method") else Method.ALTRO.value
+        rows = grad.run(batches, args.seed, name, say, dtype, device, batches, with_mpc=not args.no_reference)
+        return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0
     method = Method(args.method)
     options, applied = make_options(method, cost_tolerance=args.cost_tolerance,
                                     gradient_tolerance=args.gradient_tolerance, iterations=args.iterations)
     ignored = sorted({"cost_tolerance", "gradient_tolerance"} - set(applied))
+    augmented = method in (Method.ALTRO, Method.AL_ILQR)
+    if augmented:  # per-problem options of the problem set (problems.altro_options), not the CLI's
+        ignored = []
+    default_batches = args.batch == p.get_default("batch")
     with_reference, reference_note = _reference_available(args)
 
     todo, skipped = [], []
@@ -155,8 +172,14 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     for problem in todo:
         refs = _build_references(problem.name, args.reference_tolerance) if with_reference else {}
         problem_rows = []
-        for batch in args.batch:
-            ours = run_torchtraj(problem, method, batch, args.seed, options, args.warmup_iterations)
+        batches = args.batch
+        if augmented and default_batches:  # every problem once, the throughput line on the pendulum batch
+            batches = [1, THROUGHPUT_BATCH] if problem.name == "pendulum" else [1]
+        problem_options = problems.altro_options(problem.name) if augmented else options
+        if augmented and method is Method.AL_ILQR:
+            problem_options = dataclasses.replace(problem_options, projection=False)
+        for batch in batches:
+            ours = run_torchtraj(problem, method, batch, args.seed, problem_options, args.warmup_iterations)
             group = [ours]
             for solver, built in refs.items():
                 if isinstance(built, str):
@@ -169,11 +192,16 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                     row.vs_ipopt = relative_difference(row, ipopt)
                 say(table.format_row(row))
             problem_rows += group
-        throughput.append(_throughput(problem.name, problem_rows, max(args.batch)))
+        throughput.append(_throughput(problem.name, problem_rows, max(batches)))
         rows += problem_rows
     say()
     for line in throughput:
         say(line)
+    if augmented and default_batches:
+        from .time_penalized import report_time_penalized
+        say()
+        for line in report_time_penalized(method, dtype, device):
+            say(line)
     say(table.legend())
 
     if args.json:

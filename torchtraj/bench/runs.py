@@ -93,12 +93,16 @@ def run_torchtraj(problem: Problem, method: Method, batch: int, seed: int, optio
     row = Row(problem.name, method.value, batch)
     try:
         x0 = batch_x0(problem.name, batch, seed)
-        warm = dataclasses.replace(options, iterations=min(options.iterations, warmup_iterations)) \
-            if hasattr(options, "iterations") else options
-        solve(problem, None, method, options=warm)
+        # ALTRO starts car_escape from its state guess (infeasible start); iLQR cannot take one
+        X0 = problem.X_init if method is not Method.ILQR else None
+        if hasattr(options, "iterations"):
+            warm = dataclasses.replace(options, iterations=min(options.iterations, warmup_iterations))
+        else:
+            warm = dataclasses.replace(options, iterations_outer=1, iterations_inner=warmup_iterations)
+        solve(problem, None, method, X0=X0, options=warm)
         _sync(problem.device)
         start = time.perf_counter()
-        sol = solve(problem, x0, method, options=options)
+        sol = solve(problem, x0, method, X0=X0, options=options)
         _sync(problem.device)
         row.seconds = time.perf_counter() - start
         iters = sol.iterations.cpu().tolist()
