@@ -8,8 +8,9 @@ from .problem import Problem
 from .solution import History, Solution
 from .solve import Method, solve
 from .status import Status
+from .time_penalty import TimePenalized, time_penalized
 
-__all__ = ["ALTROOptions", "History", "ILQROptions", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "euler", "rk4", "solve"]
+__all__ = ["ALTROOptions", "History", "ILQROptions", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
 __version__ = "0.1.0"
 
 
