@@ -15,7 +15,7 @@ OTHER_OPTIMUM = {"car_3obs", "quadrotor2d", "car_escape"}
 
 
 def kkt_residuals(problem, sol):
-    """Stationarity ``|∇_{X,U} L|∞`` with the solution's costates and multipliers, the most negative
+    """Stationarity ``|∇_{X,U} L|∞ / max(1, |multipliers|∞)`` with the solution's costates and multipliers, the most negative
     inequality multiplier, and the largest complementarity product ``|ν g|``."""
     c = Constraints(problem)
     params = problem.batched_params(sol.X.shape[0])
@@ -38,7 +38,9 @@ def kkt_residuals(problem, sol):
     if c.meN:
         L = L + (m["terminal_eq"] * values.eqN).sum()
     gx, gu = torch.autograd.grad(L, (X, U))
-    stationarity = max(float(gx[:, 1:].abs().max()), float(gu.abs().max()))
+    # scaled like IPOPT's dual infeasibility: by the size of the multipliers (cart-pole's Qf = 100)
+    scale = max(1.0, float(lam.abs().max()), *(float(v.abs().max()) for v in m.values() if v.numel()))
+    stationarity = max(float(gx[:, 1:].abs().max()), float(gu.abs().max())) / scale
     return stationarity, dual_min, complementarity
 
 
