@@ -374,3 +374,51 @@ def test_refine_reaches_round_off_stationarity():
     before, after = reduced_gradient(sol.U).abs().max(), reduced_gradient(refined.U).abs().max()
     assert before > 1e-4 and after < 1e-13, (before, after)
     assert int(refined.steps[0]) >= 1 and refined.kkt is not None
+
+
+# ---------------------------------------------------------------- benchmark problems (slow)
+TIGHT_ALTRO = ALTROOptions(ilqr=tt.ILQROptions(cost_tolerance=1e-10, gradient_tolerance=1e-6),
+                           cost_tolerance=1e-10, cost_tolerance_intermediate=1e-6, constraint_tolerance=1e-8)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,names", [("pendulum", ["mass", "length", "damping", "gravity"]),
+                                        ("car_3obs", ["obstacles", "goal"])])
+def test_benchmark_problems_match_central_differences(name, names):
+    """Gradients of U.sum() and X[:, -5:].pow(2).sum() with respect to x0 and every model parameter
+    (the unicycle has none: the obstacles and the goal instead) against central differences of
+    re-solves, warm-started at the nominal solution so that they stay in its basin, to 1e-5 relative."""
+    problem = tt.problems.get(name)
+    x0 = problem.x0.clone()
+    values = {k: problem.params[k].clone() for k in names}
+
+    def solve(x0, values, U0=None):
+        x0 = x0.clone().requires_grad_(True)
+        leaves = {k: v.clone().requires_grad_(True) for k, v in values.items()}
+        sol = tt.solve(problem.with_params(**leaves), x0, method="altro", U0=U0, options=TIGHT_ALTRO)
+        assert bool(sol.converged.all()) and sol.max_violation.max() < 1e-10
+        return sol, x0, leaves
+
+    sol, x0_leaf, leaves = solve(x0, values)
+    U0 = sol.U.detach()
+    cons = Constraints(problem)
+    g = cons.evaluate(sol.X.detach(), U0, problem.batched_params(1)).ineq
+    assert int((g > -1e-8).sum()) >= 1  # inequality constraints are active
+    losses = {"U.sum()": lambda s: s.U.sum(), "X[:, -5:]²": lambda s: s.X[:, -5:].pow(2).sum()}
+    grads = {label: torch.autograd.grad(loss(sol), [x0_leaf, *leaves.values()], retain_graph=True)
+             for label, loss in losses.items()}
+    for j, (key, base) in enumerate(zip(["x0", *names], [x0, *values.values()])):
+        for i in range(base.numel()):
+            h = 1e-6 * (1 + abs(float(base.reshape(-1)[i])))
+            out = []
+            for sign in (1, -1):
+                moved = base.clone()
+                moved.reshape(-1)[i] += sign * h
+                args = (moved, values) if key == "x0" else (x0, {**values, key: moved})
+                resolved = solve(*args, U0=U0)[0]
+                out.append({label: float(loss(resolved)) for label, loss in losses.items()})
+            for label in losses:
+                fd, an = (out[0][label] - out[1][label]) / (2 * h), float(grads[label][j].reshape(-1)[i])
+                gmax = max(float(g.abs().max()) for g in grads[label])
+                rel = abs(fd - an) / max(abs(fd), abs(an), 1e-2 * gmax)
+                assert rel < 1e-5, (label, key, i, fd, an)

@@ -57,11 +57,16 @@ active constraint values as right-hand side — until the step reaches round-off
 (:func:`refine`). From a converged solution they converge quadratically (on the pendulum: steps
 ``1e-3, 2e-7, 4e-14``), and the last factorisation is reused by the backward pass.
 
-Active set: an inequality row is active where ``g > -active_tolerance``; the default
-:func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)`` (``1e-6`` in float64, ``1.2e-3`` in
-float32). ALTRO's final projection leaves active rows at ``|g| ≲ 1e-8`` and inactive rows of a
-converged solve are far below ``-1e-6`` unless they are (weakly) active; a weakly active row (zero
-multiplier) is held as an equality, which gives the one-sided derivative in which it stays active.
+Active set (:func:`active_rows`), identified once at the solver's point and then held fixed: an
+inequality row is active where ``g > -active_tolerance``, or where the solver's multiplier of the row
+(``Solution.multipliers``, the set ALTRO's projection identified) is positive and
+``g > -1e3 active_tolerance``. The default :func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)``
+(``1e-6`` in float64, ``1.2e-3`` in float32). ALTRO's final projection leaves active rows at
+``|g| ≲ 1e-8`` and inactive rows of a converged solve are far below ``-1e-6`` unless they are
+(weakly) active; a weakly active row (zero multiplier) is held as an equality, which gives the
+one-sided derivative in which it stays active. The set is not re-evaluated during refinement: a
+Newton step from a point that is only ``1e-3`` stationary moves active rows of a curved constraint by
+``~1e-6`` before the next step drives them back to zero.
 
 Instances that did not converge (``status != CONVERGED``), whose reduced Hessian is not positive
 definite, or whose gradient is not finite get a **zero gradient**, and a ``RuntimeWarning`` names
@@ -148,9 +153,10 @@ class KKTSystem:
     ok: Tensor
 
 
-def _rows(cons: Constraints, X: Tensor, U: Tensor, params, tol: float):
+def _rows(cons: Constraints, X: Tensor, U: Tensor, params, tol: float, active: Optional[tuple] = None):
     """Values, Jacobians and active masks of the stage rows ``(B, N, m)`` and terminal rows ``(B, mN)``.
 
+    ``active = (mask, maskN)`` imposes the masks; else a row is active where ``g > -tol``.
     Returns ``(e, C, D, mask, eN, CN, maskN)``, ``None`` where there are no rows."""
     nx = X.shape[-1]
     vals, jacs, masks = [], [], []
@@ -166,6 +172,7 @@ def _rows(cons: Constraints, X: Tensor, U: Tensor, params, tol: float):
     if vals:
         J = torch.cat(jacs, -2)
         e, C, D, mask = torch.cat(vals, -1), J[..., :nx], J[..., nx:], torch.cat(masks, -1)
+        mask = mask if active is None else active[0]
     vals, jacs, masks = [], [], []
     if cons.meN:
         h, J = terminal_jacobian(cons.terminal_eq, X[:, -1], params)
@@ -176,23 +183,60 @@ def _rows(cons: Constraints, X: Tensor, U: Tensor, params, tol: float):
     eN = CN = maskN = None
     if vals:
         eN, CN, maskN = torch.cat(vals, -1), torch.cat(jacs, -2), torch.cat(masks, -1)
+        maskN = maskN if active is None else active[1]
     return e, C, D, mask, eN, CN, maskN
 
 
+def active_rows(problem: Problem, X: Tensor, U: Tensor, params, constrained: bool = True,
+                active_tolerance: Optional[float] = None, multipliers: Optional[Mapping[str, Tensor]] = None):
+    """The active set ``(mask (B, N, me+mi), maskN (B, meN+miN))`` at a solution (``None`` without rows).
+
+    Equalities are always active; an inequality row is active where ``g > −tol`` or, when the solver's
+    ``multipliers`` (``Solution.multipliers``, by block) are given, where its multiplier is positive and
+    ``g > −1e3 tol`` (the set an augmented-Lagrangian solver and ALTRO's projection identified).
+    """
+    cons = _constraints(problem, constrained)
+    tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
+    B, N = U.shape[0], U.shape[1]
+    multipliers = multipliers or {}
+    ones = X.new_ones
+    mask = maskN = None
+    if cons.me or cons.mi:
+        parts = [ones(B, N, cons.me)]
+        if cons.mi:
+            g = map_stage(cons.stage_ineq, X[:, :-1], U, params)
+            dual = torch.cat([multipliers[name] if name in multipliers else torch.zeros_like(g[..., rows])
+                              for name, rows in cons.ineq_blocks.items()], -1)
+            on = (g > -tol) | ((dual > 0) & (g > -1e3 * tol))
+            parts.append((on & (cons.ineq_knot_mask > 0)).to(X.dtype))
+        mask = torch.cat(parts, -1)
+    if cons.meN or cons.miN:
+        parts = [ones(B, cons.meN)]
+        if cons.miN:
+            g = map_state(cons.terminal_ineq, X[:, -1], params)
+            dual = multipliers.get("terminal_ineq", torch.zeros_like(g))
+            parts.append(((g > -tol) | ((dual > 0) & (g > -1e3 * tol))).to(X.dtype))
+        maskN = torch.cat(parts, -1)
+    return mask, maskN
+
+
 def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool = True,
-               active_tolerance: Optional[float] = None, multipliers: Optional[Multipliers] = None) -> KKTSystem:
+               active_tolerance: Optional[float] = None, multipliers: Optional[Multipliers] = None,
+               active: Optional[tuple] = None) -> KKTSystem:
     """The factorised KKT system at ``X (B, N+1, nx)``, ``U (B, N, nu)`` from ``x0 (B, nx)``.
 
     ``params`` are batched to B. Without ``multipliers`` they are computed from the cost Hessian (one
-    more factorisation, module docstring). With ``constrained=False`` the constraints are left out (the
-    KKT conditions of the unconstrained problem, for methods that ignore constraints).
+    more factorisation, module docstring). ``active`` (from :func:`active_rows`) imposes the active
+    set; else rows with ``g > -active_tolerance`` are active. With ``constrained=False`` the
+    constraints are left out (the KKT conditions of the unconstrained problem, for methods that ignore
+    constraints).
     """
     cons = _constraints(problem, constrained)
     tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
     nx = X.shape[-1]
     f, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
     _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
-    e, C, D, mask, eN, CN, maskN = _rows(cons, X, U, params, tol)
+    e, C, D, mask, eN, CN, maskN = _rows(cons, X, U, params, tol, active)
     zeros = torch.zeros_like
     lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx,
               C=C, D=D, mask=mask, CN=CN, maskN=maskN)
@@ -245,13 +289,17 @@ class Refined:
     steps: Tensor
     residual: Tensor
     kkt: Optional[KKTSystem]
+    active: tuple
 
 
 def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: int = 4, constrained: bool = True,
-           active_tolerance: Optional[float] = None, mask: Optional[Tensor] = None) -> Refined:
+           active_tolerance: Optional[float] = None, mask: Optional[Tensor] = None,
+           solver_multipliers: Optional[Mapping[str, Tensor]] = None) -> Refined:
     """Newton (SQP) steps on the KKT conditions with the active set held fixed (module docstring).
 
-    ``x0 (B, nx)``, ``X (B, N+1, nx)``, ``U (B, N, nu)``, ``params`` batched to B. A step of an
+    ``x0 (B, nx)``, ``X (B, N+1, nx)``, ``U (B, N, nu)``, ``params`` batched to B. The active set is
+    :func:`active_rows` at the starting point (with the solver's multipliers, by block, when given) and
+    is kept while the rows move: a Newton step drives active rows to zero. A step of an
     instance is taken only if it is finite, small (``|δw|∞ ≤ 1e-2 (1 + |w|∞)``), contracts (smaller
     than the instance's previous step) and leaves every inactive inequality row satisfied; otherwise
     the instance keeps its point and stops. An instance also stops once its step is at round-off
@@ -268,8 +316,9 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         return t.reshape(B, *([1] * (like.dim() - 1)))
 
     multipliers = None
+    active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
     for _ in range(max(steps, 1)):
-        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers)
+        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active)
         s = kkt.factor.solve(kkt.newton, multipliers=True)
         size = torch.maximum(s.dx.abs().flatten(1).amax(-1), s.du.abs().flatten(1).amax(-1))
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
@@ -285,8 +334,8 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         # where a step was taken, kkt is stale by that step: fine at round-off, else go on
         moving = take & (size > 1e3 * eps * scale)
         if not bool(moving.any()):
-            return Refined(X, U, multipliers, taken, size, kkt)
-    return Refined(X, U, multipliers, taken, size, None)
+            return Refined(X, U, multipliers, taken, size, kkt, active)
+    return Refined(X, U, multipliers, taken, size, None, active)
 
 
 # ------------------------------------------------------------------------------ the adjoint
@@ -350,16 +399,17 @@ def parameter_gradients(problem: Problem, cons: Constraints, X: Tensor, U: Tenso
 
 def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor,
                    U_bar: Tensor, constrained: bool = True, active_tolerance: Optional[float] = None,
-                   kkt: Optional[KKTSystem] = None, multipliers: Optional[Multipliers] = None):
+                   kkt: Optional[KKTSystem] = None, multipliers: Optional[Multipliers] = None,
+                   active: Optional[tuple] = None):
     """Gradients ``(x0_bar (B, nx), {name: (B, *shape)}, ok (B,))`` of a loss with cotangents
     ``X_bar (B, N+1, nx)``, ``U_bar (B, N, nu)`` at the solution ``(X, U)`` from ``x0 (B, nx)``.
 
-    ``params`` are batched to B; ``kkt`` and ``multipliers`` at ``(X, U)`` are reused when given (from
-    :func:`refine`). ``ok`` is False where the KKT system could not be factorised.
+    ``params`` are batched to B; ``kkt``, ``multipliers`` and the ``active`` set at ``(X, U)`` are reused
+    when given (from :func:`refine`). ``ok`` is False where the KKT system could not be factorised.
     """
     cons = _constraints(problem, constrained)
     if kkt is None:
-        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers)
+        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active)
     multipliers = kkt.multipliers if multipliers is None else multipliers
     zeros = torch.zeros_like
     rhs = LQRVectors(q=X_bar[:, :-1], r=U_bar, qN=X_bar[:, -1], c=zeros(X[:, 1:]), x0=zeros(x0),
@@ -407,7 +457,8 @@ class ImplicitSolution(torch.autograd.Function):
         refined = spec.refined
         x0_bar, p_bar, ok = backward_solve(
             spec.problem, x0, X, U, params, X_bar, U_bar, spec.constrained, spec.active_tolerance,
-            None if refined is None else refined.kkt, None if refined is None else refined.multipliers)
+            None if refined is None else refined.kkt, None if refined is None else refined.multipliers,
+            None if refined is None else refined.active)
         B = X.shape[0]
         finite = torch.isfinite(x0_bar).all(-1)
         for v in p_bar.values():
@@ -472,7 +523,8 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
     X, U = solution.X.detach(), solution.U.detach()
     violation, refined = solution.max_violation, None
     if refine_steps > 0 and bool(usable.any()):
-        refined = refine(problem, x0_d, X, U, detached, refine_steps, constrained, active_tolerance, usable)
+        refined = refine(problem, x0_d, X, U, detached, refine_steps, constrained, active_tolerance, usable,
+                         {k: v.detach() for k, v in solution.multipliers.items()})
         X, U = refined.X, refined.U
         violation = torch.where(usable, _violation(problem, x0_d, X, U, detached), violation)
     names = tuple(params)
