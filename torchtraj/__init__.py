@@ -4,13 +4,14 @@ from .altro import ALTROOptions
 from .ilqr import ILQROptions
 from .projection import ProjectionOptions
 from .integrators import euler, rk4
+from .mpc import MPC
 from .problem import Problem
 from .solution import History, Solution
 from .solve import Method, solve
 from .status import Status
 from .time_penalty import TimePenalized, time_penalized
 
-__all__ = ["ALTROOptions", "History", "ILQROptions", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
+__all__ = ["ALTROOptions", "History", "ILQROptions", "MPC", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
 __version__ = "0.1.0"
 
 

@@ -1,0 +1,236 @@
+r"""Model predictive control: a batch of trajectory problems re-solved from the measured states at every step.
+
+At control step t, for every instance i of a batch with measured state :math:`\hat x^i_t`, the controller solves
+the problem template (:class:`~torchtraj.Problem`, horizon N) from that state,
+
+.. math::
+
+    \min_{x, u}\ \sum_{k<N} \ell(x_k, u_k, p^i) + \ell_N(x_N, p^i)
+    \quad \text{s.t.}\quad x_{k+1} = f(x_k, u_k, p^i),\ x_0 = \hat x^i_t,\ \text{the template's constraints},
+
+with a fixed budget of solver iterations, and applies the first control :math:`u^i_0`, clamped to the control
+bounds. The iterations are not run to convergence: the warm start carries the work of earlier steps forward
+("real-time iteration"). The previous solution is shifted by one step,
+
+.. math::
+
+    U^{\text{warm}} = (u_1, \dots, u_{N-1}, u_{N-1}), \qquad
+    \lambda^{\text{warm}}_k = \lambda_{k+1}\ (k < N-1), \quad \lambda^{\text{warm}}_{N-1} = \lambda_{N-1},
+
+(controls and, for the augmented-Lagrangian methods, the multipliers of every stage block; terminal multipliers
+are kept), and the solver starts from the rollout of :math:`U^{\text{warm}}` from the measured state. The penalties
+restart at ``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by
+``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem becomes ill-conditioned.
+
+With ``iterations`` set, ALTRO runs one inner AL-iLQR solve of at most ``iterations`` iLQR iterations per step
+(``iterations_inner = iterations``, ``iterations_outer = 1``) followed by one multiplier update (eq. 17), so the
+multipliers improve by one update per control step. An instance that spends its budget reports
+``Status.MAX_ITERATIONS``; its controls are still the best iterate and are applied.
+
+Warm starts are per instance: :meth:`MPC.reset` with a ``(B,)`` mask drops those of the instances whose episode
+restarted (a vector environment's autoreset), by masks and ``torch.where``, with no loop over the batch. An instance
+whose solve fails (``NON_FINITE``, ``DIVERGED``, ``INFEASIBLE_START`` or non-finite controls) applies its warm-start
+control instead (clamped) and starts cold at the next step; it never changes another instance's answer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable, Mapping, Optional, Union
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .altro import ALTROOptions
+from .ilqr import ILQROptions
+from .problem import Problem
+from .solution import Solution
+from .solve import Method, solve
+from .status import Status
+
+#: ALTRO's settings for MPC: no projection (the first control is clamped to its bounds anyway, and the
+#: projection's Newton steps would double the time of a step); the rest are ALTRO's defaults.
+DEFAULT_ALTRO = ALTROOptions(projection=False)
+
+
+def _shift(t: Tensor) -> Tensor:
+    """``(B, N, ...)`` moved one step earlier along N, the last entry repeated."""
+    return torch.cat([t[:, 1:], t[:, -1:]], 1)
+
+
+def _rows(mask: Tensor, t: Tensor) -> Tensor:
+    """``mask (B,)`` shaped to broadcast against ``t (B, ...)``."""
+    return mask.reshape(-1, *([1] * (t.dim() - 1)))
+
+
+class MPC(torch.nn.Module):
+    """A receding-horizon policy: ``MPC(problem)(observations) -> first controls``; see the module docstring.
+
+    Args:
+        problem: the template: dynamics, costs, constraints, horizon and parameters. Its ``x0`` is replaced at each
+            call by the measured states; its ``u_init`` is the cold start.
+        method: ``"altro"``, ``"al-ilqr"`` or ``"ilqr"`` (``"ilqr"`` ignores constraints and warns at every call).
+        iterations: solver iterations per control step (ALTRO: ``iterations_inner`` with ``iterations_outer = 1``;
+            iLQR: ``iterations``). ``None`` uses ``options`` as given.
+        options: the method's options; default :data:`DEFAULT_ALTRO` for ALTRO, ``ILQROptions()`` for iLQR.
+        observation_to_state: maps observations ``(B, n_obs)`` (torch, in the problem's dtype) to states
+            ``(B, nx)``; default identity.
+        observation_to_params: maps observations to per-instance parameters ``{name: (B, ...)}`` (a car's observed
+            obstacles); default none.
+
+    Call: ``mpc(observations, params=None)`` with observations ``(n_obs,)`` or ``(B, n_obs)``, numpy or torch,
+    returns controls ``(nu,)`` or ``(B, nu)`` of the same kind (numpy float64, or a tensor of the observations'
+    dtype and device). ``params`` are per-call parameters ``{name: (B, ...) or per-instance shape}`` that
+    override the template's; the problem is rebuilt only when they change (a reset's new obstacle layout).
+
+    After a call: :attr:`solution` (the last :class:`~torchtraj.Solution`), :attr:`X` ``(B, N+1, nx)`` and
+    :attr:`U` ``(B, N, nu)`` the predicted trajectories, :attr:`status` ``(B,)``, :attr:`solve_seconds`.
+    """
+
+    def __init__(self, problem: Problem, method: Union[str, Method] = "altro", iterations: Optional[int] = 3,
+                 options=None, observation_to_state: Optional[Callable] = None,
+                 observation_to_params: Optional[Callable] = None):
+        super().__init__()
+        if not isinstance(problem, Problem):
+            raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
+        try:
+            method = Method(method)
+        except ValueError:
+            raise ValueError(f"unknown method {method!r}; choose one of {[m.value for m in Method]}") from None
+        if iterations is not None and (int(iterations) != iterations or iterations < 1):
+            raise ValueError(f"iterations must be a positive int or None, got {iterations!r}")
+        self.problem, self.method = problem, method
+        self.options = _mpc_options(method, options, iterations)
+        self.observation_to_state = observation_to_state
+        self.observation_to_params = observation_to_params
+        self._template = problem
+        bad = (Status.NON_FINITE, Status.DIVERGED, Status.INFEASIBLE_START)
+        self._failures = torch.tensor([int(b) for b in bad], device=problem.device)
+        self._params: dict = {}
+        self.solution: Optional[Solution] = None
+        self.solve_seconds = float("nan")
+        self._clear(0)
+
+    # ------------------------------------------------------------------ warm start
+    def _clear(self, batch: int) -> None:
+        p = self.problem
+        self._U = p.u_init.expand(batch, p.N, p.nu).clone()
+        self._multipliers: dict = {}
+        self._warm = torch.zeros(batch, dtype=torch.bool, device=p.device)
+
+    @property
+    def batch_size(self) -> int:
+        """Batch size of the current warm start (0 before the first call)."""
+        return int(self._warm.shape[0])
+
+    def reset(self, mask=None) -> None:
+        """Drop the warm start of every instance, or of those where ``mask (B,)`` (bool, numpy or torch) is true."""
+        if mask is None or self.batch_size == 0:  # nothing to drop before the first call
+            self._warm = torch.zeros_like(self._warm)
+            return
+        mask = torch.as_tensor(np.asarray(mask) if not isinstance(mask, Tensor) else mask, device=self._warm.device)
+        if mask.dtype != torch.bool or mask.shape != self._warm.shape:
+            raise ValueError(f"mask must be a bool array of shape ({self.batch_size},), got {mask.dtype} "
+                             f"{tuple(mask.shape)}")
+        self._warm = self._warm & ~mask
+
+    def warm_start(self) -> tuple[Tensor, Optional[dict]]:
+        """The next solve's initial controls ``(B, N, nu)`` and multipliers: shifted where warm, cold elsewhere."""
+        p = self.problem
+        cold = p.u_init.expand_as(self._U)
+        U0 = torch.where(_rows(self._warm, self._U), self._U, cold)
+        if not self._multipliers:
+            return U0, None
+        mult = {k: torch.where(_rows(self._warm, v), v, torch.zeros_like(v)) for k, v in self._multipliers.items()}
+        return U0, {"multipliers": mult}
+
+    # ------------------------------------------------------------------ the policy
+    def forward(self, observations, params: Optional[Mapping] = None):
+        is_numpy = not isinstance(observations, Tensor)
+        obs = torch.as_tensor(np.asarray(observations) if is_numpy else observations)
+        out_dtype, out_device = (torch.float64, "cpu") if is_numpy else (obs.dtype, obs.device)
+        single = obs.dim() == 1
+        obs = obs.reshape(1, -1) if single else obs
+        if obs.dim() != 2:
+            raise ValueError(f"observations must have shape (n_obs,) or (B, n_obs), got {tuple(obs.shape)}")
+        obs = obs.to(dtype=self.problem.dtype, device=self.problem.device)
+        x = self.observation_to_state(obs) if self.observation_to_state is not None else obs
+        if x.shape != (obs.shape[0], self.problem.nx):
+            raise ValueError(f"states must have shape (B, {self.problem.nx}), got {tuple(x.shape)}; "
+                             "pass observation_to_state for observations that are not the state")
+        given = dict(self.observation_to_params(obs)) if self.observation_to_params is not None else {}
+        given.update(params or {})
+        self._use_params(given)
+        if x.shape[0] != self.batch_size:
+            self._clear(x.shape[0])
+        u = self._step(x)
+        u = u.to(dtype=out_dtype, device=out_device)
+        u = u[0] if single else u
+        return u.numpy() if is_numpy else u
+
+    def _use_params(self, given: dict) -> None:
+        """Rebuild the problem from the template only when the per-call parameters change."""
+        given = {k: torch.as_tensor(v, dtype=self.problem.dtype, device=self.problem.device) for k, v in given.items()}
+        same = given.keys() == self._params.keys() and all(
+            v.shape == self._params[k].shape and bool(torch.equal(v, self._params[k])) for k, v in given.items())
+        if not same:
+            given = {k: v.clone() for k, v in given.items()}  # never an alias of the caller's observations
+            self.problem = self._template.with_params(**given) if given else self._template
+            self._params = given
+
+    @torch.no_grad()
+    def _step(self, x: Tensor) -> Tensor:
+        p = self.problem
+        U0, duals = self.warm_start()
+        start = time.perf_counter()
+        sol = solve(p, x, self.method, U0=U0, options=self.options,
+                    duals=duals if self.method is not Method.ILQR else None)
+        self.solve_seconds = time.perf_counter() - start
+        failed = torch.isin(sol.status, self._failures) | ~torch.isfinite(sol.U).flatten(1).all(-1)
+        usable = ~failed
+        u = torch.where(_rows(usable, U0[:, 0]), sol.U[:, 0], U0[:, 0])
+        lower = p.u_lower if p.u_lower is not None else torch.full_like(u[0], -torch.inf)
+        upper = p.u_upper if p.u_upper is not None else torch.full_like(u[0], torch.inf)
+        u = torch.clamp(u, lower, upper)
+        self.solution = sol
+        self._U = _shift(torch.where(_rows(usable, sol.U), sol.U, U0))
+        self._multipliers = {k: _shift(v) if v.dim() == 3 else v for k, v in sol.multipliers.items()}
+        self._warm = usable
+        return u
+
+    # ------------------------------------------------------------------ diagnostics
+    @property
+    def X(self) -> Optional[Tensor]:
+        """Predicted states ``(B, N+1, nx)`` of the last call."""
+        return None if self.solution is None else self.solution.X
+
+    @property
+    def U(self) -> Optional[Tensor]:
+        """Predicted controls ``(B, N, nu)`` of the last call (before clamping)."""
+        return None if self.solution is None else self.solution.U
+
+    @property
+    def status(self) -> Optional[Tensor]:
+        """Solver status ``(B,)`` of the last call (:class:`~torchtraj.Status` codes)."""
+        return None if self.solution is None else self.solution.status
+
+    def extra_repr(self) -> str:
+        its = getattr(self.options, "iterations_inner", getattr(self.options, "iterations", None))
+        return f"problem={self.problem.name!r}, method={self.method.value!r}, horizon={self.problem.N}, iterations={its}"
+
+
+def _mpc_options(method: Method, options, iterations: Optional[int]):
+    """The solver options of one control step (module docstring)."""
+    if method is Method.ILQR:
+        opts = options if options is not None else ILQROptions()
+        if not isinstance(opts, ILQROptions):
+            raise TypeError(f"options for method 'ilqr' must be ILQROptions, got {type(opts).__name__}")
+        return opts if iterations is None else dataclasses.replace(opts, iterations=int(iterations))
+    opts = options if options is not None else DEFAULT_ALTRO
+    if not isinstance(opts, ALTROOptions):
+        raise TypeError(f"options for method {method.value!r} must be ALTROOptions, got {type(opts).__name__}")
+    if iterations is None:
+        return opts
+    return dataclasses.replace(opts, iterations_inner=int(iterations), iterations_outer=1)
