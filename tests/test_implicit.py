@@ -422,3 +422,16 @@ def test_benchmark_problems_match_central_differences(name, names):
                 gmax = max(float(g.abs().max()) for g in grads[label])
                 rel = abs(fd - an) / max(abs(fd), abs(an), 1e-2 * gmax)
                 assert rel < 1e-5, (label, key, i, fd, an)
+
+
+@pytest.mark.slow
+def test_gradient_benchmark_rows_agree_with_finite_differences():
+    """The --grad benchmark's torchtraj row on a small batch: gradients agree with central differences
+    of re-solves to 1e-6 and every instance converged."""
+    from torchtraj.bench import grad as bench_grad
+
+    lines = []
+    rows = bench_grad.run([4], seed=0, method="altro", say=lines.append, with_mpc=False)
+    ours = next(r for r in rows if r.solver == "torchtraj/altro")
+    assert ours.converged == "4/4" and ours.grad_vs_fd < 1e-6, lines
+    assert any("linear_box" in line for line in lines)
