@@ -416,7 +416,7 @@ def test_benchmark_problems_match_central_differences(name, names):
                 moved.reshape(-1)[i] += sign * h
                 args = (moved, values) if key == "x0" else (x0, {**values, key: moved})
                 resolved = solve(*args, U0=U0)[0]
-                out.append({label: float(loss(resolved)) for label, loss in losses.items()})
+                out.append({label: float(loss(resolved).detach()) for label, loss in losses.items()})
             for label in losses:
                 fd, an = (out[0][label] - out[1][label]) / (2 * h), float(grads[label][j].reshape(-1)[i])
                 gmax = max(float(g.abs().max()) for g in grads[label])
