@@ -431,7 +431,7 @@ def test_gradient_benchmark_rows_agree_with_finite_differences():
     from torchtraj.bench import grad as bench_grad
 
     lines = []
-    rows = bench_grad.run([4], seed=0, method="altro", say=lines.append, with_mpc=False)
+    rows = bench_grad.run([4], seed=0, method="altro", say=lambda text="": lines.append(text), with_mpc=False)
     ours = next(r for r in rows if r.solver == "torchtraj/altro")
     assert ours.converged == "4/4" and ours.grad_vs_fd < 1e-6, lines
     assert any("linear_box" in line for line in lines)
