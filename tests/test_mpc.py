@@ -7,8 +7,7 @@ episodes per task, a 64-environment vector run with autoresets, Pendulum-v1 over
 """
 
 import dataclasses
-import importlib.util
-from pathlib import Path
+import io
 
 import gymnasium as gym
 import numpy as np
@@ -19,8 +18,6 @@ import envs
 import torchtraj as tt
 from torchtraj.bench import mpc as bench
 from torchtraj.mpc import DEFAULT_ALTRO
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def pendulum_mpc(iterations=2, **kwargs):
@@ -133,3 +130,133 @@ def test_construction_errors_name_the_argument():
         tt.MPC("pendulum")
     with pytest.raises(ValueError, match="observation_to_state"):
         tt.MPC(problem)(np.zeros((2, 3)))
+
+
+# ---------------------------------------------------------------------------------------------- vector environments
+class Recorder:
+    """Wraps a policy and keeps every batch of observations and actions it saw."""
+
+    def __init__(self, policy):
+        self.policy, self.calls = policy, []
+
+    def __call__(self, obs):
+        actions = self.policy(obs)
+        self.calls.append((np.array(obs), np.array(actions)))
+        return actions
+
+    def reset(self, mask=None):
+        self.policy.reset(mask)
+
+
+def test_autoreset_drops_the_warm_start_of_restarted_episodes_only():
+    venv = gym.make_vec("torchtraj/Pendulum-v0", num_envs=3, max_episode_steps=4)
+    mpc = Recorder(bench.controller("pendulum", venv, iterations=2))
+    run = bench.run_episodes(venv, mpc, episodes_per_env=2, seed=3)
+    assert len(run.episodes) == 6 and all(len(e.rewards) == 4 for e in run.episodes)
+    # calls 0-3 play the first episodes, call 4 the ignored autoreset step, call 5 the second episodes' first step
+    obs, actions = mpc.calls[5]
+    second = sorted(run.episodes[3:], key=lambda e: e.env)  # every first episode ends at the same step
+    np.testing.assert_array_equal(obs, np.stack([e.observations[0] for e in second]))
+    cold = bench.controller("pendulum", venv, iterations=2)(obs)
+    np.testing.assert_allclose(actions, cold, rtol=0, atol=1e-9)  # a fresh start for every restarted instance
+    obs6, actions6 = mpc.calls[6]
+    assert np.abs(actions6 - bench.controller("pendulum", venv, iterations=2)(obs6)).max() > 1e-6  # then warm
+
+
+def _play(env_or_venv, mpc, seed, steps):
+    obs, _ = env_or_venv.reset(seed=seed)
+    actions = []
+    for _ in range(steps):
+        action = mpc(obs)
+        actions.append(action)
+        obs, *_ = env_or_venv.step(action)
+    return np.stack(actions)
+
+
+def test_seeded_episodes_are_deterministic():
+    runs = [_play(envs.PendulumEnv(), pendulum_mpc()[0], 7, 6) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert not np.allclose(runs[0], _play(envs.PendulumEnv(), pendulum_mpc()[0], 8, 6))
+
+
+def test_vector_environment_and_batched_mpc_match_single_ones():
+    venv = gym.make_vec("torchtraj/Pendulum-v0", num_envs=3)
+    batched = _play(venv, bench.controller("pendulum", venv, iterations=2), 11, 6)  # (steps, 3, 1)
+    for i in range(3):
+        env = envs.PendulumEnv()
+        single = _play(env, bench.controller("pendulum", env, iterations=2), 11 + i, 6)
+        np.testing.assert_allclose(batched[:, i], single, rtol=0, atol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------- short episodes
+def test_pendulum_swings_up_and_stays_up():
+    venv = gym.make_vec("torchtraj/Pendulum-v0", num_envs=2, max_episode_steps=80)
+    run = bench.run_episodes(venv, bench.controller("pendulum", venv), seed=0)
+    for episode in run.episodes:  # from hanging (|e| = π) to within 0.1 rad of upright over the last 0.75 s
+        error = bench.upright_error(torch.as_tensor(episode.observations[:, 0])).abs()
+        assert error[0] > 3.0 and (error[-16:] <= 0.1).all()  # seeds 0, 1 are up from steps 58, 46
+
+
+def test_cartpole_swings_up_without_leaving_the_rail():
+    venv = gym.make_vec("torchtraj/CartPoleSwingUp-v0", num_envs=2, max_episode_steps=105)
+    run = bench.run_episodes(venv, bench.controller("cartpole", venv), seed=0)
+    for episode in run.episodes:  # truncated, not terminated: the cart stayed on the rail
+        error = bench.upright_error(torch.as_tensor(episode.observations[:, 1])).abs()
+        assert not episode.terminated and error[0] > 3.0 and (error[-10:] <= 0.1).all()  # up from steps 88, 87
+
+
+def test_car_reaches_the_goal_without_collision():
+    venv = gym.make_vec("torchtraj/Car-v0", num_envs=2)
+    run = bench.run_episodes(venv, bench.controller("car", venv), seed=1)  # seed 1: an obstacle right ahead
+    assert [bench.car_success(e) for e in run.episodes] == [True, True]
+
+
+def test_pendulum_v1_model_is_gymnasiums_step():
+    example = bench.pendulum_v1_example()
+    env = gym.make("Pendulum-v1").unwrapped
+    rng = np.random.default_rng(0)
+    for _ in range(50):  # speeds up to 9 > 8 and torques beyond 2 reach the clips
+        x, u = rng.uniform([-4, -9], [4, 9]), rng.uniform(-2.5, 2.5, 1)
+        env.reset(seed=0)
+        env.state = x.copy()
+        env.step(u.astype(np.float32))
+        ours = example.pendulum_v1_step(torch.as_tensor(x), torch.as_tensor(u).clamp(-2, 2), example.PARAMS)
+        np.testing.assert_allclose(ours.numpy(), env.state, rtol=0, atol=1e-6)  # float32 action rounding
+
+
+def test_bench_mpc_flag_prints_the_timing_rows():
+    from torchtraj.bench.__main__ import main
+
+    out = io.StringIO()
+    code = main(["--mpc", "--tasks", "pendulum", "--episodes", "0", "--vector-envs", "0", "--timing-batch", "1", "2",
+                 "--timing-steps", "2"], out=out)
+    rows = [line for line in out.getvalue().splitlines() if line.startswith("B=")]
+    assert code == 0 and len(rows) == 2 and all("horizon 30, 3 iterations/step" in r and "expansion" in r for r in rows)
+
+
+# ---------------------------------------------------------------------------------------------- acceptance (slow)
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["pendulum", "cartpole", "car"])
+def test_acceptance_100_seeded_episodes(task):
+    run = bench.acceptance(task, num_envs=100, episodes_per_env=1, seed=0)
+    rate = run.rate(bench.SUCCESS[task])
+    print(f"{task}: success rate {rate:.2f} over {len(run.episodes)} seeded episodes")
+    assert len(run.episodes) == 100 and rate >= 0.95
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["pendulum", "cartpole", "car"])
+def test_acceptance_64_env_vector_run_with_autoresets(task):
+    run = bench.acceptance(task, num_envs=64, episodes_per_env=2, seed=10_000)
+    rate = run.rate(bench.SUCCESS[task])
+    print(f"{task}: success rate {rate:.2f} over {len(run.episodes)} episodes of a 64-environment vector run")
+    assert len(run.episodes) == 128 and rate >= 0.95
+
+
+@pytest.mark.slow
+def test_acceptance_gymnasium_pendulum_v1():
+    example = bench.pendulum_v1_example()
+    returns, theta, _ = example.run(seeds=20, seed=0)
+    upright = example.wrap(theta[:, -1]).abs() <= 0.1
+    print(f"Pendulum-v1: average return {returns.mean():.1f} over 20 seeds, ended upright {int(upright.sum())}/20")
+    assert returns.mean() > -200 and upright.all()

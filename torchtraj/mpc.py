@@ -218,7 +218,8 @@ class MPC(torch.nn.Module):
 
     def extra_repr(self) -> str:
         its = getattr(self.options, "iterations_inner", getattr(self.options, "iterations", None))
-        return f"problem={self.problem.name!r}, method={self.method.value!r}, horizon={self.problem.N}, iterations={its}"
+        p = self.problem
+        return f"problem={p.name!r}, method={self.method.value!r}, horizon={p.N}, iterations={its}"
 
 
 def _mpc_options(method: Method, options, iterations: Optional[int]):

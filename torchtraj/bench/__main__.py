@@ -57,6 +57,9 @@ def parser() -> argparse.ArgumentParser:
                    help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
                         "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
                         "16 64 256 (the pendulum rows use those <= 64) and --method to altro")
+    p.add_argument("--mpc", action="store_true",
+                   help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
+                        "own: python -m torchtraj.bench --mpc --help)")
     return p
 
 
@@ -110,6 +113,10 @@ def _throughput(name: str, rows: list, largest: int) -> str:
 
 
 def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--mpc" in argv:
+        from . import mpc
+        return mpc.main([a for a in argv if a != "--mpc"], out)
     p = parser()
     args = p.parse_args(argv)
     _check(p, args)

@@ -4,21 +4,25 @@ r"""MPC on the torchtraj environments: the controllers, their acceptance runs an
 of a run seeded ``s`` is the single environment seeded ``s + i``; a vector environment of B sub-environments plays
 them with one batched :class:`~torchtraj.MPC` call per step), and the time per control step at B = 1 and B = 64.
 
-Controllers (:func:`controller`), all ``method="altro"`` without projection, stage costs times ``dt``, and
-``e = wrap(θ − π)`` the angle from upright (smooth except at hanging, so the cost pulls towards the nearer upright
-side and never treats a full turn as progress)::
+Controllers (:func:`controller`), all ``method="altro"`` without projection, 3 iterations per control step, stage
+costs times ``dt``, and ``e = wrap(θ − π)`` the angle from upright (smooth except at hanging, so the cost pulls
+towards the nearer upright side and never counts a full turn as progress)::
 
-    pendulum  N = 30 (1.5 s), 3 iterations:   ℓ = dt (e² + 0.1 ω² + 0.001 τ²),   ℓ_N = e² + 0.1 ω²,   |τ| ≤ 3
-    cartpole  N = 40 (2 s),   3 iterations:   ℓ = dt (x² + e² + 0.01 ẋ² + 0.01 θ̇² + 0.01 F²),
-                                              ℓ_N = 10 (x² + e² + 0.1 ẋ² + 0.1 θ̇²),   |F| ≤ 3,   |x| ≤ 2 (rail 2.4)
-    car       N = 30 (1.5 s), 3 iterations:   ℓ = dt (‖p − g‖² + 0.01 ‖u‖²),   ℓ_N = 10 ‖p − g‖²,
-                                              0 ≤ v ≤ 3,  |ω| ≤ 3,  ‖p − c_i‖ ≥ r_i + 0.05 (each sub-environment's
-                                              observed obstacles, a per-instance parameter)
+    pendulum  N = 30 (1.5 s):  ℓ = dt (e² + 0.1 ω² + 0.001 τ²),   ℓ_N = e² + 0.1 ω²,   |τ| ≤ 3
+    cartpole  N = 40 (2 s):    ℓ = dt (x² + e² + 0.01 (ẋ² + θ̇² + F²)),   ℓ_N = x² + e² + 0.1 (ẋ² + θ̇²),
+                               |F| ≤ 3,   |x| ≤ 2 (the rail ends at 2.4)
+    car       N = 30 (1.5 s):  ℓ = dt (‖p − g‖² + 0.01 ‖u‖²),   ℓ_N = 10 ‖p − g‖²,   0 ≤ v ≤ 3,   |ω| ≤ 3,
+                               ‖p − c_i‖ ≥ r_i + 0.15 for each observed obstacle (a per-instance parameter);
+                               penalty_initial = 100
 
-The pendulum cost is the environment's own reward (negated); terminal costs stand in for the rest of the episode,
-with no terminal equality (the receding horizon cannot always reach the goal within N steps). The cart-pole's rail
-is a state bound 0.4 inside the rail, since the augmented Lagrangian meets it only approximately in 3 iterations.
-The car's obstacles are inflated by 0.05 for the same reason.
+The pendulum cost is the environment's own reward, negated. Terminal costs stand in for the rest of the episode,
+with no terminal equality (the receding horizon cannot always reach the goal within N steps). Measured choices:
+the cart-pole swings up in 4-6 s with ``ℓ_N`` of weight 1 (32 seeds); weight 3 takes 5-6.5 s, weight 10 takes
+6-7 s with the cart out to |x| ≈ 2.1, and horizons of 30 or 60 steps do worse than 40. Its rail is a state bound
+0.4 inside the rail, as the augmented Lagrangian meets a bound only approximately within 3 iterations. For the same
+reason the car's obstacles are inflated by 0.15 (with 0.05, 3 of 32 seeds clip an obstacle; with 0.15, none of
+192) and the penalties start at ``penalty_initial = 100`` (with ALTRO's default of 1, 17 of 64 seeds drive into an
+obstacle right ahead in the first steps from a cold start, before the multipliers have grown).
 
 Success of an episode (200 steps, 10 s):
 
@@ -38,7 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..mpc import MPC
+from ..mpc import DEFAULT_ALTRO, MPC
 from ..problem import Problem
 
 IDS = {"pendulum": "torchtraj/Pendulum-v0", "cartpole": "torchtraj/CartPoleSwingUp-v0", "car": "torchtraj/Car-v0"}
@@ -73,7 +77,7 @@ def pendulum_problem(env, horizon: int = 30) -> Problem:
                    u_lower=low, u_upper=high, dt=dt, name="pendulum_mpc")
 
 
-def cartpole_problem(env, horizon: int = 40, rail_margin: float = 0.4) -> Problem:
+def cartpole_problem(env, horizon: int = 40, rail_margin: float = 0.4, terminal_weight: float = 1.0) -> Problem:
     """The cart-pole controller's problem for a ``torchtraj/CartPoleSwingUp-v0`` environment (module docstring)."""
     dt, limit, inf = env.dt, env.single_env.rail_limit if hasattr(env, "single_env") else env.rail_limit, np.inf
 
@@ -83,7 +87,7 @@ def cartpole_problem(env, horizon: int = 40, rail_margin: float = 0.4) -> Proble
 
     def terminal(x, p):
         e = upright_error(x[1])
-        return 10.0 * (x[0] * x[0] + e * e + 0.1 * (x[2] * x[2] + x[3] * x[3]))
+        return terminal_weight * (x[0] * x[0] + e * e + 0.1 * (x[2] * x[2] + x[3] * x[3]))
 
     low, high = _bounds(env)
     box = torch.tensor([limit - rail_margin, inf, inf, inf], dtype=torch.float64)
@@ -92,7 +96,7 @@ def cartpole_problem(env, horizon: int = 40, rail_margin: float = 0.4) -> Proble
                    u_lower=low, u_upper=high, x_lower=-box, x_upper=box, dt=dt, name="cartpole_mpc")
 
 
-def car_problem(env, horizon: int = 30, margin: float = 0.05) -> Problem:
+def car_problem(env, horizon: int = 30, margin: float = 0.15) -> Problem:
     """The car controller's problem for a ``torchtraj/Car-v0`` environment (module docstring); its ``obstacles``
     parameter ``(n, 3)`` is a placeholder far away, replaced per call by the observed layouts ``(B, n, 3)``."""
     dt = env.dt
@@ -119,16 +123,23 @@ def car_problem(env, horizon: int = 30, margin: float = 0.05) -> Problem:
                    u_init=torch.tensor([1.0, 0.0], dtype=torch.float64), dt=dt, name="car_mpc")
 
 
-def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, **options) -> MPC:
+#: ALTRO options of each task's controller, on top of :data:`torchtraj.mpc.DEFAULT_ALTRO`.
+TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0}}
+
+
+def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, problem_options=None,
+               **options) -> MPC:
     """The :class:`~torchtraj.MPC` of ``task`` (``"pendulum"``, ``"cartpole"``, ``"car"``) for ``env``, a single or
-    vector environment of that task; ``options`` are :class:`~torchtraj.ALTROOptions` fields to change."""
+    vector environment of that task; ``problem_options`` go to the task's problem builder, ``options`` are
+    :class:`~torchtraj.ALTROOptions` fields to change from :data:`TASK_OPTIONS`."""
     build = {"pendulum": pendulum_problem, "cartpole": cartpole_problem, "car": car_problem}
     if task not in build:
         raise ValueError(f"unknown task {task!r}; known tasks are {sorted(build)}")
-    problem = build[task](env) if horizon is None else build[task](env, horizon=horizon)
-    from ..mpc import DEFAULT_ALTRO
-
-    opts = dataclasses.replace(DEFAULT_ALTRO, **options)
+    problem_options = dict(problem_options or {})
+    if horizon is not None:
+        problem_options["horizon"] = horizon
+    problem = build[task](env, **problem_options)
+    opts = dataclasses.replace(DEFAULT_ALTRO, **{**TASK_OPTIONS[task], **options})
     if task != "car":
         return MPC(problem, "altro", iterations, opts)
     n = problem.params["obstacles"].shape[0]
@@ -221,3 +232,167 @@ def car_success(episode: Episode) -> bool:
 
 
 SUCCESS = {"pendulum": pendulum_success, "cartpole": cartpole_success, "car": car_success}
+
+
+# ---------------------------------------------------------------------------------------------- timing
+#: Functions whose cumulative time makes up a control step (disjoint: none calls another).
+PARTS = {
+    "expansion (torch.func derivatives)": ("augmented_lagrangian.py", "expand"),
+    "line search (batched rollouts)": ("ilqr.py", "_line_search"),
+    "Riccati factorisation": ("riccati.py", "factorize"),
+    "Riccati solve": ("riccati.py", "solve"),
+    "initial rollout": ("batching.py", "rollout"),
+}
+
+
+@dataclass
+class Timing:
+    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of :data:`PARTS`."""
+
+    task: str
+    batch: int
+    horizon: int
+    iterations: int
+    steps: int
+    ms_median: float
+    ms_mean: float
+    iterations_mean: float
+    parts: dict
+
+
+def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: int = 0, profile_steps: int = 10,
+               horizon: Optional[int] = None, iterations: int = 3) -> Timing:
+    """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
+    and hold), after one untimed step; then profile ``profile_steps`` more to split the time into :data:`PARTS`."""
+    import cProfile
+    import pstats
+
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the environments)
+
+    venv = gym.make_vec(IDS[task], num_envs=batch)
+    mpc = controller(task, venv, horizon=horizon, iterations=iterations)
+    obs, _ = venv.reset(seed=seed)
+    venv.step(mpc(obs))  # warm-up: torch.func's first call traces
+    seconds, taken = [], []
+    for _ in range(steps):
+        tick = time.perf_counter()
+        actions = mpc(obs)
+        seconds.append(time.perf_counter() - tick)
+        taken.append(float(mpc.solution.iterations.max()))
+        obs, *_ = venv.step(actions)
+    profiler = cProfile.Profile()
+    profiler.enable()
+    tick = time.perf_counter()
+    for _ in range(profile_steps):
+        obs, *_ = venv.step(mpc(obs))
+    total = time.perf_counter() - tick
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats
+    parts = {}
+    for label, (file, name) in PARTS.items():
+        parts[label] = sum(v[3] for k, v in stats.items() if k[0].endswith("torchtraj/" + file) and k[2] == name)
+    parts["other"] = total - sum(parts.values())
+    parts = {k: v / total for k, v in parts.items()}
+    return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
+                  1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts)
+
+
+# ---------------------------------------------------------------------------------------------- acceptance
+def acceptance(task: str, num_envs: int = 100, episodes_per_env: int = 1, seed: int = 0, **controller_options) -> Run:
+    """``num_envs × episodes_per_env`` episodes of ``task`` in one vector environment seeded ``seed``, one batched
+    MPC call per step; with one episode per environment, episode ``i`` is the single environment seeded
+    ``seed + i``."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the environments)
+
+    venv = gym.make_vec(IDS[task], num_envs=num_envs)
+    return run_episodes(venv, controller(task, venv, **controller_options), episodes_per_env, seed)
+
+
+def pendulum_v1_example():
+    """``examples/gym_pendulum_v1.py`` as a module (the Pendulum-v1 model lives with its example), or ``None``
+    outside a source checkout."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "gym_pendulum_v1.py"
+    if not path.exists():
+        return None
+    spec = importlib.util.spec_from_file_location("gym_pendulum_v1", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# ---------------------------------------------------------------------------------------------- CLI
+def parser():
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m torchtraj.bench --mpc", description=__doc__.split("\n\n")[1],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--tasks", nargs="+", default=[*IDS, "pendulum_v1"], choices=[*IDS, "pendulum_v1"])
+    p.add_argument("--episodes", type=int, default=100, help="seeded episodes per task (0: skip)")
+    p.add_argument("--vector-envs", type=int, default=64, help="sub-environments of the autoreset run (0: skip)")
+    p.add_argument("--vector-episodes", type=int, default=2, help="episodes per sub-environment in that run")
+    p.add_argument("--v1-seeds", type=int, default=20, help="Pendulum-v1 episodes (0: skip)")
+    p.add_argument("--timing-batch", nargs="*", type=int, default=[1, 64], help="B of the timing rows (none: skip)")
+    p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
+    return p
+
+
+def main(argv: Optional[list] = None, out=None) -> int:
+    import platform
+    import sys
+
+    args = parser().parse_args(argv)
+    out = out or sys.stdout
+
+    def say(text: str = "") -> None:
+        print(text, file=out, flush=True)
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    say(f"torchtraj MPC bench: float64 on cpu, {torch.get_num_threads()} threads, torch {torch.__version__}, "
+        f"python {platform.python_version()}; success definitions in torchtraj/bench/mpc.py")
+    failed = False
+    runs = [(f"{args.episodes} seeded ({args.seed}..{args.seed + args.episodes - 1})", args.episodes, 1, args.seed),
+            (f"vector {args.vector_envs} envs x {args.vector_episodes} (autoreset)", args.vector_envs,
+             args.vector_episodes, args.seed + 10_000)]
+    say(f"{'task':<12}{'run':<40}{'episodes':>9}{'success':>9}{'rate':>7}{'return':>10}{'ms/step':>9}")
+    for task in (t for t in args.tasks if t in IDS):
+        for label, envs_, per_env, seed in runs:
+            if envs_ < 1 or per_env < 1:
+                continue
+            run = acceptance(task, envs_, per_env, seed)
+            wins = sum(SUCCESS[task](e) for e in run.episodes)
+            rate = wins / len(run.episodes)
+            failed |= rate < 0.95
+            say(f"{task:<12}{label:<40}{len(run.episodes):>9}{wins:>9}{rate:>7.2f}"
+                f"{np.mean([e.total for e in run.episodes]):>10.2f}{1e3 * np.median(run.step_seconds):>9.0f}")
+    if "pendulum_v1" in args.tasks and args.v1_seeds > 0:
+        example = pendulum_v1_example()
+        if example is None:
+            say("pendulum_v1: skipped (examples/gym_pendulum_v1.py is not here: run from a source checkout)")
+        else:
+            returns, theta, _ = example.run(args.v1_seeds, args.seed)
+            upright = int((example.wrap(theta[:, -1]).abs() <= 0.1).sum())
+            failed |= returns.mean() <= -200 or upright < args.v1_seeds
+            say(f"{'pendulum_v1':<12}{f'{args.v1_seeds} seeds (Gymnasium Pendulum-v1)':<40}{args.v1_seeds:>9}"
+                f"{upright:>9}{upright / args.v1_seeds:>7.2f}{returns.mean():>10.2f}"
+                f"   (success: ends upright; target: mean return > -200)")
+    if args.timing_batch:
+        say()
+        say("time per control step, pendulum (swing-up and hold from the seeded reset); profile shares of a step:")
+        for batch in args.timing_batch:
+            t = time_steps("pendulum", batch, args.timing_steps, args.seed, profile_steps=min(10, args.timing_steps))
+            shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in t.parts.items())
+            say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used {t.iterations_mean:.2f}):"
+                f" {t.ms_median:.1f} ms median, {t.ms_mean:.1f} ms mean per step; {shares}")
+    say("rate: share of episodes meeting the task's success definition (target >= 0.95); return: mean episode "
+        "return; ms/step: median time of one batched MPC call")
+    return 1 if failed else 0
