@@ -118,6 +118,19 @@ def test_per_call_parameters_rebuild_the_problem_only_when_they_change():
     assert mpc.problem is not problem and mpc.problem.params["obstacles"][1, 0, 0] == obs[1, 3]
 
 
+def test_ilqr_method_and_a_new_batch_size():
+    mpc, _ = pendulum_mpc()
+    mpc(STATES)
+    u = mpc(STATES[:2])  # a new batch: every instance starts cold
+    torch.testing.assert_close(u, pendulum_mpc()[0](STATES[:2]), rtol=0, atol=1e-12)
+    ilqr = tt.MPC(mpc.problem, "ilqr", 2)
+    with pytest.warns(UserWarning, match="ignores the constraints"):
+        u = ilqr(STATES)
+        sol = tt.solve(mpc.problem, STATES, "ilqr", options=tt.ILQROptions(iterations=2))
+    torch.testing.assert_close(u, sol.U[:, 0].clamp(-3.0, 3.0), rtol=0, atol=1e-12)
+    assert sol.U[:, 0].abs().max() > 3.0 and ilqr.warm_start()[1] is None  # clamped; no multipliers to carry
+
+
 def test_construction_errors_name_the_argument():
     problem = bench.pendulum_problem(envs.PendulumEnv())
     with pytest.raises(ValueError, match="method"):

@@ -18,13 +18,16 @@ bounds. The iterations are not run to convergence: the warm start carries the wo
     \lambda^{\text{warm}}_k = \lambda_{k+1}\ (k < N-1), \quad \lambda^{\text{warm}}_{N-1} = \lambda_{N-1},
 
 (controls and, for the augmented-Lagrangian methods, the multipliers of every stage block; terminal multipliers
-are kept), and the solver starts from the rollout of :math:`U^{\text{warm}}` from the measured state. The penalties
-restart at ``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by
-``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem becomes ill-conditioned.
+are kept), and the solver starts from the rollout of :math:`U^{\text{warm}}` from the measured state. The shifted
+states are not passed: none of the methods takes a state guess for a dynamically consistent start (ALTRO's ``X0``
+switches to its infeasible start, a different problem with slack controls, and does not take ``duals``), and with
+the model the environment steps the rollout reproduces them up to the last knot. The penalties restart at
+``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by ``penalty_scaling`` at every
+step until they reach ``penalty_max`` and the problem becomes ill-conditioned.
 
 With ``iterations`` set, ALTRO runs one inner AL-iLQR solve of at most ``iterations`` iLQR iterations per step
-(``iterations_inner = iterations``, ``iterations_outer = 1``) followed by one multiplier update (eq. 17), so the
-multipliers improve by one update per control step. An instance that spends its budget reports
+(``iterations_inner = iterations``, ``iterations_outer = 1``) followed, unless it met its tolerances, by one
+multiplier update (eq. 17), so the multipliers improve by one update per control step. An instance that spends its budget reports
 ``Status.MAX_ITERATIONS``; its controls are still the best iterate and are applied.
 
 Warm starts are per instance: :meth:`MPC.reset` with a ``(B,)`` mask drops those of the instances whose episode
