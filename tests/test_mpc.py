@@ -65,6 +65,23 @@ def test_warm_start_is_the_shifted_solution_and_the_next_step_solves_from_it():
     assert (sol.U - cold.U).abs().max() > 1e-3  # the warm start changes the answer
 
 
+def test_instances_that_converge_still_get_one_multiplier_update():
+    mpc, _ = pendulum_mpc(iterations=10)
+    x = torch.tensor([[torch.pi + 0.05, 0.0], [torch.pi - 0.02, 0.1]], dtype=torch.float64)
+    mpc(x)
+    # over-estimated multipliers on bounds that are inactive near upright (as a swing-up can leave them)
+    mpc._multipliers = {k: torch.full_like(v, 0.5) for k, v in mpc.solution.multipliers.items()}
+    mpc._warm[:] = True
+    mpc(x)
+    sol = mpc.solution
+    assert (sol.status == tt.Status.CONVERGED).all() and (sol.multipliers["u_upper"] == 0.5).all()  # ALTRO: none
+    _, duals = mpc.warm_start()
+    for name, c in (("u_upper", sol.U - 3.0), ("u_lower", -3.0 - sol.U)):  # eq. (17) by hand, mu = 1
+        expected = (0.5 + c).clamp_min(0.0)
+        torch.testing.assert_close(duals["multipliers"][name][:, :-1], expected[:, 1:], rtol=0, atol=1e-12)
+        assert (duals["multipliers"][name] < 0.5).all()
+
+
 def test_reset_drops_the_warm_start_of_masked_instances_only():
     mpc, _ = pendulum_mpc()
     mpc(STATES)

@@ -26,8 +26,9 @@ the model the environment steps the rollout reproduces them up to the last knot.
 step until they reach ``penalty_max`` and the problem becomes ill-conditioned.
 
 With ``iterations`` set, ALTRO runs one inner AL-iLQR solve of at most ``iterations`` iLQR iterations per step
-(``iterations_inner = iterations``, ``iterations_outer = 1``) followed, unless it met its tolerances, by one
-multiplier update (eq. 17), so the multipliers improve by one update per control step. An instance that spends its budget reports
+(``iterations_inner = iterations``, ``iterations_outer = 1``) followed by one multiplier update (eq. 17, with
+``μ = penalty_initial``), so the multipliers improve by one update per control step: ALTRO makes it unless the
+instance met its tolerances, and the controller makes it for those (:meth:`MPC._updated`). An instance that spends its budget reports
 ``Status.MAX_ITERATIONS``; its controls are still the best iterate and are applied.
 
 Warm starts are per instance: :meth:`MPC.reset` with a ``(B,)`` mask drops those of the instances whose episode
@@ -46,7 +47,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .altro import ALTROOptions
+from .altro import ALTROOptions, multiplier_blocks, stack_blocks
+from .augmented_lagrangian import AugmentedLagrangian, Duals
+from .constraints import Constraints
 from .ilqr import ILQROptions
 from .problem import Problem
 from .solution import Solution
@@ -112,6 +115,7 @@ class MPC(torch.nn.Module):
         bad = (Status.NON_FINITE, Status.DIVERGED, Status.INFEASIBLE_START)
         self._failures = torch.tensor([int(b) for b in bad], device=problem.device)
         self._params: dict = {}
+        self._constraints: Optional[Constraints] = None
         self.solution: Optional[Solution] = None
         self.solve_seconds = float("nan")
         self._clear(0)
@@ -199,9 +203,27 @@ class MPC(torch.nn.Module):
         u = torch.clamp(u, lower, upper)
         self.solution = sol
         self._U = _shift(torch.where(_rows(usable, sol.U), sol.U, U0))
-        self._multipliers = {k: _shift(v) if v.dim() == 3 else v for k, v in sol.multipliers.items()}
+        self._multipliers = {k: _shift(v) if v.dim() == 3 else v for k, v in self._updated(sol).items()}
         self._warm = usable
         return u
+
+    def _updated(self, sol: Solution) -> dict:
+        """``sol.multipliers``, updated once by eq. (17) with ``μ = penalty_initial`` where ALTRO stopped without an
+        update (``CONVERGED``: met its tolerances). Else an over-estimated multiplier of a bound that is no longer
+        active stays frozen for good: held by it, a pendulum can come to rest 0.64 rad from upright at τ = 2.94
+        under a bound of 3, and every later step converges there again."""
+        if not sol.multipliers:
+            return {}
+        if self._constraints is None or self._constraints.problem is not self.problem:
+            self._constraints = Constraints(self.problem)
+        c, opts = self._constraints, self.options
+        lam, lamN = stack_blocks(c, sol.multipliers, 0.0, sol.X)
+        duals = Duals(lam, lamN, torch.full_like(lam, opts.penalty_initial), torch.full_like(lamN, opts.penalty_initial))
+        params = self.problem.batched_params(sol.batch_size)
+        new = AugmentedLagrangian(c, duals).updated_duals(sol.X, sol.U, params, 1.0, opts.penalty_max, opts.dual_max)
+        updated = multiplier_blocks(c, new.stage, new.terminal)
+        done = sol.status == Status.CONVERGED
+        return {k: torch.where(_rows(done, v), updated[k], v) for k, v in sol.multipliers.items()}
 
     # ------------------------------------------------------------------ diagnostics
     @property
