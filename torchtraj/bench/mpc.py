@@ -294,6 +294,9 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
     for label, (file, name) in PARTS.items():
         parts[label] = sum(v[3] for k, v in stats.items() if k[0].endswith("torchtraj/" + file) and k[2] == name)
     parts["other"] = total - sum(parts.values())
+    # overlaps the parts above: ALTRO's last expansion and factorisation, for the gains K that MPC does not use
+    parts["of which final gains"] = sum(v[3] for k, v in stats.items()
+                                        if k[0].endswith("torchtraj/altro.py") and k[2] == "finish")
     parts = {k: v / total for k, v in parts.items()}
     return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
                   1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts)
