@@ -56,8 +56,8 @@ from .solution import Solution
 from .solve import Method, solve
 from .status import Status
 
-#: ALTRO's settings for MPC: no projection (the first control is clamped to its bounds anyway, and the
-#: projection's Newton steps would double the time of a step); the rest are ALTRO's defaults.
+#: ALTRO's settings for MPC: no projection (the applied control is clamped to its bounds anyway, and the projection
+#: adds 12 % (median) to 26 % (mean) to a pendulum step at B = 1); the rest are ALTRO's defaults.
 DEFAULT_ALTRO = ALTROOptions(projection=False)
 
 
