@@ -113,3 +113,13 @@ def test_float32_cartpole_reaches_the_float64_solution(square_root, reference):
     assert sol.status[0] == tt.Status.CONVERGED
     assert abs(float(sol.cost[0]) - optimum) / optimum < 1e-4
     assert float(sol.max_violation[0]) < 1e-4
+
+
+def test_time_penalized_initial_state_of_a_batch():
+    problem = tt.problems.get("pendulum")
+    tp = tt.time_penalized(problem, tt.models.get("pendulum").dynamics)
+    x0 = tt.problems.sample_x0("pendulum", 3, seed=0)
+    lifted = tp.initial_state(x0)
+    assert torch.equal(tp.initial_state(problem.x0), tp.problem.x0)
+    assert torch.equal(lifted[:, :2], x0) and torch.allclose(lifted[:, 2], torch.full((3,), problem.dt ** 0.5, dtype=torch.float64))
+    assert bool((lifted[:, 3] == 0).all())  # the equal-step switch is off at k = 0

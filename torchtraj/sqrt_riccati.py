@@ -31,11 +31,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .riccati import LQR, RiccatiFactor, _sanitize
-
-
-def _mT(a: Tensor) -> Tensor:
-    return a.transpose(-1, -2)
+from .riccati import LQR, RiccatiFactor, _mT, _sanitize
 
 
 def psd_root(H: Tensor) -> Tensor:

@@ -49,6 +49,15 @@ class TimePenalized:
         """Total time ``Σ τ_k²`` ``(B,)``."""
         return (U[..., self.original.nu] ** 2).sum(-1)
 
+    def initial_state(self, x0: Tensor) -> Tensor:
+        """Initial states ``(..., nx)`` of the original problem as states of ``problem``: ``(x0, √Δt, ε = 0)``."""
+        return _extend_state(x0, float(self.original.dt))
+
+
+def _extend_state(x0: Tensor, dt: float) -> Tensor:
+    extra = x0.new_tensor([math.sqrt(dt), 0.0]).expand(*x0.shape[:-1], 2)
+    return torch.cat([x0, extra], -1)
+
 
 def time_penalized(problem: Problem, continuous_dynamics: Callable, time_weight: float = 1.0,
                    dt_bounds: Optional[tuple] = None, integrator: str = "rk4") -> TimePenalized:
@@ -104,7 +113,7 @@ def time_penalized(problem: Problem, continuous_dynamics: Callable, time_weight:
     x_upper = None if orig.x_upper is None else torch.cat([orig.x_upper, torch.full((2,), inf, **like)])
     tau0 = torch.tensor([math.sqrt(dt)], **like)
     u_init = None if orig.u_init is None else torch.cat([orig.u_init, tau0.expand(*orig.u_init.shape[:-1], 1)], -1)
-    x0 = torch.cat([orig.x0, tau0, torch.zeros(1, **like)])
+    x0 = _extend_state(orig.x0, dt)
     transformed = orig.replace(
         dynamics=dynamics, stage_cost=stage_cost, terminal_cost=terminal_cost, x0=x0, nu=nu + 1,
         stage_eq=stage_eq, stage_ineq=wrap_stage(orig.stage_ineq), state_ineq=wrap_state(orig.state_ineq),
@@ -113,10 +122,3 @@ def time_penalized(problem: Problem, continuous_dynamics: Callable, time_weight:
         name=f"{orig.name} (time-penalised)",
     )
     return TimePenalized(original=orig, problem=transformed)
-
-
-def extend_initial_state(tp: TimePenalized, x0: Tensor) -> Tensor:
-    """Initial states ``(B, nx)`` of the original problem as states of the time-penalised one."""
-    dt = float(tp.original.dt)
-    extra = x0.new_tensor([math.sqrt(dt), 0.0]).expand(*x0.shape[:-1], 2)
-    return torch.cat([x0, extra], -1)
