@@ -2,8 +2,8 @@ r"""Batched derivatives of the problem functions with ``torch.func``.
 
 At every stage point ``z_k = (x_k, u_k)``, k = 0..N-1, of every instance at once:
 
-* dynamics:   ``f(z_k)`` and its Jacobian ``f_z = [A_k  B_k]``            (``jacfwd``)
-* stage cost: ``l(z_k)``, ``l_z``, ``l_zz``                                   (``jacfwd(jacrev)``)
+* dynamics:   ``f(z_k)`` and its Jacobian ``f_z = [A_k  B_k]``            (``jacrev``)
+* stage cost: ``l(z_k)``, ``l_z``, ``l_zz``                                   (``jacrev(jacrev)``)
 * terminal:   ``l_N(x_N)``, ``l_Nx``, ``l_Nxx``
 * constraints: values and Jacobians ``c_z`` of any stage or terminal function
 * the Hessian of the stage Lagrangian
@@ -11,8 +11,15 @@ At every stage point ``z_k = (x_k, u_k)``, k = 0..N-1, of every instance at once
   ``L_N(x) = l_N(x) + ν_Nᵀ h_N(x) + μ_Nᵀ g_N(x)`` (for the Newton-type solvers and the
   implicit-differentiation backward pass).
 
-Every function is the user's per-instance function wrapped by ``jacfwd``/``jacrev`` and
-mapped over batch and time by :mod:`torchtraj.batching`; nothing is differentiated by hand.
+Every function is the user's per-instance function wrapped by ``jacrev`` and mapped over batch
+and time by :mod:`torchtraj.batching`; nothing is differentiated by hand.
+
+Why reverse mode everywhere, although the Jacobians are square or tall and forward mode would
+be the textbook choice: with PyTorch 2.13 on CPU, ``vmap(jacfwd(·))`` routes products with
+Python or 0-dim scalars through Python decompositions (``torch._refs``) under forward AD, and
+measures 4-6x slower than ``vmap(jacrev(·))`` on the problem set's models (pendulum RK4
+Jacobian at 30 points: 12.3 ms against 2.2 ms; a stage-cost Hessian: ``jacfwd(jacrev)``
+6.1 ms, ``jacrev(jacrev)`` 1.4 ms). The results are the same to rounding.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ from typing import Callable, Mapping
 
 import torch
 from torch import Tensor
-from torch.func import jacfwd, jacrev
+from torch.func import jacrev
 
 from .batching import map_state
 
@@ -39,7 +46,7 @@ def _value_and_jacobian(g: Callable) -> Callable:
             out = g(z_, p)
             return out, out
 
-        jac, value = jacfwd(aux, has_aux=True)(z)
+        jac, value = jacrev(aux, has_aux=True)(z)
         return value, jac
 
     return wrapped
@@ -55,7 +62,7 @@ def _value_gradient_hessian(g: Callable) -> Callable:
             grad, val = jacrev(value, has_aux=True)(z_)
             return grad, (grad, val)
 
-        hess, (grad, val) = jacfwd(gradient, has_aux=True)(z)
+        hess, (grad, val) = jacrev(gradient, has_aux=True)(z)
         return val, grad, hess
 
     return wrapped
@@ -128,11 +135,11 @@ def lagrangian_hessian(
 
     def stage(zw, p):
         z, w = zw[:nz], zw[nz:]
-        return torch.func.hessian(lambda z_: stage_lagrangian(z_[:nx], z_[nx:], w, p))(z)
+        return jacrev(jacrev(lambda z_: stage_lagrangian(z_[:nx], z_[nx:], w, p)))(z)
 
     def terminal(xw, p):
         x, w = xw[:nx], xw[nx:]
-        return torch.func.hessian(lambda x_: terminal_lagrangian(x_, w, p))(x)
+        return jacrev(jacrev(lambda x_: terminal_lagrangian(x_, w, p)))(x)
 
     H = map_state(stage, torch.cat([Z, stage_weights], -1), params)
     HN = map_state(terminal, torch.cat([X[:, -1], terminal_weights], -1), params)
