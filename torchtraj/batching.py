@@ -29,11 +29,15 @@ def _map(fn: Callable, tensors: tuple, params: Params) -> Tensor:
     p = {k: (v[0] if k in shared else v) for k, v in params.items()}
     p_dims = {k: (None if k in shared else 0) for k in params}
     n_in = len(tensors)
-    if E == 1 or len(shared) == len(params):
-        # one vmap level over all B * E points
+    if len(shared) == len(params):
+        # every parameter shared: close over them rather than pass the dict through vmap, whose
+        # pytree handling of it costs about as much as the pendulum's RK4 step itself
         flat = tuple(t.reshape(B * E, t.shape[-1]) for t in tensors)
-        if E != 1:
-            p_dims = {k: None for k in params}
+        out = vmap(lambda *args: fn(*args, p))(*flat)
+        return _restore(out, lead, flat_batch=True)
+    if E == 1:
+        # one vmap level over the B instances
+        flat = tuple(t.reshape(B, t.shape[-1]) for t in tensors)
         out = vmap(fn, in_dims=(*([0] * n_in), p_dims))(*flat, p)
         return _restore(out, lead, flat_batch=True)
     flat = tuple(t.reshape(B, E, t.shape[-1]) for t in tensors)
