@@ -18,7 +18,7 @@ is :func:`torchtraj.sqrt_riccati.factorize_sqrt`, chosen by ``square_root=True``
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Optional, Union
 
 import torch
 from torch import Tensor
@@ -122,7 +122,7 @@ def solve_altro(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optio
     if X0 is not None:
         from .infeasible import solve_infeasible
 
-        return solve_infeasible(problem, x0, U0, X0, params, opts, method)
+        return solve_infeasible(problem, x0, U0, X0, params, opts, method, duals)
     X = rollout(problem.dynamics, x0, U0, params)
     return run_altro(problem, x0, X, U0, params, opts, method, duals)
 
@@ -139,6 +139,7 @@ class ALStage:
     al_done: Tensor
     iterations: Tensor
     rows: list
+    K: Tensor  # gains of each instance's last backward pass (B, N, nu, nx)
 
 
 def run_altro(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
@@ -149,12 +150,15 @@ def run_altro(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: 
 
 
 def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
-             method: str, warm: Optional[dict] = None) -> ALStage:
-    """AL-iLQR (Algorithm 1) on the whole batch, outer and inner loops flattened (module docstring)."""
+             method: str, warm: Union[dict, Duals, None] = None) -> ALStage:
+    """AL-iLQR (Algorithm 1) on the whole batch, outer and inner loops flattened (module docstring).
+
+    ``warm``: the multipliers and penalties to start from, as the block dictionary of :func:`torchtraj.solve`
+    or already stacked; ``None`` starts from zero multipliers and ``penalty_initial``."""
     B = x0.shape[0]
     inner = opts.ilqr
     constraints = Constraints(problem)
-    duals = initial_duals(constraints, opts, x0, warm)
+    duals = warm if isinstance(warm, Duals) else initial_duals(constraints, opts, x0, warm)
     al = AugmentedLagrangian(constraints, duals, opts.square_root)
     backward = factorize_sqrt if opts.square_root else factorize
     J = al.value(X, U, params)
@@ -167,6 +171,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     inner_count = torch.zeros_like(iterations)
     outer_count = torch.zeros_like(iterations)
     violation = al.violation(X, U, params)
+    K = x0.new_zeros(B, problem.N, U.shape[-1], x0.shape[-1])
     rows = []
     for it in range(opts.iterations_outer * opts.iterations_inner):
         if not bool(running.any()):
@@ -174,6 +179,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         tol = torch.where(violation < opts.constraint_tolerance, opts.cost_tolerance, opts.cost_tolerance_intermediate)
         s = ilqr_step(problem, al, params, x0, X, U, J, rho, drho, running, inner, backward, tol)
         X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
+        K = torch.where(running.reshape(B, 1, 1, 1), s.K, K)
         iterations = iterations + running.long()
         inner_count = inner_count + running.long()
         violation = al.violation(X, U, params)
@@ -195,7 +201,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         if opts.verbose:
             _log_iteration(method, it, J, rho, running)
     status = torch.where(running, int(Status.MAX_ITERATIONS), status)
-    return ALStage(problem, al, X, U, status, al_done, iterations, rows)
+    return ALStage(problem, al, X, U, status, al_done, iterations, rows, K)
 
 
 def _largest_penalty(duals: Duals) -> Tensor:
@@ -217,8 +223,9 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         status = torch.where(al_done, int(Status.CONVERGED), status)
         stage, terminal = al.duals.stage, al.duals.terminal
         costate = None
-        lqr, _ = al.expand(X, U, params)
-        K = factorize(lqr).K
+        # the gains of the last backward pass, at the iterate before the last step: a converged step is below
+        # the tolerances, and a new expansion and factorisation only for K would cost a third of an MPC step
+        K = coarse.K
     defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
     violation = torch.maximum(constraints.max_violation(X, U, params), defect)
     cost = total_cost(problem, X, U, params)

@@ -14,6 +14,8 @@ original problem with the dynamics as constraints: it removes the remaining defe
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from torch import Tensor
 
@@ -57,9 +59,15 @@ def slack_problem(problem: Problem, slack_cost: float) -> Problem:
     )
 
 
-def solve_infeasible(problem: Problem, x0: Tensor, U0: Tensor, X0: Tensor, params, opts, method: str):
-    """ALTRO from the state guess ``X0 (B, N+1, nx)`` (its first knot is replaced by ``x0``)."""
-    from .altro import ALStage, al_stage, finish
+def solve_infeasible(problem: Problem, x0: Tensor, U0: Tensor, X0: Tensor, params, opts, method: str,
+                     warm: Optional[dict] = None):
+    """ALTRO from the state guess ``X0 (B, N+1, nx)`` (its first knot is replaced by ``x0``).
+
+    ``warm`` (:func:`torchtraj.solve`'s ``duals``) starts the multipliers and penalties of the problem's own
+    constraints; the slack rows start at ``penalty_initial`` and at zero, or, given ``warm["costate"]``, at
+    ``ν_k = −λ_{k+1}``: stationarity in ``s_k`` of ``½ R_s |s_k|² + λ_{k+1}ᵀ(f + s_k − x_{k+1}) + ν_kᵀ s_k`` at
+    ``s = 0``."""
+    from .altro import ALStage, al_stage, finish, initial_duals
 
     nx, nu = problem.nx, problem.nu
     X0 = torch.cat([x0.unsqueeze(1), X0[:, 1:]], 1)
@@ -67,13 +75,20 @@ def solve_infeasible(problem: Problem, x0: Tensor, U0: Tensor, X0: Tensor, param
     augmented = slack_problem(problem, opts.slack_cost)
     Ua = torch.cat([U0, slack], -1)
     X = rollout(augmented.dynamics, x0, Ua, params)
-    stage = al_stage(augmented, x0, X, Ua, params, opts, method)
-    # back to the original problem: drop the slacks and their multipliers (the last nx equality rows)
     constraints = Constraints(problem)
+    own = initial_duals(constraints, opts, x0, warm)
+    # the slack rows s = 0 come last among the stage equalities (slack_problem), after the problem's own rows
+    zeros = slack.new_zeros(slack.shape)
+    costate = (warm or {}).get("costate")
+    slack_rows = zeros if costate is None else -costate[:, 1:].to(zeros)
+    start = Duals(torch.cat([own.stage, slack_rows], -1), own.terminal,
+                  torch.cat([own.stage_penalty, zeros + opts.penalty_initial], -1), own.terminal_penalty)
+    stage = al_stage(augmented, x0, X, Ua, params, opts, method, start)
+    # back to the original problem: drop the slacks and their multipliers (the last nx equality rows)
     d = stage.al.duals
     m = constraints.mi + constraints.me
     duals = Duals(d.stage[..., :m], d.terminal, d.stage_penalty[..., :m], d.terminal_penalty)
     al = AugmentedLagrangian(constraints, duals, opts.square_root)
     original = ALStage(problem, al, stage.X, stage.U[..., :nu], stage.status, stage.al_done, stage.iterations,
-                       stage.rows)
+                       stage.rows, stage.K[..., :nu, :])
     return finish(original, x0, params, opts, method)

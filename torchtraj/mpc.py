@@ -20,7 +20,7 @@ bounds. The iterations are not run to convergence: the warm start carries the wo
 (controls and, for the augmented-Lagrangian methods, the multipliers of every stage block; terminal multipliers
 are kept), and the solver starts from the rollout of :math:`U^{\text{warm}}` from the measured state. The shifted
 states are not passed: none of the methods takes a state guess for a dynamically consistent start (ALTRO's ``X0``
-switches to its infeasible start, a different problem with slack controls, and does not take ``duals``), and with
+switches to its infeasible start, a different problem with slack controls and costs), and with
 the model the environment steps the rollout reproduces them up to the last knot. The penalties restart at
 ``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by ``penalty_scaling`` at every
 step until they reach ``penalty_max`` and the problem becomes ill-conditioned.

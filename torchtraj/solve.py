@@ -86,6 +86,8 @@ def solve(
         duals: warm start of the augmented-Lagrangian methods: ``{"multipliers": ..., "penalties": ...}``,
             each a dict of per-block tensors laid out like :attr:`Solution.multipliers` (a previous
             solution's, shifted by MPC for instance); missing blocks start at 0 and ``penalty_initial``.
+            With ``X0``, an optional ``"costate": (B, N+1, nx)`` (:attr:`Solution.costate`) starts the
+            multipliers of the slack rows ``s_k = 0`` at ``−λ_{k+1}``, their value at a KKT point.
 
     Returns:
         A :class:`~torchtraj.Solution` with per-instance status. The batch size B is the common
