@@ -31,7 +31,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .batching import map_stage, map_state, rollout
+from .batching import closed_loop_rollout, map_stage, map_state, rollout
 from .constraints import Constraints
 from .derivatives import linearize_dynamics, quadratize_cost
 from .problem import Problem
@@ -120,17 +120,10 @@ def _scaled_step(d: Tensor, U: Tensor) -> Tensor:
 
 def _candidates(problem, params, x0, X, U, K, d, alphas):
     """Closed-loop rollouts ``u = U + α d + K (x − X)`` for every ``α`` at once: ``(B, L, ...)``."""
-    B, N, L = U.shape[0], U.shape[1], alphas.shape[0]
-    x = x0.unsqueeze(1).expand(B, L, x0.shape[-1])
-    xs, us = [x], []
-    a = alphas.reshape(1, L, 1)
-    for k in range(N):
-        dxk = (x - X[:, k].unsqueeze(1)).unsqueeze(-1)
-        u = U[:, k].unsqueeze(1) + a * d[:, k].unsqueeze(1) + (K[:, k].unsqueeze(1) @ dxk).squeeze(-1)
-        x = map_stage(problem.dynamics, x, u, params)
-        xs.append(x)
-        us.append(u)
-    return torch.stack(xs, 2), torch.stack(us, 2)
+    B, L = U.shape[0], alphas.shape[0]
+    starts = x0.unsqueeze(1).expand(B, L, x0.shape[-1])
+    feedforward = U.unsqueeze(1) + alphas.reshape(1, L, 1, 1) * d.unsqueeze(1)
+    return closed_loop_rollout(problem.dynamics, starts, feedforward, params, X, K)
 
 
 def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQROptions):
