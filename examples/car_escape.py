@@ -46,13 +46,14 @@ def main() -> None:
 def _plot(problem, rolled, escaped) -> None:
     try:
         from matplotlib.figure import Figure
+        from matplotlib.patches import Circle
     except ImportError:
         print("matplotlib is not installed: no picture (pip install torchtraj[plot])")
         return
     fig = Figure(figsize=(8, 4.5))
     ax = fig.add_subplot()
     for cx, cy, r in problem.params["obstacles"].tolist():
-        ax.add_patch(__import__("matplotlib.patches", fromlist=["Circle"]).Circle((cx, cy), r, color="0.8"))
+        ax.add_patch(Circle((cx, cy), r, color="0.8"))
     ax.plot(problem.X_init[:, 0], problem.X_init[:, 1], "k:", label="waypoint guess")
     ax.plot(rolled.X[0, :, 0], rolled.X[0, :, 1], "C1", label="AL-iLQR from a rollout")
     ax.plot(escaped.X[0, :, 0], escaped.X[0, :, 1], "C0", label="ALTRO, infeasible start")

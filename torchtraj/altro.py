@@ -8,7 +8,11 @@ r"""ALTRO for batches of constrained problems (papers/altro.md, Algorithm 4).
    iteration per pass and is at its own place in its own outer loop, so a fast instance never waits for
    a slow one's inner solve; instances that finished are frozen by masks.
 2. **Projection** (§III-D, :mod:`torchtraj.projection`) of the coarse solution onto the active
-   constraints to ``projection.tolerance`` (1e-8).
+   constraints to ``projection.tolerance`` (1e-8). It also takes the instances whose inner solve converged
+   but which spent ``iterations_outer`` dual updates above ``constraint_tolerance``: at large penalties
+   iLQR's steps on the ill-conditioned augmented Lagrangian barely move the last violations, which is the
+   case the projection's Newton steps are made for (a minimum-time parallel park stalls at 2e-5). Such
+   an instance is ``CONVERGED`` if the projection meets its tolerance, ``MAX_ITERATIONS`` otherwise.
 
 Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem
 (:mod:`torchtraj.infeasible`, :mod:`torchtraj.time_penalty`); the square-root backward pass (§III-A)
@@ -140,6 +144,7 @@ class ALStage:
     iterations: Tensor
     rows: list
     K: Tensor  # gains of each instance's last backward pass (B, N, nu, nx)
+    stalled: Tensor  # (B,) outer iterations spent, last inner solve converged: left to the projection
 
 
 def run_altro(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
@@ -165,6 +170,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     status = start_status(x0, X, J, inner)
     running = status == Status.RUNNING
     al_done = torch.zeros_like(running)
+    stalled = torch.zeros_like(running)
     rho = torch.full((B,), inner.regularization_initial, dtype=x0.dtype, device=x0.device)
     drho = torch.zeros_like(rho)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
@@ -187,7 +193,9 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         finished = inner_done & s.converged & (violation < opts.constraint_tolerance)
         update = inner_done & ~finished
         status = torch.where(s.blown & ~finished, int(Status.MAX_REGULARIZATION), status)
-        status = torch.where(update & (outer_count + 1 >= opts.iterations_outer), int(Status.MAX_ITERATIONS), status)
+        exhausted = update & (outer_count + 1 >= opts.iterations_outer)
+        status = torch.where(exhausted, int(Status.MAX_ITERATIONS), status)
+        stalled = stalled | (exhausted & s.converged)
         al_done = al_done | finished
         new_duals = al.updated_duals(X, U, params, opts.penalty_scaling, opts.penalty_max, opts.dual_max)
         al = AugmentedLagrangian(constraints, new_duals.where(update, al.duals), opts.square_root)
@@ -201,7 +209,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         if opts.verbose:
             _log_iteration(method, it, J, rho, running)
     status = torch.where(running, int(Status.MAX_ITERATIONS), status)
-    return ALStage(problem, al, X, U, status, al_done, iterations, rows, K)
+    return ALStage(problem, al, X, U, status, al_done, iterations, rows, K, stalled)
 
 
 def _largest_penalty(duals: Duals) -> Tensor:
@@ -214,10 +222,10 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
     problem, al, X, U, status, al_done = coarse.problem, coarse.al, coarse.X, coarse.U, coarse.status, coarse.al_done
     constraints = al.constraints
     if opts.projection:
-        result = project(al, params, x0, X, U, al_done, opts.projection_options)
+        result = project(al, params, x0, X, U, al_done | coarse.stalled, opts.projection_options)
         X, U = result.X, result.U
         status = torch.where(result.converged, int(Status.CONVERGED), status)
-        status = torch.where(al_done & ~result.converged, int(Status.MAX_ITERATIONS), status)
+        status = torch.where((al_done | coarse.stalled) & ~result.converged, int(Status.MAX_ITERATIONS), status)
         stage, terminal, costate, K = result.stage, result.terminal, result.costate, result.K
     else:
         status = torch.where(al_done, int(Status.CONVERGED), status)

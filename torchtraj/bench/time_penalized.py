@@ -5,18 +5,29 @@ from __future__ import annotations
 import time
 
 from .. import models, problems
+from ..altro import ALTROOptions
 from ..projection import ProjectionOptions
 from ..solve import Method, solve
 from ..status import Status
 from ..time_penalty import time_penalized
 
-#: ``R_τ`` of eq. (34) for the demonstration problems.
-TIME_WEIGHTS = {"pendulum": 1.0, "parallel_park": 1.0}
+#: ``R_τ`` of eq. (34) for the demonstration problems. For the parallel park, ``R_τ = 1`` makes time dominate
+#: its cost (0.054 at the fixed 3 s) and asks for a bang-bang manoeuvre along its state bounds, on which AL-iLQR
+#: crawls (1e-5 cost per iteration after 600 iterations); ``R_τ = 0.01`` trades time against the original cost.
+TIME_WEIGHTS = {"pendulum": 1.0, "parallel_park": 0.01}
 
 
 def time_penalized_options(name: str):
-    """Problem-set options with the paper's 1e-6 projection tolerance for time-penalised problems."""
-    return problems.altro_options(name, projection_options=ProjectionOptions(tolerance=1e-6))
+    """Options with the paper's 1e-6 projection tolerance for time-penalised problems.
+
+    The pendulum uses the problem set's accuracy (:func:`torchtraj.problems.altro_options`); the parallel park
+    uses ALTRO's own tolerances: at the problem set's cost tolerance of 1e-8 each of its inner solves takes
+    hundreds of iterations, and there is no reference optimum to match.
+    """
+    projection = ProjectionOptions(tolerance=1e-6)
+    if name == "parallel_park":
+        return ALTROOptions(projection_options=projection)
+    return problems.altro_options(name, projection_options=projection)
 
 
 def solve_time_penalized(name: str, method: Method = Method.ALTRO, dtype=None, device=None):
