@@ -19,9 +19,9 @@ from typing import Optional, TextIO
 import torch
 
 from .. import problems
-from ..solve import Method
-from . import table
-from .runs import Row, make_options, relative_difference, run_reference, run_torchtraj, skip_reason
+from ..solve import Method, solve
+from . import profile, table
+from .runs import Row, batch_x0, make_options, relative_difference, run_reference, run_torchtraj, skip_reason
 
 REFERENCE_SOLVERS = ("ipopt", "fatrop")
 #: Batch of the ALTRO throughput line (issue: pendulum, sample_x0 seed 0, B = 1024 in one batch).
@@ -53,6 +53,9 @@ def parser() -> argparse.ArgumentParser:
                    help="IPOPT / FATROP solve the first min(B, this) of a row's initial states")
     p.add_argument("--reference-tolerance", type=float, default=1e-8, help="IPOPT / FATROP tol")
     p.add_argument("--json", metavar="PATH", help="also write the header and all rows as JSON to PATH")
+    p.add_argument("--profile", action="store_true",
+                   help="after the rows, solve the throughput batch again under cProfile and print where its time "
+                        "goes (torchtraj.bench.profile.PARTS)")
     p.add_argument("--grad", action="store_true",
                    help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
                         "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
@@ -110,6 +113,14 @@ def _throughput(name: str, rows: list, largest: int) -> str:
     return (text + f" vs FATROP {fatrop.ms_per_instance:.3f} ms/instance (median of {fatrop.instances}); "
             f"ratio {ours.method}/FATROP = {ratio:.3g} ({'<' if ratio < 1 else '>='}1: "
             f"{ours.method} {'faster' if ratio < 1 else 'not faster'} per instance)")
+
+
+def _profile_line(problem, method: Method, batch: int, seed: int, options) -> str:
+    """The batch of the throughput row solved again under cProfile: the share of each solver part."""
+    x0 = batch_x0(problem.name, batch, seed)
+    X0 = problem.X_init if method is not Method.ILQR else None
+    seconds, parts = profile.split(lambda: solve(problem, x0, method, X0=X0, options=options))
+    return f"  where the time goes ({problem.name}, B={batch}, profiled run of {seconds:.1f} s): {profile.format_split(parts)}"
 
 
 def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
@@ -201,6 +212,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                 say(table.format_row(row))
             problem_rows += group
         throughput.append(_throughput(problem.name, problem_rows, max(batches)))
+        if args.profile and max(batches) > 1:
+            throughput.append(_profile_line(problem, method, max(batches), args.seed, problem_options))
         rows += problem_rows
     say()
     for line in throughput:

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from . import profile
 from ..mpc import DEFAULT_ALTRO, MPC
 from ..problem import Problem
 
@@ -235,19 +236,9 @@ SUCCESS = {"pendulum": pendulum_success, "cartpole": cartpole_success, "car": ca
 
 
 # ---------------------------------------------------------------------------------------------- timing
-#: Functions whose cumulative time makes up a control step (disjoint: none calls another).
-PARTS = {
-    "expansion (torch.func derivatives)": ("augmented_lagrangian.py", "expand"),
-    "line search (batched rollouts)": ("ilqr.py", "_line_search"),
-    "Riccati factorisation": ("riccati.py", "factorize"),
-    "Riccati solve": ("riccati.py", "solve"),
-    "initial rollout": ("batching.py", "rollout"),
-}
-
-
 @dataclass
 class Timing:
-    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of :data:`PARTS`."""
+    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of :data:`torchtraj.bench.profile.PARTS`."""
 
     task: str
     batch: int
@@ -263,10 +254,7 @@ class Timing:
 def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: int = 0, profile_steps: int = 10,
                horizon: Optional[int] = None, iterations: int = 3) -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
-    and hold), after one untimed step; then profile ``profile_steps`` more to split the time into :data:`PARTS`."""
-    import cProfile
-    import pstats
-
+    and hold), after one untimed step; then profile ``profile_steps`` more to split the time into :data:`torchtraj.bench.profile.PARTS`."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the environments)
@@ -282,22 +270,13 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
         seconds.append(time.perf_counter() - tick)
         taken.append(float(mpc.solution.iterations.max()))
         obs, *_ = venv.step(actions)
-    profiler = cProfile.Profile()
-    profiler.enable()
-    tick = time.perf_counter()
-    for _ in range(profile_steps):
-        obs, *_ = venv.step(mpc(obs))
-    total = time.perf_counter() - tick
-    profiler.disable()
-    stats = pstats.Stats(profiler).stats
-    parts = {}
-    for label, (file, name) in PARTS.items():
-        parts[label] = sum(v[3] for k, v in stats.items() if k[0].endswith("torchtraj/" + file) and k[2] == name)
-    parts["other"] = total - sum(parts.values())
-    # overlaps the parts above: ALTRO's last expansion and factorisation, for the gains K that MPC does not use
-    parts["of which final gains"] = sum(v[3] for k, v in stats.items()
-                                        if k[0].endswith("torchtraj/altro.py") and k[2] == "finish")
-    parts = {k: v / total for k, v in parts.items()}
+    state = {"obs": obs}
+
+    def profiled_steps():
+        for _ in range(profile_steps):
+            state["obs"], *_ = venv.step(mpc(state["obs"]))
+
+    _, parts = profile.split(profiled_steps)
     return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
                   1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts)
 

@@ -1,0 +1,46 @@
+"""Where the time of a solve goes: cumulative profile times of the solver's parts.
+
+:data:`PARTS` are disjoint (none calls another), so their shares and "other" add up to the whole. The split is
+taken from a separate, profiled run: cProfile slows Python-heavy code, so its total is not a timing to quote.
+"""
+
+from __future__ import annotations
+
+import cProfile
+import pstats
+import time
+from typing import Callable
+
+#: label: (file under torchtraj/, function name)
+PARTS = {
+    "expansion (torch.func derivatives)": ("augmented_lagrangian.py", "expand"),
+    "line search (batched rollouts)": ("ilqr.py", "_line_search"),
+    "Riccati factorisation": ("riccati.py", "factorize"),
+    "Riccati solve": ("riccati.py", "solve"),
+    "initial rollout": ("batching.py", "rollout"),
+    "multiplier updates": ("augmented_lagrangian.py", "updated_duals"),
+    "projection": ("projection.py", "project"),
+}
+
+
+def cumulative(stats: dict, file: str, name: str) -> float:
+    """Cumulative seconds of ``torchtraj/<file>:<name>`` in ``pstats.Stats(...).stats``."""
+    return sum(v[3] for k, v in stats.items() if k[0].endswith("torchtraj/" + file) and k[2] == name)
+
+
+def split(run: Callable[[], object]) -> tuple[float, dict]:
+    """Run ``run()`` under cProfile; return its profiled seconds and the share of each of :data:`PARTS`."""
+    profiler = cProfile.Profile()
+    tick = time.perf_counter()
+    profiler.enable()
+    run()
+    profiler.disable()
+    total = time.perf_counter() - tick
+    stats = pstats.Stats(profiler).stats
+    parts = {label: cumulative(stats, file, name) for label, (file, name) in PARTS.items()}
+    parts["other"] = total - sum(parts.values())
+    return total, {k: v / total for k, v in parts.items()}
+
+
+def format_split(parts: dict) -> str:
+    return ", ".join(f"{label} {100 * share:.0f}%" for label, share in parts.items())
