@@ -1,9 +1,10 @@
 """ALTRO's infeasible start (papers/altro.md §III-B) on the car-escape problem.
 
-The car must leave one walled room for the next. Started from a rollout of constant controls,
-AL-iLQR stays in the first room; started from six waypoints (a state trajectory the dynamics
-cannot follow), ALTRO's slack controls let it pass through the door and end collision-free at the
-goal. Prints both outcomes and saves ``car_escape.png`` when matplotlib is installed.
+The car must leave one walled room for the next. The plain rollout of the initial controls from x0 stays
+in the first room (the usual start of iLQR-type solvers; AL-iLQR from it, measured with 5 outer iterations,
+reaches the goal only by cutting through a wall, violation 0.24, after 119 s). Started from waypoints (a
+state trajectory the dynamics cannot follow), ALTRO's slack controls let it pass through the door and end
+collision-free at the goal. Prints both and saves ``car_escape.png`` when matplotlib is installed.
 """
 
 from __future__ import annotations
@@ -26,24 +27,24 @@ def main() -> None:
     walls, goal = problem.params["obstacles"], problem.params["goal"]
     options = tt.problems.altro_options("car_escape")
 
-    start = time.perf_counter()
-    rolled = tt.solve(problem, method="al-ilqr", options=tt.problems.altro_options("car_escape", iterations_outer=5))
-    t_rolled = time.perf_counter() - start
+    U_init = problem.u_init.expand(problem.N, problem.nu)[None]  # (1, N, nu)
+    X_rolled = tt.batching.rollout(  # what iLQR-type solvers start from
+        problem.dynamics, problem.x0[None], U_init, problem.batched_params(1))[0]
     start = time.perf_counter()
     escaped = tt.solve(problem, method="altro", X0=problem.X_init, options=options)
-    t_escaped = time.perf_counter() - start
+    seconds = time.perf_counter() - start
 
-    for label, sol, seconds in (("from a rollout (al-ilqr)", rolled, t_rolled),
-                                ("from waypoints (altro, infeasible start)", escaped, t_escaped)):
-        X = sol.X[0]
-        print(f"{label}: status {tt.Status(int(sol.status[0])).name.lower()}, cost {float(sol.cost[0]):.6g}, "
-              f"max violation {float(sol.max_violation[0]):.1e}, furthest x {float(X[:, 0].max()):.2f} "
-              f"(door at x = 5), distance to goal {float((X[-1, :2] - goal[:2]).norm()):.2e}, "
-              f"collision margin {collision_margin(X, walls):.2e}, {seconds:.1f} s")
-    _plot(problem, rolled, escaped)
+    print(f"rollout of u_init from x0: furthest x {float(X_rolled[:, 0].max()):.2f} (door at x = 5), distance to "
+          f"goal {float((X_rolled[-1, :2] - goal[:2]).norm()):.2f}, collision margin {collision_margin(X_rolled, walls):.2e}")
+    X = escaped.X[0]
+    print(f"ALTRO from the waypoints (infeasible start): status {tt.Status(int(escaped.status[0])).name.lower()}, "
+          f"cost {float(escaped.cost[0]):.6g}, max violation {float(escaped.max_violation[0]):.1e}, furthest x "
+          f"{float(X[:, 0].max()):.2f}, distance to goal {float((X[-1, :2] - goal[:2]).norm()):.2e}, collision margin "
+          f"{collision_margin(X, walls):.2e}, {seconds:.1f} s")
+    _plot(problem, X_rolled, escaped)
 
 
-def _plot(problem, rolled, escaped) -> None:
+def _plot(problem, X_rolled, escaped) -> None:
     try:
         from matplotlib.figure import Figure
         from matplotlib.patches import Circle
@@ -55,7 +56,7 @@ def _plot(problem, rolled, escaped) -> None:
     for cx, cy, r in problem.params["obstacles"].tolist():
         ax.add_patch(Circle((cx, cy), r, color="0.8"))
     ax.plot(problem.X_init[:, 0], problem.X_init[:, 1], "k:", label="waypoint guess")
-    ax.plot(rolled.X[0, :, 0], rolled.X[0, :, 1], "C1", label="AL-iLQR from a rollout")
+    ax.plot(X_rolled[:, 0], X_rolled[:, 1], "C1", label="rollout of u_init")
     ax.plot(escaped.X[0, :, 0], escaped.X[0, :, 1], "C0", label="ALTRO, infeasible start")
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8)
