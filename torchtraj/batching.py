@@ -19,18 +19,21 @@ from torch.func import vmap
 Params = Mapping[str, Tensor]
 
 
-def _map(fn: Callable, tensors: tuple, params: Params) -> Tensor:
-    lead = tensors[0].shape[:-1]
-    B = lead[0]
-    E = 1
-    for n in lead[1:]:
-        E *= n
-    # a parameter expanded from one instance (stride 0, or B = 1) is shared: it is not mapped
+def _split_params(params: Params) -> tuple[dict, dict, bool]:
+    """``(p, p_dims, all_shared)``: a parameter expanded from one instance (stride 0, or B = 1) is shared and
+    passed as that instance's value with vmap dimension ``None``; the others keep their batch dimension 0."""
     shared = {k for k, v in params.items() if v.shape[0] == 1 or v.stride(0) == 0}
     p = {k: (v[0] if k in shared else v) for k, v in params.items()}
     p_dims = {k: (None if k in shared else 0) for k in params}
+    return p, p_dims, len(shared) == len(params)
+
+
+def _map(fn: Callable, tensors: tuple, params: Params) -> Tensor:
+    lead = tensors[0].shape[:-1]
+    B, E = lead[0], math.prod(lead[1:])
+    p, p_dims, all_shared = _split_params(params)
     n_in = len(tensors)
-    if len(shared) == len(params):
+    if all_shared:
         # every parameter shared: close over them rather than pass the dict through vmap, whose
         # pytree handling of it costs about as much as the pendulum's RK4 step itself
         flat = tuple(t.reshape(B * E, t.shape[-1]) for t in tensors)
@@ -97,14 +100,12 @@ def closed_loop_rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Param
     B, E = lead[0], math.prod(lead[1:])
     if not feedback:
         X_ref = K = x0.new_zeros(B, 0)  # unused placeholders
-    shared = {k for k, v in params.items() if v.shape[0] == 1 or v.stride(0) == 0}
-    p = {k: (v[0] if k in shared else v) for k, v in params.items()}
+    p, p_dims, all_shared = _split_params(params)
     x0 = x0.reshape(B, E, x0.shape[-1])
     U = U.reshape(B, E, N, U.shape[-1])
     per_trajectory = vmap(simulate, in_dims=(0, 0, None, None, None))  # over E, for one instance
-    if len(shared) == len(params):
+    if all_shared:
         X, Us = vmap(lambda x, Uk, Xr, Kk: per_trajectory(x, Uk, Xr, Kk, p))(x0, U, X_ref, K)
     else:
-        p_dims = {k: (None if k in shared else 0) for k in params}
         X, Us = vmap(per_trajectory, in_dims=(0, 0, 0, 0, p_dims))(x0, U, X_ref, K, p)
     return X.reshape(*lead, N + 1, X.shape[-1]), Us.reshape(*lead, N, Us.shape[-1])

@@ -53,7 +53,7 @@ from .constraints import Constraints
 from .ilqr import ILQROptions
 from .problem import Problem
 from .solution import Solution
-from .solve import Method, solve
+from .solve import Method, check_problem_and_method, solve
 from .status import Status
 
 #: ALTRO's settings for MPC: no projection (the applied control is clamped to its bounds anyway, and the projection
@@ -99,12 +99,7 @@ class MPC(torch.nn.Module):
                  options=None, observation_to_state: Optional[Callable] = None,
                  observation_to_params: Optional[Callable] = None):
         super().__init__()
-        if not isinstance(problem, Problem):
-            raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
-        try:
-            method = Method(method)
-        except ValueError:
-            raise ValueError(f"unknown method {method!r}; choose one of {[m.value for m in Method]}") from None
+        method = check_problem_and_method(problem, method)
         if iterations is not None and (int(iterations) != iterations or iterations < 1):
             raise ValueError(f"iterations must be a positive int or None, got {iterations!r}")
         self.problem, self.method = problem, method

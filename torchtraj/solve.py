@@ -97,12 +97,7 @@ def solve(
         conditions, at the solution refined by Newton steps (:mod:`torchtraj.implicit`; instances
         that did not converge get zero gradients and a warning).
     """
-    if not isinstance(problem, Problem):
-        raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
-    try:
-        method = Method(method)
-    except ValueError:
-        raise ValueError(f"unknown method {method!r}; choose one of {[m.value for m in Method]}") from None
+    method = check_problem_and_method(problem, method)
     opts = _options(method, options)
     N, nx, nu = problem.N, problem.nx, problem.nu
     x0 = _batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)
@@ -123,6 +118,16 @@ def solve(
     solution = _dispatch(problem, method, opts, x0.detach().contiguous(), U0.detach().contiguous(),
                          None if X0 is None else X0.detach(), detached, B, duals)
     return implicit.attach_gradients(problem, x0, params, solution)
+
+
+def check_problem_and_method(problem, method: Union[str, Method]) -> Method:
+    """``method`` as a :class:`Method`, or a clear error for a non-Problem or an unknown method name."""
+    if not isinstance(problem, Problem):
+        raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
+    try:
+        return Method(method)
+    except ValueError:
+        raise ValueError(f"unknown method {method!r}; choose one of {[m.value for m in Method]}") from None
 
 
 def _dispatch(problem: Problem, method: Method, opts, x0: Tensor, U0: Tensor, X0: Optional[Tensor], params,

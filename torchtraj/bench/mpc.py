@@ -372,7 +372,7 @@ def main(argv: Optional[list] = None, out=None) -> int:
         say("time per control step, pendulum (swing-up and hold from the seeded reset); profile shares of a step:")
         for batch in args.timing_batch:
             t = time_steps("pendulum", batch, args.timing_steps, args.seed, profile_steps=min(10, args.timing_steps))
-            shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in t.parts.items())
+            shares = profile.format_split(t.parts)
             say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used {t.iterations_mean:.2f}):"
                 f" {t.ms_median:.1f} ms median, {t.ms_mean:.1f} ms mean per step; {shares}")
     say("rate: share of episodes meeting the task's success definition (target >= 0.95); return: mean episode "
