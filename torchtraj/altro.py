@@ -29,6 +29,7 @@ from torch import Tensor
 
 from .augmented_lagrangian import AugmentedLagrangian, Duals
 from .batching import map_stage, rollout
+from .compiled import kernel
 from .constraints import Constraints
 from .ilqr import ILQROptions, _log_iteration, ilqr_step, start_status, total_cost
 from .problem import Problem
@@ -127,7 +128,7 @@ def solve_altro(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optio
         from .infeasible import solve_infeasible
 
         return solve_infeasible(problem, x0, U0, X0, params, opts, method, duals)
-    X = rollout(problem.dynamics, x0, U0, params)
+    X = kernel(rollout, opts.ilqr.compile)(problem.dynamics, x0, U0, params)
     return run_altro(problem, x0, X, U0, params, opts, method, duals)
 
 
@@ -166,7 +167,11 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     duals = warm if isinstance(warm, Duals) else initial_duals(constraints, opts, x0, warm)
     al = AugmentedLagrangian(constraints, duals, opts.square_root)
     backward = factorize_sqrt if opts.square_root else factorize
-    J = al.value(X, U, params)
+    compiled = inner.compile
+    value = kernel(AugmentedLagrangian.value, compiled)
+    violation_of = kernel(AugmentedLagrangian.violation, compiled)
+    updated_duals = kernel(AugmentedLagrangian.updated_duals, compiled)
+    J = value(al, X, U, params)
     status = start_status(x0, X, J, inner)
     running = status == Status.RUNNING
     al_done = torch.zeros_like(running)
@@ -176,7 +181,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     inner_count = torch.zeros_like(iterations)
     outer_count = torch.zeros_like(iterations)
-    violation = al.violation(X, U, params)
+    violation = violation_of(al, X, U, params)
     K = x0.new_zeros(B, problem.N, U.shape[-1], x0.shape[-1])
     rows = []
     for it in range(opts.iterations_outer * opts.iterations_inner):
@@ -188,7 +193,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         K = torch.where(running.reshape(B, 1, 1, 1), s.K, K)
         iterations = iterations + running.long()
         inner_count = inner_count + running.long()
-        violation = al.violation(X, U, params)
+        violation = violation_of(al, X, U, params)
         inner_done = running & (s.converged | (inner_count >= opts.iterations_inner))
         finished = inner_done & s.converged & (violation < opts.constraint_tolerance)
         update = inner_done & ~finished
@@ -197,9 +202,9 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         status = torch.where(exhausted, int(Status.MAX_ITERATIONS), status)
         stalled = stalled | (exhausted & s.converged)
         al_done = al_done | finished
-        new_duals = al.updated_duals(X, U, params, opts.penalty_scaling, opts.penalty_max, opts.dual_max)
+        new_duals = updated_duals(al, X, U, params, opts.penalty_scaling, opts.penalty_max, opts.dual_max)
         al = AugmentedLagrangian(constraints, new_duals.where(update, al.duals), opts.square_root)
-        J = torch.where(update, al.value(X, U, params), J)  # the objective changed with the duals
+        J = torch.where(update, value(al, X, U, params), J)  # the objective changed with the duals
         outer_count = outer_count + update.long()
         inner_count = torch.where(update, 0, inner_count)
         running = (status == Status.RUNNING) & ~al_done
@@ -210,6 +215,13 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
             _log_iteration(method, it, J, rho, running)
     status = torch.where(running, int(Status.MAX_ITERATIONS), status)
     return ALStage(problem, al, X, U, status, al_done, iterations, rows, K, stalled)
+
+
+def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):
+    """Objective ``(B,)`` and largest violation ``(B,)`` of constraints and dynamics (defects) at ``(X, U)``."""
+    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
+    violation = torch.maximum(constraints.max_violation(X, U, params), defect)
+    return total_cost(problem, X, U, params), violation
 
 
 def _largest_penalty(duals: Duals) -> Tensor:
@@ -234,9 +246,7 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         # the gains of the last backward pass, at the iterate before the last step: a converged step is below
         # the tolerances, and a new expansion and factorisation only for K would cost a third of an MPC step
         K = coarse.K
-    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
-    violation = torch.maximum(constraints.max_violation(X, U, params), defect)
-    cost = total_cost(problem, X, U, params)
+    cost, violation = kernel(_cost_and_violation, opts.ilqr.compile)(problem, constraints, X, U, params)
     return Solution(
         X=X, U=U, K=K, cost=cost, max_violation=violation, status=status, iterations=coarse.iterations,
         history=History.from_rows(coarse.rows), costate=costate,

@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from .batching import closed_loop_rollout, map_stage, map_state, rollout
+from .compiled import kernel
 from .constraints import Constraints
 from .derivatives import linearize_dynamics, quadratize_cost
 from .problem import Problem
@@ -75,6 +76,9 @@ class ILQROptions:
     #: Divergence limits on the cost and on |x| (``max_cost_value``, ``max_state_value``).
     max_cost: float = 1e8
     max_state: float = 1e8
+    #: ``torch.compile`` the per-iteration kernels (rollouts, objective, expansion, Riccati); the first solve of
+    #: each problem and shape compiles them (:mod:`torchtraj.compiled`).
+    compile: bool = False
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
 
@@ -126,6 +130,12 @@ def _candidates(problem, params, x0, X, U, K, d, alphas):
     return closed_loop_rollout(problem.dynamics, starts, feedforward, params, X, K)
 
 
+def _evaluate(problem, objective, params, x0, X, U, K, d, alphas):
+    """The candidates of :func:`_candidates` and their objective values ``(B, l)``: one compiled kernel."""
+    Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
+    return Xc, Uc, objective.value(Xc, Uc, params)
+
+
 def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQROptions):
     """Backtracking line search on the step size; returns the accepted ``(X, U, J, alpha)`` and a found mask.
 
@@ -140,10 +150,10 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
     rows = torch.arange(B, device=X.device)
     found = torch.zeros(B, dtype=torch.bool, device=X.device)
     Xa, Ua, Ja, alpha = X, U, J, torch.zeros_like(J)
+    evaluate = kernel(_evaluate, opts.compile)
     for start in range(0, L, per_round):
         alphas = all_alphas[start:start + per_round]
-        Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
-        Jc = objective.value(Xc, Uc, params)  # (B, l)
+        Xc, Uc, Jc = evaluate(problem, objective, params, x0, X, U, K, d, alphas)  # Jc (B, l)
         expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
         ratio = (J.unsqueeze(1) - Jc) / expected
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
@@ -202,9 +212,10 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
     ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged.
     """
     cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
-    lqr, rhs = objective.expand(X, U, params)
-    factor = (backward or factorize)(lqr, rho)
-    step = factor.solve(rhs)
+    compiled = opts.compile
+    lqr, rhs = kernel(type(objective).expand, compiled)(objective, X, U, params)
+    factor = kernel(backward or factorize, compiled)(lqr, rho)
+    step = kernel(type(factor).solve, compiled)(factor, rhs)
     stationary = -step.dV1 < opts.expected_decrease_tolerance
     Xn, Un, Jn, alpha, found = _line_search(
         problem, objective, params, x0, X, U, J, factor.K, step.k, step.dV1, step.dV2, active & factor.ok, opts
@@ -243,9 +254,9 @@ def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Option
     B = x0.shape[0]
     constraints = Constraints(problem)
     objective = CostObjective(problem)
-    X = rollout(problem.dynamics, x0, U0, params)
+    X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
     U = U0
-    J = total_cost(problem, X, U, params)
+    J = kernel(total_cost, opts.compile)(problem, X, U, params)
     status = start_status(x0, X, J, opts)
     active = status == Status.RUNNING
     rho = torch.full((B,), opts.regularization_initial, dtype=x0.dtype, device=x0.device)
@@ -268,9 +279,9 @@ def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Option
         if opts.verbose:
             _log_iteration("ilqr", it, J, rho, active)
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    lqr, rhs = expand(problem, X, U, params)
-    factor = factorize(lqr, rho)
-    costate = _adjoint(lqr, rhs)
+    lqr, rhs = kernel(expand, opts.compile)(problem, X, U, params)
+    factor = kernel(factorize, opts.compile)(lqr, rho)
+    costate = kernel(_adjoint, opts.compile)(lqr, rhs)
     violation = constraints.max_violation(X, U, params)
     return Solution(
         X=X, U=U, K=factor.K, cost=J, max_violation=violation, status=status, iterations=iterations,

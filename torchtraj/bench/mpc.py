@@ -129,10 +129,10 @@ TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0
 
 
 def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, problem_options=None,
-               **options) -> MPC:
+               compile: bool = False, **options) -> MPC:
     """The :class:`~torchtraj.MPC` of ``task`` (``"pendulum"``, ``"cartpole"``, ``"car"``) for ``env``, a single or
-    vector environment of that task; ``problem_options`` go to the task's problem builder, ``options`` are
-    :class:`~torchtraj.ALTROOptions` fields to change from :data:`TASK_OPTIONS`."""
+    vector environment of that task; ``problem_options`` go to the task's problem builder, ``compile`` to the
+    policy, ``options`` are :class:`~torchtraj.ALTROOptions` fields to change from :data:`TASK_OPTIONS`."""
     build = {"pendulum": pendulum_problem, "cartpole": cartpole_problem, "car": car_problem}
     if task not in build:
         raise ValueError(f"unknown task {task!r}; known tasks are {sorted(build)}")
@@ -142,10 +142,11 @@ def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 
     problem = build[task](env, **problem_options)
     opts = dataclasses.replace(DEFAULT_ALTRO, **{**TASK_OPTIONS[task], **options})
     if task != "car":
-        return MPC(problem, "altro", iterations, opts)
+        return MPC(problem, "altro", iterations, opts, compile=compile)
     n = problem.params["obstacles"].shape[0]
     return MPC(problem, "altro", iterations, opts, observation_to_state=lambda obs: obs[:, :3],
-               observation_to_params=lambda obs: {"obstacles": obs[:, 3:].reshape(obs.shape[0], n, 3)})
+               observation_to_params=lambda obs: {"obstacles": obs[:, 3:].reshape(obs.shape[0], n, 3)},
+               compile=compile)
 
 
 # ---------------------------------------------------------------------------------------------- episodes
@@ -248,21 +249,28 @@ class Timing:
     ms_median: float
     ms_mean: float
     iterations_mean: float
-    parts: dict
+    parts: dict  # empty for compiled kernels (cProfile sees no Python inside them)
+    compiled: bool = False
+    first_call_s: float = float("nan")  # the untimed first step: torch.func's tracing, and compilation
 
 
 def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: int = 0, profile_steps: int = 10,
-               horizon: Optional[int] = None, iterations: int = 3) -> Timing:
+               horizon: Optional[int] = None, iterations: int = 3, compile: bool = False) -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
-    and hold), after one untimed step; then profile ``profile_steps`` more to split the time into :data:`torchtraj.bench.profile.PARTS`."""
+    and hold), after untimed warm-up steps; then, in eager mode, profile ``profile_steps`` more to split the time into
+    :data:`torchtraj.bench.profile.PARTS`. Compiled (``compile``), the warm-up is 3 steps (kernels that first run
+    at the second or third step compile there), and ``first_call_s`` is all of it."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the environments)
 
     venv = gym.make_vec(IDS[task], num_envs=batch)
-    mpc = controller(task, venv, horizon=horizon, iterations=iterations)
+    mpc = controller(task, venv, horizon=horizon, iterations=iterations, compile=compile)
     obs, _ = venv.reset(seed=seed)
-    venv.step(mpc(obs))  # warm-up: torch.func's first call traces
+    tick = time.perf_counter()
+    for _ in range(3 if compile else 1):  # warm-up: torch.func's first call traces, torch.compile compiles
+        obs, *_ = venv.step(mpc(obs))
+    first_call_s = time.perf_counter() - tick
     seconds, taken = [], []
     for _ in range(steps):
         tick = time.perf_counter()
@@ -276,9 +284,9 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
         for _ in range(profile_steps):
             state["obs"], *_ = venv.step(mpc(state["obs"]))
 
-    _, parts = profile.split(profiled_steps)
+    parts = {} if compile else profile.split(profiled_steps)[1]
     return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
-                  1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts)
+                  1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts, compile, first_call_s)
 
 
 # ---------------------------------------------------------------------------------------------- acceptance
@@ -322,6 +330,8 @@ def parser():
     p.add_argument("--v1-seeds", type=int, default=20, help="Pendulum-v1 episodes (0: skip)")
     p.add_argument("--timing-batch", nargs="*", type=int, default=[1, 64], help="B of the timing rows (none: skip)")
     p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row")
+    p.add_argument("--compile", action="store_true",
+                   help="also time the policy with torch.compile'd kernels (MPC(compile=True); compiles first)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
     return p
@@ -370,11 +380,14 @@ def main(argv: Optional[list] = None, out=None) -> int:
     if args.timing_batch:
         say()
         say("time per control step, pendulum (swing-up and hold from the seeded reset); profile shares of a step:")
-        for batch in args.timing_batch:
-            t = time_steps("pendulum", batch, args.timing_steps, args.seed, profile_steps=min(10, args.timing_steps))
-            shares = profile.format_split(t.parts)
-            say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used {t.iterations_mean:.2f}):"
-                f" {t.ms_median:.1f} ms median, {t.ms_mean:.1f} ms mean per step; {shares}")
+        for compiled in (False, True) if args.compile else (False,):
+            for batch in args.timing_batch:
+                t = time_steps("pendulum", batch, args.timing_steps, args.seed, profile_steps=min(10, args.timing_steps),
+                               compile=compiled)
+                where = (f"compiled (warm-up steps {t.first_call_s:.0f} s)" if compiled
+                         else "eager; " + profile.format_split(t.parts))
+                say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used "
+                    f"{t.iterations_mean:.2f}): {t.ms_median:.1f} ms median, {t.ms_mean:.1f} ms mean per step; {where}")
     say("rate: share of episodes meeting the task's success definition (target >= 0.95); return: mean episode "
         "return; ms/step: median time of one batched MPC call")
     return 1 if failed else 0

@@ -1,0 +1,54 @@
+"""``compile=True`` (torchtraj.compiled): the same solver logic on torch.compile'd kernels gives the eager answers.
+
+Default run: the MPC policy's warm-started ALTRO steps on a short horizon. ``-m slow``: ALTRO to convergence with its
+projection. Each first call compiles its kernels (about a minute on two cores), so the problems are short.
+"""
+
+import dataclasses
+
+import pytest
+import torch
+
+import envs
+import torchtraj as tt
+from torchtraj.bench import mpc as bench
+
+pytest.importorskip("torch._inductor")
+
+
+def small_pendulum(horizon=8):
+    return tt.problems.get("pendulum").replace(horizon=horizon, u_init=torch.zeros(1, dtype=torch.float64),
+                                               terminal_eq=None)
+
+
+def assert_same_solution(a: tt.Solution, b: tt.Solution, tol=1e-9):
+    assert torch.equal(a.status, b.status)
+    assert torch.equal(a.iterations, b.iterations)
+    torch.testing.assert_close(a.U, b.U, atol=tol, rtol=0)
+    torch.testing.assert_close(a.X, b.X, atol=tol, rtol=0)
+    torch.testing.assert_close(a.cost, b.cost, atol=tol, rtol=0)
+    torch.testing.assert_close(a.K, b.K, atol=1e-7, rtol=0)
+
+
+@pytest.mark.slow
+def test_compiled_altro_matches_eager_on_a_constrained_problem():
+    problem = small_pendulum()
+    x0 = tt.problems.sample_x0("pendulum", 3, seed=1)
+    opts = tt.ALTROOptions(iterations_inner=40, iterations_outer=6)
+    eager = tt.solve(problem, x0, "altro", options=opts)
+    compiled = tt.solve(problem, x0, "altro",
+                        options=dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True)))
+    assert bool((eager.U.abs() > 3.0 - 1e-6).any()), "the torque bound should be active somewhere"
+    assert_same_solution(eager, compiled)
+
+
+def test_compiled_mpc_steps_match_eager():
+    env = envs.PendulumEnv()
+    problem = bench.pendulum_problem(env, horizon=5)
+    eager, compiled = tt.MPC(problem, iterations=2), tt.MPC(problem, iterations=2, compile=True)
+    assert compiled.options.ilqr.compile and not eager.options.ilqr.compile
+    x = torch.tensor([[0.3, 2.0], [3.0, 0.2]], dtype=torch.float64)
+    for _ in range(3):
+        u_eager, u_compiled = eager(x), compiled(x)
+        torch.testing.assert_close(u_compiled, u_eager, atol=1e-9, rtol=0)
+        x = torch.func.vmap(lambda s, a: problem.dynamics(s, a, problem.params))(x, u_eager)
