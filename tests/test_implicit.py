@@ -376,6 +376,54 @@ def test_refine_reaches_round_off_stationarity():
     assert int(refined.steps[0]) >= 1 and refined.kkt is not None
 
 
+def test_fd_check_by_instance_leaves_out_a_weakly_active_row_that_switches():
+    """The --grad benchmark's check by instance (torchtraj.bench.grad.fd_by_instance): instance 1 starts
+    where its velocity peak touches v_max exactly (a weakly active row, zero multiplier). The implicit
+    gradient holds the row active and gives the one-sided derivative on the active side, as the module
+    docstring says; raising v_max frees the row, so the central difference is half of it (the free
+    side does not depend on v_max). The check leaves that instance out and says why; on instance 0
+    (row strongly active) both agree. The shared parameter's gradient is the sum of its shares."""
+    from torchtraj.bench import grad as bench_grad
+
+    x0 = torch.tensor([[0.0, 0.0], [0.5, 0.0]], dtype=F64)
+    free = tt.solve(oscillator(v_max=10.0), x0, method="altro")
+    peaks = free.X[:, 1:-1, 1].amax(-1)
+    assert float(peaks[0]) > float(peaks[1]) + 0.1  # instance 0 is held back by v_max = peak of instance 1
+    problem = oscillator(v_max=float(peaks[1]))
+    g = torch.Generator().manual_seed(0)
+    Xbar = torch.randn(2, 9, 2, generator=g, dtype=F64)
+    Ubar = torch.randn(2, 8, 1, generator=g, dtype=F64)
+
+    def loss(sol):  # linear in (X, U): one-sided differences are exact on a fixed active set
+        return (sol.X * Xbar).flatten(1).sum(-1) + (sol.U * Ubar).flatten(1).sum(-1)
+
+    theta = {"x0": x0, "v_max": problem.params["v_max"]}
+    dirs = {"x0": torch.tensor([[1.0, -0.5], [0.3, 0.2]], dtype=F64), "v_max": torch.tensor(1.0, dtype=F64)}
+    nominal = bench_grad.solve_by_instance(problem, theta, "altro", None, loss)
+    nominal.loss.sum().backward()
+    analytic = bench_grad.directional(nominal.inputs, dirs)
+    reference = bench_grad.resolved(nominal)
+    assert reference.active.sum(-1).tolist() == [6, 1]
+
+    def resolve(th):
+        return bench_grad.resolved(bench_grad.solve_by_instance(problem, th, "altro", None, loss))
+
+    # 1e-2: far outside the active tolerances, and exact on the linear pieces
+    check = bench_grad.fd_by_instance(resolve, theta, dirs, analytic, reference, step=1e-2)
+    assert check.kept.tolist() == [True, False]
+    assert torch.allclose(check.fd["v_max"][1], analytic["v_max"][1] / 2, rtol=1e-8)
+    assert torch.allclose(check.fd["v_max"][0], analytic["v_max"][0], rtol=1e-8)
+    assert check.agreement() < 1e-9 and check.agreement(only_kept=False) > 0.1
+    text = check.describe()
+    assert text.startswith("FD over 1/2 instances (left out #1: another active set in the ") and "v_max+" in text
+    assert "over all 2: " in text
+
+    shared = problem.params["v_max"].clone().requires_grad_(True)
+    sol = tt.solve(problem.with_params(v_max=shared), x0, method="altro")
+    (g_shared,) = torch.autograd.grad(loss(sol).sum(), [shared])
+    assert torch.allclose(nominal.inputs["v_max"].grad.sum(), g_shared, rtol=1e-12)
+
+
 # ---------------------------------------------------------------- benchmark problems (slow)
 TIGHT_ALTRO = ALTROOptions(ilqr=tt.ILQROptions(cost_tolerance=1e-10, gradient_tolerance=1e-6),
                            cost_tolerance=1e-10, cost_tolerance_intermediate=1e-6, constraint_tolerance=1e-8)
@@ -435,3 +483,21 @@ def test_gradient_benchmark_rows_agree_with_finite_differences():
     ours = next(r for r in rows if r.solver == "torchtraj/altro")
     assert ours.converged == "4/4" and ours.grad_vs_fd < 1e-6, lines
     assert any("linear_box" in line for line in lines)
+
+
+@pytest.mark.slow
+def test_pendulum_gradient_row_checks_instances_whose_re_solves_keep_their_active_set():
+    """The --grad benchmark's constrained-pendulum row on four instances of seed 0's B = 256 batch
+    (65, 212: their cold re-solves at mass − 1e-6 reached another local solution; 210: holds u_49 at
+    its bound with a negative multiplier): the gradient agrees with central differences on the instances
+    whose re-solves kept the nominal active set, and the note names the others and the agreement over all."""
+    from torchtraj.bench import grad as bench_grad
+
+    x0 = tt.problems.sample_x0("pendulum", 256, 0)[[0, 65, 210, 212]]
+    problem = bench_grad.constrained_pendulum()
+    row = bench_grad.torchtraj_pendulum(problem, 4, 0, "altro", None, x0=x0)
+    assert row["converged"] == "4/4" and row["grad_vs_fd"] < 1e-6, row
+    note = row["note"]
+    assert note.startswith("FD over ") and "#0" not in note, note  # instance 0 is kept, and a minimum
+    if not note.startswith("FD over 4/4"):
+        assert "over all 4: " in note and "another active set" in note, note
