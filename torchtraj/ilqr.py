@@ -131,7 +131,7 @@ def _candidates(problem, params, x0, X, U, K, d, alphas):
 
 
 def _evaluate(problem, objective, params, x0, X, U, K, d, alphas):
-    """The candidates of :func:`_candidates` and their objective values ``(B, l)``: one compiled kernel."""
+    """The candidates of :func:`_candidates` and their objective values ``(B, l)``."""
     Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
     return Xc, Uc, objective.value(Xc, Uc, params)
 
@@ -150,10 +150,9 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
     rows = torch.arange(B, device=X.device)
     found = torch.zeros(B, dtype=torch.bool, device=X.device)
     Xa, Ua, Ja, alpha = X, U, J, torch.zeros_like(J)
-    evaluate = kernel(_evaluate, opts.compile)
     for start in range(0, L, per_round):
         alphas = all_alphas[start:start + per_round]
-        Xc, Uc, Jc = evaluate(problem, objective, params, x0, X, U, K, d, alphas)  # Jc (B, l)
+        Xc, Uc, Jc = _evaluate(problem, objective, params, x0, X, U, K, d, alphas)  # Jc (B, l)
         expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
         ratio = (J.unsqueeze(1) - Jc) / expected
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
@@ -203,36 +202,46 @@ class Step:
     dJ: Tensor
 
 
+def _backward_pass(objective, backward, X: Tensor, U: Tensor, params, rho: Tensor):
+    """Expansion and Riccati sweep: gains ``K``, feedforward ``k``, the expected decrease
+    terms ``dV1``, ``dV2`` and the factorisation's ``ok``."""
+    lqr, rhs = objective.expand(X, U, params)
+    factor = backward(lqr, rho)
+    step = factor.solve(rhs)
+    return factor.K, step.k, step.dV1, step.dV2, factor.ok
+
+
 def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions,
               backward=None, cost_tolerance=None) -> Step:
     """One iteration (expansion, backward pass, line search, regularisation update) on the instances in ``active``.
 
     ``backward(lqr, rho)`` returns a :class:`~torchtraj.riccati.RiccatiFactor`; the default is
     :func:`~torchtraj.riccati.factorize`. ``cost_tolerance`` (a float or ``(B,)``) overrides
-    ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged.
+    ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged. With ``opts.compile`` the
+    iteration is one compiled kernel (one graph while the line search takes a single round).
     """
     cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
-    compiled = opts.compile
-    lqr, rhs = kernel(type(objective).expand, compiled)(objective, X, U, params)
-    factor = kernel(backward or factorize, compiled)(lqr, rho)
-    step = kernel(type(factor).solve, compiled)(factor, rhs)
-    stationary = -step.dV1 < opts.expected_decrease_tolerance
-    Xn, Un, Jn, alpha, found = _line_search(
-        problem, objective, params, x0, X, U, J, factor.K, step.k, step.dV1, step.dV2, active & factor.ok, opts
-    )
-    success = factor.ok & found
+    iteration = kernel(_iteration, opts.compile)
+    return iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts, backward or factorize,
+                     cost_tolerance)
+
+
+def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions, backward,
+               cost_tolerance) -> Step:
+    K, k, dV1, dV2, ok = _backward_pass(objective, backward, X, U, params, rho)
+    stationary = -dV1 < opts.expected_decrease_tolerance
+    Xn, Un, Jn, alpha, found = _line_search(problem, objective, params, x0, X, U, J, K, k, dV1, dV2, active & ok, opts)
+    success = ok & found
     take = active & success & ~stationary
     dJ = J - Jn
-    grad = _scaled_step(step.k, U)
+    grad = _scaled_step(k, U)
     X, U, J = _where(take, Xn, X), _where(take, Un, U), torch.where(take, Jn, J)
     rho_new, drho_new = _update_regularization(rho, drho, success | stationary, opts)
     rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)
-    converged = active & factor.ok & (
-        stationary | (take & (dJ.abs() < cost_tolerance) & (grad < opts.gradient_tolerance))
-    )
+    converged = active & ok & (stationary | (take & (dJ.abs() < cost_tolerance) & (grad < opts.gradient_tolerance)))
     blown = active & ~converged & (rho > opts.regularization_max)
     alpha = torch.where(take, alpha, torch.zeros_like(alpha))
-    return Step(X, U, J, rho, drho, take, converged, blown, alpha, factor.K, torch.where(take, dJ, 0.0))
+    return Step(X, U, J, rho, drho, take, converged, blown, alpha, K, torch.where(take, dJ, 0.0))
 
 
 def start_status(x0: Tensor, X: Tensor, J: Tensor, opts: ILQROptions) -> Tensor:
@@ -279,14 +288,18 @@ def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Option
         if opts.verbose:
             _log_iteration("ilqr", it, J, rho, active)
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    lqr, rhs = kernel(expand, opts.compile)(problem, X, U, params)
-    factor = kernel(factorize, opts.compile)(lqr, rho)
-    costate = kernel(_adjoint, opts.compile)(lqr, rhs)
+    K, costate = kernel(_gains_and_costates, opts.compile)(problem, X, U, params, rho)
     violation = constraints.max_violation(X, U, params)
     return Solution(
-        X=X, U=U, K=factor.K, cost=J, max_violation=violation, status=status, iterations=iterations,
+        X=X, U=U, K=K, cost=J, max_violation=violation, status=status, iterations=iterations,
         history=History.from_rows(rows), costate=costate, method="ilqr",
     )
+
+
+def _gains_and_costates(problem: Problem, X: Tensor, U: Tensor, params, rho: Tensor):
+    """Feedback gains and costates at the solution."""
+    lqr, rhs = expand(problem, X, U, params)
+    return factorize(lqr, rho).K, _adjoint(lqr, rhs)
 
 
 def _adjoint(lqr: LQR, rhs: LQRVectors) -> Tensor:

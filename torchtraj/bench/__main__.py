@@ -19,6 +19,8 @@ from typing import Optional, TextIO
 import torch
 
 from .. import problems
+from ..altro import ALTROOptions
+from ..ilqr import ILQROptions
 from ..solve import Method, solve
 from . import profile, table
 from .runs import Row, batch_x0, make_options, relative_difference, run_reference, run_torchtraj, skip_reason
@@ -60,6 +62,9 @@ def parser() -> argparse.ArgumentParser:
                    help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
                         "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
                         "16 64 256 (the pendulum rows use those <= 64) and --method to altro")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the solver's kernels (ILQROptions.compile); every row first runs untimed at "
+                        "its own batch size, which compiles, and says how long that took")
     p.add_argument("--mpc", action="store_true",
                    help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
                         "own: python -m torchtraj.bench --mpc --help)")
@@ -144,7 +149,12 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]
         name = args.method if args.method != p.get_default("method") else Method.ALTRO.value
         pendulum = [b for b in batches if b <= 64] or batches[:1]  # ALTRO's pendulum solves take minutes at 256
-        rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, with_mpc=not args.no_reference)
+        options = None
+        if args.compile:
+            compiled = ILQROptions(compile=True)
+            options = compiled if Method(name) is Method.ILQR else ALTROOptions(ilqr=compiled)
+        rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, options=options,
+                        with_mpc=not args.no_reference)
         return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0
     method = Method(args.method)
     options, applied = make_options(method, cost_tolerance=args.cost_tolerance,

@@ -200,6 +200,11 @@ def mpc_pytorch_lq(problem: Problem, x0, Xbar, Ubar, dirs, lqr_iter: int = 20, f
     return dict(forward_s=t_fwd, backward_s=t_bwd, grad_vs_fd=fd, converged="n/a"), U.detach()
 
 
+def _compiled(options) -> bool:
+    """Whether ``options`` (ILQROptions, ALTROOptions or None) ask for compiled kernels."""
+    return bool(getattr(getattr(options, "ilqr", options), "compile", False))
+
+
 def mpc_available() -> tuple:
     try:
         import mpc  # noqa: F401
@@ -468,20 +473,26 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     say(header())
     rows = []
     speedups = []
+    compiled = _compiled(options)
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
     torchtraj_lq(problem, *warm, method, options, fd=False)
     if have_mpc:
         mpc_pytorch_lq(problem, *warm, fd=False)
     for batch in batches:
         x0, Xbar, Ubar, dirs = _instances(batch, seed, system)
-        ours = GradRow("linear_box", f"torchtraj/{method}", batch)
+        ours = GradRow("linear_box", f"torchtraj/{method}" + ("+compile" if compiled else ""), batch)
         U_ours = None
         try:
+            warm_up = ""
+            if compiled:  # compile at this batch size, untimed
+                _, seconds = _timed(lambda: torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options, fd=False),
+                                    device)
+                warm_up = f"; untimed compiling run {seconds:.0f} s"
             fields, U_ours = torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options)
             for k, v in fields.items():
                 setattr(ours, k, v)
             saturated = float((U_ours.abs() > U_MAX - 1e-6).to(torch.float64).mean())
-            ours.note = f"{100 * saturated:.0f}% of controls at a bound"
+            ours.note = f"{100 * saturated:.0f}% of controls at a bound" + warm_up
         except Exception as exc:  # a row never stops the run
             ours.note = f"{type(exc).__name__}: {exc}"
         say(format_row(ours))
@@ -507,10 +518,16 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
         say()
         pend = constrained_pendulum(dtype, device)
         for batch in pendulum_batches:
-            row = GradRow(pend.name, f"torchtraj/{method}", batch)
+            row = GradRow(pend.name, f"torchtraj/{method}" + ("+compile" if compiled else ""), batch)
             try:
+                warm_up = ""
+                if compiled:  # compile at this batch size, untimed
+                    x0 = problems.sample_x0("pendulum", batch, seed).to(dtype=dtype, device=device)
+                    _, seconds = _timed(lambda: solve(pend, x0, method=method, options=options), device)
+                    warm_up = f"; untimed compiling run {seconds:.0f} s"
                 for k, v in torchtraj_pendulum(pend, batch, seed, method, options).items():
                     setattr(row, k, v)
+                row.note += warm_up
             except Exception as exc:
                 row.note = f"{type(exc).__name__}: {exc}"
             say(format_row(row))
