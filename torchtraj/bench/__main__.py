@@ -135,6 +135,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         return mpc.main([a for a in argv if a != "--mpc"], out)
     p = parser()
     args = p.parse_args(argv)
+    if args.compile:
+        profile.quiet_inductor()
     _check(p, args)
     out = out or sys.stdout
 

@@ -249,7 +249,7 @@ class Timing:
     ms_median: float
     ms_mean: float
     iterations_mean: float
-    parts: dict  # empty for compiled kernels (cProfile sees no Python inside them)
+    parts: dict  # shares of profile.PARTS, or of profile.COMPILED_PARTS when compiled
     compiled: bool = False
     first_call_s: float = float("nan")  # the untimed first step: torch.func's tracing, and compilation
 
@@ -257,8 +257,8 @@ class Timing:
 def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: int = 0, profile_steps: int = 10,
                horizon: Optional[int] = None, iterations: int = 3, compile: bool = False) -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
-    and hold), after untimed warm-up steps; then, in eager mode, profile ``profile_steps`` more to split the time into
-    :data:`torchtraj.bench.profile.PARTS`. Compiled (``compile``), the warm-up is 3 steps (kernels that first run
+    and hold), after untimed warm-up steps; then profile ``profile_steps`` more to split the time into
+    :data:`torchtraj.bench.profile.PARTS` (compiled: :data:`~torchtraj.bench.profile.COMPILED_PARTS`). Compiled (``compile``), the warm-up is 3 steps (kernels that first run
     at the second or third step compile there), and ``first_call_s`` is all of it."""
     import gymnasium as gym
 
@@ -284,7 +284,7 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
         for _ in range(profile_steps):
             state["obs"], *_ = venv.step(mpc(state["obs"]))
 
-    parts = {} if compile else profile.split(profiled_steps)[1]
+    parts = profile.split(profiled_steps, profile.COMPILED_PARTS if compile else profile.PARTS)[1]
     return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
                   1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts, compile, first_call_s)
 
@@ -343,6 +343,8 @@ def main(argv: Optional[list] = None, out=None) -> int:
     import sys
 
     args = parser().parse_args(argv)
+    if args.compile:
+        profile.quiet_inductor()
     out = out or sys.stdout
 
     def say(text: str = "") -> None:
@@ -385,8 +387,8 @@ def main(argv: Optional[list] = None, out=None) -> int:
             for batch in args.timing_batch:
                 t = time_steps("pendulum", batch, args.timing_steps, args.seed, profile_steps=min(10, args.timing_steps),
                                compile=compiled)
-                where = (f"compiled (warm-up steps {t.first_call_s:.0f} s)" if compiled
-                         else "eager; " + profile.format_split(t.parts))
+                where = (f"compiled (warm-up steps {t.first_call_s:.0f} s); " if compiled else "eager; ")
+                where += profile.format_split(t.parts)
                 say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used "
                     f"{t.iterations_mean:.2f}): {t.ms_median:.1f} ms median, {t.ms_mean:.1f} ms mean per step; {where}")
     say("rate: share of episodes meeting the task's success definition (target >= 0.95); return: mean episode "

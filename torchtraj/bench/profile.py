@@ -9,6 +9,7 @@ from __future__ import annotations
 import cProfile
 import pstats
 import time
+import warnings
 from typing import Callable
 
 #: label: (file under torchtraj/, function name)
@@ -23,13 +24,25 @@ PARTS = {
 }
 
 
+#: the same for compiled kernels (``ILQROptions.compile``), whose insides cProfile cannot see
+COMPILED_PARTS = {
+    "iterations (compiled: expansion, Riccati, line search)": ("ilqr.py", "_iteration"),
+    "initial rollout": ("batching.py", "rollout"),
+    "AL objective": ("augmented_lagrangian.py", "value"),
+    "AL violation": ("augmented_lagrangian.py", "violation"),
+    "multiplier updates": ("augmented_lagrangian.py", "updated_duals"),
+    "final cost and violation": ("altro.py", "_cost_and_violation"),
+}
+
+
 def cumulative(stats: dict, file: str, name: str) -> float:
     """Cumulative seconds of ``torchtraj/<file>:<name>`` in ``pstats.Stats(...).stats``."""
     return sum(v[3] for k, v in stats.items() if k[0].endswith("torchtraj/" + file) and k[2] == name)
 
 
-def split(run: Callable[[], object]) -> tuple[float, dict]:
-    """Run ``run()`` under cProfile; return its profiled seconds and the share of each of :data:`PARTS`."""
+def split(run: Callable[[], object], parts: dict = PARTS) -> tuple[float, dict]:
+    """Run ``run()`` under cProfile; return its profiled seconds and the share of each of ``parts``
+    (:data:`PARTS` or :data:`COMPILED_PARTS`; "other" is the rest: Python bookkeeping, masks, host syncs)."""
     profiler = cProfile.Profile()
     tick = time.perf_counter()
     profiler.enable()
@@ -37,9 +50,15 @@ def split(run: Callable[[], object]) -> tuple[float, dict]:
     profiler.disable()
     total = time.perf_counter() - tick
     stats = pstats.Stats(profiler).stats
-    parts = {label: cumulative(stats, file, name) for label, (file, name) in PARTS.items()}
-    parts["other"] = total - sum(parts.values())
-    return total, {k: v / total for k, v in parts.items()}
+    seconds = {label: cumulative(stats, file, name) for label, (file, name) in parts.items()}
+    seconds["other"] = total - sum(seconds.values())
+    return total, {k: v / total for k, v in seconds.items()}
+
+
+def quiet_inductor() -> None:
+    """Silence the deprecation warning torch 2.13's inductor raises from its own lowering code (not ours to fix),
+    which would otherwise interleave with the tables of a compiled run."""
+    warnings.filterwarnings("ignore", message=r"`torch\._prims_common\.check` is deprecated")
 
 
 def format_split(parts: dict) -> str:
