@@ -87,3 +87,14 @@ def test_reference_rows_reproduce_ipopt_and_fatrop(reference, tmp_path):
     ours, ipopt = rows["ilqr"]["costs"][0], rows["ipopt"]["costs"][0]
     assert rows["ilqr"]["vs_ipopt"] == pytest.approx(abs(ours - ipopt) / abs(ipopt))
     assert "ratio ilqr/FATROP" in text
+
+
+def test_compile_flag_reaches_the_solver_options():
+    from torchtraj.bench import mpc as mpc_bench
+    from torchtraj.bench.runs import compiled, with_compile
+
+    altro = with_compile(tt.ALTROOptions(iterations_outer=3))
+    assert altro.ilqr.compile and altro.iterations_outer == 3 and compiled(altro)
+    assert compiled(with_compile(tt.ILQROptions())) and not compiled(tt.ALTROOptions()) and not compiled(None)
+    assert mpc_bench.parser().parse_args(["--compile"]).compile
+    assert bench_main.parser().parse_args(["--grad", "--compile"]).compile

@@ -23,7 +23,8 @@ from ..altro import ALTROOptions
 from ..ilqr import ILQROptions
 from ..solve import Method, solve
 from . import profile, table
-from .runs import Row, batch_x0, make_options, relative_difference, run_reference, run_torchtraj, skip_reason
+from .runs import (Row, batch_x0, make_options, relative_difference, run_reference, run_torchtraj, skip_reason,
+                   with_compile)
 
 REFERENCE_SOLVERS = ("ipopt", "fatrop")
 #: Batch of the ALTRO throughput line (issue: pendulum, sample_x0 seed 0, B = 1024 in one batch).
@@ -153,8 +154,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         pendulum = [b for b in batches if b <= 64] or batches[:1]  # ALTRO's pendulum solves take minutes at 256
         options = None
         if args.compile:
-            compiled = ILQROptions(compile=True)
-            options = compiled if Method(name) is Method.ILQR else ALTROOptions(ilqr=compiled)
+            options = with_compile(ILQROptions() if Method(name) is Method.ILQR else ALTROOptions())
         rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, options=options,
                         with_mpc=not args.no_reference)
         return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0
@@ -209,6 +209,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         problem_options = problems.altro_options(problem.name) if augmented else options
         if augmented and method is Method.AL_ILQR:
             problem_options = dataclasses.replace(problem_options, projection=False)
+        if args.compile:
+            problem_options = with_compile(problem_options)
         for batch in batches:
             ours = run_torchtraj(problem, method, batch, args.seed, problem_options, args.warmup_iterations)
             group = [ours]

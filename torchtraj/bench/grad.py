@@ -50,6 +50,7 @@ from ..problem import Problem
 from ..solution import Solution
 from ..solve import solve
 from ..status import Status
+from .runs import compiled as is_compiled
 
 NX, NU, HORIZON, U_MAX = 8, 4, 30, 0.5
 FD_STEP = 1e-6
@@ -198,11 +199,6 @@ def mpc_pytorch_lq(problem: Problem, x0, Xbar, Ubar, dirs, lqr_iter: int = 20, f
     grads = {k: (v.grad if v.grad is not None else torch.zeros_like(v)) for k, v in leaves.items()}
     fd = _fd_agreement(lambda th: forward(th)[1].detach(), theta, grads, dirs) if fd else float("nan")
     return dict(forward_s=t_fwd, backward_s=t_bwd, grad_vs_fd=fd, converged="n/a"), U.detach()
-
-
-def _compiled(options) -> bool:
-    """Whether ``options`` (ILQROptions, ALTROOptions or None) ask for compiled kernels."""
-    return bool(getattr(getattr(options, "ilqr", options), "compile", False))
 
 
 def mpc_available() -> tuple:
@@ -473,7 +469,7 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     say(header())
     rows = []
     speedups = []
-    compiled = _compiled(options)
+    compiled = is_compiled(options)
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
     torchtraj_lq(problem, *warm, method, options, fd=False)
     if have_mpc:

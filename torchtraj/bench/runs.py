@@ -77,6 +77,18 @@ def make_options(method: Method, **values) -> tuple:
     return cls(**applied), applied
 
 
+def compiled(options) -> bool:
+    """Whether ``options`` (ILQROptions, ALTROOptions or None) ask for compiled kernels."""
+    return bool(getattr(getattr(options, "ilqr", options), "compile", False))
+
+
+def with_compile(options):
+    """``options`` with compiled kernels (``ILQROptions.compile``, for ALTRO its ``ilqr``'s)."""
+    if hasattr(options, "ilqr"):
+        return dataclasses.replace(options, ilqr=dataclasses.replace(options.ilqr, compile=True))
+    return dataclasses.replace(options, compile=True)
+
+
 def batch_x0(name: str, batch: int, seed: int) -> Optional[torch.Tensor]:
     """The initial states of a row: None (the problem's own x0) for B = 1, else ``sample_x0``'s ``(B, nx)``."""
     return None if batch == 1 else problems.sample_x0(name, batch, seed)
@@ -89,7 +101,8 @@ def _sync(device: torch.device) -> None:
 
 def run_torchtraj(problem: Problem, method: Method, batch: int, seed: int, options,
                   warmup_iterations: int) -> Row:
-    """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch."""
+    """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch. With compiled
+    kernels (``ILQROptions.compile``), which specialise to the batch size, the warm-up is the whole batch."""
     row = Row(problem.name, method.value, batch)
     try:
         x0 = batch_x0(problem.name, batch, seed)
@@ -99,7 +112,10 @@ def run_torchtraj(problem: Problem, method: Method, batch: int, seed: int, optio
             warm = dataclasses.replace(options, iterations=min(options.iterations, warmup_iterations))
         else:
             warm = dataclasses.replace(options, iterations_outer=1, iterations_inner=warmup_iterations)
-        solve(problem, None, method, X0=X0, options=warm)
+        if compiled(options):
+            solve(problem, x0, method, X0=X0, options=options)
+        else:
+            solve(problem, None, method, X0=X0, options=warm)
         _sync(problem.device)
         start = time.perf_counter()
         sol = solve(problem, x0, method, X0=X0, options=options)
