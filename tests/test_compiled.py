@@ -5,6 +5,7 @@ projection. Each first call compiles its kernels (about a minute on two cores), 
 """
 
 import dataclasses
+import shutil
 
 import pytest
 import torch
@@ -14,6 +15,8 @@ import torchtraj as tt
 from torchtraj.bench import mpc as bench
 
 pytest.importorskip("torch._inductor")
+pytestmark = pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
+                                reason="torch.compile's CPU backend needs a C++ compiler")
 
 
 def small_pendulum(horizon=8):
