@@ -433,7 +433,7 @@ def torchtraj_pendulum(problem: Problem, batch: int, seed: int, method: str, opt
 
 
 # --------------------------------------------------------------------------------- the report
-COLUMNS = (("problem", 18, False), ("solver", 13, False), ("B", 5, True), ("forward s", 10, True),
+COLUMNS = (("problem", 18, False), ("solver", 23, False), ("B", 5, True), ("forward s", 10, True),
            ("backward s", 11, True), ("total s", 9, True), ("grad vs FD", 11, True),
            ("|U - U_tt|", 11, True), ("converged", 10, True), ("note", 0, False))
 
