@@ -424,6 +424,90 @@ def test_fd_check_by_instance_leaves_out_a_weakly_active_row_that_switches():
     assert torch.allclose(nominal.inputs["v_max"].grad.sum(), g_shared, rtol=1e-12)
 
 
+# ------------------------------------------- pendulum with bang-bang arcs and a goal equality
+def _pendulum_mass_solve(rows, options, mass=1.2):
+    """Solve the benchmark pendulum (|u| ≤ 3, x_N = goal) from seed 0's x0 ``rows`` with a per-instance
+    mass leaf; returns the solution, the leaf and the per-instance loss ``Σ U²``."""
+    x0 = tt.problems.sample_x0("pendulum", 8, seed=0)[rows]
+    leaf = torch.full((len(rows),), mass, dtype=F64, requires_grad=True)
+    sol = tt.solve(tt.problems.get("pendulum").with_params(mass=leaf), x0, method="altro", options=options)
+    return sol, leaf, (sol.U ** 2).flatten(1).sum(-1)
+
+
+def test_pendulum_instances_refined_from_reference_accuracy_match_central_differences():
+    """Instances 0 and 4 of seed 0 at mass 1.2: reference-accuracy ALTRO stops 0.13 (in U) short of the
+    KKT point (a Newton step of 0.12 that refinement used to reject as too large, leaving gradients 7 %
+    and 25 % off). Refined to the KKT point, the gradient of Σ U² with respect to the mass agrees, with
+    no warning, with central differences (mass ± 1e-6) of warm re-solves refined to their KKT points,
+    whose active sets are the nominal one."""
+    problem = tt.problems.get("pendulum")
+    options = tt.problems.altro_options("pendulum")
+    rows = [0, 4]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        sol, leaf, loss = _pendulum_mass_solve(rows, options)
+        (grad,) = torch.autograd.grad(loss.sum(), [leaf])
+    assert bool(sol.converged.all())
+    x0 = tt.problems.sample_x0("pendulum", 8, seed=0)[rows]
+    U0 = sol.U.detach()
+
+    def exact(mass):  # the KKT point near U0: a warm re-solve, refined to round-off
+        p = problem.with_params(mass=torch.full((2,), mass, dtype=F64))
+        params = p.batched_params(2)
+        s = tt.solve(p, x0, method="altro", options=options, U0=U0)
+        r = implicit.refine(p, x0, s.X, s.U, params, steps=10, solver_multipliers=s.multipliers)
+        assert bool(r.stationary.all()) and float(r.residual.max()) < 1e-12
+        return (r.U ** 2).flatten(1).sum(-1), r.active[0]
+
+    nominal, active = exact(1.2)
+    assert torch.allclose(nominal, loss.detach(), rtol=1e-12)  # the point that was differentiated
+    assert int(active.sum()) == 18 + 21 and bool((active.sum((1, 2)) < 50).all())  # bang-bang arcs
+    h = 1e-6
+    (up, a_up), (down, a_down) = exact(1.2 + h), exact(1.2 - h)
+    assert bool((a_up == active).all() and (a_down == active).all())
+    fd = (up - down) / (2 * h)
+    assert torch.allclose(grad, fd, rtol=1e-6), (grad, fd)
+    assert float(grad.abs().min()) > 100
+
+
+def test_pendulum_solves_stopped_short_of_a_kkt_point_get_zero_gradients_and_a_reason():
+    """ALTRO's default tolerances stop instances 0 and 1 (mass 1.2) at status CONVERGED but 18 % and 5 %
+    above the cost of their KKT points (0.0221408, 0.0263426; Newton steps of the KKT conditions of
+    size 1e1 - 1e4 away). They have no derivative: instance 0's reduced Hessian is indefinite, instance 1
+    factorises but refinement cannot reach stationarity; each gets a zero gradient and a warning with
+    its own reason."""
+    sol, leaf, loss = _pendulum_mass_solve([0, 1], None)
+    assert bool(sol.converged.all())
+    optimum = torch.tensor([0.022140766852, 0.026342644443], dtype=F64)
+    assert bool((sol.cost.detach() > 1.04 * optimum).all())
+    with pytest.warns(RuntimeWarning) as record:
+        (grad,) = torch.autograd.grad(loss.sum(), [leaf])
+    text = " | ".join(str(w.message) for w in record)
+    assert "instance(s) [0]: the KKT system could not be factorised" in text, text
+    assert "instance(s) [1]: the point is not a KKT point" in text, text
+    assert grad.tolist() == [0.0, 0.0]
+
+
+def test_dependent_active_rows_are_counted():
+    """LICQ check of the constraint back-propagation: the oscillator's goal equality x_N = goal (two
+    rows) with both controls of a two-knot horizon held at their bounds leaves two rows on δx_0 (fixed
+    by the initial condition): two dependent rows. With the bounds free there are none."""
+    problem = oscillator(u_max=0.5, goal_constraint=True, N=2)
+    params = problem.batched_params(1)
+    x0 = problem.x0.unsqueeze(0)
+    U = torch.full((1, 2, 1), 0.5, dtype=F64)
+    X = rollout(problem.dynamics, x0, U, params)
+    cons = Constraints(problem)
+    upper = cons.ineq_blocks["u_upper"].start
+    free = torch.zeros(1, 2, cons.me + cons.mi, dtype=F64)
+    held = free.clone()
+    held[..., cons.me + upper] = 1.0
+    ones = torch.ones(1, cons.meN + cons.miN, dtype=F64)
+    assert int(implicit.kkt_system(problem, x0, X, U, params, active=(free, ones)).degenerate.sum()) == 0
+    kkt = implicit.kkt_system(problem, x0, X, U, params, active=(held, ones))
+    assert bool(kkt.degenerate.all()) and float(implicit.dependent_rows(kkt.factor)[0]) == 2
+
+
 # ---------------------------------------------------------------- benchmark problems (slow)
 TIGHT_ALTRO = ALTROOptions(ilqr=tt.ILQROptions(cost_tolerance=1e-10, gradient_tolerance=1e-6),
                            cost_tolerance=1e-10, cost_tolerance_intermediate=1e-6, constraint_tolerance=1e-8)

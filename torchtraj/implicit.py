@@ -55,7 +55,15 @@ about ``sqrt(ε J / σ_min(∇²J))`` (``1e-5`` relative on the pendulum, whose 
 active set held fixed — the same LQR system with the cost gradient, the dynamics defects and the
 active constraint values as right-hand side — until the step reaches round-off
 (:func:`refine`). From a converged solution they converge quadratically (on the pendulum: steps
-``1e-3, 2e-7, 4e-14``), and the last factorisation is reused by the backward pass.
+``1e-3, 2e-7, 4e-14``; from ALTRO at reference accuracy, 0.13 short of the KKT point in ``U``:
+``1e-1, …, 1e-14``), and the last factorisation is reused by the backward pass. A point is
+differentiated only if it *is* a KKT point: the last Newton step, computed at the returned point, must
+be at most ``default_stationarity_tolerance · (1 + |w|∞)`` (``1.5e-6`` relative in float64). A solver
+that reports convergence by a cost-decrease test can stop far from one: ALTRO at its default
+tolerances (``cost_tolerance = 1e-4``) stops on the pendulum 5-30 % above the optimal cost, ``|ΔU|∞ ≈ 5``
+away, where the Newton steps are of size ``1e1 - 1e5`` and the Lagrangian Hessian (its costates
+times the dynamics' curvature) makes the reduced Hessian indefinite over the bang-bang arcs. No
+derivative describes such a point (a re-solve from it goes to the KKT point), so it gets none.
 
 Active set (:func:`active_rows`), identified once at the solver's point and then held fixed: an
 inequality row is active where ``g > -active_tolerance``, or where the solver's multiplier of the row
@@ -66,13 +74,26 @@ inequality row is active where ``g > -active_tolerance``, or where the solver's 
 (weakly) active; a weakly active row (zero multiplier) is held as an equality, which gives the
 one-sided derivative in which it stays active. The set is not re-evaluated during refinement: a
 Newton step from a point that is only ``1e-3`` stationary moves active rows of a curved constraint by
-``~1e-6`` before the next step drives them back to zero.
+``~1e-6`` before the next step drives them back to zero. The signs of the multipliers are not
+checked: a row held with a negative multiplier (the optimum leaves the bound) gives the derivative of
+the KKT point with the row held. Dropping such rows at the solver's point does not repair a point that
+is not a KKT point (on the pendulum above it leaves the reduced Hessian indefinite all the same, and
+makes two more instances' indefinite), so the stationarity test below decides instead.
 
-Instances that did not converge (``status != CONVERGED``), whose reduced Hessian is not positive
-definite, or whose gradient is not finite get a **zero gradient**, and a ``RuntimeWarning`` names
-them (at the solve for the status, at the backward pass for the others); other instances of the batch
-are unaffected. Gradients flow to ``x0`` and the tensors of ``Problem.params``; bounds, initial guesses
-and options get none.
+Instances get a **zero gradient**, and a ``RuntimeWarning`` names them with the reason, where
+
+* they did not converge (``status != CONVERGED``; warned at the solve),
+* their KKT system could not be factorised: a stage's reduced Hessian is not positive definite (the
+  point is not a strict local minimum with its active set held: a saddle, or a solver that stopped
+  short of a minimum), or non-finite values;
+* their active rows are linearly dependent (LICQ fails, :func:`dependent_rows`: more active rows than
+  the controls can satisfy, rows left on ``δx_0``, or rows at round-off), so that the multipliers and,
+  in general, the derivative are not defined;
+* refinement did not reach a KKT point (the stationarity test above; skipped with ``refine_steps=0``);
+* the gradient is not finite;
+
+(at the backward pass for all but the first); other instances of the batch are unaffected. Gradients
+flow to ``x0`` and the tensors of ``Problem.params``; bounds, initial guesses and options get none.
 """
 
 from __future__ import annotations
@@ -102,6 +123,12 @@ UNCONSTRAINED_METHODS = frozenset({"ilqr"})
 def default_active_tolerance(dtype: torch.dtype) -> float:
     """Rows with ``g > -tolerance`` are active: ``max(1e-6, 1e4 * eps)`` of ``dtype``."""
     return max(1e-6, 1e4 * float(torch.finfo(dtype).eps))
+
+
+def default_stationarity_tolerance(dtype: torch.dtype) -> float:
+    """A refined point whose Newton step is ``|δw|∞ ≤ tolerance · (1 + |w|∞)`` is a KKT point:
+    ``1e2 sqrt(ε)`` of ``dtype`` (``1.5e-6`` in float64)."""
+    return 1e2 * float(torch.finfo(dtype).eps) ** 0.5
 
 
 def requires_gradients(x0: Tensor, params: Mapping[str, Tensor]) -> bool:
@@ -143,7 +170,8 @@ class KKTSystem:
     constraint rows with the active ones unmasked; ``factor`` factorises it. ``newton`` is the
     right-hand side of a Newton step on the KKT conditions (cost gradient, defects
     ``f(x_k, u_k) − x_{k+1}``, initial-state defect, constraint values); ``ok (B,)`` marks the instances
-    whose factorisations succeeded.
+    whose factorisations succeeded; ``degenerate (B,)`` those whose active rows are linearly dependent
+    (:func:`dependent_rows`).
     """
 
     lqr: LQR
@@ -151,6 +179,7 @@ class KKTSystem:
     newton: LQRVectors
     multipliers: Multipliers
     ok: Tensor
+    degenerate: Tensor
 
 
 def _rows(cons: Constraints, X: Tensor, U: Tensor, params, tol: float, active: Optional[tuple] = None):
@@ -259,7 +288,32 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     lqr = dataclasses.replace(lqr, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=HN)
     factor = factorize(lqr)
     newton = dataclasses.replace(gradient, c=f - X[:, 1:], x0=x0 - X[:, 0], e=e, eN=eN)
-    return KKTSystem(lqr=lqr, factor=factor, newton=newton, multipliers=multipliers, ok=ok & factor.ok)
+    return KKTSystem(lqr=lqr, factor=factor, newton=newton, multipliers=multipliers, ok=ok & factor.ok,
+                     degenerate=dependent_rows(factor) > 0.5)
+
+
+def dependent_rows(factor: RiccatiFactor) -> Tensor:
+    """How many active constraint rows ``(B,)`` the constraint back-propagation of ``factor`` found
+    linearly dependent on the others (LICQ fails where it is positive).
+
+    At stage k the rows in play are the active stage rows and the rows kept from stage k+1; each either
+    fixes a control direction (``inv_s ≠ 0``) or is kept as a row on ``δx_k``; the recursion drops a row
+    whose singular value is at round-off, and rows still on ``δx_0`` depend on the initial condition.
+    """
+    lqr = factor.lqr
+    B = lqr.A.shape[0]
+    lost = lqr.A.new_zeros(B)
+    if factor.stage is None:
+        return lost
+    kept = factor.terminal.gmask.sum(-1)
+    if lqr.CN is not None:
+        lost = lost + lqr.maskN.sum(-1) - kept
+    for t in range(lqr.A.shape[1] - 1, -1, -1):
+        con = factor.stage[t]
+        rows = kept + (lqr.mask[:, t].sum(-1) if lqr.C is not None else 0)
+        kept = con.gmask.sum(-1)
+        lost = lost + rows - (con.inv_s != 0).sum(-1).to(rows.dtype) - kept
+    return lost + kept
 
 
 # -------------------------------------------------------------------------------- refinement
@@ -280,8 +334,10 @@ def _inactive_violation(cons: Constraints, X: Tensor, U: Tensor, params, mask, m
 @dataclasses.dataclass
 class Refined:
     """Result of :func:`refine`: the point ``X``, ``U``, its ``multipliers``, the Newton ``steps (B,)``
-    taken and the size of the last one computed (``residual (B,)``, ``|δw|∞``); ``kkt`` is the KKT
-    system at the point (within round-off), or ``None`` when the last steps were still large."""
+    taken and the size of the last one computed (``residual (B,)``, ``|δw|∞``); ``stationary (B,)``
+    where that is at most ``default_stationarity_tolerance · (1 + |w|∞)`` (the point is a KKT point of
+    its active set); ``kkt`` is the KKT system at the point (within round-off), or ``None`` when the last
+    steps were still large."""
 
     X: Tensor
     U: Tensor
@@ -290,6 +346,7 @@ class Refined:
     residual: Tensor
     kkt: Optional[KKTSystem]
     active: tuple
+    stationary: Tensor
 
 
 def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: int = 4, constrained: bool = True,
@@ -300,10 +357,11 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     ``x0 (B, nx)``, ``X (B, N+1, nx)``, ``U (B, N, nu)``, ``params`` batched to B. The active set is
     :func:`active_rows` at the starting point (with the solver's multipliers, by block, when given) and
     is kept while the rows move: a Newton step drives active rows to zero. A step of an
-    instance is taken only if it is finite, small (``|δw|∞ ≤ 1e-2 (1 + |w|∞)``), contracts (smaller
-    than the instance's previous step) and leaves every inactive inequality row satisfied; otherwise
-    the instance keeps its point and stops. An instance also stops once its step is at round-off
-    (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``). Only the instances in ``mask (B,)`` (default: all) move.
+    instance is taken only if its KKT system factorised, and the step is finite, small
+    (``|δw|∞ ≤ 1e-1 (1 + |w|∞)``), contracts (smaller than the instance's previous step) and leaves
+    every inactive inequality row satisfied; otherwise the instance keeps its point and stops. An
+    instance also stops once its step is at round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``). Only the
+    instances in ``mask (B,)`` (default: all) move.
     """
     cons = _constraints(problem, constrained)
     B = X.shape[0]
@@ -324,7 +382,7 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
         Xn, Un = X + s.dx, U + s.du
         safe = _inactive_violation(cons, Xn, Un, params, kkt.lqr.mask, kkt.lqr.maskN) <= 0
-        take = moving & kkt.ok & torch.isfinite(size) & (size <= 1e-2 * scale) & (size < previous) & safe
+        take = moving & kkt.ok & torch.isfinite(size) & (size <= 1e-1 * scale) & (size < previous) & safe
         if steps == 0:
             take = torch.zeros_like(take)
         X, U = torch.where(expand(take, X), Xn, X), torch.where(expand(take, U), Un, U)
@@ -333,9 +391,12 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         taken = taken + take.long()
         # where a step was taken, kkt is stale by that step: fine at round-off, else go on
         moving = take & (size > 1e3 * eps * scale)
+        # a step that was not taken was computed at the instance's point: it measures the distance to
+        # the KKT point of the active set (a taken one, from the previous point, overestimates it)
+        stationary = kkt.ok & (size <= default_stationarity_tolerance(X.dtype) * scale)
         if not bool(moving.any()):
-            return Refined(X, U, multipliers, taken, size, kkt, active)
-    return Refined(X, U, multipliers, taken, size, None, active)
+            return Refined(X, U, multipliers, taken, size, kkt, active, stationary)
+    return Refined(X, U, multipliers, taken, size, None, active, stationary)
 
 
 # ------------------------------------------------------------------------------ the adjoint
@@ -401,11 +462,12 @@ def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: d
                    U_bar: Tensor, constrained: bool = True, active_tolerance: Optional[float] = None,
                    kkt: Optional[KKTSystem] = None, multipliers: Optional[Multipliers] = None,
                    active: Optional[tuple] = None):
-    """Gradients ``(x0_bar (B, nx), {name: (B, *shape)}, ok (B,))`` of a loss with cotangents
+    """Gradients ``(x0_bar (B, nx), {name: (B, *shape)}, kkt)`` of a loss with cotangents
     ``X_bar (B, N+1, nx)``, ``U_bar (B, N, nu)`` at the solution ``(X, U)`` from ``x0 (B, nx)``.
 
     ``params`` are batched to B; ``kkt``, ``multipliers`` and the ``active`` set at ``(X, U)`` are reused
-    when given (from :func:`refine`). ``ok`` is False where the KKT system could not be factorised.
+    when given (from :func:`refine`). ``kkt`` is returned too: ``kkt.ok`` is False where the KKT system
+    could not be factorised, ``kkt.degenerate`` where its active rows are linearly dependent.
     """
     cons = _constraints(problem, constrained)
     if kkt is None:
@@ -418,7 +480,7 @@ def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: d
     s = kkt.factor.solve(rhs, multipliers=True)
     sy = Multipliers(s.costate, s.nu, s.nuN)
     p_bar = parameter_gradients(problem, cons, X, U, params, multipliers, (s.dx, s.du, sy)) if params else {}
-    return s.costate[:, 0], p_bar, kkt.ok
+    return s.costate[:, 0], p_bar, kkt
 
 
 # --------------------------------------------------------------------------- the autograd layer
@@ -429,6 +491,7 @@ class _Spec:
     problem: Problem
     names: tuple
     usable: Tensor  # (B,) bool: instances that converged
+    stationary: Tensor  # (B,) bool: instances refined to a KKT point (all True without refinement)
     constrained: bool
     active_tolerance: Optional[float]
     refined: Optional[Refined]
@@ -455,7 +518,7 @@ class ImplicitSolution(torch.autograd.Function):
         X, U, x0, *values = ctx.saved_tensors
         params = dict(zip(spec.names, values))
         refined = spec.refined
-        x0_bar, p_bar, ok = backward_solve(
+        x0_bar, p_bar, kkt = backward_solve(
             spec.problem, x0, X, U, params, X_bar, U_bar, spec.constrained, spec.active_tolerance,
             None if refined is None else refined.kkt, None if refined is None else refined.multipliers,
             None if refined is None else refined.active)
@@ -463,12 +526,25 @@ class ImplicitSolution(torch.autograd.Function):
         finite = torch.isfinite(x0_bar).all(-1)
         for v in p_bar.values():
             finite = finite & torch.isfinite(v.reshape(B, -1)).all(-1)
-        keep = spec.usable & ok & finite
-        bad = spec.usable & ~keep
-        if bool(bad.any()):
-            warnings.warn(f"implicit gradients: the KKT system of instance(s) {_indices(bad)} could not be "
-                          "factorised (reduced Hessian not positive definite, or non-finite values); "
-                          "their gradients are zero", RuntimeWarning, stacklevel=2)
+        # one reason per instance, the first that applies (module docstring)
+        unfactorised = spec.usable & ~kkt.ok
+        degenerate = spec.usable & kkt.ok & kkt.degenerate
+        not_kkt = spec.usable & kkt.ok & ~kkt.degenerate & ~spec.stationary
+        keep = spec.usable & kkt.ok & ~kkt.degenerate & spec.stationary & finite
+        non_finite = spec.usable & ~keep & ~unfactorised & ~degenerate & ~not_kkt
+        reasons = [(unfactorised, "the KKT system could not be factorised (reduced Hessian not positive "
+                                  "definite: not a strict local minimum with the active set held, often a "
+                                  "solver stopped short of one; tighter solver tolerances help)"),
+                   (degenerate, "the active constraint rows are linearly dependent (LICQ fails: more active "
+                                "rows than the controls can satisfy, or rows at round-off)"),
+                   (not_kkt, "the point is not a KKT point (Newton refinement with the active set held "
+                             "could not reach stationarity: the solver stopped short of a solution; "
+                             "tighter solver tolerances help)"),
+                   (non_finite, "the gradient is not finite")]
+        for bad, why in reasons:
+            if bool(bad.any()):
+                warnings.warn(f"implicit gradients: instance(s) {_indices(bad)}: {why}; their gradients are "
+                              "zero", RuntimeWarning, stacklevel=2)
 
         def masked(g):
             return torch.where(keep.reshape(B, *([1] * (g.dim() - 1))), g, torch.zeros_like(g))
@@ -510,7 +586,9 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
             default :func:`default_active_tolerance`.
 
     Instances whose status is not ``CONVERGED`` get zero gradients (and are not refined); a
-    ``RuntimeWarning`` names them. ``max_violation`` is re-evaluated at the refined point.
+    ``RuntimeWarning`` names them. So do, at the backward pass, instances that refinement could not
+    bring to a KKT point, and those whose KKT system is not factorisable or degenerate (module
+    docstring). ``max_violation`` is re-evaluated at the refined point.
     """
     usable = solution.status == Status.CONVERGED
     if not bool(usable.all()):
@@ -528,7 +606,8 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
         X, U = refined.X, refined.U
         violation = torch.where(usable, _violation(problem, x0_d, X, U, detached), violation)
     names = tuple(params)
-    spec = _Spec(problem=problem, names=names, usable=usable, constrained=constrained,
+    stationary = torch.ones_like(usable) if refined is None else refined.stationary
+    spec = _Spec(problem=problem, names=names, usable=usable, stationary=stationary, constrained=constrained,
                  active_tolerance=active_tolerance, refined=refined)
     X, U = ImplicitSolution.apply(spec, X, U, x0, *(params[n] for n in names))
     cost = objective(problem, X, U, params)
