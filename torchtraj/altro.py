@@ -167,11 +167,9 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     duals = warm if isinstance(warm, Duals) else initial_duals(constraints, opts, x0, warm)
     al = AugmentedLagrangian(constraints, duals, opts.square_root)
     backward = factorize_sqrt if opts.square_root else factorize
-    compiled = inner.compile
-    value = kernel(AugmentedLagrangian.value, compiled)
-    violation_of = kernel(AugmentedLagrangian.violation, compiled)
-    updated_duals = kernel(AugmentedLagrangian.updated_duals, compiled)
-    J = value(al, X, U, params)
+    measures = kernel(_measures, inner.compile)
+    J = kernel(AugmentedLagrangian.value, inner.compile)(al, X, U, params)
+    violation, _, _ = measures(al, X, U, params, opts)
     status = start_status(x0, X, J, inner)
     running = status == Status.RUNNING
     al_done = torch.zeros_like(running)
@@ -181,7 +179,6 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     inner_count = torch.zeros_like(iterations)
     outer_count = torch.zeros_like(iterations)
-    violation = violation_of(al, X, U, params)
     K = x0.new_zeros(B, problem.N, U.shape[-1], x0.shape[-1])
     rows = []
     for it in range(opts.iterations_outer * opts.iterations_inner):
@@ -193,7 +190,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         K = torch.where(running.reshape(B, 1, 1, 1), s.K, K)
         iterations = iterations + running.long()
         inner_count = inner_count + running.long()
-        violation = violation_of(al, X, U, params)
+        violation, new_duals, J_updated = measures(al, X, U, params, opts)
         inner_done = running & (s.converged | (inner_count >= opts.iterations_inner))
         finished = inner_done & s.converged & (violation < opts.constraint_tolerance)
         update = inner_done & ~finished
@@ -202,9 +199,8 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         status = torch.where(exhausted, int(Status.MAX_ITERATIONS), status)
         stalled = stalled | (exhausted & s.converged)
         al_done = al_done | finished
-        new_duals = updated_duals(al, X, U, params, opts.penalty_scaling, opts.penalty_max, opts.dual_max)
         al = AugmentedLagrangian(constraints, new_duals.where(update, al.duals), opts.square_root)
-        J = torch.where(update, value(al, X, U, params), J)  # the objective changed with the duals
+        J = torch.where(update, J_updated, J)  # the objective changed with the duals
         outer_count = outer_count + update.long()
         inner_count = torch.where(update, 0, inner_count)
         running = (status == Status.RUNNING) & ~al_done
@@ -215,6 +211,14 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
             _log_iteration(method, it, J, rho, running)
     status = torch.where(running, int(Status.MAX_ITERATIONS), status)
     return ALStage(problem, al, X, U, status, al_done, iterations, rows, K, stalled)
+
+
+def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTROOptions):
+    """At ``(X, U)``: the largest violation, the duals of eqs. (17)-(18) and ``L_A`` under those duals (every
+    instance; the loop keeps the updates of the instances it updates). One compiled kernel."""
+    duals = al.updated_duals(X, U, params, opts.penalty_scaling, opts.penalty_max, opts.dual_max)
+    updated = AugmentedLagrangian(al.constraints, duals, al.square_root).value(X, U, params)
+    return al.violation(X, U, params), duals, updated
 
 
 def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):

@@ -16,6 +16,8 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
+from .compiled import matvec
+
 Params = Mapping[str, Tensor]
 
 
@@ -90,7 +92,7 @@ def closed_loop_rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Param
     def simulate(x, Uk, Xr, Kk, p):
         xs, us = [x], []
         for k in range(N):
-            u = Uk[k] + Kk[k] @ (x - Xr[k]) if feedback else Uk[k]
+            u = Uk[k] + matvec(Kk[k], x - Xr[k]) if feedback else Uk[k]
             x = dynamics(x, u, p)
             xs.append(x)
             us.append(u)

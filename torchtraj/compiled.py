@@ -27,6 +27,10 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
+from torch import Tensor
+
+#: Contractions up to this length are written as broadcast products and sums when traced (:func:`matmul`).
+FUSED_CONTRACTION = 8
 
 #: Specialisations kept per kernel (Dynamo's default of 8 is reached by three MPC tasks in one process).
 RECOMPILE_LIMIT = 64
@@ -52,4 +56,20 @@ def _compile(fn: Callable) -> Callable:
     # a process-wide setting (a patch around each call would cost 40 µs a call), raised only, never lowered
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
-    return torch.compile(fn, dynamic=False)
+    return torch.compile(fn, dynamic=False, options={"cpp_wrapper": True})
+
+
+def matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a @ b``. Traced by ``torch.compile`` with a short contraction (the stage matrices of small systems), a
+    broadcast product and a sum, which inductor fuses into its loops: as matmuls, the products of a Riccati sweep
+    and a closed-loop rollout are hundreds of library calls per kernel, each with its own fixed cost."""
+    if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
+        return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    return a @ b
+
+
+def matvec(a: Tensor, v: Tensor) -> Tensor:
+    """``a @ v`` for a batch of matrices ``a (..., m, n)`` and vectors ``v (..., n)``, as :func:`matmul`."""
+    if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
+        return (a * v.unsqueeze(-2)).sum(-1)
+    return (a @ v.unsqueeze(-1)).squeeze(-1)

@@ -49,13 +49,19 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from .compiled import matmul, matvec
+
 
 def _mT(a: Tensor) -> Tensor:
     return a.transpose(-1, -2)
 
 
+def _mm(a: Tensor, b: Tensor) -> Tensor:
+    return matmul(a, b)
+
+
 def _mv(a: Tensor, v: Tensor) -> Tensor:
-    return (a @ v.unsqueeze(-1)).squeeze(-1)
+    return matvec(a, v)
 
 
 def _sym(a: Tensor) -> Tensor:
@@ -426,10 +432,10 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         terminal = _Constraint(U=None, inv_s=None, V=None, rest=None, U2=U2, gmask=gmask, G=G_next)
     for t in range(N - 1, -1, -1):
         A, Bu = lqr.A[:, t], lqr.B[:, t]
-        PA, PB = P @ A, P @ Bu
-        Qxx = lqr.Q[:, t] + _mT(A) @ PA
-        Quu = _sym(lqr.R[:, t] + _mT(Bu) @ PB)
-        Qux = lqr.S[:, t] + _mT(Bu) @ PA
+        PA, PB = _mm(P, A), _mm(P, Bu)
+        Qxx = lqr.Q[:, t] + _mm(_mT(A), PA)
+        Quu = _sym(lqr.R[:, t] + _mm(_mT(Bu), PB))
+        Qux = lqr.S[:, t] + _mm(_mT(Bu), PA)
         if constrained:
             C = lqr.C[:, t] * lqr.mask[:, t].unsqueeze(-1) if lqr.C is not None else A.new_zeros(Bsz, 0, nx)
             D = lqr.D[:, t] * lqr.mask[:, t].unsqueeze(-1) if lqr.D is not None else A.new_zeros(Bsz, 0, nu)
@@ -460,8 +466,8 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
             L, info = _cholesky(Quu + rho)
             K = -_cholesky_solve(Qux, L)
         ok = ok & (info == 0)
-        KtQuu = _mT(K) @ Quu
-        P = _sym(Qxx + KtQuu @ K + _mT(K) @ Qux + _mT(Qux) @ K)
+        KtQuu = _mm(_mT(K), Quu)
+        P = _sym(Qxx + _mm(KtQuu, K) + _mm(_mT(K), Qux) + _mm(_mT(Qux), K))
         Ps[t], Ks[t], Quus[t], Quxs[t], chols[t] = P, K, Quu, Qux, L
     return RiccatiFactor(
         lqr=lqr,
