@@ -27,10 +27,10 @@ PARTS = {
 #: the same for compiled kernels (``ILQROptions.compile``), whose insides cProfile cannot see
 COMPILED_PARTS = {
     "iterations (compiled: expansion, Riccati, line search)": ("ilqr.py", "_iteration"),
+    "AL violation and dual update": ("altro.py", "_measures"),
     "initial rollout": ("batching.py", "rollout"),
-    "AL objective": ("augmented_lagrangian.py", "value"),
-    "AL violation": ("augmented_lagrangian.py", "violation"),
-    "multiplier updates": ("augmented_lagrangian.py", "updated_duals"),
+    "initial AL objective": ("augmented_lagrangian.py", "value"),
+    "MPC multiplier update": ("augmented_lagrangian.py", "updated_duals"),
     "final cost and violation": ("altro.py", "_cost_and_violation"),
 }
 
