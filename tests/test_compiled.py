@@ -1,7 +1,8 @@
 """``compile=True`` (torchtraj.compiled): the same solver logic on torch.compile'd kernels gives the eager answers.
 
-Default run: the MPC policy's warm-started ALTRO steps on a short horizon. ``-m slow``: ALTRO to convergence with its
-projection. Each first call compiles its kernels (about a minute on two cores), so the problems are short.
+Default run: the MPC policy's warm-started ALTRO steps on a short horizon, and a float32 ALTRO solve with a failing
+instance. ``-m slow``: ALTRO to convergence with its projection. Each first call compiles its kernels (about a minute
+on two cores), so the problems are short.
 """
 
 import dataclasses
@@ -55,3 +56,20 @@ def test_compiled_mpc_steps_match_eager():
         u_eager, u_compiled = eager(x), compiled(x)
         torch.testing.assert_close(u_compiled, u_eager, atol=1e-9, rtol=0)
         x = torch.func.vmap(lambda s, a: problem.dynamics(s, a, problem.params))(x, u_eager)
+
+
+def test_compiled_float32_altro_matches_eager_and_isolates_a_failing_instance():
+    # float32 batches shorter than a vector register once met an inductor miscompile of argmax (ilqr._first_true)
+    problem = tt.problems.get("pendulum", dtype=torch.float32).replace(
+        horizon=8, u_init=torch.zeros(1, dtype=torch.float32), terminal_eq=None)
+    x0 = tt.problems.sample_x0("pendulum", 3, seed=1).float()
+    x0[1] = float("nan")
+    opts = tt.ALTROOptions(iterations_inner=40, iterations_outer=6)
+    eager = tt.solve(problem, x0, "altro", options=opts)
+    compiled = tt.solve(problem, x0, "altro", options=dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True)))
+    assert compiled.U.dtype == torch.float32
+    assert torch.equal(compiled.status, eager.status) and torch.equal(compiled.iterations, eager.iterations)
+    assert int(compiled.status[1]) == int(tt.Status.NON_FINITE)
+    keep = torch.tensor([0, 2])
+    torch.testing.assert_close(compiled.U[keep], eager.U[keep], atol=1e-5, rtol=0)
+    torch.testing.assert_close(compiled.cost[keep], eager.cost[keep], atol=1e-5, rtol=1e-5)

@@ -117,6 +117,14 @@ def _update_regularization(rho, drho, success, opts: ILQROptions):
     return torch.where(success, r_dec, r_inc), torch.where(success, d_dec, d_inc)
 
 
+def _first_true(mask: Tensor) -> Tensor:
+    """Index of the first true entry of each row of ``mask (B, l)`` (``l − 1`` where none is): the count of
+    leading false entries. Not ``argmax``: compiled for float32 batches shorter than a vector register, inductor
+    (torch 2.13) reads the argmax of the loop's remainder uninitialised (``tests/test_compiled.py``)."""
+    leading = (~mask).to(torch.long).cumprod(-1).sum(-1)
+    return leading.clamp(max=mask.shape[-1] - 1)
+
+
 def _scaled_step(d: Tensor, U: Tensor) -> Tensor:
     """ALTRO's gradient measure ``mean_k max_i |d_ki| / (|u_ki| + 1)``: ``(B,)``."""
     return (d.abs() / (U.abs() + 1.0)).amax(-1).mean(-1)
@@ -158,7 +166,7 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
         accept = (torch.isfinite(Jc) & bounded & (expected > 0)
                   & (ratio > opts.line_search_lower) & (ratio < opts.line_search_upper))
-        idx = torch.argmax(accept.to(torch.int8), dim=1)  # first (largest) accepted step of the round
+        idx = _first_true(accept)  # first (largest) accepted step of the round
         new = accept.any(1) & ~found
         Xa, Ua = _where(new, Xc[rows, idx], Xa), _where(new, Uc[rows, idx], Ua)
         Ja, alpha = torch.where(new, Jc[rows, idx], Ja), torch.where(new, alphas[idx], alpha)
