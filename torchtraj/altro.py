@@ -169,7 +169,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     backward = factorize_sqrt if opts.square_root else factorize
     measures = kernel(_measures, inner.compile)
     J = kernel(AugmentedLagrangian.value, inner.compile)(al, X, U, params)
-    violation, _, _ = measures(al, X, U, params, opts)
+    violation = kernel(AugmentedLagrangian.violation, inner.compile)(al, X, U, params)
     status = start_status(x0, X, J, inner)
     running = status == Status.RUNNING
     al_done = torch.zeros_like(running)

@@ -138,12 +138,6 @@ def _candidates(problem, params, x0, X, U, K, d, alphas):
     return closed_loop_rollout(problem.dynamics, starts, feedforward, params, X, K)
 
 
-def _evaluate(problem, objective, params, x0, X, U, K, d, alphas):
-    """The candidates of :func:`_candidates` and their objective values ``(B, l)``."""
-    Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
-    return Xc, Uc, objective.value(Xc, Uc, params)
-
-
 def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQROptions):
     """Backtracking line search on the step size; returns the accepted ``(X, U, J, alpha)`` and a found mask.
 
@@ -160,7 +154,8 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
     Xa, Ua, Ja, alpha = X, U, J, torch.zeros_like(J)
     for start in range(0, L, per_round):
         alphas = all_alphas[start:start + per_round]
-        Xc, Uc, Jc = _evaluate(problem, objective, params, x0, X, U, K, d, alphas)  # Jc (B, l)
+        Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
+        Jc = objective.value(Xc, Uc, params)  # (B, l)
         expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
         ratio = (J.unsqueeze(1) - Jc) / expected
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)

@@ -49,19 +49,12 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .compiled import matmul, matvec
+from .compiled import matmul as _mm
+from .compiled import matvec as _mv
 
 
 def _mT(a: Tensor) -> Tensor:
     return a.transpose(-1, -2)
-
-
-def _mm(a: Tensor, b: Tensor) -> Tensor:
-    return matmul(a, b)
-
-
-def _mv(a: Tensor, v: Tensor) -> Tensor:
-    return matvec(a, v)
 
 
 def _sym(a: Tensor) -> Tensor:

@@ -258,8 +258,9 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
                horizon: Optional[int] = None, iterations: int = 3, compile: bool = False) -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
     and hold), after untimed warm-up steps; then profile ``profile_steps`` more to split the time into
-    :data:`torchtraj.bench.profile.PARTS` (compiled: :data:`~torchtraj.bench.profile.COMPILED_PARTS`). Compiled (``compile``), the warm-up is 3 steps (kernels that first run
-    at the second or third step compile there), and ``first_call_s`` is all of it."""
+    :data:`torchtraj.bench.profile.PARTS` (compiled: :data:`~torchtraj.bench.profile.COMPILED_PARTS`). Compiled
+    (``compile``), the warm-up is 3 steps (kernels that first run at the second or third step compile there), and
+    ``first_call_s`` is all of it."""
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the environments)

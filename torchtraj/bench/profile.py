@@ -30,6 +30,7 @@ COMPILED_PARTS = {
     "AL violation and dual update": ("altro.py", "_measures"),
     "initial rollout": ("batching.py", "rollout"),
     "initial AL objective": ("augmented_lagrangian.py", "value"),
+    "initial AL violation": ("augmented_lagrangian.py", "violation"),
     "MPC multiplier update": ("augmented_lagrangian.py", "updated_duals"),
     "final cost and violation": ("altro.py", "_cost_and_violation"),
 }
