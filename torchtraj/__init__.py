@@ -2,6 +2,7 @@
 
 from .altro import ALTROOptions
 from .ilqr import ILQROptions
+from .interior_point import IPOptions
 from .projection import ProjectionOptions
 from .integrators import euler, rk4
 from .mpc import MPC
@@ -11,7 +12,7 @@ from .solve import Method, solve
 from .status import Status
 from .time_penalty import TimePenalized, time_penalized
 
-__all__ = ["ALTROOptions", "History", "ILQROptions", "MPC", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
+__all__ = ["ALTROOptions", "History", "ILQROptions", "IPOptions", "MPC", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
 __version__ = "0.1.0"
 
 

@@ -146,21 +146,10 @@ def lagrangian_hessian(
     return H, HN
 
 
-def problem_lagrangian_hessian(problem, constraints, X, U, params, costate, nu=None, mu=None, nuN=None, muN=None):
-    """Hessians of the Lagrangian of ``problem`` at ``(X, U)``.
-
-    ``L_k = l(x, u) + λ_{k+1}ᵀ f(x, u) + ν_kᵀ h(x, u) + μ_kᵀ g(x, u)`` and
-    ``L_N = l_N(x) + ν_Nᵀ h_N(x) + μ_Nᵀ g_N(x)`` with ``costate (B, N+1, nx)`` (λ), stage
-    multipliers ``nu (B, N, me)``, ``mu (B, N, mi)`` and terminal ``nuN (B, meN)``, ``muN (B, miN)``
-    in the layout of :class:`~torchtraj.constraints.Constraints` (missing ones are zero).
-    Returns ``(H (B, N, nx+nu, nx+nu), H_N (B, nx, nx))``.
-    """
-    B, N, nx = X.shape[0], U.shape[1], X.shape[-1]
-    zeros = X.new_zeros
-    nu = zeros(B, N, constraints.me) if nu is None else nu
-    mu = zeros(B, N, constraints.mi) if mu is None else mu * constraints.ineq_knot_mask
-    nuN = zeros(B, constraints.meN) if nuN is None else nuN
-    muN = zeros(B, constraints.miN) if muN is None else muN
+def _problem_lagrangians(problem, constraints, nx: int):
+    """Per-instance stage and terminal Lagrangians of ``problem`` with stacked multiplier vectors:
+    ``L_k(x, u, w) = l + λ_{k+1}ᵀ f + νᵀ h + μᵀ g`` with ``w = (λ_{k+1}, ν, μ)``, and
+    ``L_N(x, w) = l_N + ν_Nᵀ h_N + μ_Nᵀ g_N`` with ``w = (ν_N, μ_N)``."""
     me, mi = constraints.me, constraints.mi
 
     def stage(x, u, w, p):
@@ -181,5 +170,53 @@ def problem_lagrangian_hessian(problem, constraints, X, U, params, costate, nu=N
             out = out + (m * constraints.terminal_ineq(x, p)).sum()
         return out
 
-    stage_w = torch.cat([costate[:, 1:], nu, mu], -1)
-    return lagrangian_hessian(stage, terminal, X, U, params, stage_w, torch.cat([nuN, muN], -1))
+    return stage, terminal
+
+
+def _stacked_weights(constraints, X, U, costate, nu, mu, nuN, muN):
+    B, N = X.shape[0], U.shape[1]
+    zeros = X.new_zeros
+    nu = zeros(B, N, constraints.me) if nu is None else nu
+    mu = zeros(B, N, constraints.mi) if mu is None else mu * constraints.ineq_knot_mask
+    nuN = zeros(B, constraints.meN) if nuN is None else nuN
+    muN = zeros(B, constraints.miN) if muN is None else muN
+    return torch.cat([costate[:, 1:], nu, mu], -1), torch.cat([nuN, muN], -1)
+
+
+def problem_lagrangian_hessian(problem, constraints, X, U, params, costate, nu=None, mu=None, nuN=None, muN=None):
+    """Hessians of the Lagrangian of ``problem`` at ``(X, U)``.
+
+    ``L_k = l(x, u) + λ_{k+1}ᵀ f(x, u) + ν_kᵀ h(x, u) + μ_kᵀ g(x, u)`` and
+    ``L_N = l_N(x) + ν_Nᵀ h_N(x) + μ_Nᵀ g_N(x)`` with ``costate (B, N+1, nx)`` (λ), stage
+    multipliers ``nu (B, N, me)``, ``mu (B, N, mi)`` and terminal ``nuN (B, meN)``, ``muN (B, miN)``
+    in the layout of :class:`~torchtraj.constraints.Constraints` (missing ones are zero).
+    Returns ``(H (B, N, nx+nu, nx+nu), H_N (B, nx, nx))``.
+    """
+    stage, terminal = _problem_lagrangians(problem, constraints, X.shape[-1])
+    stage_w, terminal_w = _stacked_weights(constraints, X, U, costate, nu, mu, nuN, muN)
+    return lagrangian_hessian(stage, terminal, X, U, params, stage_w, terminal_w)
+
+
+def problem_lagrangian_expansion(problem, constraints, X, U, params, costate, nu=None, mu=None, nuN=None, muN=None):
+    """Values, gradients and Hessians of the Lagrangians of :func:`problem_lagrangian_hessian` (the
+    ``-λ_kᵀ x_k`` terms of the dynamics rows are left to the caller).
+
+    Returns ``(L (B, N), L_z (B, N, nz), L_zz (B, N, nz, nz), L_N (B,), L_Nx (B, nx), L_Nxx (B, nx, nx))``.
+    """
+    nx = X.shape[-1]
+    stage, terminal = _problem_lagrangians(problem, constraints, nx)
+    stage_w, terminal_w = _stacked_weights(constraints, X, U, costate, nu, mu, nuN, muN)
+    Z = _stage_points(X, U)
+    nz = Z.shape[-1]
+
+    def stage_vgh(zw, p):
+        w = zw[nz:]
+        return _value_gradient_hessian(lambda z, p_: stage(z[:nx], z[nx:], w, p_))(zw[:nz], p)
+
+    def terminal_vgh(xw, p):
+        w = xw[nx:]
+        return _value_gradient_hessian(lambda x, p_: terminal(x, w, p_))(xw[:nx], p)
+
+    L, Lz, Lzz = map_state(stage_vgh, torch.cat([Z, stage_w], -1), params)
+    LN, LNx, LNxx = map_state(terminal_vgh, torch.cat([X[:, -1], terminal_w], -1), params)
+    return L, Lz, Lzz, LN, LNx, LNxx

@@ -19,6 +19,7 @@ from torch import Tensor
 from . import implicit
 from .altro import ALTROOptions, solve_altro
 from .ilqr import ILQROptions, solve_ilqr
+from .interior_point import IPOptions, solve_interior_point
 from .problem import Problem
 from .solution import Solution
 
@@ -29,9 +30,10 @@ class Method(str, enum.Enum):
     ILQR = "ilqr"
     ALTRO = "altro"
     AL_ILQR = "al-ilqr"
+    IPM = "ipm"
 
 
-OPTIONS = {Method.ILQR: ILQROptions, Method.ALTRO: ALTROOptions, Method.AL_ILQR: ALTROOptions}
+OPTIONS = {Method.ILQR: ILQROptions, Method.ALTRO: ALTROOptions, Method.AL_ILQR: ALTROOptions, Method.IPM: IPOptions}
 
 
 def _batched(value, name: str, shape: tuple, problem: Problem) -> Optional[Tensor]:
@@ -109,8 +111,8 @@ def solve(
     params = problem.batched_params(B)
     if getattr(opts, "verbose", False):
         _ensure_log_handler()
-    if duals is not None and method is Method.ILQR:
-        raise ValueError("method 'ilqr' has no multipliers to warm-start; duals is for 'altro' / 'al-ilqr'")
+    if duals is not None and method in (Method.ILQR, Method.IPM):
+        raise ValueError(f"method {method.value!r} takes no warm-started duals; duals is for 'altro' / 'al-ilqr'")
     if not implicit.requires_gradients(x0, params):
         return _dispatch(problem, method, opts, x0.contiguous(), U0.contiguous(), X0, params, B, duals)
     # a differentiable solve: the method runs on detached inputs, gradients come from its KKT point
@@ -138,6 +140,9 @@ def _dispatch(problem: Problem, method: Method, opts, x0: Tensor, U0: Tensor, X0
             opts = dataclasses.replace(opts, projection=False)
         X0 = None if X0 is None else X0.expand(B, *X0.shape[1:]).contiguous()
         return solve_altro(problem, x0, U0, params, opts, X0=X0, method=method.value, duals=duals)
+    if method is Method.IPM:
+        X0 = None if X0 is None else X0.expand(B, *X0.shape[1:]).contiguous()
+        return solve_interior_point(problem, x0, U0, params, opts, X0=X0, method=method.value)
     if method is Method.ILQR:
         if X0 is not None:
             raise ValueError("method 'ilqr' simulates its states from x0 and cannot take X0; use a method that "

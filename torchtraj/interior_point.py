@@ -1,0 +1,596 @@
+r"""A primal-dual interior-point method on multiple shooting, batched (FATROP, papers/fatrop.md).
+
+FATROP (§II-B, §III) is IPOPT's algorithm applied to the multiple-shooting problem, with the
+reduced primal-dual system solved by a Riccati recursion generalised to stagewise equality
+constraints. Here the inequality rows ``g(z) ≤ 0`` of the problem (the stacked blocks of
+:class:`~torchtraj.constraints.Constraints`: path and terminal inequalities and finite bounds) get
+slacks ``s ≥ 0`` and the barrier problem (FATROP eq. 3, with this library's sign of ``g``) is
+
+.. math::
+
+    \min_{w, s}\; J(w) - μ \sum_i \log s_i \quad \text{s.t.}\quad
+    x_{k+1} = f(x_k, u_k),\; h(w) = 0,\; g(w) + s = 0,
+
+``w = (X, U)`` with ``x_0`` fixed. Its primal-dual Newton step (eq. 6) with the inequality multipliers
+``z`` (the multiplier of ``g + s = 0`` is the bound multiplier of ``s`` at stationarity in ``s``),
+after eliminating ``Δs`` and ``Δz`` (eqs. 7-8), is the equality-constrained LQR problem (eq. 9)
+
+.. math::
+
+    H_k = ∇^2_{z_k z_k} \mathcal L + G_k^T Σ_k G_k + δ_w I,\quad
+    \begin{bmatrix} q_k \\ r_k \end{bmatrix} = ∇_{z_k} \mathcal L + G_k^T S_k^{-1} (μ e + Z_k g_k),\quad
+    Σ_k = S_k^{-1} Z_k,
+
+with the dynamics linearised around the (possibly defective) trajectory — the defects
+``f(x_k, u_k) − x_{k+1}`` are the affine terms ``c_k`` — and the equality rows ``h`` as stagewise
+constraints of the shared Riccati core (:mod:`torchtraj.riccati`). Because the linear terms are the
+*whole* Lagrangian gradient ``∇\mathcal L`` (costates ``λ``, equality multipliers ``ν``, ``z``), the
+core's costates and constraint multipliers are the steps ``Δλ``, ``Δν``. Then (eq. 8)
+
+.. math::  Δs = −(g + s) − G Δw, \qquad Δz = S^{-1} (μ e + Z g + Z G Δw).
+
+The rest is IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), with its defaults in
+:class:`IPOptions`:
+
+* **Barrier update** (monotone Fiacco-McCormick): when the barrier problem's error ``E_μ ≤ κ_ε μ``,
+  ``μ ← max(tol/10, min(κ_μ μ, μ^{θ_μ}))`` (repeatedly within one iteration) and the filter is reset.
+  Converged when ``E_0 ≤ tol``; ``E_μ`` is the scaled maximum of the Lagrangian gradient, the
+  constraint violation (defects, equalities, ``g + s``) and ``S z − μ`` (IPOPT eq. 5).
+* **Fraction to boundary**: ``τ = max(τ_min, 1 − μ)``; ``s`` and ``z`` keep a fraction ``1 − τ`` of their
+  distance to zero, ``z`` with its own step ``α_z``, then ``z`` is clipped to ``[μ/(κ_Σ s), κ_Σ μ/s]``.
+* **Filter line search** on ``θ = ‖c‖₁`` and the barrier objective ``φ``: switching condition,
+  Armijo condition for f-type steps, sufficient decrease in ``θ`` or ``φ`` otherwise, filter
+  augmentation after h-type steps. The backtracking step sizes ``α_max β^j`` are evaluated together,
+  every instance and step size in one batched evaluation (multiple shooting needs no rollout).
+* **Inertia correction** (FATROP §III "Hessian regularization"): the Riccati recursion reports
+  whether every reduced Hessian is positive definite (``RiccatiFactor.ok``); if not, ``δ_w`` grows by
+  IPOPT's rule (first ``δ_w^0``, or ``κ_w^- δ_w^{last}``, then ``κ_w^+`` or ``κ̄_w^+`` per attempt) and the
+  batch is factorised again, instances that already succeeded keeping their factor.
+
+Left out, and what happens instead: there is no feasibility-restoration phase and no second-order
+correction. An instance whose line search finds no acceptable step keeps its iterate and
+retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regularization_max`` its status
+is ``MAX_REGULARIZATION``. The filter holds the last ``filter_size`` entries of each instance.
+Multipliers start at zero (``λ``, ``ν``) and ``dual_initial`` (``z``); slacks at
+``max(−g, κ_1 max(1, |g|))``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from .altro import multiplier_blocks
+from .batching import map_stage, map_state, rollout
+from .compiled import kernel
+from .compiled import matvec as _mv
+from .constraints import Constraints
+from .derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_jacobian
+from .ilqr import _first_true, total_cost
+from .problem import Problem
+from .riccati import LQR, LQRVectors, factorize
+from .solution import History, Solution
+from .status import Status
+
+logger = logging.getLogger("torchtraj")
+
+
+@dataclass
+class IPOptions:
+    """Options of :func:`solve_interior_point`; defaults are IPOPT's (FATROP uses the same)."""
+
+    #: Converged when the unscaled-barrier error ``E_0`` is below this (``tol``); ``None``: 1e-8 in float64,
+    #: 1e-5 in float32.
+    tolerance: Optional[float] = None
+    #: Maximum iterations (steps taken or attempted; ``max_iter``).
+    iterations: int = 1000
+    #: Initial barrier parameter ``μ_0`` (``mu_init``).
+    barrier_initial: float = 0.1
+    #: ``κ_μ`` and ``θ_μ`` of the barrier update (``mu_linear_decrease_factor``, ``mu_superlinear_decrease_power``).
+    barrier_decrease: float = 0.2
+    barrier_power: float = 1.5
+    #: The barrier problem is solved when ``E_μ ≤ κ_ε μ`` (``barrier_tol_factor``).
+    barrier_tolerance_factor: float = 10.0
+    #: ``τ_min`` of the fraction-to-boundary rule (``tau_min``).
+    fraction_to_boundary: float = 0.99
+    #: ``s_max`` of the error scaling (IPOPT eq. 5).
+    scaling_threshold: float = 100.0
+    #: Slack push from zero ``κ_1`` (``bound_push``) and initial inequality multipliers (``bound_mult_init_val``).
+    bound_push: float = 1e-2
+    dual_initial: float = 1.0
+    #: ``κ_Σ``: the multipliers stay within ``[μ/(κ_Σ s), κ_Σ μ/s]`` (``kappa_sigma``).
+    dual_safeguard: float = 1e10
+    #: Filter margins ``γ_θ``, ``γ_φ``, Armijo ``η_φ``, switching ``δ, s_θ, s_φ``, limits ``θ_max``, ``θ_min`` as
+    #: factors of ``max(1, θ_0)``.
+    filter_theta: float = 1e-5
+    filter_phi: float = 1e-8
+    armijo: float = 1e-8
+    switching: float = 1.0
+    switching_theta_power: float = 1.1
+    switching_phi_power: float = 2.3
+    theta_max_factor: float = 1e4
+    theta_min_factor: float = 1e-4
+    #: Entries kept per instance in the filter.
+    filter_size: int = 64
+    #: Backtracking factor and the number of step sizes tried, all evaluated in one batch.
+    line_search_decrease: float = 0.5
+    line_search_steps: int = 20
+    #: Inertia correction ``δ_w``: first value, bounds and factors (``first_hessian_perturbation``,
+    #: ``min/max_hessian_perturbation``, ``perturb_inc_fact_first``, ``perturb_inc_fact``, ``perturb_dec_fact``).
+    regularization_first: float = 1e-4
+    regularization_min: float = 1e-20
+    regularization_max: float = 1e40
+    regularization_increase_first: float = 100.0
+    regularization_increase: float = 8.0
+    regularization_decrease: float = 1.0 / 3.0
+    #: Factorisation attempts per iteration before the instance gives up.
+    regularization_attempts: int = 40
+    #: Divergence limit on ``|x|`` (``diverging_iterates_tol``: 1e20 in IPOPT; ``max_state`` of the other methods).
+    max_state: float = 1e8
+    #: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.compiled`).
+    compile: bool = False
+    #: Log one line per iteration through the ``torchtraj`` logger.
+    verbose: bool = False
+
+    def tolerance_for(self, dtype: torch.dtype) -> float:
+        if self.tolerance is not None:
+            return self.tolerance
+        return 1e-8 if dtype == torch.float64 else 1e-5
+
+
+@dataclass
+class Iterate:
+    """Primal-dual point of the batch: states, controls, slacks ``s`` and multipliers ``z`` of the stage
+    ``(B, N, mi)`` and terminal ``(B, miN)`` inequalities, costates ``lam (B, N+1, nx)``, equality
+    multipliers ``nu (B, N, me)``, ``nuN (B, meN)``."""
+
+    X: Tensor
+    U: Tensor
+    s: Tensor
+    sN: Tensor
+    z: Tensor
+    zN: Tensor
+    y: Tensor
+    yN: Tensor
+    lam: Tensor
+    nu: Tensor
+    nuN: Tensor
+
+    def where(self, mask: Tensor, other: "Iterate") -> "Iterate":
+        return Iterate(*(_where(mask, a, b) for a, b in zip(self._fields(), other._fields())))
+
+    def _fields(self):
+        return (self.X, self.U, self.s, self.sN, self.z, self.zN, self.y, self.yN, self.lam, self.nu, self.nuN)
+
+
+@dataclass
+class Model:
+    """Values and derivatives at an iterate (one expansion), and the measures of its optimality."""
+
+    J: Tensor  # (B,) objective
+    Lz: Tensor  # (B, N, nz) gradient of the stage Lagrangians (without -λ_k x_k)
+    Lzz: Tensor
+    LNx: Tensor
+    LNxx: Tensor
+    f: Tensor  # (B, N, nx) dynamics values; fz their Jacobians
+    fz: Tensor
+    g: Tensor  # (B, N, mi), Gz (B, N, mi, nz); masked rows are zero
+    Gz: Tensor
+    h: Tensor
+    Hz: Tensor
+    gN: Tensor
+    GN: Tensor
+    hN: Tensor
+    HN: Tensor
+    theta: Tensor  # (B,) ‖c‖₁
+    violation: Tensor  # (B,) largest violation of the problem's constraints and the dynamics
+    dual_error: Tensor  # (B,) scaled largest Lagrangian gradient entry
+    primal_error: Tensor  # (B,) largest residual of the barrier problem's constraints
+    finite: Tensor  # (B,)
+    knots: Tensor  # (N, mi): 1 where a stage inequality row applies
+
+
+def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+
+
+def _flat_abs(*parts: Tensor) -> Tensor:
+    B = parts[0].shape[0]
+    return torch.cat([p.reshape(B, -1).abs() for p in parts] + [parts[0].new_zeros(B, 1)], -1)
+
+
+# ----------------------------------------------------------------------------------------- expansion
+def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians: bool):
+    """Values (and Jacobians) of the stage inequalities (rows off at a knot are zero), stage equalities,
+    terminal inequalities and equalities."""
+    B, N, nx, nu = X.shape[0], U.shape[-2], X.shape[-1], U.shape[-1]
+    lead = X.shape[:-2]
+    nz = nx + nu
+    Xs, xN = X[..., :-1, :], X[..., -1, :]
+
+    def stage(fn, m):
+        if not m:
+            return X.new_zeros(*lead, N, 0), X.new_zeros(*lead, N, 0, nz)
+        if jacobians:
+            return stage_jacobian(fn, Xs, U, params)
+        return map_stage(fn, Xs, U, params), None
+
+    def terminal(fn, m):
+        if not m:
+            return X.new_zeros(*lead, 0), X.new_zeros(*lead, 0, nx)
+        if jacobians:
+            return terminal_jacobian(fn, xN, params)
+        return map_state(fn, xN, params), None
+
+    g, Gz = stage(cons.stage_ineq, cons.mi)
+    knots = cons.ineq_knot_mask
+    g = g * knots
+    Gz = None if Gz is None else Gz * knots.unsqueeze(-1)
+    h, Hz = stage(cons.stage_eq, cons.me)
+    gN, GN = terminal(cons.terminal_ineq, cons.miN)
+    hN, HN = terminal(cons.terminal_eq, cons.meN)
+    del B
+    return g, Gz, h, Hz, gN, GN, hN, HN
+
+
+def _violation(cons: Constraints, defects: Tensor, g, h, gN, hN) -> Tensor:
+    return _flat_abs(defects, h, hN, g.clamp_min(0), gN.clamp_min(0)).amax(-1)
+
+
+def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions) -> Model:
+    """Everything the iteration needs at ``it``: one pass of ``torch.func`` over the batch."""
+    X, U = it.X, it.U
+    nx = X.shape[-1]
+    _, Lz, Lzz, _, LNx, LNxx = problem_lagrangian_expansion(problem, cons, X, U, params, it.lam, it.nu, it.y,
+                                                            it.nuN, it.yN)
+    f, fz = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
+    g, Gz, h, Hz, gN, GN, hN, HN = _constraint_parts(cons, X, U, params, jacobians=True)
+    J = total_cost(problem, X, U, params)
+    defects = f - X[:, 1:]
+    knots = cons.ineq_knot_mask
+    theta = _flat_abs(defects, h, hN, (g + it.s) * knots, gN + it.sN).sum(-1)
+    primal_error = _flat_abs(defects, h, hN, (g + it.s) * knots, gN + it.sN).amax(-1)
+    violation = _violation(cons, defects, g, h, gN, hN)
+    # Lagrangian gradient: x_k also appears in the dynamics row of stage k-1 (−λ_k); x_0 is fixed
+    grad_x = Lz[:, 1:, :nx] - it.lam[:, 1:-1]
+    grad_N = LNx - it.lam[:, -1]
+    s_max = opts.scaling_threshold
+    multipliers = _flat_abs(it.lam, it.nu, it.nuN, it.y, it.yN, it.z, it.zN).sum(-1)
+    count = it.lam[0].numel() + it.nu[0].numel() + it.nuN[0].numel() + 2 * (cons.mi * problem.N + cons.miN) + \
+        U[0].numel() + X[0].numel()
+    s_d = torch.clamp(multipliers / count, min=s_max) / s_max
+    slack_grad = (it.y - it.z) * knots  # stationarity in s
+    dual_error = _flat_abs(grad_x, Lz[:, :, nx:], grad_N, slack_grad, it.yN - it.zN).amax(-1) / s_d
+    finite = torch.isfinite(torch.cat([Lz.flatten(1), Lzz.flatten(1), LNxx.flatten(1), fz.flatten(1), Gz.flatten(1),
+                                       Hz.flatten(1), GN.flatten(1), HN.flatten(1), J.unsqueeze(1),
+                                       theta.unsqueeze(1)], -1)).all(-1)
+    return Model(J, Lz, Lzz, LNx, LNxx, f, fz, g, Gz, h, Hz, gN, GN, hN, HN, theta, violation, dual_error,
+                 primal_error, finite, knots)
+
+
+def complementarity_error(cons: Constraints, it: Iterate, mu: Tensor, opts: IPOptions) -> Tensor:
+    """``‖S z − μ‖∞ / s_c`` ``(B,)`` (IPOPT eq. 5); rows off at a knot do not count."""
+    knots = cons.ineq_knot_mask
+    m = mu.reshape(-1, 1, 1)
+    stage = (it.s * it.z - m) * knots
+    terminal = it.sN * it.zN - mu.unsqueeze(-1)
+    n = max(cons.mi * cons.problem.N + cons.miN, 1)
+    s_max = opts.scaling_threshold
+    s_c = torch.clamp(_flat_abs(it.z * knots, it.zN).sum(-1) / n, min=s_max) / s_max
+    return _flat_abs(stage, terminal).amax(-1) / s_c
+
+
+# ------------------------------------------------------------------------------------- Newton step
+def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int):
+    """The reduced primal-dual system (FATROP eq. 9) as LQR matrices (without ``δ_w``) and right-hand side."""
+    B = x0.shape[0]
+    m = mu.reshape(B, 1, 1)
+    sigma = it.z / it.s  # rows off at a knot: z = 0
+    sigmaN = it.zN / it.sN
+    H = model.Lzz + model.Gz.transpose(-1, -2) @ (sigma.unsqueeze(-1) * model.Gz)
+    HN = model.LNxx + model.GN.transpose(-1, -2) @ (sigmaN.unsqueeze(-1) * model.GN)
+    barrier = (it.z - it.y + (m + it.z * model.g) / it.s) * model.knots  # zero on rows that are off
+    grad = model.Lz + _mv(model.Gz.transpose(-1, -2), barrier)
+    grad = torch.cat([grad[..., :nx] - it.lam[:, :-1], grad[..., nx:]], -1)
+    barrierN = it.zN - it.yN + (mu.unsqueeze(-1) + it.zN * model.gN) / it.sN
+    gradN = model.LNx - it.lam[:, -1] + _mv(model.GN.transpose(-1, -2), barrierN)
+    me, meN = model.h.shape[-1], model.hN.shape[-1]
+    lqr = LQR(
+        A=model.fz[..., :nx], B=model.fz[..., nx:], Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx],
+        QN=HN,
+        C=model.Hz[..., :nx] if me else None, D=model.Hz[..., nx:] if me else None,
+        mask=torch.ones_like(model.h) if me else None,
+        CN=model.HN if meN else None, maskN=torch.ones_like(model.hN) if meN else None,
+    )
+    rhs = LQRVectors(q=grad[..., :nx], r=grad[..., nx:], qN=gradN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
+                     e=model.h if me else None, eN=model.hN if meN else None)
+    return lqr, rhs
+
+
+def regularized(lqr: LQR, delta: Tensor) -> LQR:
+    """``lqr`` with ``δ_w I`` added to every Hessian block (``delta (B,)``)."""
+    d = delta.reshape(-1, 1, 1, 1)
+    eye_x = torch.eye(lqr.Q.shape[-1], dtype=lqr.Q.dtype, device=lqr.Q.device)
+    eye_u = torch.eye(lqr.R.shape[-1], dtype=lqr.R.dtype, device=lqr.R.device)
+    return replace(lqr, Q=lqr.Q + d * eye_x, R=lqr.R + d * eye_u, QN=lqr.QN + d[:, 0] * eye_x)
+
+
+@dataclass
+class Direction:
+    dX: Tensor
+    dU: Tensor
+    ds: Tensor
+    dsN: Tensor
+    dz: Tensor
+    dzN: Tensor
+    dy: Tensor
+    dyN: Tensor
+    dlam: Tensor
+    dnu: Tensor
+    dnuN: Tensor
+    K: Tensor
+    ok: Tensor
+
+
+def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterate, mu: Tensor) -> Direction:
+    """Factorise the regularised system, solve it and recover ``Δs``, ``Δz`` (FATROP eq. 8)."""
+    factor = factorize(regularized(lqr, delta))
+    sol = factor.solve(rhs, multipliers=True)
+    dX, dU = sol.dx, sol.du
+    dw = torch.cat([dX[:, :-1], dU], -1)
+    Gdw = _mv(model.Gz, dw)
+    GdwN = _mv(model.GN, dX[:, -1])
+    on = model.knots
+    m = mu.reshape(-1, 1, 1)
+    ds = (-(model.g + it.s) - Gdw) * on
+    dz = (m + it.z * model.g + it.z * Gdw) / it.s * on
+    dsN = -(model.gN + it.sN) - GdwN
+    dzN = (mu.unsqueeze(-1) + it.zN * model.gN + it.zN * GdwN) / it.sN
+    dnu = sol.nu if sol.nu is not None else it.nu.new_zeros(it.nu.shape)
+    dnuN = sol.nuN if sol.nuN is not None else it.nuN.new_zeros(it.nuN.shape)
+    finite = torch.isfinite(torch.cat([dX.flatten(1), dU.flatten(1), sol.costate.flatten(1)], -1)).all(-1)
+    # the full step takes the multipliers y of g + s = 0 to z + Δz (stationarity in s)
+    dy, dyN = (it.z + dz - it.y) * on, it.zN + dzN - it.yN
+    return Direction(dX, dU, ds, dsN, dz, dzN, dy, dyN, sol.costate, dnu, dnuN, factor.K, factor.ok & finite)
+
+
+def _select(mask: Tensor, a: Direction, b: Direction) -> Direction:
+    fields = ("dX", "dU", "ds", "dsN", "dz", "dzN", "dy", "dyN", "dlam", "dnu", "dnuN", "K", "ok")
+    return Direction(*(_where(mask, getattr(a, f), getattr(b, f)) for f in fields))
+
+
+# ------------------------------------------------------------------------------------- line search
+def _max_step(value: Tensor, step: Tensor, tau: Tensor) -> Tensor:
+    """Largest ``α ≤ 1`` with ``value + α step ≥ (1 − τ) value`` (fraction to boundary), ``(B,)``."""
+    ratio = torch.where(step < 0, -tau.unsqueeze(-1) * value / torch.where(step < 0, step, -1.0), 1.0)
+    return torch.cat([ratio, ratio.new_ones(ratio.shape[0], 1)], -1).amin(-1)
+
+
+def _log_barrier(s: Tensor, sN: Tensor, knots: Tensor) -> Tensor:
+    """``Σ log s`` over the rows that apply: ``(B, *E)``."""
+    stage = torch.where(knots > 0, torch.log(s), 0.0).flatten(-2).sum(-1)
+    return stage + torch.log(sN).sum(-1)
+
+
+def _cost_directional(model: Model, it: Iterate, d: Direction) -> Tensor:
+    """``∇J · Δw`` from the Lagrangian gradient, without a further derivative: ``(B,)``."""
+    dw = torch.cat([d.dX[:, :-1], d.dU], -1)
+    stage = (model.Lz * dw).sum(-1) - (it.lam[:, 1:] * _mv(model.fz, dw)).sum(-1) \
+        - (it.nu * _mv(model.Hz, dw)).sum(-1) - (it.y * _mv(model.Gz, dw)).sum(-1)
+    dxN = d.dX[:, -1]
+    terminal = (model.LNx * dxN).sum(-1) - (it.nuN * _mv(model.HN, dxN)).sum(-1) - (it.yN * _mv(model.GN, dxN)).sum(-1)
+    return stage.sum(-1) + terminal
+
+
+@dataclass
+class Filter:
+    """Per-instance filter: ``entries (B, F, 2)`` of ``(θ, φ)`` (``+inf`` where empty) and the next slot."""
+
+    entries: Tensor
+    slot: Tensor
+
+    @classmethod
+    def empty(cls, batch: int, size: int, like: Tensor) -> "Filter":
+        return cls(like.new_full((batch, size, 2), float("inf")), torch.zeros(batch, dtype=torch.long, device=like.device))
+
+    def reset(self, mask: Tensor) -> "Filter":
+        return Filter(torch.where(mask.reshape(-1, 1, 1), float("inf"), self.entries), torch.where(mask, 0, self.slot))
+
+    def acceptable(self, theta: Tensor, phi: Tensor) -> Tensor:
+        """Candidates ``(B, L)`` not dominated by an entry."""
+        t, p = self.entries[..., 0].unsqueeze(1), self.entries[..., 1].unsqueeze(1)
+        return ((theta.unsqueeze(-1) < t) | (phi.unsqueeze(-1) < p)).all(-1)
+
+    def add(self, mask: Tensor, theta: Tensor, phi: Tensor) -> "Filter":
+        size = self.entries.shape[1]
+        slot = torch.nn.functional.one_hot(self.slot % size, size).to(torch.bool) & mask.unsqueeze(-1)
+        entry = torch.stack([theta, phi], -1).unsqueeze(1)
+        return Filter(torch.where(slot.unsqueeze(-1), entry, self.entries), self.slot + mask.long())
+
+
+@dataclass
+class Step:
+    it: Iterate
+    alpha: Tensor
+    found: Tensor
+    filter: Filter
+
+
+def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
+                filt: Filter, theta_max: Tensor, theta_min: Tensor, opts: IPOptions) -> Step:
+    """Filter line search (module docstring) over the step sizes ``α_max β^j``, all evaluated at once."""
+    B, L = it.X.shape[0], opts.line_search_steps
+    knots = model.knots
+    tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
+    a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
+    a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
+    powers = opts.line_search_decrease ** torch.arange(L, dtype=it.X.dtype, device=it.X.device)
+    alphas = a_max.unsqueeze(1) * powers  # (B, L)
+    a4 = alphas.reshape(B, L, 1, 1)
+    Xc = it.X.unsqueeze(1) + a4 * d.dX.unsqueeze(1)
+    Uc = it.U.unsqueeze(1) + a4 * d.dU.unsqueeze(1)
+    sc = it.s.unsqueeze(1) + a4 * d.ds.unsqueeze(1)
+    sNc = it.sN.unsqueeze(1) + alphas.unsqueeze(-1) * d.dsN.unsqueeze(1)
+    Jc = total_cost(problem, Xc, Uc, params)
+    defects = map_stage(problem.dynamics, Xc[..., :-1, :], Uc, params) - Xc[..., 1:, :]
+    g, _, h, _, gN, _, hN, _ = _constraint_parts(cons, Xc, Uc, params, jacobians=False)
+    lead = (B, L)
+    theta_c = torch.cat([p.reshape(*lead, -1).abs() for p in (defects, h, hN, (g + sc) * knots, gN + sNc)], -1).sum(-1)
+    m = mu.unsqueeze(1)
+    phi_c = Jc - m * _log_barrier(sc, sNc, knots)
+    theta = model.theta.unsqueeze(1)
+    phi = (model.J - mu * _log_barrier(it.s, it.sN, knots)).unsqueeze(1)
+    barrier_slope = (torch.where(knots > 0, d.ds / it.s, 0.0)).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
+    slope = (_cost_directional(model, it, d) - mu * barrier_slope).unsqueeze(1)
+    switching = (slope < 0) & (alphas * (-slope).clamp_min(0) ** opts.switching_phi_power
+                               > opts.switching * theta ** opts.switching_theta_power)
+    f_type = switching & (theta <= theta_min.unsqueeze(1))
+    armijo = phi_c <= phi + opts.armijo * alphas * slope
+    decrease = (theta_c <= (1.0 - opts.filter_theta) * theta) | (phi_c <= phi - opts.filter_phi * theta)
+    finite = torch.isfinite(theta_c) & torch.isfinite(phi_c)
+    accept = finite & (theta_c <= theta_max.unsqueeze(1)) & filt.acceptable(theta_c, phi_c) \
+        & torch.where(f_type, armijo, decrease)
+    scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
+    tiny = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1) < 10 * torch.finfo(it.X.dtype).eps * scale
+    idx = torch.where(tiny, 0, _first_true(accept))
+    rows = torch.arange(B, device=it.X.device)
+    found = accept.any(1) | tiny
+    alpha = alphas[rows, idx]
+    h_type = found & ~tiny & ~(f_type & armijo)[rows, idx]
+    filt = filt.add(h_type, (1.0 - opts.filter_theta) * model.theta, phi[:, 0] - opts.filter_phi * model.theta)
+    a = alpha.reshape(B, 1, 1)
+    z = it.z + a_dual.reshape(B, 1, 1) * d.dz
+    zN = it.zN + a_dual.unsqueeze(-1) * d.dzN
+    s = it.s + a * d.ds
+    sN = it.sN + alpha.unsqueeze(-1) * d.dsN
+    kappa = opts.dual_safeguard
+    mu3 = mu.reshape(B, 1, 1)
+    z = torch.maximum(torch.minimum(z, kappa * mu3 / s), mu3 / (kappa * s)) * knots
+    zN = torch.maximum(torch.minimum(zN, kappa * mu.unsqueeze(-1) / sN), mu.unsqueeze(-1) / (kappa * sN))
+    new = Iterate(X=it.X + a * d.dX, U=it.U + a * d.dU, s=s, sN=sN, z=z, zN=zN, y=it.y + a * d.dy,
+                  yN=it.yN + alpha.unsqueeze(-1) * d.dyN, lam=it.lam + a * d.dlam,
+                  nu=it.nu + a * d.dnu, nuN=it.nuN + alpha.unsqueeze(-1) * d.dnuN)
+    return Step(new, torch.where(found, alpha, 0.0), found, filt)
+
+
+# ------------------------------------------------------------------------------------------ solver
+def initial_iterate(cons: Constraints, params, X: Tensor, U: Tensor, opts: IPOptions) -> Iterate:
+    """Slacks ``max(−g, κ_1)`` (IPOPT's bound push for ``s ≥ 0``), ``z = dual_initial``, zero ``λ``, ``ν``."""
+    B, N, nx = X.shape[0], U.shape[1], X.shape[-1]
+    g, _, _, _, gN, _, _, _ = _constraint_parts(cons, X, U, params, jacobians=False)
+    knots = cons.ineq_knot_mask
+    s = torch.where(knots > 0, torch.clamp(-g, min=opts.bound_push), 1.0)
+    sN = torch.clamp(-gN, min=opts.bound_push)
+    z = opts.dual_initial * knots.expand_as(s)
+    zN = torch.full_like(sN, opts.dual_initial)
+    return Iterate(X, U, s, sN, z.clone(), zN, torch.zeros_like(s), torch.zeros_like(sN), X.new_zeros(B, N + 1, nx),
+                   X.new_zeros(B, N, cons.me), X.new_zeros(B, cons.meN))
+
+
+def _next_regularization(delta: Tensor, last: Tensor, opts: IPOptions) -> Tensor:
+    """IPOPT's inertia-correction rule for the next attempt after a failed factorisation with ``delta``."""
+    first = torch.where(last == 0, torch.full_like(delta, opts.regularization_first),
+                        torch.clamp(opts.regularization_decrease * last, min=opts.regularization_min))
+    grow = torch.where(last == 0, opts.regularization_increase_first, opts.regularization_increase) * delta
+    return torch.where(delta == 0, first, grow)
+
+
+def _barrier_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, running: Tensor, filt: Filter,
+                    tol: float, opts: IPOptions):
+    """Monotone barrier update, repeated while the barrier problem is already solved; resets the filter."""
+    floor = tol / 10.0
+    for _ in range(4):
+        error = torch.maximum(torch.maximum(model.dual_error, model.primal_error),
+                              complementarity_error(cons, it, mu, opts))
+        update = running & (error <= opts.barrier_tolerance_factor * mu) & (mu > floor)
+        smaller = torch.clamp(torch.minimum(opts.barrier_decrease * mu, mu ** opts.barrier_power), min=floor)
+        mu = torch.where(update, smaller, mu)
+        filt = filt.reset(update)
+    return mu, filt
+
+
+def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[IPOptions] = None,
+                         X0: Optional[Tensor] = None, method: str = "ipm") -> Solution:
+    """Solve ``problem`` from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and, optionally, states ``X0 (B, N+1, nx)``
+    (any guess: multiple shooting starts from defects; without it the controls are rolled out)."""
+    opts = options or IPOptions()
+    B, N, nx = x0.shape[0], problem.N, problem.nx
+    cons = Constraints(problem)
+    tol = opts.tolerance_for(x0.dtype)
+    if X0 is None:
+        X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
+    else:
+        X = torch.cat([x0.unsqueeze(1), X0[:, 1:]], 1)
+    it = initial_iterate(cons, params, X, U0, opts)
+    expand_k = kernel(expand, opts.compile)
+    direction_k = kernel(direction, opts.compile)
+    line_search_k = kernel(line_search, opts.compile)
+    mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device)
+    status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
+    start_ok = torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(U0).flatten(1).all(-1)
+    status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
+    status = torch.where((status == Status.RUNNING) & ~start_ok, int(Status.INFEASIBLE_START), status)
+    filt = Filter.empty(B, opts.filter_size, x0)
+    last = torch.zeros_like(mu)  # last nonzero δ_w that gave a positive definite system
+    floor = torch.zeros_like(mu)  # smallest δ_w of the next attempt (raised after a failed line search)
+    iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
+    K = x0.new_zeros(B, N, problem.nu, nx)
+    rows = []
+    theta_max = theta_min = None
+    for step in range(opts.iterations + 1):
+        model = expand_k(problem, cons, params, it, opts)
+        if theta_max is None:
+            theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
+            theta_max, theta_min = opts.theta_max_factor * theta_0, opts.theta_min_factor * theta_0
+        running = status == Status.RUNNING
+        error = torch.maximum(torch.maximum(model.dual_error, model.primal_error),
+                              complementarity_error(cons, it, torch.zeros_like(mu), opts))
+        status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
+        status = torch.where(running & model.finite & (error <= tol), int(Status.CONVERGED), status)
+        diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
+        status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
+        running = status == Status.RUNNING
+        if step == opts.iterations or not bool(running.any()):
+            break
+        mu, filt = _barrier_update(cons, model, it, mu, running, filt, tol, opts)
+        lqr, rhs = newton_lqr(model, it, mu, x0, nx)
+        delta = floor
+        d = direction_k(lqr, rhs, delta, model, it, mu)
+        pending = running & ~d.ok
+        for _ in range(opts.regularization_attempts):
+            if not bool(pending.any()):
+                break
+            delta = torch.where(pending, _next_regularization(delta, last, opts), delta)
+            pending = pending & (delta <= opts.regularization_max)
+            d = _select(pending, direction_k(lqr, rhs, delta, model, it, mu), d)
+            pending = pending & ~d.ok
+        factored = running & d.ok
+        ls = line_search_k(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, opts)
+        take = factored & ls.found
+        it = ls.it.where(take, it)
+        filt = Filter(_where(take, ls.filter.entries, filt.entries), torch.where(take, ls.filter.slot, filt.slot))
+        K = _where(take, d.K, K)
+        last = torch.where(take & (delta > 0), delta, last)
+        missed = factored & ~ls.found
+        floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
+                                                min=opts.regularization_first), torch.where(take, 0.0, floor))
+        blown = running & (~d.ok | (floor > opts.regularization_max))
+        status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
+        iterations = iterations + running.long()
+        rows.append({"cost": model.J, "max_violation": model.violation, "step_size": torch.where(take, ls.alpha, 0.0),
+                     "regularization": delta, "barrier": mu, "kkt_error": error})
+        if opts.verbose:
+            logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  mu %.1e  running %d", method, step,
+                        model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),
+                        running.sum().item())
+    status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
+    knots = cons.ineq_knot_mask
+    multipliers = multiplier_blocks(cons, torch.cat([it.z * knots, it.nu], -1), torch.cat([it.zN, it.nuN], -1))
+    return Solution(
+        X=it.X, U=it.U, K=K, cost=model.J, max_violation=model.violation, status=status, iterations=iterations,
+        history=History.from_rows(rows), costate=it.lam, multipliers=multipliers, method=method,
+    )
