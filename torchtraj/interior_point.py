@@ -40,8 +40,9 @@ The rest is IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), with i
   distance to zero, ``z`` with its own step ``α_z``, then ``z`` is clipped to ``[μ/(κ_Σ s), κ_Σ μ/s]``.
 * **Filter line search** on ``θ = ‖c‖₁`` and the barrier objective ``φ``: switching condition,
   Armijo condition for f-type steps, sufficient decrease in ``θ`` or ``φ`` otherwise, filter
-  augmentation after h-type steps. The backtracking step sizes ``α_max β^j`` are evaluated together,
-  every instance and step size in one batched evaluation (multiple shooting needs no rollout).
+  augmentation after h-type steps. The backtracking step sizes ``α_max β^j`` are evaluated in rounds of
+  ``line_search_parallel``, every instance and step size of a round in one batched evaluation (multiple
+  shooting needs no rollout); the full step is usually accepted in the first round.
 * **Inertia correction** (FATROP §III "Hessian regularization"): the Riccati recursion reports
   whether every reduced Hessian is positive definite (``RiccatiFactor.ok``); if not, ``δ_w`` grows by
   IPOPT's rule (first ``δ_w^0``, or ``κ_w^- δ_w^{last}``, then ``κ_w^+`` or ``κ̄_w^+`` per attempt) and the
@@ -116,9 +117,10 @@ class IPOptions:
     theta_min_factor: float = 1e-4
     #: Entries kept per instance in the filter.
     filter_size: int = 64
-    #: Backtracking factor and the number of step sizes tried, all evaluated in one batch.
+    #: Backtracking factor, the number of step sizes tried and how many are evaluated together per round.
     line_search_decrease: float = 0.5
     line_search_steps: int = 20
+    line_search_parallel: int = 4
     #: Inertia correction ``δ_w``: first value, bounds and factors (``first_hessian_perturbation``,
     #: ``min/max_hessian_perturbation``, ``perturb_inc_fact_first``, ``perturb_inc_fact``, ``perturb_dec_fact``).
     regularization_first: float = 1e-4
@@ -412,24 +414,22 @@ class Filter:
         return Filter(torch.where(slot.unsqueeze(-1), entry, self.entries), self.slot + mask.long())
 
 
-@dataclass
-class Step:
-    it: Iterate
-    alpha: Tensor
-    found: Tensor
-    filter: Filter
-
-
-def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
-                filt: Filter, theta_max: Tensor, theta_min: Tensor, opts: IPOptions) -> Step:
-    """Filter line search (module docstring) over the step sizes ``α_max β^j``, all evaluated at once."""
-    B, L = it.X.shape[0], opts.line_search_steps
-    knots = model.knots
+def step_bounds(it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):
+    """Largest primal and dual steps of the fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``: ``(B,)`` each."""
     tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
     a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
     a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
-    powers = opts.line_search_decrease ** torch.arange(L, dtype=it.X.dtype, device=it.X.device)
-    alphas = a_max.unsqueeze(1) * powers  # (B, L)
+    return a_max, a_dual
+
+
+def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
+          filt: Filter, theta_max: Tensor, theta_min: Tensor, alphas: Tensor, opts: IPOptions):
+    """The filter tests (module docstring) at the step sizes ``alphas (B, l)``, all evaluated at once.
+
+    Returns ``accept (B, l)`` and ``f_type (B, l)``: the step is an f-type step that met the Armijo condition
+    (no filter entry is added for those)."""
+    B, L = alphas.shape
+    knots = model.knots
     a4 = alphas.reshape(B, L, 1, 1)
     Xc = it.X.unsqueeze(1) + a4 * d.dX.unsqueeze(1)
     Uc = it.U.unsqueeze(1) + a4 * d.dU.unsqueeze(1)
@@ -438,13 +438,12 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     Jc = total_cost(problem, Xc, Uc, params)
     defects = map_stage(problem.dynamics, Xc[..., :-1, :], Uc, params) - Xc[..., 1:, :]
     g, _, h, _, gN, _, hN, _ = _constraint_parts(cons, Xc, Uc, params, jacobians=False)
-    lead = (B, L)
-    theta_c = torch.cat([p.reshape(*lead, -1).abs() for p in (defects, h, hN, (g + sc) * knots, gN + sNc)], -1).sum(-1)
-    m = mu.unsqueeze(1)
-    phi_c = Jc - m * _log_barrier(sc, sNc, knots)
+    parts = (defects, h, hN, (g + sc) * knots, gN + sNc)
+    theta_c = torch.cat([p.reshape(B, L, -1).abs() for p in parts], -1).sum(-1)
+    phi_c = Jc - mu.unsqueeze(1) * _log_barrier(sc, sNc, knots)
     theta = model.theta.unsqueeze(1)
     phi = (model.J - mu * _log_barrier(it.s, it.sN, knots)).unsqueeze(1)
-    barrier_slope = (torch.where(knots > 0, d.ds / it.s, 0.0)).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
+    barrier_slope = torch.where(knots > 0, d.ds / it.s, 0.0).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
     slope = (_cost_directional(model, it, d) - mu * barrier_slope).unsqueeze(1)
     switching = (slope < 0) & (alphas * (-slope).clamp_min(0) ** opts.switching_phi_power
                                > opts.switching * theta ** opts.switching_theta_power)
@@ -454,27 +453,64 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     finite = torch.isfinite(theta_c) & torch.isfinite(phi_c)
     accept = finite & (theta_c <= theta_max.unsqueeze(1)) & filt.acceptable(theta_c, phi_c) \
         & torch.where(f_type, armijo, decrease)
-    scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
-    tiny = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1) < 10 * torch.finfo(it.X.dtype).eps * scale
-    idx = torch.where(tiny, 0, _first_true(accept))
-    rows = torch.arange(B, device=it.X.device)
-    found = accept.any(1) | tiny
-    alpha = alphas[rows, idx]
-    h_type = found & ~tiny & ~(f_type & armijo)[rows, idx]
-    filt = filt.add(h_type, (1.0 - opts.filter_theta) * model.theta, phi[:, 0] - opts.filter_phi * model.theta)
+    return accept, f_type & armijo
+
+
+def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor, knots: Tensor,
+            opts: IPOptions) -> Iterate:
+    """The iterate after primal step ``alpha (B,)`` and dual step ``a_dual (B,)``, with the multipliers ``z``
+    kept within ``[μ/(κ_Σ s), κ_Σ μ/s]``."""
+    B = alpha.shape[0]
     a = alpha.reshape(B, 1, 1)
-    z = it.z + a_dual.reshape(B, 1, 1) * d.dz
-    zN = it.zN + a_dual.unsqueeze(-1) * d.dzN
     s = it.s + a * d.ds
     sN = it.sN + alpha.unsqueeze(-1) * d.dsN
-    kappa = opts.dual_safeguard
-    mu3 = mu.reshape(B, 1, 1)
-    z = torch.maximum(torch.minimum(z, kappa * mu3 / s), mu3 / (kappa * s)) * knots
-    zN = torch.maximum(torch.minimum(zN, kappa * mu.unsqueeze(-1) / sN), mu.unsqueeze(-1) / (kappa * sN))
-    new = Iterate(X=it.X + a * d.dX, U=it.U + a * d.dU, s=s, sN=sN, z=z, zN=zN, y=it.y + a * d.dy,
-                  yN=it.yN + alpha.unsqueeze(-1) * d.dyN, lam=it.lam + a * d.dlam,
-                  nu=it.nu + a * d.dnu, nuN=it.nuN + alpha.unsqueeze(-1) * d.dnuN)
-    return Step(new, torch.where(found, alpha, 0.0), found, filt)
+    z = it.z + a_dual.reshape(B, 1, 1) * d.dz
+    zN = it.zN + a_dual.unsqueeze(-1) * d.dzN
+    kappa, m3, mN = opts.dual_safeguard, mu.reshape(B, 1, 1), mu.unsqueeze(-1)
+    z = torch.maximum(torch.minimum(z, kappa * m3 / s), m3 / (kappa * s)) * knots
+    zN = torch.maximum(torch.minimum(zN, kappa * mN / sN), mN / (kappa * sN))
+    return Iterate(X=it.X + a * d.dX, U=it.U + a * d.dU, s=s, sN=sN, z=z, zN=zN, y=it.y + a * d.dy,
+                   yN=it.yN + alpha.unsqueeze(-1) * d.dyN, lam=it.lam + a * d.dlam, nu=it.nu + a * d.dnu,
+                   nuN=it.nuN + alpha.unsqueeze(-1) * d.dnuN)
+
+
+@dataclass
+class Step:
+    it: Iterate
+    alpha: Tensor
+    found: Tensor
+    filter: Filter
+
+
+def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
+                filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor, opts: IPOptions) -> Step:
+    """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation; a further
+    round only while a ``pending`` instance has found no acceptable step."""
+    B, L = it.X.shape[0], opts.line_search_steps
+    compiled = opts.compile
+    a_max, a_dual = kernel(step_bounds, compiled)(it, d, mu, opts)
+    scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
+    size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
+    tiny = size < 10 * torch.finfo(it.X.dtype).eps * scale  # IPOPT's tiny step: taken whole, no filter entry
+    powers = opts.line_search_decrease ** torch.arange(L, dtype=it.X.dtype, device=it.X.device)
+    rows = torch.arange(B, device=it.X.device)
+    found, alpha, f_type = tiny, torch.where(tiny, a_max, 0.0), tiny
+    per_round = max(1, opts.line_search_parallel)
+    for start in range(0, L, per_round):
+        if not bool((pending & ~found).any()):
+            break
+        alphas = a_max.unsqueeze(1) * powers[start:start + per_round]
+        accept, f_ok = kernel(trial, compiled)(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
+                                               alphas, opts)
+        idx = _first_true(accept)
+        new = accept.any(1) & ~found
+        alpha = torch.where(new, alphas[rows, idx], alpha)
+        f_type = torch.where(new, f_ok[rows, idx], f_type)
+        found = found | new
+    phi = model.J - mu * _log_barrier(it.s, it.sN, model.knots)
+    filt = filt.add(found & ~f_type, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
+    new_it = kernel(advance, compiled)(it, d, alpha, a_dual, mu, model.knots, opts)
+    return Step(new_it, alpha, found, filt)
 
 
 # ------------------------------------------------------------------------------------------ solver
@@ -528,7 +564,6 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     it = initial_iterate(cons, params, X, U0, opts)
     expand_k = kernel(expand, opts.compile)
     direction_k = kernel(direction, opts.compile)
-    line_search_k = kernel(line_search, opts.compile)
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device)
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
     start_ok = torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(U0).flatten(1).all(-1)
@@ -569,7 +604,7 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
             d = _select(pending, direction_k(lqr, rhs, delta, model, it, mu), d)
             pending = pending & ~d.ok
         factored = running & d.ok
-        ls = line_search_k(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, opts)
+        ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts)
         take = factored & ls.found
         it = ls.it.where(take, it)
         filt = Filter(_where(take, ls.filter.entries, filt.entries), torch.where(take, ls.filter.slot, filt.slot))
