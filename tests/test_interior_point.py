@@ -1,0 +1,402 @@
+"""The interior-point method (``method="ipm"``) against independent references.
+
+* IPOPT / FATROP optima of the problem set (tests/data, PROBLEMS.md) and IPOPT solves of sampled
+  instances (``torchtraj.bench.reference``, CasADi);
+* first-order optimality of the returned point, checked by autograd of the Lagrangian built here from
+  the problem's functions and the solution's costates and multipliers;
+* per-instance solves against the batch; a NaN instance; float32 against the float64 optimum;
+* iLQR on an unconstrained problem; central differences of re-solves and ALTRO for the gradients.
+"""
+
+import functools
+import warnings
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj.batching import map_stage, rollout
+from torchtraj.constraints import Constraints
+
+F64 = torch.float64
+FAST = ["double_integrator", "pendulum"]
+SLOW = ["cartpole", "parallel_park"]
+
+
+@functools.lru_cache(maxsize=None)
+def solved(name):
+    """The problem set's problem ``name`` solved by the IPM from its default guess (cached: several tests
+    look at the same solve)."""
+    problem = tt.problems.get(name)
+    return problem, tt.solve(problem, method="ipm")
+
+
+def kkt_residuals(problem, sol):
+    """Stationarity ``|∇_{X[1:],U} L|∞ / max(1, |multipliers|∞)`` of
+    ``L = J + Σ λ_{k+1}ᵀ (f(x_k, u_k) − x_{k+1}) + Σ zᵀ g + νᵀ h`` (the sign convention of tests/test_altro.py)
+    with the solution's costates and multipliers, the most negative inequality multiplier and the largest
+    complementarity product ``|z g|`` over the rows that apply."""
+    c = Constraints(problem)
+    params = problem.batched_params(sol.X.shape[0])
+    X = sol.X.detach().clone().requires_grad_(True)
+    U = sol.U.detach().clone().requires_grad_(True)
+    lam, m = sol.costate, sol.multipliers
+    L = tt.ilqr.total_cost(problem, X, U, params).sum()
+    L = L + (lam[:, 1:] * (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:])).sum()
+    values = c.evaluate(X, U, params)
+    products = [torch.zeros(1, dtype=X.dtype)]
+    duals = [torch.zeros(1, dtype=X.dtype)]
+    if c.mi:
+        z = torch.cat([m[k] for k in c.ineq_blocks if c.ineq_blocks[k].stop > c.ineq_blocks[k].start], -1)
+        on = c.ineq_knot_mask > 0
+        g = torch.where(on, values.ineq, torch.zeros_like(values.ineq))
+        L = L + (z * g).sum()
+        products.append((z * g).detach()[:, on].abs().flatten())
+        duals.append(z[:, on].flatten())
+    if c.miN:
+        L = L + (m["terminal_ineq"] * values.ineqN).sum()
+        products.append((m["terminal_ineq"] * values.ineqN).detach().abs().flatten())
+        duals.append(m["terminal_ineq"].flatten())
+    if c.me:
+        L = L + (m["stage_eq"] * values.eq).sum()
+    if c.meN:
+        L = L + (m["terminal_eq"] * values.eqN).sum()
+    gx, gu = torch.autograd.grad(L, (X, U))
+    scale = max(1.0, float(lam.abs().max()), *(float(v.abs().max()) for v in m.values() if v.numel()))
+    stationarity = max(float(gx[:, 1:].abs().max()), float(gu.abs().max())) / scale
+    return stationarity, float(torch.cat(duals).min()), float(torch.cat(products).max())
+
+
+# ------------------------------------------------------------------------- IPOPT / FATROP optima
+def check_reference(name, reference):
+    """Converged, feasible, and the cost of IPOPT's and FATROP's optima. parallel_park: IPOPT's stored run
+    ends 3.4e-6 (relative) above FATROP's; the IPM lands 1.4e-7 from FATROP's, so it is held to 1e-6 of
+    the lower of the two and to 5e-6 of IPOPT's."""
+    _, sol = solved(name)
+    ipopt, fatrop = reference[name]["ipopt"]["cost"], reference[name]["fatrop"]["cost"]
+    assert sol.status.tolist() == [tt.Status.CONVERGED], sol.status
+    assert float(sol.max_violation[0]) < 1e-8
+    cost = float(sol.cost[0])
+    best = min(ipopt, fatrop)
+    assert abs(cost - best) / best < 1e-6, (cost, ipopt, fatrop)
+    assert abs(cost - ipopt) / ipopt < 5e-6, (cost, ipopt)
+    assert sol.method == "ipm" and 0 < int(sol.iterations[0]) < 200
+
+
+@pytest.mark.parametrize("name", FAST)
+def test_reaches_the_reference_optimum(name, reference):
+    check_reference(name, reference)
+    # and the trajectory IPOPT returned, not another one of equal cost
+    _, sol = solved(name)
+    X = torch.tensor(reference[name]["ipopt"]["X"], dtype=F64)
+    U = torch.tensor(reference[name]["ipopt"]["U"], dtype=F64)
+    assert float((sol.X[0] - X).abs().max()) < 1e-5 and float((sol.U[0] - U).abs().max()) < 1e-5
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SLOW)
+def test_reaches_the_reference_optimum_slow(name, reference):
+    check_reference(name, reference)
+
+
+# ------------------------------------------------------------------------------------- KKT point
+def check_kkt(name):
+    problem, sol = solved(name)
+    stationarity, dual_min, complementarity = kkt_residuals(problem, sol)
+    assert stationarity < 1e-7, stationarity
+    assert dual_min >= 0.0, dual_min  # the slack multipliers are kept positive, not just >= -eps
+    assert complementarity < 1e-7, complementarity
+    # the problem has both active and inactive inequality rows: an active bound carries a multiplier
+    c = Constraints(problem)
+    g = c.evaluate(sol.X, sol.U, problem.batched_params(1)).ineq
+    z = torch.cat([sol.multipliers[k] for k in c.ineq_blocks if c.ineq_blocks[k].stop > c.ineq_blocks[k].start], -1)
+    on = c.ineq_knot_mask.bool().unsqueeze(0)
+    # (with the final barrier parameter μ ≈ 2.5e-9 an active row sits at g = −μ/z, 5e-6 for the pendulum)
+    active, inactive = on & (g > -1e-3), on & (g < -1e-2)
+    assert int(active.sum()) >= 1 and int(inactive.sum()) >= 1
+    assert float(z[active].min()) > 1e-6 and float(z[inactive].max()) < 1e-6
+    return problem, sol
+
+
+@pytest.mark.parametrize("name", FAST)
+def test_solution_is_a_kkt_point(name):
+    problem, sol = check_kkt(name)
+    assert set(sol.multipliers) >= {"u_upper", "u_lower", "terminal_eq"}
+    assert sol.multipliers["u_upper"].shape == (1, problem.N, problem.nu)
+    assert sol.costate.shape == (1, problem.N + 1, problem.nx)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SLOW)
+def test_solution_is_a_kkt_point_slow(name):
+    check_kkt(name)
+
+
+def test_kkt_check_fails_away_from_the_optimum():
+    """The check above can fail: the same multipliers at a perturbed control sequence are not stationary."""
+    problem, sol = solved("double_integrator")
+    moved = tt.Solution(**{**sol.__dict__, "U": sol.U + 1e-2})
+    assert kkt_residuals(problem, moved)[0] > 1e-5
+
+
+# --------------------------------------------------------------------------- batches and failures
+def test_batch_equals_instances_solved_alone():
+    """Four double integrators of seed 0 in one batch; instance 1 is infeasible (IPOPT: Infeasible_Problem_
+    Detected; its velocity bound cannot bring it to the goal in time) and fails alone. Each instance's
+    status, iterations, X and U equal its solve alone, and the feasible ones reach IPOPT's optimum."""
+    problem = tt.problems.get("double_integrator")
+    x0 = tt.problems.sample_x0("double_integrator", 4, seed=0)
+    batch = tt.solve(problem, x0, method="ipm")
+    assert batch.status.tolist()[0::2] == [tt.Status.CONVERGED] * 2 and batch.status[3] == tt.Status.CONVERGED
+    assert batch.status[1] != tt.Status.CONVERGED
+    assert len(set(batch.iterations.tolist())) > 1  # instances stop at their own iteration
+    for i in range(4):
+        alone = tt.solve(problem, x0[i], method="ipm")
+        assert alone.status.tolist() == batch.status[i:i + 1].tolist()
+        assert alone.iterations.tolist() == batch.iterations[i:i + 1].tolist()
+        for a, b in ((alone.X[0], batch.X[i]), (alone.U[0], batch.U[i]), (alone.costate[0], batch.costate[i])):
+            assert torch.allclose(a, b, rtol=0, atol=1e-10, equal_nan=True)
+    pytest.importorskip("casadi")
+    from torchtraj.bench.reference import ReferenceSolver
+
+    ipopt = ReferenceSolver("double_integrator", "ipopt")
+    for i in range(4):
+        ref = ipopt.solve(x0=x0[i].numpy())
+        if i == 1:
+            assert not ref.ok and ref.status == "Infeasible_Problem_Detected"
+        else:
+            assert ref.ok and abs(float(batch.cost[i]) - ref.cost) / ref.cost < 1e-7
+
+
+@pytest.mark.slow
+def test_pendulum_batch_equals_instances_solved_alone(reference):
+    problem = tt.problems.get("pendulum")
+    x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
+    batch = tt.solve(problem, x0, method="ipm")
+    assert bool(batch.converged.all())
+    ipopt = torch.tensor(reference["pendulum_batch_seed0_ipopt"]["costs"][:4], dtype=F64)
+    assert float(((batch.cost - ipopt).abs() / ipopt).max()) < 1e-6
+    for i in range(4):
+        alone = tt.solve(problem, x0[i], method="ipm")
+        assert alone.status.tolist() == batch.status[i:i + 1].tolist()
+        assert alone.iterations.tolist() == batch.iterations[i:i + 1].tolist()
+        assert torch.allclose(alone.X[0], batch.X[i], rtol=0, atol=1e-10)
+        assert torch.allclose(alone.U[0], batch.U[i], rtol=0, atol=1e-10)
+
+
+def test_nan_instances_fail_alone():
+    """A NaN initial state (instance 1) and a NaN goal, a parameter that first shows up inside the
+    iteration (instance 2), each end NON_FINITE; instances 0 and 3 equal their solves alone."""
+    problem = tt.problems.get("double_integrator")
+    x0 = tt.problems.sample_x0("double_integrator", 4, seed=0)
+    x0[1, 0] = float("nan")
+    goal = problem.params["goal"].expand(4, 2).clone()
+    goal[2, 1] = float("nan")
+    batch = tt.solve(problem.with_params(goal=goal), x0, method="ipm")
+    assert batch.status.tolist() == [tt.Status.CONVERGED, tt.Status.NON_FINITE, tt.Status.NON_FINITE,
+                                     tt.Status.CONVERGED]
+    for i in (0, 3):
+        alone = tt.solve(problem, x0[i], method="ipm")
+        assert alone.status[0] == tt.Status.CONVERGED
+        assert alone.iterations.tolist() == batch.iterations[i:i + 1].tolist()
+        assert torch.allclose(alone.X[0], batch.X[i], rtol=0, atol=1e-10)
+        assert torch.allclose(alone.U[0], batch.U[i], rtol=0, atol=1e-10)
+        assert torch.isfinite(batch.X[i]).all() and torch.isfinite(batch.cost[i])
+
+
+# -------------------------------------------------------------------------------------- float32
+def test_float32_double_integrator_reaches_the_float64_optimum(reference):
+    problem = tt.problems.get("double_integrator", dtype=torch.float32)
+    sol = tt.solve(problem, method="ipm")
+    ref = reference["double_integrator"]["ipopt"]
+    assert sol.X.dtype == torch.float32 and sol.status[0] == tt.Status.CONVERGED
+    assert float(sol.max_violation[0]) < 1e-6
+    assert abs(float(sol.cost[0]) - ref["cost"]) / ref["cost"] < 1e-4
+    # the final barrier parameter tol / 10 = 1e-6 keeps u_0 at 3 − μ/z = 2.9992 off its bound (z = 2e-3)
+    assert float((sol.U[0].double() - torch.tensor(ref["U"], dtype=F64)).abs().max()) < 5e-3
+
+
+def test_float32_pendulum_reaches_the_float64_optimum(reference):
+    """The pendulum's cost (0.0184) and multipliers (< 5e-4) are small, so the absolute stopping test
+    ``E_0 ≤ tol`` with float32's default tol = 1e-5 stops early: 1.6e-3 above IPOPT's cost, U 0.24 away
+    (float64 stopped at the same tol ends at the same point, so it is the tolerance, not float32's
+    round-off). tol = 1e-6 still converges in float32: 1.4e-4 above, U 0.025 away."""
+    problem = tt.problems.get("pendulum", dtype=torch.float32)
+    ref = reference["pendulum"]["ipopt"]
+    U_ref = torch.tensor(ref["U"], dtype=F64)
+    sol = tt.solve(problem, method="ipm", options=tt.IPOptions(tolerance=1e-6))
+    assert sol.X.dtype == torch.float32 and sol.status[0] == tt.Status.CONVERGED
+    assert float(sol.max_violation[0]) < 1e-5
+    assert 0 <= (float(sol.cost[0]) - ref["cost"]) / ref["cost"] < 3e-4
+    assert float((sol.U[0].double() - U_ref).abs().max()) < 0.05
+
+
+@pytest.mark.slow
+def test_float32_pendulum_default_tolerance(reference):
+    problem = tt.problems.get("pendulum", dtype=torch.float32)
+    ref = reference["pendulum"]["ipopt"]
+    sol = tt.solve(problem, method="ipm")
+    assert sol.status[0] == tt.Status.CONVERGED
+    assert float(sol.max_violation[0]) < 1e-5
+    assert 0 <= (float(sol.cost[0]) - ref["cost"]) / ref["cost"] < 3e-3
+
+
+# ------------------------------------------------------------------------ multiple-shooting start
+def test_state_guess_is_used_and_reaches_the_same_optimum(reference):
+    """A straight line from x0 to the goal with zero controls: dynamically inconsistent (defects of
+    0.05). The first iteration sees its violation (so X0 was used, not a rollout), and the solve ends at
+    IPOPT's optimum, the point of the default start."""
+    problem = tt.problems.get("double_integrator")
+    params = problem.batched_params(1)
+    N = problem.N
+    s = torch.linspace(0, 1, N + 1, dtype=F64).unsqueeze(-1)
+    X0 = ((1 - s) * problem.x0 + s * problem.params["goal"]).unsqueeze(0)
+    U0 = torch.zeros(1, N, problem.nu, dtype=F64)
+    defects = map_stage(problem.dynamics, X0[:, :-1], U0, params) - X0[:, 1:]
+    violation = Constraints(problem).evaluate(X0, U0, params).max_violation()
+    start = max(float(defects.abs().max()), float(violation[0]))
+    assert start > 1e-2
+    sol = tt.solve(problem, method="ipm", X0=X0, U0=U0)
+    assert float(sol.history.max_violation[0, 0]) == pytest.approx(start, rel=1e-12)
+    assert sol.status[0] == tt.Status.CONVERGED and float(sol.max_violation[0]) < 1e-8
+    ref = reference["double_integrator"]["ipopt"]
+    assert abs(float(sol.cost[0]) - ref["cost"]) / ref["cost"] < 1e-6
+    _, default = solved("double_integrator")
+    assert torch.allclose(sol.X, default.X, atol=1e-6) and torch.allclose(sol.U, default.U, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_pendulum_state_guess(reference):
+    problem = tt.problems.get("pendulum")
+    N = problem.N
+    s = torch.linspace(0, 1, N + 1, dtype=F64).unsqueeze(-1)
+    X0 = (1 - s) * problem.x0 + s * problem.params["goal"]
+    sol = tt.solve(problem, method="ipm", X0=X0)
+    assert sol.status[0] == tt.Status.CONVERGED and float(sol.max_violation[0]) < 1e-8
+    ref = reference["pendulum"]["ipopt"]
+    assert abs(float(sol.cost[0]) - ref["cost"]) / ref["cost"] < 1e-6
+
+
+# ---------------------------------------------------------------------------------- unconstrained
+def test_unconstrained_problem_matches_ilqr():
+    """pendulum_unconstrained from the problem's guess: iLQR (tight) and the IPM end at the same local
+    optimum (0.0137812669, test_ilqr.py; IPOPT finds another one from this guess). The cost is flat along
+    part of the swing: tight iLQR stops 7.6e-11 above in cost, 1e-3 away in U, with a reduced gradient of
+    6e-8. So: the costs agree to 1e-10, the IPM's reduced gradient (autograd through a rollout) vanishes,
+    and iLQR started at the IPM's controls stops there at once."""
+    problem = tt.problems.get("pendulum_unconstrained")
+    tight = tt.ILQROptions(cost_tolerance=1e-12, gradient_tolerance=1e-8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ilqr = tt.solve(problem, method="ilqr", options=tight)
+    ipm = tt.solve(problem, method="ipm", options=tt.IPOptions(tolerance=1e-10))
+    assert ilqr.status[0] == tt.Status.CONVERGED and ipm.status[0] == tt.Status.CONVERGED
+    assert ipm.multipliers == {} and float(ipm.max_violation[0]) < 1e-10  # only the dynamics
+    assert abs(float(ipm.cost[0]) - float(ilqr.cost[0])) < 1e-10
+    assert abs(float(ipm.cost[0]) - 0.0137812669) < 1e-9
+    assert float((ipm.U - ilqr.U).abs().max()) < 2e-3
+    params = problem.batched_params(1)
+    x0 = problem.x0.unsqueeze(0)
+
+    def reduced_gradient(U):
+        U = U.detach().clone().requires_grad_(True)
+        J = tt.ilqr.total_cost(problem, rollout(problem.dynamics, x0, U, params), U, params)
+        return float(torch.autograd.grad(J.sum(), U)[0].abs().max())
+
+    assert reduced_gradient(ipm.U) < 1e-7 < 1e-3 * reduced_gradient(problem.u_init.unsqueeze(0))
+    again = tt.solve(problem, method="ilqr", U0=ipm.U, options=tight)
+    assert again.status[0] == tt.Status.CONVERGED and float((again.U - ipm.U).abs().max()) < 1e-9
+
+
+# ---------------------------------------------------------------------------------- gradients
+def pendulum10(**changes):
+    """The pendulum swinging to 2 rad with O(1) weights, N = 10, torque bounded by ±3 (as in
+    tests/test_implicit.py)."""
+    model = tt.models.get("pendulum")
+
+    def stage_cost(x, u, p):
+        e = x - p["goal"]
+        return 0.5 * (e @ p["Q"] @ e) + 0.5 * p["R"] * (u @ u)
+
+    def terminal_cost(x, p):
+        e = x - p["goal"]
+        return 0.5 * (e @ p["Qf"] @ e)
+
+    params = dict(model.params, goal=torch.tensor([2.0, 0.0], dtype=F64),
+                  Q=torch.diag(torch.tensor([1.0, 0.1], dtype=F64)), R=torch.tensor(0.1, dtype=F64),
+                  Qf=10 * torch.eye(2, dtype=F64))
+    problem = tt.Problem(dynamics=model.discrete(0.1), stage_cost=stage_cost, terminal_cost=terminal_cost,
+                         x0=torch.zeros(2, dtype=F64), horizon=10, nu=1, params=params, name="pendulum10",
+                         u_lower=torch.tensor([-3.0], dtype=F64), u_upper=torch.tensor([3.0], dtype=F64))
+    return problem.replace(**changes)
+
+
+def test_gradients_match_central_differences_with_active_bounds():
+    """gradcheck (central differences of whole IPM re-solves) of X, U and cost with respect to x0, the mass
+    (dynamics) and the goal, packed in one vector; the torque bound is active on part of the horizon."""
+    problem = pendulum10()
+
+    def unpack(th):
+        return th[:2], dict(mass=th[2], goal=th[3:5])
+
+    theta = torch.cat([torch.tensor([0.1, 0.2], dtype=F64), problem.params["mass"].reshape(1),
+                       problem.params["goal"]]).requires_grad_(True)
+
+    def layer(th):
+        x0, params = unpack(th)
+        sol = tt.solve(problem.with_params(**params), x0, method="ipm")
+        assert bool(sol.converged.all())
+        return sol.X, sol.U, sol.cost
+
+    X, U, _ = layer(theta)
+    g = Constraints(problem).evaluate(X.detach(), U.detach(), problem.batched_params(1)).ineq
+    assert int((g > -1e-4).sum()) >= 1 and int((g < -1e-2).sum()) >= 1
+    assert torch.autograd.gradcheck(layer, (theta,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+
+
+def test_gradients_agree_with_altro():
+    """Gradients of a loss of U with respect to x0 and the mass, through the IPM and through ALTRO (tight),
+    two instances, the torque bound active: the same KKT point, so the same derivative."""
+    problem = pendulum10()
+    x0s = torch.tensor([[0.1, 0.2], [0.3, -0.1]], dtype=F64)
+    tight = tt.ALTROOptions(ilqr=tt.ILQROptions(cost_tolerance=1e-10, gradient_tolerance=1e-6),
+                            cost_tolerance=1e-10, cost_tolerance_intermediate=1e-6, constraint_tolerance=1e-8)
+    out = {}
+    for method, options in (("ipm", None), ("altro", tight)):
+        x0 = x0s.clone().requires_grad_(True)
+        mass = torch.full((2,), 1.0, dtype=F64, requires_grad=True)
+        sol = tt.solve(problem.with_params(mass=mass), x0, method=method, options=options)
+        assert bool(sol.converged.all())
+        loss = (sol.U ** 2).sum() + sol.U[:, :3].sum()
+        out[method] = (sol.U.detach(), *torch.autograd.grad(loss, [x0, mass]))
+        if method == "altro":
+            g = Constraints(problem).evaluate(sol.X.detach(), sol.U.detach(), problem.batched_params(2)).ineq
+            assert int((g > -1e-8).sum()) >= 1 and int((g < -1e-2).sum()) >= 1  # bounds active and inactive
+    assert torch.allclose(out["ipm"][0], out["altro"][0], atol=1e-5)
+    for a, b in zip(out["ipm"][1:], out["altro"][1:]):
+        assert float(b.abs().max()) > 1e-2
+        assert torch.allclose(a, b, rtol=1e-6, atol=1e-6 * float(b.abs().max())), (a, b)
+
+
+# ---------------------------------------------------------------------------------- input errors
+def test_duals_are_refused():
+    problem = tt.problems.get("double_integrator")
+    with pytest.raises(ValueError, match="ipm"):
+        tt.solve(problem, method="ipm", duals={"multipliers": {}})
+    with pytest.raises(ValueError, match="X0"):
+        tt.solve(problem, method="ipm", X0=torch.zeros(problem.N, problem.nx, dtype=F64))
+
+
+@pytest.mark.slow
+def test_obstacles_without_restoration_end_with_a_status():
+    """car_3obs from PROBLEMS.md's guess: the method has no restoration phase and (today) does not
+    converge; it must still return a per-instance, non-RUNNING status, and a finite point if converged."""
+    problem = tt.problems.get("car_3obs")
+    sol = tt.solve(problem, method="ipm")
+    assert isinstance(sol, tt.Solution) and sol.status.shape == (1,)
+    status = int(sol.status[0])
+    assert status in {int(s) for s in tt.Status} and status != tt.Status.RUNNING
+    assert 0 < int(sol.iterations[0]) <= tt.IPOptions().iterations
+    assert sol.history.cost.shape == (1, len(sol.history))
+    if status == tt.Status.CONVERGED:
+        assert bool(torch.isfinite(sol.X).all()) and float(sol.max_violation[0]) < 1e-8
