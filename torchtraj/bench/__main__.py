@@ -19,9 +19,7 @@ from typing import Optional, TextIO
 import torch
 
 from .. import problems
-from ..altro import ALTROOptions
-from ..ilqr import ILQROptions
-from ..solve import Method, solve
+from ..solve import OPTIONS, Method, solve
 from . import profile, table
 from .runs import (Row, batch_x0, make_options, relative_difference, run_reference, run_torchtraj, skip_reason,
                    with_compile)
@@ -154,7 +152,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         pendulum = [b for b in batches if b <= 64] or batches[:1]  # ALTRO's pendulum solves take minutes at 256
         options = None
         if args.compile:
-            options = with_compile(ILQROptions() if Method(name) is Method.ILQR else ALTROOptions())
+            options = with_compile(OPTIONS[Method(name)]())
         rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, options=options,
                         with_mpc=not args.no_reference)
         return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0
