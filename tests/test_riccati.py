@@ -186,17 +186,67 @@ def test_masked_rows_and_non_finite_instances_are_isolated():
     assert not bool(factor.ok[1])
 
 
+@pytest.mark.parametrize("elementwise", [False, True])
 @pytest.mark.parametrize("n", [1, 2, 3, 4, 6])
-def test_small_cholesky_matches_lapack_and_flags_indefinite_matrices(n):
-    from torchtraj.riccati import _cholesky, _cholesky_solve
+def test_small_cholesky_matches_lapack_and_flags_indefinite_matrices(n, elementwise, monkeypatch):
+    from torchtraj import riccati
 
+    if elementwise:  # the formulas torch.compile traces; eager runs LAPACK's
+        monkeypatch.setattr(riccati, "_elementwise", lambda n: n <= riccati._SMALL)
     g = torch.Generator().manual_seed(n)
     W = torch.randn(5, n, n, generator=g, dtype=torch.float64)
     H = W @ W.transpose(-1, -2) + 0.1 * torch.eye(n, dtype=torch.float64)
     H[3] = -H[3]  # not positive definite
-    L, info = _cholesky(H)
+    L, info = riccati._cholesky(H)
     assert info.tolist() == [0, 0, 0, 1, 0]
     ok = [0, 1, 2, 4]
     assert torch.allclose(L[ok], torch.linalg.cholesky(H[ok]), atol=1e-12)
+    assert torch.equal(L[3], torch.eye(n, dtype=torch.float64))
     b = torch.randn(5, n, 3, generator=g, dtype=torch.float64)
-    assert torch.allclose(_cholesky_solve(b, L)[ok], torch.linalg.solve(H[ok], b[ok]), atol=1e-9)
+    for x in (riccati._cholesky_solve(b, L), riccati._factored_solve(H, L, info, b)):
+        assert torch.allclose(x[ok], torch.linalg.solve(H[ok], b[ok]), atol=1e-9)
+        assert torch.allclose(x[3], b[3], atol=1e-15)  # the identity stands in for the indefinite matrix
+
+
+def test_positive_definiteness_flag_with_indefinite_stage_hessians():
+    """``ok`` is False exactly where some stage's Q_uu + ρI (independently: R + BᵀP'B) is not positive
+    definite; instances that fail keep the gain -Q_ux of the identity factor and do not disturb the others.
+    The indefinite stages are the first, the last the backward sweep reaches: the values stay finite."""
+    lqr, rhs = random_lqr(B=6, N=7, nx=5, nu=3, seed=9)
+    # Q_uu at stage 0 is R_0 + B_0ᵀ P_1 B_0, and P_1 does not depend on R_0: choose it
+    eye = torch.eye(3, dtype=torch.float64)
+    BPB = lqr.B[:, 0].transpose(-1, -2) @ factorize(lqr).P[:, 1] @ lqr.B[:, 0]
+    target = {1: -eye, 3: torch.diag(torch.tensor([1.0, 2.0, -1e-3], dtype=torch.float64)), 4: -0.5 * eye,
+              5: -10.0 * eye}
+    lqr.R = lqr.R.clone()
+    for b, Quu0 in target.items():
+        lqr.R[b, 0] = Quu0 - BPB[b]
+    rho = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 1e3], dtype=torch.float64)  # instance 5 definite again
+    factor = factorize(lqr, rho)
+    Quu = lqr.R + lqr.B.transpose(-1, -2) @ factor.P[:, 1:] @ lqr.B
+    assert torch.allclose(factor.Quu, Quu, atol=1e-9 * (1 + Quu.abs().max()))
+    definite = (torch.linalg.eigvalsh(Quu + rho.reshape(6, 1, 1, 1) * torch.eye(3, dtype=torch.float64)) > 0).all(-1)
+    assert definite.all(-1).tolist() == [True, False, True, False, False, True]
+    assert factor.ok.tolist() == definite.all(-1).tolist()
+    failed = ~definite
+    assert torch.equal(factor.K[failed], -factor.Qux[failed])
+    ref = factorize(LQR(**{k: (v[[0, 2]] if v is not None else None) for k, v in vars(lqr).items()}), rho[[0, 2]])
+    assert torch.allclose(factor.K[[0, 2]], ref.K, atol=1e-12) and torch.allclose(factor.P[[0, 2]], ref.P, atol=1e-12)
+
+
+def test_stacked_sanitisation_matches_the_blockwise_one():
+    from torchtraj.riccati import _sanitize, _sanitize_stacked
+
+    lqr, _ = random_lqr(B=4, N=3, nx=3, nu=2, m=1, mN=1, seed=10)
+    lqr.mask = lqr.mask > 0  # a boolean mask keeps its dtype
+    lqr.A, lqr.S = lqr.A.clone(), lqr.S.clone()
+    lqr.A[1, 2, 0, 1] = float("nan")
+    lqr.S[2, 0, 1, 0] = -float("inf")
+    blockwise, finite = _sanitize(lqr)
+    stacked, finite2, W, Hs = _sanitize_stacked(lqr)
+    assert finite.tolist() == finite2.tolist() == [True, False, False, True]
+    for name, value in vars(blockwise).items():
+        if value is not None:
+            assert torch.equal(getattr(stacked, name), value), name
+    assert torch.equal(W, torch.cat([blockwise.A, blockwise.B], -1))
+    assert torch.equal(Hs[1:3], torch.eye(5, dtype=torch.float64).expand(2, 3, 5, 5))
