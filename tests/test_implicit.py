@@ -6,7 +6,6 @@
 * per-instance solves against the batch; the non-converged policy; float32 against float64.
 """
 
-import dataclasses
 import warnings
 
 import pytest
@@ -14,6 +13,7 @@ import torch
 from torch.func import hessian, jacrev
 
 import torchtraj as tt
+from small_problems import pendulum10
 from torchtraj import implicit
 from torchtraj.altro import ALTROOptions
 from torchtraj.batching import rollout
@@ -189,23 +189,7 @@ def test_kkt_multipliers_match_the_dense_solve():
 
 # ------------------------------------------------------------------- gradcheck through tt.solve
 def pendulum(N=10, **changes):
-    """The pendulum swinging to 2 rad with O(1) weights (well conditioned, N = 10)."""
-    model = tt.models.get("pendulum")
-
-    def stage_cost(x, u, p):
-        e = x - p["goal"]
-        return 0.5 * (e @ p["Q"] @ e) + 0.5 * p["R"] * (u @ u)
-
-    def terminal_cost(x, p):
-        e = x - p["goal"]
-        return 0.5 * (e @ p["Qf"] @ e)
-
-    params = dict(model.params, goal=torch.tensor([2.0, 0.0], dtype=F64),
-                  Q=torch.diag(torch.tensor([1.0, 0.1], dtype=F64)), R=torch.tensor(0.1, dtype=F64),
-                  Qf=10 * torch.eye(2, dtype=F64))
-    problem = tt.Problem(dynamics=model.discrete(0.1), stage_cost=stage_cost, terminal_cost=terminal_cost,
-                         x0=torch.zeros(2, dtype=F64), horizon=N, nu=1, params=params, name="pendulum10")
-    return problem.replace(**changes)
+    return pendulum10(N, **changes)
 
 
 def car(N=10):

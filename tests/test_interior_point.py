@@ -15,6 +15,7 @@ import pytest
 import torch
 
 import torchtraj as tt
+from small_problems import pendulum10
 from torchtraj.batching import map_stage, rollout
 from torchtraj.constraints import Constraints
 
@@ -309,32 +310,16 @@ def test_unconstrained_problem_matches_ilqr():
 
 
 # ---------------------------------------------------------------------------------- gradients
-def pendulum10(**changes):
-    """The pendulum swinging to 2 rad with O(1) weights, N = 10, torque bounded by ±3 (as in
-    tests/test_implicit.py)."""
-    model = tt.models.get("pendulum")
-
-    def stage_cost(x, u, p):
-        e = x - p["goal"]
-        return 0.5 * (e @ p["Q"] @ e) + 0.5 * p["R"] * (u @ u)
-
-    def terminal_cost(x, p):
-        e = x - p["goal"]
-        return 0.5 * (e @ p["Qf"] @ e)
-
-    params = dict(model.params, goal=torch.tensor([2.0, 0.0], dtype=F64),
-                  Q=torch.diag(torch.tensor([1.0, 0.1], dtype=F64)), R=torch.tensor(0.1, dtype=F64),
-                  Qf=10 * torch.eye(2, dtype=F64))
-    problem = tt.Problem(dynamics=model.discrete(0.1), stage_cost=stage_cost, terminal_cost=terminal_cost,
-                         x0=torch.zeros(2, dtype=F64), horizon=10, nu=1, params=params, name="pendulum10",
-                         u_lower=torch.tensor([-3.0], dtype=F64), u_upper=torch.tensor([3.0], dtype=F64))
-    return problem.replace(**changes)
+def pendulum10_bounded(**changes):
+    """tests/test_implicit.py's pendulum (N = 10, O(1) weights) with the torque bounded by ±3."""
+    bounds = dict(u_lower=torch.tensor([-3.0], dtype=F64), u_upper=torch.tensor([3.0], dtype=F64))
+    return pendulum10(**{**bounds, **changes})
 
 
 def test_gradients_match_central_differences_with_active_bounds():
     """gradcheck (central differences of whole IPM re-solves) of X, U and cost with respect to x0, the mass
     (dynamics) and the goal, packed in one vector; the torque bound is active on part of the horizon."""
-    problem = pendulum10()
+    problem = pendulum10_bounded()
 
     def unpack(th):
         return th[:2], dict(mass=th[2], goal=th[3:5])
@@ -357,7 +342,7 @@ def test_gradients_match_central_differences_with_active_bounds():
 def test_gradients_agree_with_altro():
     """Gradients of a loss of U with respect to x0 and the mass, through the IPM and through ALTRO (tight),
     two instances, the torque bound active: the same KKT point, so the same derivative."""
-    problem = pendulum10()
+    problem = pendulum10_bounded()
     x0s = torch.tensor([[0.1, 0.2], [0.3, -0.1]], dtype=F64)
     tight = tt.ALTROOptions(ilqr=tt.ILQROptions(cost_tolerance=1e-10, gradient_tolerance=1e-6),
                             cost_tolerance=1e-10, cost_tolerance_intermediate=1e-6, constraint_tolerance=1e-8)

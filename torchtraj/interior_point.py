@@ -52,8 +52,8 @@ Left out, and what happens instead: there is no feasibility-restoration phase an
 correction. An instance whose line search finds no acceptable step keeps its iterate and
 retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regularization_max`` its status
 is ``MAX_REGULARIZATION``. The filter holds the last ``filter_size`` entries of each instance.
-Multipliers start at zero (``λ``, ``ν``) and ``dual_initial`` (``z``); slacks at
-``max(−g, κ_1 max(1, |g|))``.
+Multipliers start at zero (``λ``, ``ν``, ``y``) and ``dual_initial`` (``z``), not at IPOPT's least-squares
+estimate; slacks at ``max(−g, κ_1)``.
 """
 
 from __future__ import annotations
@@ -209,7 +209,7 @@ def _flat_abs(*parts: Tensor) -> Tensor:
 def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians: bool):
     """Values (and Jacobians) of the stage inequalities (rows off at a knot are zero), stage equalities,
     terminal inequalities and equalities."""
-    B, N, nx, nu = X.shape[0], U.shape[-2], X.shape[-1], U.shape[-1]
+    N, nx, nu = U.shape[-2], X.shape[-1], U.shape[-1]
     lead = X.shape[:-2]
     nz = nx + nu
     Xs, xN = X[..., :-1, :], X[..., -1, :]
@@ -235,7 +235,6 @@ def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians
     h, Hz = stage(cons.stage_eq, cons.me)
     gN, GN = terminal(cons.terminal_ineq, cons.miN)
     hN, HN = terminal(cons.terminal_eq, cons.meN)
-    del B
     return g, Gz, h, Hz, gN, GN, hN, HN
 
 
@@ -254,8 +253,8 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     J = total_cost(problem, X, U, params)
     defects = f - X[:, 1:]
     knots = cons.ineq_knot_mask
-    theta = _flat_abs(defects, h, hN, (g + it.s) * knots, gN + it.sN).sum(-1)
-    primal_error = _flat_abs(defects, h, hN, (g + it.s) * knots, gN + it.sN).amax(-1)
+    residuals = _flat_abs(defects, h, hN, (g + it.s) * knots, gN + it.sN)
+    theta, primal_error = residuals.sum(-1), residuals.amax(-1)
     violation = _violation(cons, defects, g, h, gN, hN)
     # Lagrangian gradient: x_k also appears in the dynamics row of stage k-1 (−λ_k); x_0 is fixed
     grad_x = Lz[:, 1:, :nx] - it.lam[:, 1:-1]
