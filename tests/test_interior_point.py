@@ -385,3 +385,20 @@ def test_obstacles_without_restoration_end_with_a_status():
     assert sol.history.cost.shape == (1, len(sol.history))
     if status == tt.Status.CONVERGED:
         assert bool(torch.isfinite(sol.X).all()) and float(sol.max_violation[0]) < 1e-8
+
+
+@pytest.mark.slow
+def test_obstacles_from_a_state_guess_around_them(reference):
+    """car_3obs from a state guess that goes around the circles (up the y axis, then across; dynamically
+    inconsistent, controls at PROBLEMS.md's guess): no restoration is needed and the IPM reaches the
+    optimum IPOPT and FATROP find, a KKT point."""
+    problem = tt.problems.get("car_3obs")
+    s = torch.linspace(0, 2, problem.N + 1, dtype=F64)[:, None]
+    a, b, c = (torch.tensor(p, dtype=F64) for p in ([0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [3.0, 3.0, 0.0]))
+    X0 = torch.where(s <= 1, a + (b - a) * s, b + (c - b) * (s - 1))
+    sol = tt.solve(problem, method="ipm", X0=X0)
+    assert sol.status.tolist() == [tt.Status.CONVERGED] and float(sol.max_violation[0]) < 1e-8
+    ipopt = reference["car_3obs"]["ipopt"]["cost"]
+    assert abs(float(sol.cost[0]) - ipopt) / ipopt < 1e-6
+    stationarity, dual_min, complementarity = kkt_residuals(problem, sol)
+    assert stationarity < 1e-7 and dual_min >= 0 and complementarity < 1e-7
