@@ -59,7 +59,7 @@ estimate; slacks at ``max(−g, κ_1)``.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Optional
 
 import torch
@@ -71,7 +71,7 @@ from .compiled import kernel
 from .compiled import matvec as _mv
 from .constraints import Constraints
 from .derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_jacobian
-from .ilqr import _first_true, total_cost
+from .ilqr import _first_true, _where, total_cost
 from .problem import Problem
 from .riccati import LQR, LQRVectors, factorize
 from .solution import History, Solution
@@ -163,11 +163,6 @@ class Iterate:
     nu: Tensor
     nuN: Tensor
 
-    def where(self, mask: Tensor, other: "Iterate") -> "Iterate":
-        return Iterate(*(_where(mask, a, b) for a, b in zip(self._fields(), other._fields())))
-
-    def _fields(self):
-        return (self.X, self.U, self.s, self.sN, self.z, self.zN, self.y, self.yN, self.lam, self.nu, self.nuN)
 
 
 @dataclass
@@ -197,8 +192,9 @@ class Model:
     knots: Tensor  # (N, mi): 1 where a stage inequality row applies
 
 
-def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+def _pick(mask: Tensor, a, b):
+    """The batch-first dataclass ``a`` where ``mask (B,)``, else ``b`` (field by field)."""
+    return type(a)(**{f.name: _where(mask, getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
 
 
 def _flat_abs(*parts: Tensor) -> Tensor:
@@ -239,10 +235,6 @@ def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians
     return g, Gz, h, Hz, gN, GN, hN, HN
 
 
-def _violation(cons: Constraints, defects: Tensor, g, h, gN, hN) -> Tensor:
-    return _flat_abs(defects, h, hN, g.clamp_min(0), gN.clamp_min(0)).amax(-1)
-
-
 def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions) -> Model:
     """Everything the iteration needs at ``it``: one pass of ``torch.func`` over the batch."""
     X, U = it.X, it.U
@@ -256,7 +248,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     knots = cons.ineq_knot_mask
     residuals = _flat_abs(defects, h, hN, (g + it.s) * knots, gN + it.sN)
     theta, primal_error = residuals.sum(-1), residuals.amax(-1)
-    violation = _violation(cons, defects, g, h, gN, hN)
+    violation = _flat_abs(defects, h, hN, g.clamp_min(0), gN.clamp_min(0)).amax(-1)
     # Lagrangian gradient: x_k also appears in the dynamics row of stage k-1 (−λ_k); x_0 is fixed
     grad_x = Lz[:, 1:, :nx] - it.lam[:, 1:-1]
     grad_N = LNx - it.lam[:, -1]
@@ -360,11 +352,6 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
     return Direction(dX, dU, ds, dsN, dz, dzN, dy, dyN, sol.costate, dnu, dnuN, factor.K, factor.ok & finite)
 
 
-def _select(mask: Tensor, a: Direction, b: Direction) -> Direction:
-    fields = ("dX", "dU", "ds", "dsN", "dz", "dzN", "dy", "dyN", "dlam", "dnu", "dnuN", "K", "ok")
-    return Direction(*(_where(mask, getattr(a, f), getattr(b, f)) for f in fields))
-
-
 # ------------------------------------------------------------------------------------- line search
 def _max_step(value: Tensor, step: Tensor, tau: Tensor) -> Tensor:
     """Largest ``α ≤ 1`` with ``value + α step ≥ (1 − τ) value`` (fraction to boundary), ``(B,)``."""
@@ -414,17 +401,24 @@ class Filter:
         return Filter(torch.where(slot.unsqueeze(-1), entry, self.entries), self.slot + mask.long())
 
 
-def step_bounds(it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):
-    """Largest primal and dual steps of the fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``: ``(B,)`` each."""
+def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):
+    """At the current iterate, for the line search (``(B,)`` each): the largest primal and dual steps of the
+    fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``, the barrier objective ``φ`` and its slope ``∇φ · Δ``."""
     tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
     a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
     a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
-    return a_max, a_dual
+    knots = model.knots
+    phi = model.J - mu * _log_barrier(it.s, it.sN, knots)
+    barrier_slope = torch.where(knots > 0, d.ds / it.s, 0.0).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
+    slope = _cost_directional(model, it, d) - mu * barrier_slope
+    return a_max, a_dual, phi, slope
 
 
 def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
-          filt: Filter, theta_max: Tensor, theta_min: Tensor, alphas: Tensor, opts: IPOptions):
-    """The filter tests (module docstring) at the step sizes ``alphas (B, l)``, all evaluated at once.
+          phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, alphas: Tensor,
+          opts: IPOptions):
+    """The filter tests (module docstring) at the step sizes ``alphas (B, l)``, all evaluated at once, from the
+    current barrier objective ``phi`` and its slope ``slope`` (:func:`step_measures`).
 
     Returns ``accept (B, l)`` and ``f_type (B, l)``: the step is an f-type step that met the Armijo condition
     (no filter entry is added for those)."""
@@ -441,10 +435,7 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     parts = (defects, h, hN, (g + sc) * knots, gN + sNc)
     theta_c = torch.cat([p.reshape(B, L, -1).abs() for p in parts], -1).sum(-1)
     phi_c = Jc - mu.unsqueeze(1) * _log_barrier(sc, sNc, knots)
-    theta = model.theta.unsqueeze(1)
-    phi = (model.J - mu * _log_barrier(it.s, it.sN, knots)).unsqueeze(1)
-    barrier_slope = torch.where(knots > 0, d.ds / it.s, 0.0).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
-    slope = (_cost_directional(model, it, d) - mu * barrier_slope).unsqueeze(1)
+    theta, phi, slope = model.theta.unsqueeze(1), phi.unsqueeze(1), slope.unsqueeze(1)
     switching = (slope < 0) & (alphas * (-slope).clamp_min(0) ** opts.switching_phi_power
                                > opts.switching * theta ** opts.switching_theta_power)
     f_type = switching & (theta <= theta_min.unsqueeze(1))
@@ -488,7 +479,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     round only while a ``pending`` instance has found no acceptable step."""
     B, L = it.X.shape[0], opts.line_search_steps
     compiled = opts.compile
-    a_max, a_dual = kernel(step_bounds, compiled)(it, d, mu, opts)
+    a_max, a_dual, phi, slope = kernel(step_measures, compiled)(model, it, d, mu, opts)
     scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
     size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
     tiny = size < 10 * torch.finfo(it.X.dtype).eps * scale  # IPOPT's tiny step: taken whole, no filter entry
@@ -500,14 +491,13 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         if not bool((pending & ~found).any()):
             break
         alphas = a_max.unsqueeze(1) * powers[start:start + per_round]
-        accept, f_ok = kernel(trial, compiled)(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
-                                               alphas, opts)
+        accept, f_ok = kernel(trial, compiled)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
+                                               theta_min, alphas, opts)
         idx = _first_true(accept)
         new = accept.any(1) & ~found
         alpha = torch.where(new, alphas[rows, idx], alpha)
         f_type = torch.where(new, f_ok[rows, idx], f_type)
         found = found | new
-    phi = model.J - mu * _log_barrier(it.s, it.sN, model.knots)
     filt = filt.add(found & ~f_type, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
     new_it = kernel(advance, compiled)(it, d, alpha, a_dual, mu, model.knots, opts)
     return Step(new_it, alpha, found, filt)
@@ -601,13 +591,13 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
                 break
             delta = torch.where(pending, _next_regularization(delta, last, opts), delta)
             pending = pending & (delta <= opts.regularization_max)
-            d = _select(pending, direction_k(lqr, rhs, delta, model, it, mu), d)
+            d = _pick(pending, direction_k(lqr, rhs, delta, model, it, mu), d)
             pending = pending & ~d.ok
         factored = running & d.ok
         ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts)
         take = factored & ls.found
-        it = ls.it.where(take, it)
-        filt = Filter(_where(take, ls.filter.entries, filt.entries), torch.where(take, ls.filter.slot, filt.slot))
+        it = _pick(take, ls.it, it)
+        filt = _pick(take, ls.filter, filt)
         K = _where(take, d.K, K)
         last = torch.where(take & (delta > 0), delta, last)
         missed = factored & ~ls.found
