@@ -4,8 +4,7 @@ import pytest
 import torch
 
 import torchtraj as tt
-from torchtraj.constraints import Constraints
-from torchtraj.batching import map_stage, map_state
+from kkt import kkt_residuals
 
 FAST = ["double_integrator", "pendulum", "parallel_park"]
 SLOW = ["cartpole", "car_3obs", "quadrotor2d", "car_escape"]
@@ -15,36 +14,6 @@ SLOW = ["cartpole", "car_3obs", "quadrotor2d", "car_escape"]
 #: with the walls constrained at the knots only, other knots touch a wall circle (ALTRO: knots 31-32 on the
 #: corner (5, 5), 63-65 on (8, 5); IPOPT: 29-30 and 62-65).
 OTHER_OPTIMUM = {"car_3obs", "quadrotor2d", "car_escape"}
-
-
-def kkt_residuals(problem, sol):
-    """Stationarity ``|∇_{X,U} L|∞ / max(1, |multipliers|∞)`` with the solution's costates and multipliers, the most negative
-    inequality multiplier, and the largest complementarity product ``|ν g|``."""
-    c = Constraints(problem)
-    params = problem.batched_params(sol.X.shape[0])
-    X = sol.X.detach().clone().requires_grad_(True)
-    U = sol.U.detach().clone().requires_grad_(True)
-    lam = sol.costate
-    m = sol.multipliers
-    ineq = torch.cat([m[k] for k in c.ineq_blocks if k in m], -1) if c.mi else None
-    L = tt.ilqr.total_cost(problem, X, U, params).sum()
-    L = L + (lam[:, 1:] * (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:])).sum()
-    values = c.evaluate(X, U, params)
-    dual_min, complementarity = 0.0, 0.0
-    if c.mi:
-        g = torch.where(torch.isfinite(values.ineq), values.ineq, torch.zeros_like(values.ineq))
-        L = L + (ineq * g).sum()
-        dual_min = float(ineq.min())
-        complementarity = float((ineq * g).detach().abs().max())
-    if c.me:
-        L = L + (m["stage_eq"] * values.eq).sum()
-    if c.meN:
-        L = L + (m["terminal_eq"] * values.eqN).sum()
-    gx, gu = torch.autograd.grad(L, (X, U))
-    # scaled like IPOPT's dual infeasibility: by the size of the multipliers (cart-pole's Qf = 100)
-    scale = max(1.0, float(lam.abs().max()), *(float(v.abs().max()) for v in m.values() if v.numel()))
-    stationarity = max(float(gx[:, 1:].abs().max()), float(gu.abs().max())) / scale
-    return stationarity, dual_min, complementarity
 
 
 #: Tighter solves where the problem set's options end inside the cost tolerance but not at stationarity 1e-5.
