@@ -339,6 +339,25 @@ def test_float32_gradients_agree_with_float64():
         assert torch.allclose(a.double(), b, rtol=2e-3, atol=2e-3 * b.abs().max())
 
 
+def test_ipm_float32_gradients_through_an_active_obstacle_agree_with_float64():
+    """The interior-point method's multipliers are positive on every row: in float32 the active set
+    must still be the rows at the obstacle, not every row with a positive multiplier."""
+    problem = car()
+    out = {}
+    for dtype in (torch.float64, torch.float32):
+        p = problem.to(dtype)
+        x0 = torch.tensor([[0.0, -0.05, 0.0], [0.0, 0.05, 0.0]], dtype=dtype, requires_grad=True)
+        obstacle = p.params["obstacle"].clone().requires_grad_(True)
+        sol = tt.solve(p.with_params(obstacle=obstacle), x0, method="ipm")
+        assert bool(sol.converged.all())
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            out[dtype] = torch.autograd.grad(sol.U.sum() + sol.X[:, -5:].pow(2).sum(), [x0, obstacle])
+    for a, b in zip(out[torch.float32], out[torch.float64]):
+        assert b.abs().max() > 0.1
+        assert torch.allclose(a.double(), b, rtol=1e-2, atol=1e-2 * b.abs().max())
+
+
 def test_refine_reaches_round_off_stationarity():
     """iLQR at its default tolerances stops with a reduced gradient of about 2e-3 here; the Newton
     refinement makes the reduced gradient, computed independently by autograd through a rollout,
@@ -569,3 +588,40 @@ def test_pendulum_gradient_row_checks_instances_whose_re_solves_keep_their_activ
     assert note.startswith("FD over ") and "#0" not in note, note  # instance 0 is kept, and a minimum
     if not note.startswith("FD over 4/4"):
         assert "over all 4: " in note and "another active set" in note, note
+
+
+CUDA_CASES = [(method, dtype) for method in ("altro", "ipm") for dtype in (torch.float64, torch.float32)]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("method,dtype", CUDA_CASES)
+def test_cuda_gradients_match_cpu(method, dtype):
+    """The car passing its obstacle (an active state inequality) and the pendulum with active control
+    bounds, four instances each, solved and differentiated on CUDA: the same statuses and gradients
+    with respect to x0 and every parameter as on the CPU (float64 to 1e-7, float32 to 1e-2
+    relative: the solves themselves stop at float32's resolution)."""
+    float32_options = {"altro": ALTROOptions(constraint_tolerance=1e-4,
+                                             projection_options=ProjectionOptions(tolerance=1e-5)),
+                       "ipm": None}
+    options = float32_options[method] if dtype == torch.float32 else None
+    bounded = pendulum(u_lower=torch.tensor([-3.0], dtype=F64), u_upper=torch.tensor([3.0], dtype=F64))
+    x0s = {"car10": torch.tensor([[0.0, -0.05, 0.0], [0.0, 0.05, 0.0], [0.0, -0.1, 0.1], [0.0, 0.0, -0.1]]),
+           "pendulum10": torch.tensor([[0.1, 0.2], [0.3, -0.1], [-0.2, 0.0], [0.0, 0.4]])}
+    for problem in (car(), bounded):
+        grads = {}
+        for device in ("cpu", "cuda"):
+            p = problem.to(dtype=dtype, device=device)
+            params = {k: v.clone().requires_grad_(True) for k, v in p.params.items()}
+            x0 = x0s[problem.name].to(dtype=dtype, device=device).requires_grad_(True)
+            sol = tt.solve(p.with_params(**params), x0, method=method, options=options)
+            assert sol.X.device.type == device
+            assert bool(sol.converged.all()), (problem.name, device, sol.status.tolist())
+            loss = sol.U.sum() + sol.X[:, -5:].pow(2).sum() + sol.cost.sum()
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", RuntimeWarning)  # no instance left with a zero gradient
+                grads[device] = torch.autograd.grad(loss, [x0, *params.values()])
+            assert grads[device][0].abs().min() > 0
+        rtol = 1e-7 if dtype == torch.float64 else 1e-2
+        for name, a, b in zip(["x0", *problem.params], grads["cpu"], grads["cuda"]):
+            b = b.cpu()
+            assert torch.allclose(a, b, rtol=rtol, atol=rtol * a.abs().max()), (problem.name, name, a, b)
