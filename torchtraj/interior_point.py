@@ -73,7 +73,7 @@ from .constraints import Constraints
 from .derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_jacobian
 from .ilqr import _first_true, _where, total_cost
 from .problem import Problem
-from .riccati import LQR, LQRVectors, factorize
+from .riccati import LQR, LQRVectors, all_finite, factorize
 from .solution import History, Solution
 from .status import Status
 
@@ -259,9 +259,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     s_d = torch.clamp(multipliers / count, min=s_max) / s_max
     slack_grad = (it.y - it.z) * knots  # stationarity in s
     dual_error = _flat_abs(grad_x, Lz[:, :, nx:], grad_N, slack_grad, it.yN - it.zN).amax(-1) / s_d
-    finite = torch.isfinite(torch.cat([Lz.flatten(1), Lzz.flatten(1), LNxx.flatten(1), fz.flatten(1), Gz.flatten(1),
-                                       Hz.flatten(1), GN.flatten(1), HN.flatten(1), J.unsqueeze(1),
-                                       theta.unsqueeze(1)], -1)).all(-1)
+    finite = all_finite([Lz, Lzz, LNxx, fz, Gz, Hz, GN, HN, J.unsqueeze(1), theta.unsqueeze(1)])
     return Model(J, Lz, Lzz, LNx, LNxx, f, fz, g, Gz, h, Hz, gN, GN, hN, HN, theta, violation, dual_error,
                  primal_error, finite, knots)
 
@@ -346,7 +344,7 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
     dzN = (mu.unsqueeze(-1) + it.zN * model.gN + it.zN * GdwN) / it.sN
     dnu = sol.nu if sol.nu is not None else it.nu.new_zeros(it.nu.shape)
     dnuN = sol.nuN if sol.nuN is not None else it.nuN.new_zeros(it.nuN.shape)
-    finite = torch.isfinite(torch.cat([dX.flatten(1), dU.flatten(1), sol.costate.flatten(1)], -1)).all(-1)
+    finite = all_finite([dX, dU, sol.costate])
     # the full step takes the multipliers y of g + s = 0 to z + Δz (stationarity in s)
     dy, dyN = (it.z + dz - it.y) * on, it.zN + dzN - it.yN
     return Direction(dX, dU, ds, dsN, dz, dzN, dy, dyN, sol.costate, dnu, dnuN, factor.K, factor.ok & finite)

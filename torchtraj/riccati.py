@@ -389,7 +389,7 @@ def _compress(R: Tensor, nx: int, tol: float, scale: Tensor):
     return _pad_cols(U2, nx), gmask, G
 
 
-def _finite(values: list) -> Tensor:
+def all_finite(values: list) -> Tensor:
     """``(B,)``: whether every entry of an instance is finite in each of ``values`` (batch-first tensors or None)."""
     finite = None
     for value in values:
@@ -421,7 +421,7 @@ def _sanitize(lqr: LQR):
     LAPACK's SVD may fail for a whole batch when one instance holds a NaN; swapping such an
     instance for ``A = 0, B = 0, Q = R = I`` keeps the others' answers unchanged, and the
     returned mask ``finite (B,)`` marks it as failed."""
-    finite = _finite([lqr.A, lqr.B, lqr.Q, lqr.R, lqr.S, lqr.QN, lqr.C, lqr.D, lqr.CN])
+    finite = all_finite([lqr.A, lqr.B, lqr.Q, lqr.R, lqr.S, lqr.QN, lqr.C, lqr.D, lqr.CN])
     fields = {name: _clean(getattr(lqr, name), finite, eye=name in ("Q", "R", "QN"))
               for name in ("A", "B", "Q", "R", "S") + _OTHER_FIELDS}
     return LQR(**fields), finite
@@ -438,7 +438,7 @@ def _sanitize_stacked(lqr: LQR):
     W = torch.cat([lqr.A, lqr.B], -1)
     Hs = lqr.Q.new_empty(*lqr.Q.shape[:-2], n, n)
     Hs[..., :nx, :nx], Hs[..., :nx, nx:], Hs[..., nx:, :nx], Hs[..., nx:, nx:] = lqr.Q, _mT(lqr.S), lqr.S, lqr.R
-    finite = _finite([W, Hs, lqr.QN, lqr.C, lqr.D, lqr.CN])
+    finite = all_finite([W, Hs, lqr.QN, lqr.C, lqr.D, lqr.CN])
     drop = ~finite.reshape(-1, 1, 1, 1)
     W.masked_fill_(drop, 0.0)
     Hs.masked_fill_(drop, 0.0)
