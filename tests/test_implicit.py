@@ -625,3 +625,55 @@ def test_cuda_gradients_match_cpu(method, dtype):
         for name, a, b in zip(["x0", *problem.params], grads["cpu"], grads["cuda"]):
             b = b.cpu()
             assert torch.allclose(a, b, rtol=rtol, atol=rtol * a.abs().max()), (problem.name, name, a, b)
+
+
+# ------------------------------------------------------------------- the unrolled mode
+def _loss_gradients(problem, x0, method, gradients, names):
+    params = {k: problem.params[k].clone().requires_grad_(True) for k in names}
+    x0 = x0.clone().requires_grad_(True)
+    sol = tt.solve(problem.with_params(**params), x0, method=method, gradients=gradients)
+    assert bool(sol.converged.all())
+    loss = sol.U.sum() + sol.X[:, -5:].pow(2).sum()
+    return loss.detach(), torch.autograd.grad(loss, [x0, *params.values()])
+
+
+def test_unrolled_gradients_are_exact_on_a_linear_quadratic_problem():
+    """Linear dynamics and rows, quadratic cost: iLQR's model is the KKT matrix, so differentiating the
+    final iLQR step gives the implicit gradient (control bound and velocity bound both active)."""
+    problem = oscillator(u_max=0.6, v_max=0.25)
+    x0 = torch.tensor([[0.0, 0.0], [0.2, -0.1]], dtype=F64)
+    names = ["stiffness", "goal", "w", "v_max"]
+    _, exact = _loss_gradients(problem, x0, "altro", "implicit", names)
+    _, unrolled = _loss_gradients(problem, x0, "altro", "unrolled", names)
+    cons = Constraints(problem)
+    sol = tt.solve(problem, x0, method="altro")
+    assert int((cons.evaluate(sol.X, sol.U, problem.batched_params(2)).ineq > -1e-9).sum()) >= 2
+    for a, b in zip(exact, unrolled):
+        assert a.abs().max() > 0
+        assert torch.allclose(a, b, rtol=1e-7, atol=1e-7 * a.abs().max())
+
+
+@pytest.mark.parametrize("method", ["altro", "ipm"])
+def test_unrolled_gradients_are_off_where_the_dynamics_are_curved(method):
+    """On the pendulum (sin in the dynamics) with an active control bound, the unrolled gradient leaves
+    out the dynamics' curvature: central differences of re-solves agree with the implicit gradient to
+    1e-6 and differ from the unrolled one by more than 1e-2 (here about 10 %)."""
+    problem = pendulum(u_lower=torch.tensor([-3.0], dtype=F64), u_upper=torch.tensor([3.0], dtype=F64))
+    x0 = torch.tensor([[0.1, 0.2]], dtype=F64)
+    names = ["mass"]
+    _, exact = _loss_gradients(problem, x0, method, "implicit", names)
+    _, unrolled = _loss_gradients(problem, x0, method, "unrolled", names)
+    eps, mass = 1e-6, problem.params["mass"]
+    losses = []
+    for sign in (1.0, -1.0):  # differentiable solves: their points are refined to the KKT point
+        moved = (mass + sign * eps).requires_grad_(True)
+        losses.append(float(_loss_gradients(problem.with_params(mass=moved), x0, method, "implicit", [])[0]))
+    fd = (losses[0] - losses[1]) / (2 * eps)
+    assert abs(fd - float(exact[1])) <= 1e-6 * abs(fd)
+    assert abs(fd - float(unrolled[1])) > 1e-2 * abs(fd)
+
+
+def test_unknown_gradients_mode_is_refused():
+    problem = pendulum()
+    with pytest.raises(ValueError, match="gradients must be one of"):
+        tt.solve(problem, method="ilqr", gradients="backprop")

@@ -95,6 +95,28 @@ Instances get a **zero gradient**, and a ``RuntimeWarning`` names them with the 
 
 (at the backward pass for all but the first); other instances of the batch are unaffected. Gradients
 flow to ``x0`` and the tensors of ``Problem.params``; bounds, initial guesses and options get none.
+
+Unrolled mode (``tt.solve(..., gradients="unrolled")``): the derivative of one final iLQR
+(Gauss-Newton SQP) step taken at the solver's point with its active set held, the iterations before it
+cut off (their iterate treated as a constant). The step solves ``M δ = -F(w, θ)`` with iLQR's model
+
+.. math::
+
+    M = \begin{bmatrix} \nabla^2_w \textstyle\sum_k l(z_k) + l_N & ∂c/∂w^T \\ ∂c/∂w & 0 \end{bmatrix},
+
+the cost Hessian in place of the Lagrangian's (the multiplier-weighted curvature of the dynamics and
+the constraint rows left out), so ``∂(w + δ)/∂θ = -M^{-1} ∂F/∂θ - (∂M^{-1}/∂θ) F``; at the solver's
+point ``F ≈ 0`` and the second term is dropped. That is the formula above with ``K`` replaced by ``M``:
+the same adjoint code with one factorisation of ``M``, no refinement, no Lagrangian Hessian (the
+second derivatives of the dynamics, the dear part of an RK4 model's expansion). It is the gradient of
+differentiating through the last LQR approximation (as mpc.pytorch does at its fixed point). It
+equals the exact gradient where ``M = K``: linear dynamics and linear constraints with a quadratic
+cost (the bench's ``linear_box``), up to the solver's tolerance, which is not refined away. It
+disagrees wherever the dynamics or an active constraint is curved, by about ``‖M^{-1}(K - M)‖``
+relative: ``python -m torchtraj.bench --grad --gradients unrolled`` reports its agreement with
+finite differences on the pendulum next to the linear rows (README), and the tests measure both
+sides. Only instances that did not converge get zero gradients; the others get the unrolled
+derivative at whatever point the solver stopped.
 """
 
 from __future__ import annotations
@@ -119,6 +141,9 @@ from .status import Status
 
 #: Methods whose solutions ignore the problem's constraints: their KKT conditions are the unconstrained ones.
 UNCONSTRAINED_METHODS = frozenset({"ilqr"})
+
+#: How a differentiable solve differentiates (``tt.solve(..., gradients=...)``).
+GRADIENT_MODES = ("implicit", "unrolled")
 
 
 def default_active_tolerance(dtype: torch.dtype) -> float:
@@ -254,14 +279,15 @@ def active_rows(problem: Problem, X: Tensor, U: Tensor, params, constrained: boo
 
 def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool = True,
                active_tolerance: Optional[float] = None, multipliers: Optional[Multipliers] = None,
-               active: Optional[tuple] = None) -> KKTSystem:
+               active: Optional[tuple] = None, gauss_newton: bool = False) -> KKTSystem:
     """The factorised KKT system at ``X (B, N+1, nx)``, ``U (B, N, nu)`` from ``x0 (B, nx)``.
 
     ``params`` are batched to B. Without ``multipliers`` they are computed from the cost Hessian (one
     more factorisation, module docstring). ``active`` (from :func:`active_rows`) imposes the active
     set; else rows with ``g > -active_tolerance`` are active. With ``constrained=False`` the
     constraints are left out (the KKT conditions of the unconstrained problem, for methods that ignore
-    constraints).
+    constraints). ``gauss_newton``: the cost Hessian instead of the Lagrangian's (iLQR's model, the
+    unrolled mode of the module docstring); its factorisation is the one that computes the multipliers.
     """
     cons = _constraints(problem, constrained)
     tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
@@ -275,6 +301,14 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     gradient = LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=zeros(X[:, 1:]), x0=zeros(x0),
                           e=None if e is None else zeros(e), eN=None if eN is None else zeros(eN))
     ok = torch.ones(X.shape[0], dtype=torch.bool, device=X.device)
+    newton = dataclasses.replace(gradient, c=f - X[:, 1:], x0=x0 - X[:, 0], e=e, eN=eN)
+    if gauss_newton:
+        factor = factorize(lqr)
+        if multipliers is None:
+            step = factor.solve(gradient, multipliers=True)
+            multipliers = Multipliers(step.costate, step.nu, step.nuN)
+        return KKTSystem(lqr=lqr, factor=factor, newton=newton, multipliers=multipliers, ok=factor.ok,
+                         degenerate=dependent_rows(factor) > 0.5)
     if multipliers is None:
         first = factorize(lqr)
         step = first.solve(gradient, multipliers=True)
@@ -290,7 +324,6 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
         None if nuN is None else nuN[..., :meN], None if nuN is None else nuN[..., meN:])
     lqr = dataclasses.replace(lqr, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=HN)
     factor = factorize(lqr)
-    newton = dataclasses.replace(gradient, c=f - X[:, 1:], x0=x0 - X[:, 0], e=e, eN=eN)
     return KKTSystem(lqr=lqr, factor=factor, newton=newton, multipliers=multipliers, ok=ok & factor.ok,
                      degenerate=dependent_rows(factor) > 0.5)
 
@@ -464,17 +497,19 @@ def parameter_gradients(problem: Problem, cons: Constraints, X: Tensor, U: Tenso
 def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor,
                    U_bar: Tensor, constrained: bool = True, active_tolerance: Optional[float] = None,
                    kkt: Optional[KKTSystem] = None, multipliers: Optional[Multipliers] = None,
-                   active: Optional[tuple] = None):
+                   active: Optional[tuple] = None, gauss_newton: bool = False):
     """Gradients ``(x0_bar (B, nx), {name: (B, *shape)}, kkt)`` of a loss with cotangents
     ``X_bar (B, N+1, nx)``, ``U_bar (B, N, nu)`` at the solution ``(X, U)`` from ``x0 (B, nx)``.
 
     ``params`` are batched to B; ``kkt``, ``multipliers`` and the ``active`` set at ``(X, U)`` are reused
     when given (from :func:`refine`). ``kkt`` is returned too: ``kkt.ok`` is False where the KKT system
     could not be factorised, ``kkt.degenerate`` where its active rows are linearly dependent.
+    ``gauss_newton``: the adjoint of iLQR's model instead of the KKT matrix (unrolled mode).
     """
     cons = _constraints(problem, constrained)
     if kkt is None:
-        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active)
+        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active,
+                         gauss_newton)
     multipliers = kkt.multipliers if multipliers is None else multipliers
     zeros = torch.zeros_like
     rhs = LQRVectors(q=X_bar[:, :-1], r=U_bar, qN=X_bar[:, -1], c=zeros(X[:, 1:]), x0=zeros(x0),
@@ -498,6 +533,7 @@ class _Spec:
     constrained: bool
     active_tolerance: Optional[float]
     refined: Optional[Refined]
+    gauss_newton: bool = False  # the unrolled mode (module docstring)
 
 
 class ImplicitSolution(torch.autograd.Function):
@@ -524,7 +560,7 @@ class ImplicitSolution(torch.autograd.Function):
         x0_bar, p_bar, kkt = backward_solve(
             spec.problem, x0, X, U, params, X_bar, U_bar, spec.constrained, spec.active_tolerance,
             None if refined is None else refined.kkt, None if refined is None else refined.multipliers,
-            None if refined is None else refined.active)
+            None if refined is None else refined.active, spec.gauss_newton)
         B = X.shape[0]
         finite = torch.isfinite(x0_bar).all(-1)
         for v in p_bar.values():
@@ -575,7 +611,8 @@ def _violation(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params) -> Te
 
 
 def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor], solution: Solution,
-                     refine_steps: int = 4, active_tolerance: Optional[float] = None) -> Solution:
+                     refine_steps: int = 4, active_tolerance: Optional[float] = None,
+                     gradients: str = "implicit") -> Solution:
     """``solution`` with ``X``, ``U`` and ``cost`` differentiable with respect to ``x0`` and ``params``.
 
     Args:
@@ -587,12 +624,18 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
             differentiating (0: differentiate at the solver's point as it is).
         active_tolerance: inequality rows with ``g > -active_tolerance`` are held active;
             default :func:`default_active_tolerance`.
+        gradients: ``"implicit"`` (exact, this module) or ``"unrolled"`` (the derivative of a final
+            iLQR step at the solver's point, unrefined: module docstring).
 
     Instances whose status is not ``CONVERGED`` get zero gradients (and are not refined); a
     ``RuntimeWarning`` names them. So do, at the backward pass, instances that refinement could not
     bring to a KKT point, and those whose KKT system is not factorisable or degenerate (module
     docstring). ``max_violation`` is re-evaluated at the refined point.
     """
+    if gradients not in GRADIENT_MODES:
+        raise ValueError(f"gradients must be one of {GRADIENT_MODES}, got {gradients!r}")
+    unrolled = gradients == "unrolled"
+    refine_steps = 0 if unrolled else refine_steps
     usable = solution.status == Status.CONVERGED
     if not bool(usable.all()):
         warnings.warn(f"implicit gradients: instance(s) {_indices(~usable)} did not converge (status "
@@ -611,7 +654,7 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
     names = tuple(params)
     stationary = torch.ones_like(usable) if refined is None else refined.stationary
     spec = _Spec(problem=problem, names=names, usable=usable, stationary=stationary, constrained=constrained,
-                 active_tolerance=active_tolerance, refined=refined)
+                 active_tolerance=active_tolerance, refined=refined, gauss_newton=unrolled)
     X, U = ImplicitSolution.apply(spec, X, U, x0, *(params[n] for n in names))
     cost = objective(problem, X, U, params)
     # where an instance gets no gradient, its cost gets none either (not even the explicit ∂l/∂p)

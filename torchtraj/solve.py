@@ -74,6 +74,7 @@ def solve(
     X0=None,
     options=None,
     duals: Optional[dict] = None,
+    gradients: str = "implicit",
 ) -> Solution:
     """Solve a batch of instances of ``problem``.
 
@@ -90,6 +91,9 @@ def solve(
             solution's, shifted by MPC for instance); missing blocks start at 0 and ``penalty_initial``.
             With ``X0``, an optional ``"costate": (B, N+1, nx)`` (:attr:`Solution.costate`) starts the
             multipliers of the slack rows ``s_k = 0`` at ``−λ_{k+1}``, their value at a KKT point.
+        gradients: how a differentiable solve (below) differentiates: ``"implicit"`` (exact: the
+            implicit function theorem at the refined KKT point) or ``"unrolled"`` (cheaper, approximate:
+            the derivative of one final iLQR step at the solver's point, :mod:`torchtraj.implicit`).
 
     Returns:
         A :class:`~torchtraj.Solution` with per-instance status. The batch size B is the common
@@ -100,6 +104,8 @@ def solve(
         that did not converge get zero gradients and a warning).
     """
     method = check_problem_and_method(problem, method)
+    if gradients not in implicit.GRADIENT_MODES:
+        raise ValueError(f"gradients must be one of {implicit.GRADIENT_MODES}, got {gradients!r}")
     opts = _options(method, options)
     N, nx, nu = problem.N, problem.nx, problem.nu
     x0 = _batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)
@@ -119,7 +125,7 @@ def solve(
     detached = {k: v.detach() for k, v in params.items()}
     solution = _dispatch(problem, method, opts, x0.detach().contiguous(), U0.detach().contiguous(),
                          None if X0 is None else X0.detach(), detached, B, duals)
-    return implicit.attach_gradients(problem, x0, params, solution)
+    return implicit.attach_gradients(problem, x0, params, solution, gradients=gradients)
 
 
 def check_problem_and_method(problem, method: Union[str, Method]) -> Method:

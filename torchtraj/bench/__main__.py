@@ -61,6 +61,9 @@ def parser() -> argparse.ArgumentParser:
                    help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
                         "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
                         "16 64 256 (the pendulum rows use those <= 64) and --method to altro")
+    p.add_argument("--gradients", choices=("implicit", "unrolled"), default="implicit",
+                   help="with --grad: tt.solve's gradients mode (unrolled: the final iLQR step's derivative, "
+                        "approximate where the dynamics or constraints are curved)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the solver's kernels (ILQROptions.compile); every row first runs untimed at "
                         "its own batch size, which compiles, and says how long that took")
@@ -154,7 +157,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         if args.compile:
             options = with_compile(OPTIONS[Method(name)]())
         rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, options=options,
-                        with_mpc=not args.no_reference)
+                        with_mpc=not args.no_reference, gradients=args.gradients)
         return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0
     method = Method(args.method)
     options, applied = make_options(method, cost_tolerance=args.cost_tolerance,

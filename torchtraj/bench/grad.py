@@ -149,14 +149,15 @@ def _fd_agreement(run: Callable, theta: dict, grads: dict, dirs: dict) -> float:
     return worst
 
 
-def torchtraj_lq(problem: Problem, x0, Xbar, Ubar, dirs, method: str, options, fd: bool = True) -> tuple:
+def torchtraj_lq(problem: Problem, x0, Xbar, Ubar, dirs, method: str, options, fd: bool = True,
+                 gradients: str = "implicit") -> tuple:
     """``(row fields, U)`` of torchtraj on the LQ protocol."""
     theta = {"x0": x0, "A": problem.params["A"], "goal": problem.params["goal"]}
 
     def forward(th):
         leaves = {k: v.detach().clone().requires_grad_(True) for k, v in th.items()}
         sol = solve(problem.with_params(A=leaves["A"], goal=leaves["goal"]), leaves["x0"], method=method,
-                    options=options)
+                    options=options, gradients=gradients)
         loss = (sol.X * Xbar).sum() + (sol.U * Ubar).sum()
         return sol, loss, leaves
 
@@ -234,7 +235,8 @@ class ByInstance:
     inputs: dict
 
 
-def solve_by_instance(problem: Problem, theta: dict, method: str, options, loss: Callable) -> ByInstance:
+def solve_by_instance(problem: Problem, theta: dict, method: str, options, loss: Callable,
+                      gradients: str = "implicit") -> ByInstance:
     """Solve from ``theta = {"x0": (B, nx), name: shared value}`` (fresh leaves) with ``loss(solution) -> (B,)``.
 
     Each parameter enters expanded to the batch with stride 0, which the solve still treats as one
@@ -247,7 +249,7 @@ def solve_by_instance(problem: Problem, theta: dict, method: str, options, loss:
     solved = problem.with_params(**shares)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # non-converged instances: left out of the FD check
-        sol = solve(solved, leaves["x0"], method=method, options=options)
+        sol = solve(solved, leaves["x0"], method=method, options=options, gradients=gradients)
     return ByInstance(sol, loss(sol).nan_to_num(), solved, {"x0": leaves["x0"], **shares})
 
 
@@ -399,7 +401,7 @@ def not_minimal(run: ByInstance) -> dict:
 
 
 def torchtraj_pendulum(problem: Problem, batch: int, seed: int, method: str, options,
-                       x0: Optional[Tensor] = None) -> dict:
+                       x0: Optional[Tensor] = None, gradients: str = "implicit") -> dict:
     """Loss ``⟨U, Ū⟩ + |X[:, -5:]|²``; gradients with respect to ``x0`` and the model's mass, length and
     damping, compared with central differences instance by instance (:func:`fd_by_instance`).
 
@@ -408,7 +410,9 @@ def torchtraj_pendulum(problem: Problem, batch: int, seed: int, method: str, opt
     another local solution (another active set) has a jump in its loss, not a derivative: its central
     difference is ~1/ε off. ``grad vs FD`` is therefore taken over the instances whose re-solves all
     kept the nominal active set, and the note names the others, what their re-solves found, and the
-    agreement over all instances. ``x0 (batch, nx)`` defaults to ``sample_x0("pendulum", batch, seed)``."""
+    agreement over all instances. ``x0 (batch, nx)`` defaults to ``sample_x0("pendulum", batch, seed)``.
+    ``gradients``: the nominal solve's mode (``tt.solve``); the re-solves are refined (implicit) either way,
+    so that the differences are of the solution map itself."""
     if x0 is None:
         x0 = problems.sample_x0("pendulum", batch, seed)
     x0 = x0.to(dtype=problem.dtype, device=problem.device)
@@ -427,7 +431,7 @@ def torchtraj_pendulum(problem: Problem, batch: int, seed: int, method: str, opt
     def resolve(th):  # differentiable like the nominal solve, so refined the same way
         return resolved(solve_by_instance(problem, th, method, options, loss))
 
-    nominal, t_fwd = _timed(lambda: solve_by_instance(problem, theta, method, options, loss), x0.device)
+    nominal, t_fwd = _timed(lambda: solve_by_instance(problem, theta, method, options, loss, gradients), x0.device)
     # non-converged instances get zero gradients, and are left out of the check below
     _, t_bwd = _timed(lambda: nominal.loss.sum().backward(), x0.device)
     check = fd_by_instance(resolve, theta, dirs, directional(nominal.inputs, dirs), resolved(nominal))
@@ -468,13 +472,14 @@ def header() -> str:
 
 
 def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, device="cpu",
-        pendulum_batches: Optional[list] = None, options=None, with_mpc: bool = True) -> list:
+        pendulum_batches: Optional[list] = None, options=None, with_mpc: bool = True,
+        gradients: str = "implicit") -> list:
     """Run the protocol, print one line per row through ``say``, return the rows."""
     system = linear_system(seed, dtype, device)
     problem = lq_problem(system)
     have_mpc, why = mpc_available() if with_mpc else (False, "mpc.pytorch off (--no-reference)")
-    say(f"gradient benchmark: torchtraj method {method}, {dtype} on {device}, {torch.get_num_threads()} threads; "
-        f"{why}")
+    say(f"gradient benchmark: torchtraj method {method}, {gradients} gradients, {dtype} on {device}, "
+        f"{torch.get_num_threads()} threads; {why}")
     say(f"linear_box: nx={NX}, nu={NU}, N={HORIZON}, |u|<={U_MAX}; FD step {FD_STEP:g} (central, one random "
         "direction per input); times after an untimed warm-up, wall clock of the whole batch")
     say()
@@ -482,21 +487,23 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     rows = []
     speedups = []
     compiled = is_compiled(options)
+    label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+unrolled" if gradients == "unrolled" else "")
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
-    torchtraj_lq(problem, *warm, method, options, fd=False)
+    torchtraj_lq(problem, *warm, method, options, fd=False, gradients=gradients)
     if have_mpc:
         mpc_pytorch_lq(problem, *warm, fd=False)
     for batch in batches:
         x0, Xbar, Ubar, dirs = _instances(batch, seed, system)
-        ours = GradRow("linear_box", f"torchtraj/{method}" + ("+compile" if compiled else ""), batch)
+        ours = GradRow("linear_box", label, batch)
         U_ours = None
         try:
             warm_up = ""
             if compiled:  # compile at this batch size, untimed
-                _, seconds = _timed(lambda: torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options, fd=False),
+                _, seconds = _timed(lambda: torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options, fd=False,
+                                                         gradients=gradients),
                                     device)
                 warm_up = f"; untimed compiling run {seconds:.0f} s"
-            fields, U_ours = torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options)
+            fields, U_ours = torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options, gradients=gradients)
             for k, v in fields.items():
                 setattr(ours, k, v)
             saturated = float((U_ours.abs() > U_MAX - 1e-6).to(torch.float64).mean())
@@ -526,14 +533,14 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
         say()
         pend = constrained_pendulum(dtype, device)
         for batch in pendulum_batches:
-            row = GradRow(pend.name, f"torchtraj/{method}" + ("+compile" if compiled else ""), batch)
+            row = GradRow(pend.name, label, batch)
             try:
                 warm_up = ""
                 if compiled:  # compile at this batch size, untimed
                     x0 = problems.sample_x0("pendulum", batch, seed).to(dtype=dtype, device=device)
                     _, seconds = _timed(lambda: solve(pend, x0, method=method, options=options), device)
                     warm_up = f"; untimed compiling run {seconds:.0f} s"
-                for k, v in torchtraj_pendulum(pend, batch, seed, method, options).items():
+                for k, v in torchtraj_pendulum(pend, batch, seed, method, options, gradients=gradients).items():
                     setattr(row, k, v)
                 row.note += warm_up
             except Exception as exc:
