@@ -677,3 +677,20 @@ def test_unknown_gradients_mode_is_refused():
     problem = pendulum()
     with pytest.raises(ValueError, match="gradients must be one of"):
         tt.solve(problem, method="ilqr", gradients="backprop")
+
+
+def test_refinement_of_ipm_solutions_keeps_their_optimum():
+    """Interior-point multipliers are positive on every row: a row 1e-3 inside its bound with z ≈ 1e-6
+    is inactive (z < s). Held active, refinement moved these linear_box instances of the gradient bench
+    1e-3 away, to a dearer point. Refined, they stay within the ipm's own accuracy and get no dearer."""
+    from torchtraj.bench import grad as bench_grad
+
+    system = bench_grad.linear_system(0)
+    problem = bench_grad.lq_problem(system)
+    x0 = bench_grad._instances(256, 0, system)[0][[3, 21, 51, 193, 212, 242, 247]]
+    plain = tt.solve(problem, x0, method="ipm")
+    A = problem.params["A"].clone().requires_grad_(True)
+    refined = tt.solve(problem.with_params(A=A), x0, method="ipm")
+    assert bool(plain.converged.all()) and bool(refined.converged.all())
+    assert (refined.U.detach() - plain.U).abs().max() < 1e-4
+    assert bool((refined.cost.detach() <= plain.cost * (1 + 1e-12)).all())

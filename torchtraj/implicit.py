@@ -67,9 +67,9 @@ derivative describes such a point (a re-solve from it goes to the KKT point), so
 
 Active set (:func:`active_rows`), identified once at the solver's point and then held fixed: an
 inequality row is active where ``g > -active_tolerance``, or where the solver's multiplier of the row
-(``Solution.multipliers``, the set ALTRO's projection identified) exceeds ``active_tolerance`` and
+(``Solution.multipliers``, the set ALTRO's projection identified) exceeds the row's slack ``-g`` and
 ``g > -1e3 active_tolerance`` (not merely positive: an interior-point method's multipliers are
-positive on every row). The default :func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)``
+positive on every row, and ``z > s`` is its strict-complementarity test of activity). The default :func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)``
 (``1e-6`` in float64, ``1.2e-3`` in float32). ALTRO's final projection leaves active rows at
 ``|g| ≲ 1e-8`` and inactive rows of a converged solve are far below ``-1e-6`` unless they are
 (weakly) active; a weakly active row (zero multiplier) is held as an equality, which gives the
@@ -247,10 +247,13 @@ def active_rows(problem: Problem, X: Tensor, U: Tensor, params, constrained: boo
     """The active set ``(mask (B, N, me+mi), maskN (B, meN+miN))`` at a solution (``None`` without rows).
 
     Equalities are always active; an inequality row is active where ``g > −tol`` or, when the solver's
-    ``multipliers`` (``Solution.multipliers``, by block) are given, where its multiplier exceeds ``tol``
-    and ``g > −1e3 tol`` (the set an augmented-Lagrangian solver and ALTRO's projection identified). The
-    multiplier must exceed ``tol``, not zero: an interior-point method's are positive on every row
-    (``z = μ / s``), and rows well inside it carry multipliers of order ``μ``.
+    ``multipliers`` (``Solution.multipliers``, by block) are given, where its multiplier exceeds the row's
+    slack ``−g`` and ``g > −1e3 tol`` (the set an augmented-Lagrangian solver and ALTRO's projection
+    identified). Multiplier against slack, not multiplier against zero: an interior-point method's
+    multipliers are positive on every row (``z s = μ``), and near a bound both are small, so only
+    which of the two is larger tells an active row (``s ≈ μ / z``) from an inactive one (``z ≈ μ / s``);
+    a fixed threshold on the multiplier held rows 1e-3 inside a bound with ``z ≈ 1e-6``, and refinement
+    then moved ``linear_box`` instances 1e-3 away to a dearer point.
     """
     cons = _constraints(problem, constrained)
     tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
@@ -264,7 +267,7 @@ def active_rows(problem: Problem, X: Tensor, U: Tensor, params, constrained: boo
             g = map_stage(cons.stage_ineq, X[:, :-1], U, params)
             dual = torch.cat([multipliers[name] if name in multipliers else torch.zeros_like(g[..., rows])
                               for name, rows in cons.ineq_blocks.items()], -1)
-            on = (g > -tol) | ((dual > tol) & (g > -1e3 * tol))
+            on = (g > -tol) | ((dual > -g) & (g > -1e3 * tol))
             parts.append((on & (cons.ineq_knot_mask > 0)).to(X.dtype))
         mask = torch.cat(parts, -1)
     if cons.meN or cons.miN:
@@ -272,7 +275,7 @@ def active_rows(problem: Problem, X: Tensor, U: Tensor, params, constrained: boo
         if cons.miN:
             g = map_state(cons.terminal_ineq, X[:, -1], params)
             dual = multipliers.get("terminal_ineq", torch.zeros_like(g))
-            parts.append(((g > -tol) | ((dual > tol) & (g > -1e3 * tol))).to(X.dtype))
+            parts.append(((g > -tol) | ((dual > -g) & (g > -1e3 * tol))).to(X.dtype))
         maskN = torch.cat(parts, -1)
     return mask, maskN
 
