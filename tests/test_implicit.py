@@ -694,3 +694,29 @@ def test_refinement_of_ipm_solutions_keeps_their_optimum():
     assert bool(plain.converged.all()) and bool(refined.converged.all())
     assert (refined.U.detach() - plain.U).abs().max() < 1e-4
     assert bool((refined.cost.detach() <= plain.cost * (1 + 1e-12)).all())
+
+
+def test_rows_where_an_ipm_bound_arc_begins_join_the_active_set():
+    """Where the control bound of the constrained pendulum begins to bind, an interior-point solution
+    leaves rows with z ≈ s ≈ √μ (z = 3e-5, s = 8e-5): neither clearly active nor inactive. Left out,
+    the Newton refinement's step violates them; they join the held set, refinement reaches the KKT
+    point, and the gradient agrees with central differences of re-solves."""
+    from torchtraj.bench import grad as bench_grad
+
+    problem = bench_grad.constrained_pendulum(F64, "cpu")
+    x0 = tt.problems.sample_x0("pendulum", 256, 0)[[86, 95]]
+    mass = problem.params["mass"]
+
+    def loss_and_grad(m):
+        m = m.clone().requires_grad_(True)
+        sol = tt.solve(problem.with_params(mass=m.expand(2)), x0, method="ipm")
+        loss = sol.U.sum()
+        return float(loss), torch.autograd.grad(loss, m)[0]
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        _, analytic = loss_and_grad(mass)
+    eps = 1e-6
+    fd = (loss_and_grad(mass + eps)[0] - loss_and_grad(mass - eps)[0]) / (2 * eps)
+    assert abs(float(analytic)) > 1.0
+    assert abs(fd - float(analytic)) <= 1e-6 * abs(fd)

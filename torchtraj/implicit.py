@@ -370,6 +370,25 @@ def _inactive_violation(cons: Constraints, X: Tensor, U: Tensor, params, mask, m
     return torch.cat(parts, -1).amax(-1)
 
 
+def _violated_rows(cons: Constraints, X: Tensor, U: Tensor, params, active: tuple) -> tuple:
+    """The active set ``active = (mask, maskN)`` with every inequality row outside it that is violated
+    (``g > 0``) at ``(X, U)`` added, and ``(B,)`` whether an instance gained a row."""
+    mask, maskN = active
+    B = X.shape[0]
+    grew = torch.zeros(B, dtype=torch.bool, device=X.device)
+    if cons.mi:
+        g = map_stage(cons.stage_ineq, X[:, :-1], U, params)
+        add = (mask[..., cons.me:] == 0) & (cons.ineq_knot_mask > 0) & (g > 0)
+        mask = torch.cat([mask[..., :cons.me], mask[..., cons.me:] + add.to(mask.dtype)], -1)
+        grew = grew | add.flatten(1).any(-1)
+    if cons.miN:
+        g = map_state(cons.terminal_ineq, X[:, -1], params)
+        add = (maskN[..., cons.meN:] == 0) & (g > 0)
+        maskN = torch.cat([maskN[..., :cons.meN], maskN[..., cons.meN:] + add.to(maskN.dtype)], -1)
+        grew = grew | add.any(-1)
+    return (mask, maskN), grew
+
+
 @dataclasses.dataclass
 class Refined:
     """Result of :func:`refine`: the point ``X``, ``U``, its ``multipliers``, the Newton ``steps (B,)``
@@ -395,12 +414,15 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
 
     ``x0 (B, nx)``, ``X (B, N+1, nx)``, ``U (B, N, nu)``, ``params`` batched to B. The active set is
     :func:`active_rows` at the starting point (with the solver's multipliers, by block, when given) and
-    is kept while the rows move: a Newton step drives active rows to zero. A step of an
-    instance is taken only if its KKT system factorised, and the step is finite, small
-    (``|δw|∞ ≤ 1e-1 (1 + |w|∞)``), contracts (smaller than the instance's previous step) and leaves
-    every inactive inequality row satisfied; otherwise the instance keeps its point and stops. An
-    instance also stops once its step is at round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``). Only the
-    instances in ``mask (B,)`` (default: all) move.
+    is kept while the rows move: a Newton step drives active rows to zero. An inactive inequality row
+    that a step would violate joins the active set instead, and the instance's step is computed again
+    with it (an interior-point solution leaves the rows where a bound arc begins or ends at
+    ``z ≈ s ≈ √μ``, which no test on ``z`` and ``s`` alone sorts: such a row is held once the step
+    shows that it binds), at most ``steps`` times. A step of an instance is taken only if its KKT
+    system factorised, and the step is finite, small (``|δw|∞ ≤ 1e-1 (1 + |w|∞)``), contracts
+    (smaller than the instance's previous step) and leaves every inactive inequality row satisfied;
+    otherwise the instance keeps its point and stops. An instance also stops once its step is at
+    round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``). Only the instances in ``mask (B,)`` (default: all) move.
     """
     cons = _constraints(problem, constrained)
     B = X.shape[0]
@@ -414,25 +436,35 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
 
     multipliers = None
     active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
-    for _ in range(max(steps, 1)):
+    joined = 0
+    for _ in range(2 * max(steps, 1)):
         kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active)
         s = kkt.factor.solve(kkt.newton, multipliers=True)
         size = torch.maximum(s.dx.abs().flatten(1).amax(-1), s.du.abs().flatten(1).amax(-1))
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
         Xn, Un = X + s.dx, U + s.du
+        candidate = moving & kkt.ok & torch.isfinite(size) & (size <= 1e-1 * scale) & (size < previous)
+        grew = torch.zeros_like(candidate)
+        if cons.mi or cons.miN:
+            more, grew = _violated_rows(cons, Xn, Un, params, (kkt.lqr.mask, kkt.lqr.maskN))
+            grew = grew & candidate & (joined < max(steps, 1)) & (steps > 0)
+            active = tuple(None if m is None else torch.where(expand(grew, m), a, m)
+                           for m, a in zip((kkt.lqr.mask, kkt.lqr.maskN), more))
+            joined += 1 if bool(grew.any()) else 0
         safe = _inactive_violation(cons, Xn, Un, params, kkt.lqr.mask, kkt.lqr.maskN) <= 0
-        take = moving & kkt.ok & torch.isfinite(size) & (size <= 1e-1 * scale) & (size < previous) & safe
+        take = candidate & safe & ~grew
         if steps == 0:
             take = torch.zeros_like(take)
         X, U = torch.where(expand(take, X), Xn, X), torch.where(expand(take, U), Un, U)
         multipliers = Multipliers(s.costate, s.nu, s.nuN).where(take, kkt.multipliers)
         previous = torch.where(take, size, previous)
         taken = taken + take.long()
-        # where a step was taken, kkt is stale by that step: fine at round-off, else go on
-        moving = take & (size > 1e3 * eps * scale)
+        # where a step was taken, kkt is stale by that step: fine at round-off, else go on; where
+        # rows joined, the step is computed again
+        moving = (take & (size > 1e3 * eps * scale)) | grew
         # a step that was not taken was computed at the instance's point: it measures the distance to
         # the KKT point of the active set (a taken one, from the previous point, overestimates it)
-        stationary = kkt.ok & (size <= default_stationarity_tolerance(X.dtype) * scale)
+        stationary = kkt.ok & (size <= default_stationarity_tolerance(X.dtype) * scale) & ~grew
         if not bool(moving.any()):
             return Refined(X, U, multipliers, taken, size, kkt, active, stationary)
     return Refined(X, U, multipliers, taken, size, None, active, stationary)
