@@ -711,7 +711,7 @@ def test_rows_where_an_ipm_bound_arc_begins_join_the_active_set():
         m = m.clone().requires_grad_(True)
         sol = tt.solve(problem.with_params(mass=m.expand(2)), x0, method="ipm")
         loss = sol.U.sum()
-        return float(loss), torch.autograd.grad(loss, m)[0]
+        return float(loss.detach()), torch.autograd.grad(loss, m)[0]
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
