@@ -69,11 +69,11 @@ Active set (:func:`active_rows`), identified once at the solver's point and then
 inequality row is active where ``g > -active_tolerance``, or where the solver's multiplier of the row
 (``Solution.multipliers``, the set ALTRO's projection identified) exceeds the row's slack ``-g`` and
 ``g > -1e3 active_tolerance`` (not merely positive: an interior-point method's multipliers are
-positive on every row, and ``z > s`` is its strict-complementarity test of activity). The default :func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)``
-(``1e-6`` in float64, ``1.2e-3`` in float32). ALTRO's final projection leaves active rows at
-``|g| ≲ 1e-8`` and inactive rows of a converged solve are far below ``-1e-6`` unless they are
-(weakly) active; a weakly active row (zero multiplier) is held as an equality, which gives the
-one-sided derivative in which it stays active. The set is not re-evaluated during refinement: a
+positive on every row, and ``z > s`` is its strict-complementarity test of activity). The default
+:func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)`` (``1e-6`` in float64, ``1.2e-3`` in float32).
+ALTRO's final projection leaves active rows at ``|g| ≲ 1e-8`` and inactive rows of a converged solve
+are far below ``-1e-6`` unless they are (weakly) active; a weakly active row (zero multiplier) is
+held as an equality, which gives the one-sided derivative in which it stays active. The set is not re-evaluated during refinement: a
 Newton step from a point that is only ``1e-3`` stationary moves active rows of a curved constraint by
 ``~1e-6`` before the next step drives them back to zero. The signs of the multipliers are not
 checked: a row held with a negative multiplier (the optimum leaves the bound) gives the derivative of
@@ -144,6 +144,12 @@ UNCONSTRAINED_METHODS = frozenset({"ilqr"})
 
 #: How a differentiable solve differentiates (``tt.solve(..., gradients=...)``).
 GRADIENT_MODES = ("implicit", "unrolled")
+
+
+def check_gradients_mode(gradients: str) -> None:
+    """A clear error for a ``gradients`` value not in :data:`GRADIENT_MODES`."""
+    if gradients not in GRADIENT_MODES:
+        raise ValueError(f"gradients must be one of {GRADIENT_MODES}, got {gradients!r}")
 
 
 def default_active_tolerance(dtype: torch.dtype) -> float:
@@ -305,20 +311,16 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
                           e=None if e is None else zeros(e), eN=None if eN is None else zeros(eN))
     ok = torch.ones(X.shape[0], dtype=torch.bool, device=X.device)
     newton = dataclasses.replace(gradient, c=f - X[:, 1:], x0=x0 - X[:, 0], e=e, eN=eN)
-    if gauss_newton:
-        factor = factorize(lqr)
-        if multipliers is None:
-            step = factor.solve(gradient, multipliers=True)
-            multipliers = Multipliers(step.costate, step.nu, step.nuN)
-        return KKTSystem(lqr=lqr, factor=factor, newton=newton, multipliers=multipliers, ok=factor.ok,
-                         degenerate=dependent_rows(factor) > 0.5)
+    first = factorize(lqr) if multipliers is None or gauss_newton else None  # of the cost Hessian
     if multipliers is None:
-        first = factorize(lqr)
         step = first.solve(gradient, multipliers=True)
         multipliers, ok = Multipliers(step.costate, step.nu, step.nuN), first.ok
     else:  # the rows' activity may have changed: a multiplier lives on active rows only
         multipliers = Multipliers(multipliers.costate, None if mask is None else multipliers.nu * mask,
                                   None if maskN is None else multipliers.nuN * maskN)
+    if gauss_newton:
+        return KKTSystem(lqr=lqr, factor=first, newton=newton, multipliers=multipliers, ok=ok & first.ok,
+                         degenerate=dependent_rows(first) > 0.5)
     me, meN = cons.me, cons.meN
     nu, nuN = multipliers.nu, multipliers.nuN
     H, HN = problem_lagrangian_hessian(
@@ -356,37 +358,22 @@ def dependent_rows(factor: RiccatiFactor) -> Tensor:
 
 
 # -------------------------------------------------------------------------------- refinement
-def _inactive_violation(cons: Constraints, X: Tensor, U: Tensor, params, mask, maskN) -> Tensor:
-    """Largest value ``(B,)`` of the inequality rows outside the masks (−inf without such rows)."""
-    B = X.shape[0]
-    parts = [X.new_full((B, 1), -float("inf"))]
-    if cons.mi:
-        g = map_stage(cons.stage_ineq, X[:, :-1], U, params)
-        inactive = (mask[..., cons.me:] == 0) & (cons.ineq_knot_mask > 0)
-        parts.append(torch.where(inactive, g, torch.full_like(g, -float("inf"))).reshape(B, -1))
-    if cons.miN:
-        g = map_state(cons.terminal_ineq, X[:, -1], params)
-        parts.append(torch.where(maskN[..., cons.meN:] == 0, g, torch.full_like(g, -float("inf"))))
-    return torch.cat(parts, -1).amax(-1)
-
-
 def _violated_rows(cons: Constraints, X: Tensor, U: Tensor, params, active: tuple) -> tuple:
-    """The active set ``active = (mask, maskN)`` with every inequality row outside it that is violated
-    (``g > 0``) at ``(X, U)`` added, and ``(B,)`` whether an instance gained a row."""
+    """The inequality rows outside ``active = (mask, maskN)`` that are violated (``g > 0``) at
+    ``(X, U)``: ``(the active set with them added, (B,) whether an instance has any)``."""
     mask, maskN = active
-    B = X.shape[0]
-    grew = torch.zeros(B, dtype=torch.bool, device=X.device)
+    violated = torch.zeros(X.shape[0], dtype=torch.bool, device=X.device)
     if cons.mi:
         g = map_stage(cons.stage_ineq, X[:, :-1], U, params)
         add = (mask[..., cons.me:] == 0) & (cons.ineq_knot_mask > 0) & (g > 0)
         mask = torch.cat([mask[..., :cons.me], mask[..., cons.me:] + add.to(mask.dtype)], -1)
-        grew = grew | add.flatten(1).any(-1)
+        violated = violated | add.flatten(1).any(-1)
     if cons.miN:
         g = map_state(cons.terminal_ineq, X[:, -1], params)
         add = (maskN[..., cons.meN:] == 0) & (g > 0)
         maskN = torch.cat([maskN[..., :cons.meN], maskN[..., cons.meN:] + add.to(maskN.dtype)], -1)
-        grew = grew | add.any(-1)
-    return (mask, maskN), grew
+        violated = violated | add.any(-1)
+    return (mask, maskN), violated
 
 
 @dataclasses.dataclass
@@ -436,7 +423,7 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
 
     multipliers = None
     active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
-    joined = 0
+    joined = torch.zeros(B, dtype=torch.long, device=X.device)  # rounds in which an instance's set grew
     for _ in range(2 * max(steps, 1)):
         kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active)
         s = kkt.factor.solve(kkt.newton, multipliers=True)
@@ -444,15 +431,14 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
         Xn, Un = X + s.dx, U + s.du
         candidate = moving & kkt.ok & torch.isfinite(size) & (size <= 1e-1 * scale) & (size < previous)
-        grew = torch.zeros_like(candidate)
+        violated = grew = torch.zeros_like(candidate)
         if cons.mi or cons.miN:
-            more, grew = _violated_rows(cons, Xn, Un, params, (kkt.lqr.mask, kkt.lqr.maskN))
-            grew = grew & candidate & (joined < max(steps, 1)) & (steps > 0)
+            more, violated = _violated_rows(cons, Xn, Un, params, (kkt.lqr.mask, kkt.lqr.maskN))
+            grew = violated & candidate & (joined < steps)
             active = tuple(None if m is None else torch.where(expand(grew, m), a, m)
                            for m, a in zip((kkt.lqr.mask, kkt.lqr.maskN), more))
-            joined += 1 if bool(grew.any()) else 0
-        safe = _inactive_violation(cons, Xn, Un, params, kkt.lqr.mask, kkt.lqr.maskN) <= 0
-        take = candidate & safe & ~grew
+            joined = joined + grew.long()
+        take = candidate & ~violated
         if steps == 0:
             take = torch.zeros_like(take)
         X, U = torch.where(expand(take, X), Xn, X), torch.where(expand(take, U), Un, U)
@@ -667,8 +653,7 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
     bring to a KKT point, and those whose KKT system is not factorisable or degenerate (module
     docstring). ``max_violation`` is re-evaluated at the refined point.
     """
-    if gradients not in GRADIENT_MODES:
-        raise ValueError(f"gradients must be one of {GRADIENT_MODES}, got {gradients!r}")
+    check_gradients_mode(gradients)
     unrolled = gradients == "unrolled"
     refine_steps = 0 if unrolled else refine_steps
     usable = solution.status == Status.CONVERGED

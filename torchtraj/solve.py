@@ -104,8 +104,7 @@ def solve(
         that did not converge get zero gradients and a warning).
     """
     method = check_problem_and_method(problem, method)
-    if gradients not in implicit.GRADIENT_MODES:
-        raise ValueError(f"gradients must be one of {implicit.GRADIENT_MODES}, got {gradients!r}")
+    implicit.check_gradients_mode(gradients)
     opts = _options(method, options)
     N, nx, nu = problem.N, problem.nx, problem.nu
     x0 = _batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)

@@ -30,9 +30,9 @@ that no gradient describes and that alone made the summed check read 0.96. Its `
 the largest relative difference instance by instance (:meth:`InstanceFD.agreement`: a relative
 difference of sums over the batch divides by a total in which directional derivatives of random signs
 cancel, and read 6.7e-6 at B = 16 where no instance differs by more than 6.5e-7), over the instances
-whose re-solves all converged with the nominal active set; the note names the others, says what their re-solves found and gives the
-agreement over all instances, and names the instances whose point holds an inequality row with a
-negative multiplier (a KKT point of its active set, not a local minimum).
+whose re-solves all converged with the nominal active set; the note names the others, says what
+their re-solves found and gives the agreement over all instances, and names the instances whose point
+holds an inequality row with a negative multiplier (a KKT point of its active set, not a local minimum).
 """
 
 from __future__ import annotations
@@ -487,7 +487,8 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     rows = []
     speedups = []
     compiled = is_compiled(options)
-    label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+unrolled" if gradients == "unrolled" else "")
+    label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+unrolled" if gradients == "unrolled"
+                                                                        else "")
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
     torchtraj_lq(problem, *warm, method, options, fd=False, gradients=gradients)
     if have_mpc:
