@@ -73,8 +73,8 @@ positive on every row, and ``z > s`` is its strict-complementarity test of activ
 :func:`default_active_tolerance` is ``max(1e-6, 10⁴ ε)`` (``1e-6`` in float64, ``1.2e-3`` in float32).
 ALTRO's final projection leaves active rows at ``|g| ≲ 1e-8`` and inactive rows of a converged solve
 are far below ``-1e-6`` unless they are (weakly) active; a weakly active row (zero multiplier) is
-held as an equality, which gives the one-sided derivative in which it stays active. The set is not re-evaluated during refinement: a
-Newton step from a point that is only ``1e-3`` stationary moves active rows of a curved constraint by
+held as an equality, which gives the one-sided derivative in which it stays active. The set is not
+re-evaluated during refinement (but a row a step would violate joins it, :func:`refine`): a Newton step from a point that is only ``1e-3`` stationary moves active rows of a curved constraint by
 ``~1e-6`` before the next step drives them back to zero. The signs of the multipliers are not
 checked: a row held with a negative multiplier (the optimum leaves the bound) gives the derivative of
 the KKT point with the row held. Dropping such rows at the solver's point does not repair a point that
