@@ -367,3 +367,59 @@ def test_obstacles_from_a_state_guess_around_them(reference):
     assert abs(float(sol.cost[0]) - ipopt) / ipopt < 1e-6
     stationarity, dual_min, complementarity = kkt_residuals(problem, sol)
     assert stationarity < 1e-7 and dual_min >= 0 and complementarity < 1e-7
+
+
+def oscillator(**changes):
+    """A linear oscillator (RK4 of a linear ODE is linear) with quadratic costs, ``|u| ≤ 0.6``, the state row
+    ``x₀ ≥ −0.2`` (short of the goal ``x₀ = −0.5``) and a terminal velocity: a linear-quadratic problem."""
+    base = dict(
+        dynamics=tt.rk4(lambda x, u, p: torch.stack([x[1], u[0] - p["k"] * x[0] - 0.1 * x[1]]), 0.2),
+        stage_cost=lambda x, u, p: 0.5 * ((x - p["goal"]) ** 2).sum() + 0.05 * (u * u).sum(),
+        terminal_cost=lambda x, p: 5.0 * ((x - p["goal"]) ** 2).sum(),
+        state_ineq=lambda x, p: (-0.2 - x[0]).reshape(1),
+        terminal_eq=lambda x, p: x[1:] - p["goal"][1:],
+        x0=torch.tensor([0.5, 0.0], dtype=F64), horizon=15, nu=1,
+        params={"k": torch.tensor(2.0, dtype=F64), "goal": torch.tensor([-0.5, 0.0], dtype=F64)},
+        u_lower=torch.tensor([-0.6], dtype=F64), u_upper=torch.tensor([0.6], dtype=F64),
+    )
+    base.update(changes)
+    return tt.Problem(**base)
+
+
+def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
+    """Declared ``linear_quadratic``, the IPM takes the torch.func expansion once and its derivatives by
+    products after that; its iterates, multipliers and implicit gradients are those of the plain IPM."""
+    from torchtraj import interior_point
+
+    calls = []
+    original = interior_point.problem_lagrangian_expansion
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(interior_point, "problem_lagrangian_expansion", counted)
+    x0s = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2]], dtype=F64)
+    out = {}
+    for declared in (False, True):
+        problem = oscillator(linear_quadratic=declared)
+        x0 = x0s.clone().requires_grad_(True)
+        k = torch.tensor(2.0, dtype=F64, requires_grad=True)
+        goal = torch.tensor([-0.5, 0.0], dtype=F64, requires_grad=True)
+        calls.clear()
+        sol = tt.solve(problem.with_params(k=k, goal=goal), x0, method="ipm")
+        assert bool(sol.converged.all()), sol.status
+        loss = (sol.U ** 2).sum() + sol.X[:, -5:].sum() + sol.cost.sum()
+        out[declared] = (sol, len(calls), torch.autograd.grad(loss, [x0, k, goal]))
+    (plain, plain_calls, plain_grads), (lq, lq_calls, lq_grads) = out[False], out[True]
+    assert lq_calls == 1 and plain_calls == int(plain.iterations.max()) + 1
+    assert torch.equal(lq.iterations, plain.iterations)
+    X, U = lq.X.detach(), lq.U.detach()
+    assert bool(((X[:, 1:-1, 0] < -0.2 + 1e-6).sum(-1) >= 1).all())  # the state row holds on an arc
+    assert bool(((U.abs() > 0.6 - 1e-6).flatten(1).sum(-1) >= 1).all())  # and so does a bound
+    assert torch.allclose(lq.X, plain.X, atol=1e-10) and torch.allclose(lq.U, plain.U, atol=1e-10)
+    for name in plain.multipliers:
+        assert torch.allclose(lq.multipliers[name], plain.multipliers[name], atol=1e-8), name
+    for a, b in zip(lq_grads, plain_grads):
+        assert float(b.abs().max()) > 1e-2
+        assert torch.allclose(a, b, rtol=1e-8, atol=1e-8 * float(b.abs().max())), (a, b)

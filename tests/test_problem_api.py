@@ -71,3 +71,16 @@ def test_batched_parameters_solve_each_instance_with_its_own_value():
         assert torch.allclose(batched.U[i], alone.U[0], atol=1e-9)
     with pytest.raises(ValueError, match="unknown parameters"):
         prob.with_params(mass=stiff)
+
+
+def test_linear_quadratic_declaration_is_checked():
+    """``linear_quadratic=True`` is accepted for an affine model with quadratic costs (RK4 of a linear ODE is
+    linear) and refused, naming the function, where a Jacobian or a cost Hessian is not constant."""
+    assert make(linear_quadratic=True).linear_quadratic
+    with pytest.raises(ValueError, match="dynamics is not affine"):
+        make(dynamics=lambda x, u, p: torch.stack([x[1], u[0] - p["k"] * torch.sin(x[0])]), linear_quadratic=True)
+    with pytest.raises(ValueError, match="stage_cost is not quadratic"):
+        make(stage_cost=lambda x, u, p: (x ** 4).sum() + (u * u).sum(), linear_quadratic=True)
+    with pytest.raises(ValueError, match="terminal_ineq is not affine"):
+        make(terminal_ineq=lambda x, p: (x * x).sum(-1, keepdim=True) - 1.0, linear_quadratic=True)
+    make(stage_ineq=lambda x, u, p: torch.cat([x[:1] - 2.0, u - 1.0]), linear_quadratic=True)

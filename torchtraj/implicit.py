@@ -311,6 +311,8 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
                           e=None if e is None else zeros(e), eN=None if eN is None else zeros(eN))
     ok = torch.ones(X.shape[0], dtype=torch.bool, device=X.device)
     newton = dataclasses.replace(gradient, c=f - X[:, 1:], x0=x0 - X[:, 0], e=e, eN=eN)
+    # of a linear-quadratic problem the cost Hessian is the Lagrangian's: one factorisation is exact
+    gauss_newton = gauss_newton or problem.linear_quadratic
     first = factorize(lqr) if multipliers is None or gauss_newton else None  # of the cost Hessian
     if multipliers is None:
         step = first.solve(gradient, multipliers=True)
@@ -409,10 +411,14 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     system factorised, and the step is finite, small (``|δw|∞ ≤ 1e-1 (1 + |w|∞)``), contracts
     (smaller than the instance's previous step) and leaves every inactive inequality row satisfied;
     otherwise the instance keeps its point and stops. An instance also stops once its step is at
-    round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``). Only the instances in ``mask (B,)`` (default: all) move.
+    round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``), or, of a linear-quadratic problem
+    (``Problem.linear_quadratic``), once it has taken a step: the KKT conditions of an active set are then
+    linear, and one step solves them. Only the instances in ``mask (B,)`` (default: all) move.
     """
     cons = _constraints(problem, constrained)
     B = X.shape[0]
+    # of a linear-quadratic problem the KKT conditions of an active set are linear: one step solves them
+    exact = torch.full((B,), problem.linear_quadratic, dtype=torch.bool, device=X.device)
     moving = torch.ones(B, dtype=torch.bool, device=X.device) if mask is None else mask.clone()
     previous = X.new_full((B,), float("inf"))
     taken = torch.zeros(B, dtype=torch.long, device=X.device)
@@ -447,10 +453,10 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         taken = taken + take.long()
         # where a step was taken, kkt is stale by that step: fine at round-off, else go on; where
         # rows joined, the step is computed again
-        moving = (take & (size > 1e3 * eps * scale)) | grew
+        moving = (take & (size > 1e3 * eps * scale) & ~exact) | grew
         # a step that was not taken was computed at the instance's point: it measures the distance to
         # the KKT point of the active set (a taken one, from the previous point, overestimates it)
-        stationary = kkt.ok & (size <= default_stationarity_tolerance(X.dtype) * scale) & ~grew
+        stationary = kkt.ok & ((size <= default_stationarity_tolerance(X.dtype) * scale) | (take & exact)) & ~grew
         if not bool(moving.any()):
             return Refined(X, U, multipliers, taken, size, kkt, active, stationary)
     return Refined(X, U, multipliers, taken, size, None, active, stationary)

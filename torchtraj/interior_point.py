@@ -235,14 +235,42 @@ def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians
     return g, Gz, h, Hz, gN, GN, hN, HN
 
 
-def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions) -> Model:
-    """Everything the iteration needs at ``it``: one pass of ``torch.func`` over the batch."""
+@dataclass
+class Base:
+    """The first expansion of a linear-quadratic problem (``Problem.linear_quadratic``): its point ``X``, ``U``
+    and :class:`Model`, taken where every multiplier is zero, so that ``model.Lz`` is the cost gradient."""
+
+    X: Tensor
+    U: Tensor
+    model: Model
+
+
+def _linear_quadratic_derivatives(it: Iterate, base: Base):
+    """The Lagrangian gradient at ``it`` of a linear-quadratic problem from its first expansion: the cost
+    gradient moves with the constant cost Hessian, and the constant Jacobians carry the multipliers."""
+    X, U, m = it.X, it.U, base.model
+    dz = torch.cat([X[:, :-1] - base.X[:, :-1], U - base.U], -1)
+    mT = lambda a: a.transpose(-1, -2)  # noqa: E731
+    Lz = m.Lz + _mv(m.Lzz, dz) + _mv(mT(m.fz), it.lam[:, 1:]) + _mv(mT(m.Hz), it.nu) + _mv(mT(m.Gz), it.y)
+    LNx = m.LNx + _mv(m.LNxx, X[:, -1] - base.X[:, -1]) + _mv(mT(m.HN), it.nuN) + _mv(mT(m.GN), it.yN)
+    return Lz, m.Lzz, LNx, m.LNxx, m.fz, m.Gz, m.Hz, m.GN, m.HN
+
+
+def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions,
+           base: Optional[Base] = None) -> Model:
+    """Everything the iteration needs at ``it``: one pass of ``torch.func`` over the batch, or, given the
+    ``base`` expansion of a linear-quadratic problem, the values alone and its derivatives by products."""
     X, U = it.X, it.U
     nx = X.shape[-1]
-    _, Lz, Lzz, _, LNx, LNxx = problem_lagrangian_expansion(problem, cons, X, U, params, it.lam, it.nu, it.y,
-                                                            it.nuN, it.yN)
-    f, fz = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
-    g, Gz, h, Hz, gN, GN, hN, HN = _constraint_parts(cons, X, U, params, jacobians=True)
+    if base is None:
+        _, Lz, Lzz, _, LNx, LNxx = problem_lagrangian_expansion(problem, cons, X, U, params, it.lam, it.nu, it.y,
+                                                                it.nuN, it.yN)
+        f, fz = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
+        g, Gz, h, Hz, gN, GN, hN, HN = _constraint_parts(cons, X, U, params, jacobians=True)
+    else:
+        Lz, Lzz, LNx, LNxx, fz, Gz, Hz, GN, HN = _linear_quadratic_derivatives(it, base)
+        f = map_stage(problem.dynamics, X[:, :-1], U, params)
+        g, _, h, _, gN, _, hN, _ = _constraint_parts(cons, X, U, params, jacobians=False)
     J = total_cost(problem, X, U, params)
     defects = f - X[:, 1:]
     knots = cons.ineq_knot_mask
@@ -564,8 +592,11 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     K = x0.new_zeros(B, N, problem.nu, nx)
     rows = []
     theta_max = theta_min = None
+    base = None
     for step in range(opts.iterations + 1):
-        model = expand_k(problem, cons, params, it, opts)
+        model = expand_k(problem, cons, params, it, opts, base)
+        if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
+            base = Base(it.X, it.U, model)
         if theta_max is None:
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
             theta_max, theta_min = opts.theta_max_factor * theta_0, opts.theta_min_factor * theta_0

@@ -58,6 +58,11 @@ class Problem:
         dt: duration of one interval, when the problem has one (for plots and time penalties).
         name: a label for reports.
         param_shapes: per-instance shape of each parameter; defaults to the given shapes.
+        linear_quadratic: declares the dynamics and every constraint affine in ``(x, u)`` and the costs
+            quadratic (parameters may enter any way). The interior-point method then expands the problem
+            once and evaluates its derivatives at later iterates by products, and implicit differentiation
+            factorises once and refines by one Newton step (the cost Hessian is the Lagrangian's). Checked at construction: the
+            Jacobians and cost Hessians at a second probe point must equal those at the first.
     """
 
     dynamics: StageFn
@@ -81,6 +86,7 @@ class Problem:
     dt: Optional[float] = None
     name: str = "problem"
     param_shapes: Optional[dict] = None
+    linear_quadratic: bool = False
 
     def __post_init__(self) -> None:
         x0 = torch.as_tensor(self.x0)
@@ -246,6 +252,47 @@ class Problem:
             out = call(name, fn, *args)
             if out.dim() != 1:
                 raise ValueError(f"Problem.{name} must return a vector (m,), got shape {tuple(out.shape)}")
+        if self.linear_quadratic:
+            self._check_linear_quadratic(x, u, p)
+
+    def _second_derivatives(self, x: Tensor, u: Tensor, p: Params) -> dict:
+        """The derivatives that a linear-quadratic problem has constant: Jacobians of the dynamics and
+        constraints, Hessians of the costs, at ``(x, u)``."""
+        from torch.func import hessian, jacrev
+
+        z = torch.cat([x, u])
+        nx = self.nx
+
+        def on_z(fn):
+            return lambda z_: fn(z_[:nx], z_[nx:], p)
+
+        out = {"dynamics": jacrev(on_z(self.dynamics))(z),
+               "stage_cost": hessian(on_z(self.stage_cost))(z),
+               "terminal_cost": hessian(lambda x_: self.terminal_cost(x_, p))(x)}
+        for name in ("stage_eq", "stage_ineq", "state_ineq", "terminal_eq", "terminal_ineq"):
+            fn = getattr(self, name)
+            if fn is not None:
+                out[name] = jacrev(on_z(fn))(z) if name.startswith("stage") else jacrev(lambda x_: fn(x_, p))(x)
+        return out
+
+    def _check_linear_quadratic(self, x: Tensor, u: Tensor, p: Params) -> None:
+        """Raise ValueError unless the derivatives of :meth:`_second_derivatives` agree at ``(x, u)`` and at a
+        second, pseudo-random point (a declaration check, not a proof: a function may be affine near both)."""
+        x, u, p = x.detach(), u.detach(), {k: v.detach() for k, v in p.items()}
+        g = torch.Generator().manual_seed(0)
+        scale = 1.0 + float(torch.cat([x, u]).abs().max())
+        dx = scale * torch.randn(x.shape, generator=g, dtype=torch.float64).to(x)
+        du = scale * torch.randn(u.shape, generator=g, dtype=torch.float64).to(u)
+        first, second = self._second_derivatives(x, u, p), self._second_derivatives(x + dx, u + du, p)
+        tol = float(torch.finfo(x.dtype).eps) ** 0.5
+        for name, a in first.items():
+            b = second[name]
+            gap = float((a - b).abs().max()) if a.numel() else 0.0
+            if not gap <= tol * (1.0 + float(a.abs().max() if a.numel() else 0.0)):
+                kind = "Hessian" if name.endswith("cost") else "Jacobian"
+                shape = "quadratic" if name.endswith("cost") else "affine"
+                raise ValueError(f"Problem declared linear_quadratic, but Problem.{name} is not {shape}: its {kind} "
+                                 f"changes by {gap:.3g} between two probe points")
 
     def constraint_sizes(self) -> dict:
         """Number of rows of each constraint function (0 when absent)."""

@@ -115,7 +115,7 @@ def lq_problem(system: dict) -> Problem:
     bound = torch.full((NU,), U_MAX, dtype=A.dtype, device=A.device)
     return Problem(dynamics=dynamics, stage_cost=stage_cost, terminal_cost=terminal_cost,
                    x0=torch.zeros(NX, dtype=A.dtype, device=A.device), horizon=HORIZON, nu=NU,
-                   params=dict(system), u_lower=-bound, u_upper=bound, name="linear_box")
+                   params=dict(system), u_lower=-bound, u_upper=bound, name="linear_box", linear_quadratic=True)
 
 
 def _instances(batch: int, seed: int, system: dict):
