@@ -423,3 +423,32 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
     for a, b in zip(lq_grads, plain_grads):
         assert float(b.abs().max()) > 1e-2
         assert torch.allclose(a, b, rtol=1e-8, atol=1e-8 * float(b.abs().max())), (a, b)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("declared", [False, True])
+def test_cuda_graphs_replay_the_eager_solve(declared):
+    """``IPOptions(cuda_graphs=True)`` on a GPU: every kernel captured, and the same statuses, iterations and
+    solutions as the eager solve to rounding (the Cholesky factors by formulas instead of LAPACK-like calls), the
+    second solve replaying the graphs the first captured, and the gradients too; on the oscillator with its
+    inequality rows (its torch.func expansion captured, or, declared linear-quadratic, its products)."""
+    from torchtraj.graphs import graphed
+    from torchtraj.interior_point import direction
+
+    problem = oscillator(linear_quadratic=declared, terminal_eq=None).to(device="cuda")
+    x0s = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2]], dtype=F64, device="cuda")
+    out = {}
+    for graphs in (False, True, True):
+        x0 = x0s.clone().requires_grad_(True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)  # every kernel captured: none falls back to eager
+            sol = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(cuda_graphs=graphs))
+        assert bool(sol.converged.all()), sol.status
+        (grad,) = torch.autograd.grad((sol.U ** 2).sum() + sol.X[:, -5:].sum(), [x0])
+        out.setdefault(graphs, []).append((sol, grad))
+    assert len(graphed(direction).graphs) >= 1
+    (eager, g_eager), = out[False]
+    for sol, grad in out[True]:
+        assert torch.equal(sol.iterations, eager.iterations)
+        assert torch.allclose(sol.X, eager.X, atol=1e-10) and torch.allclose(sol.U, eager.U, atol=1e-10)
+        assert torch.allclose(grad, g_eager, atol=1e-10)

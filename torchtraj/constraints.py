@@ -27,6 +27,18 @@ STAGE_INEQ_BLOCKS = ("stage_ineq", "u_upper", "u_lower", "state_ineq", "x_upper"
 STATE_BLOCKS = ("state_ineq", "x_upper", "x_lower")
 
 
+@dataclass(frozen=True)
+class _Rows:
+    """The finite entries of a bound vector: ``index`` (a slice, or a long tensor on the bound's device) and
+    their ``count``."""
+
+    index: object
+    count: int
+
+    def __len__(self) -> int:
+        return self.count
+
+
 @dataclass
 class ConstraintValues:
     """Constraint values at a trajectory: ``eq (B, N, me)``, ``ineq (B, N, mi)``,
@@ -77,9 +89,14 @@ class Constraints:
 
     @staticmethod
     def _finite(bound):
+        """Entries of ``bound`` that are finite: a slice when they are contiguous (a view), else an index tensor
+        on the bound's device (a Python list would be copied to the device at every call)."""
         if bound is None:
             return []
-        return [i for i, v in enumerate(bound.tolist()) if abs(v) != float("inf")]
+        rows = [i for i, v in enumerate(bound.tolist()) if abs(v) != float("inf")]
+        if rows and rows == list(range(rows[0], rows[-1] + 1)):
+            return _Rows(slice(rows[0], rows[-1] + 1), len(rows))
+        return _Rows(torch.tensor(rows, dtype=torch.long, device=bound.device), len(rows)) if rows else []
 
     @property
     def empty(self) -> bool:
@@ -97,15 +114,15 @@ class Constraints:
         if prob.stage_ineq is not None:
             parts.append(prob.stage_ineq(x, u, p))
         if self.u_upper_idx:
-            parts.append(u[self.u_upper_idx] - prob.u_upper[self.u_upper_idx])
+            parts.append(u[self.u_upper_idx.index] - prob.u_upper[self.u_upper_idx.index])
         if self.u_lower_idx:
-            parts.append(prob.u_lower[self.u_lower_idx] - u[self.u_lower_idx])
+            parts.append(prob.u_lower[self.u_lower_idx.index] - u[self.u_lower_idx.index])
         if prob.state_ineq is not None:
             parts.append(prob.state_ineq(x, p))
         if self.x_upper_idx:
-            parts.append(x[self.x_upper_idx] - prob.x_upper[self.x_upper_idx])
+            parts.append(x[self.x_upper_idx.index] - prob.x_upper[self.x_upper_idx.index])
         if self.x_lower_idx:
-            parts.append(prob.x_lower[self.x_lower_idx] - x[self.x_lower_idx])
+            parts.append(prob.x_lower[self.x_lower_idx.index] - x[self.x_lower_idx.index])
         return torch.cat(parts) if parts else x.new_zeros(0)
 
     def terminal_eq(self, x: Tensor, p) -> Tensor:

@@ -280,8 +280,11 @@ _SMALL = 4
 
 
 def _elementwise(n: int) -> bool:
-    """Whether the ``n × n`` factorisation and solves use the elementwise formulas (while traced)."""
-    return n <= _SMALL and torch.compiler.is_compiling()
+    """Whether the ``n × n`` factorisation and solves use the elementwise formulas: while traced, and while a
+    CUDA graph is captured (MAGMA's batched routines, behind some of the LAPACK-like calls, cannot be)."""
+    if n > _SMALL:
+        return False
+    return torch.compiler.is_compiling() or (torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
 
 
 def _cholesky(H: Tensor):

@@ -67,6 +67,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the solver's kernels (ILQROptions.compile); every row first runs untimed at "
                         "its own batch size, which compiles, and says how long that took")
+    p.add_argument("--cuda-graphs", action="store_true",
+                   help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
+                        "(IPOptions.cuda_graphs; no effect on a CPU)")
     p.add_argument("--mpc", action="store_true",
                    help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
                         "own: python -m torchtraj.bench --mpc --help)")
@@ -80,6 +83,8 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error("--reference-instances and --warmup-iterations must be >= 1")
     if args.threads is not None and args.threads < 1:
         p.error(f"--threads must be >= 1, got {args.threads}")
+    if args.cuda_graphs and not (args.grad and args.method == Method.IPM.value and not args.compile):
+        p.error("--cuda-graphs goes with --grad --method ipm, without --compile")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch.cuda.is_available() is False")
 
@@ -156,6 +161,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         options = None
         if args.compile:
             options = with_compile(OPTIONS[Method(name)]())
+        if args.cuda_graphs:
+            options = dataclasses.replace(OPTIONS[Method.IPM](), cuda_graphs=True)
         rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, options=options,
                         with_mpc=not args.no_reference, gradients=args.gradients)
         return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0

@@ -487,7 +487,8 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     rows = []
     speedups = []
     compiled = is_compiled(options)
-    label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+unrolled" if gradients == "unrolled"
+    graphs = getattr(options, "cuda_graphs", False) and torch.device(device).type == "cuda"
+    label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+graphs" if graphs else "") + ("+unrolled" if gradients == "unrolled"
                                                                         else "")
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
     torchtraj_lq(problem, *warm, method, options, fd=False, gradients=gradients)

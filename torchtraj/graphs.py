@@ -1,0 +1,168 @@
+"""Opt-in CUDA graphs of the solvers' per-iteration kernels (``IPOptions.cuda_graphs``).
+
+On a GPU a solver iteration at a moderate batch is bound by launches, not arithmetic: a few thousand small
+kernels, each with its share of Python, dispatcher and launch cost (``python -m torchtraj.bench --grad
+--device cuda``: 2,500 launches an interior-point iteration on ``linear_box``). A CUDA graph records a kernel's
+launches once and replays them as one. :func:`graphed` wraps a function of tensors:
+
+* its arguments are flattened (tensors, ``None``, dataclasses, tuples, lists and dicts of them; any other value
+  is a constant of the graph, held by identity: a problem, its constraints, the options);
+* on the first call for a set of shapes, dtypes and constants it runs the function twice on a side stream
+  (warm-up: lazy initialisation, workspace allocation) and captures a third run into a graph reading static
+  copies of the tensor arguments;
+* on every call it copies the arguments into those copies, replays the graph and returns clones of its outputs
+  (a later replay overwrites the static outputs).
+
+The wrapped function must not synchronise with the host (no ``.item()``, ``bool(tensor)``, no host-to-device copy)
+and must launch the same kernels whatever the values: the solvers' kernels decide per instance by masks, and the
+loops with host decisions (line-search rounds, regularisation attempts, iterations) stay in Python around them.
+Answers are those of the eager kernels to rounding (the same kernels run). Each wrapper keeps
+:data:`GRAPHS_KEPT` graphs, the most recently used, each with its own memory pool; a new problem object is a
+new constant, so a training loop that rebuilds its problem each step captures each kernel once a step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections import OrderedDict
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+#: Graphs kept per wrapped function (least recently used dropped first).
+GRAPHS_KEPT = 8
+
+
+def _flatten(value, tensors: list, key: list):
+    """Append the tensors of ``value`` to ``tensors`` and a description of everything else to ``key``; return a
+    template from which :func:`_rebuild` makes ``value`` again with other tensors."""
+    if isinstance(value, Tensor):
+        tensors.append(value)
+        key.append(("T", tuple(value.shape), value.dtype, value.device, value.stride()))
+        return _Slot(len(tensors) - 1)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type) and _holds_tensors(value):
+        key.append(("D", type(value)))
+        return (type(value), {f.name: _flatten(getattr(value, f.name), tensors, key) for f in dataclasses.fields(value)})
+    if isinstance(value, (tuple, list)):
+        key.append(("S", type(value), len(value)))
+        return (type(value), [_flatten(v, tensors, key) for v in value])
+    if isinstance(value, dict):
+        key.append(("M", tuple(value)))
+        return (dict, {k: _flatten(v, tensors, key) for k, v in value.items()})
+    if value is None or isinstance(value, (bool, int, float, str, torch.dtype, torch.device)):
+        key.append(("V", value))  # by value: a float argument is a new object at every call
+    else:
+        key.append(("C", id(value)))
+    return _Constant(value)
+
+
+def _holds_tensors(value) -> bool:
+    """Whether a dataclass is data (iterates, models, LQR matrices) rather than a constant (a problem, options)."""
+    return any(isinstance(getattr(value, f.name), Tensor) for f in dataclasses.fields(value))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Slot:
+    index: int
+
+
+@dataclasses.dataclass(frozen=True)
+class _Constant:
+    value: object
+
+
+def _rebuild(template, tensors: list):
+    if isinstance(template, _Slot):
+        return tensors[template.index]
+    if isinstance(template, _Constant):
+        return template.value
+    kind, parts = template
+    if isinstance(parts, dict):
+        values = {k: _rebuild(v, tensors) for k, v in parts.items()}
+        return values if kind is dict else kind(**values)  # a dict or a dataclass
+    values = [_rebuild(v, tensors) for v in parts]
+    return kind(values) if kind in (tuple, list) else kind(*values)  # a named tuple takes its fields
+
+
+@dataclasses.dataclass
+class _Captured:
+    graph: torch.cuda.CUDAGraph
+    inputs: list  # static copies of the tensor arguments
+    outputs: list  # the graph's output tensors
+    template: object  # the output's structure
+    constants: tuple  # the constants' objects, kept alive while the graph reads their tensors
+
+
+class Graphed:
+    """``fn`` replayed from CUDA graphs (module docstring); eager where no tensor argument is on a CUDA device."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+        self.graphs: OrderedDict = OrderedDict()
+        self.eager: set = set()  # keys whose capture failed
+
+    def __call__(self, *args):
+        tensors, key = [], []
+        template = _flatten(args, tensors, key)
+        if not any(t.is_cuda for t in tensors) or torch.cuda.is_current_stream_capturing():
+            return self.fn(*args)
+        key = tuple(key)
+        if key in self.eager:
+            return self.fn(*args)
+        captured = self.graphs.get(key)
+        if captured is None:
+            try:
+                captured = self._capture(template, tensors)
+            except RuntimeError as exc:  # an operation that cannot be captured: this kernel stays eager
+                warnings.warn(f"torchtraj: {getattr(self.fn, '__qualname__', self.fn)} runs without a CUDA graph "
+                              f"({exc})", RuntimeWarning, stacklevel=2)
+                self.eager.add(key)
+                return self.fn(*args)
+            self.graphs[key] = captured
+            while len(self.graphs) > GRAPHS_KEPT:
+                self.graphs.popitem(last=False)
+        else:
+            self.graphs.move_to_end(key)
+            for static, value in zip(captured.inputs, tensors):
+                static.copy_(value)
+        captured.graph.replay()
+        return _rebuild(captured.template, [t.clone() for t in captured.outputs])
+
+    def _capture(self, template, tensors: list) -> _Captured:
+        inputs = [t.clone() for t in tensors]
+        args = _rebuild(template, inputs)
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(2):
+                self.fn(*args)
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            out = self.fn(*args)
+        outputs, out_key = [], []
+        out_template = _flatten(out, outputs, out_key)
+        return _Captured(graph, inputs, outputs, out_template, tuple(_constants(template)))
+
+
+def _constants(template):
+    """The constants' objects in a template of :func:`_flatten`."""
+    if isinstance(template, _Constant):
+        yield template.value
+    elif isinstance(template, tuple):
+        _, parts = template
+        for v in (parts.values() if isinstance(parts, dict) else parts):
+            yield from _constants(v)
+
+
+_GRAPHED: dict = {}
+
+
+def graphed(fn: Callable) -> Graphed:
+    """The one :class:`Graphed` wrapper of ``fn`` (module-level functions: every solve shares its graphs)."""
+    wrapper = _GRAPHED.get(fn)
+    if wrapper is None:
+        wrapper = _GRAPHED[fn] = Graphed(fn)
+    return wrapper
