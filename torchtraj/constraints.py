@@ -91,12 +91,12 @@ class Constraints:
     def _finite(bound):
         """Entries of ``bound`` that are finite: a slice when they are contiguous (a view), else an index tensor
         on the bound's device (a Python list would be copied to the device at every call)."""
-        if bound is None:
-            return []
-        rows = [i for i, v in enumerate(bound.tolist()) if abs(v) != float("inf")]
-        if rows and rows == list(range(rows[0], rows[-1] + 1)):
+        rows = [] if bound is None else [i for i, v in enumerate(bound.tolist()) if abs(v) != float("inf")]
+        if not rows:
+            return _Rows(slice(0, 0), 0)
+        if rows == list(range(rows[0], rows[-1] + 1)):
             return _Rows(slice(rows[0], rows[-1] + 1), len(rows))
-        return _Rows(torch.tensor(rows, dtype=torch.long, device=bound.device), len(rows)) if rows else []
+        return _Rows(torch.tensor(rows, dtype=torch.long, device=bound.device), len(rows))
 
     @property
     def empty(self) -> bool:

@@ -142,8 +142,8 @@ class Graphed:
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph):
             out = self.fn(*args)
-        outputs, out_key = [], []
-        out_template = _flatten(out, outputs, out_key)
+        outputs = []
+        out_template = _flatten(out, outputs, [])
         return _Captured(graph, inputs, outputs, out_template, tuple(_constants(template)))
 
 

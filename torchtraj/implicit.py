@@ -418,7 +418,7 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     cons = _constraints(problem, constrained)
     B = X.shape[0]
     # of a linear-quadratic problem the KKT conditions of an active set are linear: one step solves them
-    exact = torch.full((B,), problem.linear_quadratic, dtype=torch.bool, device=X.device)
+    exact = problem.linear_quadratic
     moving = torch.ones(B, dtype=torch.bool, device=X.device) if mask is None else mask.clone()
     previous = X.new_full((B,), float("inf"))
     taken = torch.zeros(B, dtype=torch.long, device=X.device)
@@ -453,7 +453,7 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         taken = taken + take.long()
         # where a step was taken, kkt is stale by that step: fine at round-off, else go on; where
         # rows joined, the step is computed again
-        moving = (take & (size > 1e3 * eps * scale) & ~exact) | grew
+        moving = (take & (size > 1e3 * eps * scale) & (not exact)) | grew
         # a step that was not taken was computed at the instance's point: it measures the distance to
         # the KKT point of the active set (a taken one, from the previous point, overestimates it)
         stationary = kkt.ok & ((size <= default_stationarity_tolerance(X.dtype) * scale) | (take & exact)) & ~grew

@@ -68,10 +68,10 @@ from torch import Tensor
 from .altro import multiplier_blocks
 from .batching import map_stage, map_state, rollout
 from .compiled import kernel
-from .graphs import graphed
 from .compiled import matvec as _mv
 from .constraints import Constraints
 from .derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_jacobian
+from .graphs import graphed
 from .ilqr import _first_true, _where, total_cost
 from .problem import Problem
 from .riccati import LQR, LQRVectors, all_finite, factorize
@@ -508,7 +508,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation; a further
     round only while a ``pending`` instance has found no acceptable step."""
     B, L = it.X.shape[0], opts.line_search_steps
-    a_max, a_dual, phi, slope = _kernel(step_measures, opts)(model, it, d, mu, opts)
+    a_max, a_dual, phi, slope = _kernel(step_measures, opts, it.X.device)(model, it, d, mu, opts)
     scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
     size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
     tiny = size < 10 * torch.finfo(it.X.dtype).eps * scale  # IPOPT's tiny step: taken whole, no filter entry
@@ -520,7 +520,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         if not bool((pending & ~found).any()):
             break
         alphas = a_max.unsqueeze(1) * powers[start:start + per_round]
-        accept, f_ok = _kernel(trial, opts)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
+        accept, f_ok = _kernel(trial, opts, it.X.device)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                                theta_min, alphas, opts)
         idx = _first_true(accept)
         new = accept.any(1) & ~found
@@ -528,14 +528,15 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         f_type = torch.where(new, f_ok[rows, idx], f_type)
         found = found | new
     filt = filt.add(found & ~f_type, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
-    new_it = _kernel(advance, opts)(it, d, alpha, a_dual, mu, model.knots, opts)
+    new_it = _kernel(advance, opts, it.X.device)(it, d, alpha, a_dual, mu, model.knots, opts)
     return Step(new_it, alpha, found, filt)
 
 
 # ------------------------------------------------------------------------------------------ solver
-def _kernel(fn, opts: IPOptions):
-    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (``opts.cuda_graphs``), or itself."""
-    if opts.cuda_graphs and not opts.compile:
+def _kernel(fn, opts: IPOptions, device: torch.device):
+    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (``opts.cuda_graphs``, on a CUDA ``device``),
+    or itself."""
+    if opts.cuda_graphs and not opts.compile and device.type == "cuda":
         return graphed(fn)
     return kernel(fn, opts.compile)
 
@@ -588,8 +589,8 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     else:
         X = torch.cat([x0.unsqueeze(1), X0[:, 1:]], 1)
     it = initial_iterate(cons, params, X, U0, opts)
-    expand_k = _kernel(expand, opts)
-    direction_k = _kernel(direction, opts)
+    expand_k = _kernel(expand, opts, x0.device)
+    direction_k = _kernel(direction, opts, x0.device)
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device)
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
     start_ok = torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(U0).flatten(1).all(-1)

@@ -488,8 +488,8 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     speedups = []
     compiled = is_compiled(options)
     graphs = getattr(options, "cuda_graphs", False) and torch.device(device).type == "cuda"
-    label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+graphs" if graphs else "") + ("+unrolled" if gradients == "unrolled"
-                                                                        else "")
+    label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+graphs" if graphs else "") \
+        + ("+unrolled" if gradients == "unrolled" else "")
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
     torchtraj_lq(problem, *warm, method, options, fd=False, gradients=gradients)
     if have_mpc:
