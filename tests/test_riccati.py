@@ -248,5 +248,6 @@ def test_stacked_sanitisation_matches_the_blockwise_one():
     for name, value in vars(blockwise).items():
         if value is not None:
             assert torch.equal(getattr(stacked, name), value), name
-    assert torch.equal(W, torch.cat([blockwise.A, blockwise.B], -1))
-    assert torch.equal(Hs[1:3], torch.eye(5, dtype=torch.float64).expand(2, 3, 5, 5))
+    # stored time-major: (N, B, ...)
+    assert torch.equal(W, torch.cat([blockwise.A, blockwise.B], -1).transpose(0, 1))
+    assert torch.equal(Hs[:, 1:3], torch.eye(5, dtype=torch.float64).expand(3, 2, 5, 5))

@@ -431,25 +431,39 @@ def _sanitize(lqr: LQR):
 
 
 def _sanitize_stacked(lqr: LQR):
-    """:func:`_sanitize` and the stage blocks stacked over ``z = (δx, δu)``: ``W = [A B] (B, N, nx, nx+nu)``
-    and ``Hs = [[Q, Sᵀ], [S, R]] (B, N, nx+nu, nx+nu)``, of which the cleaned ``A, B, Q, R, S`` are views.
+    """:func:`_sanitize` and the stage blocks stacked over ``z = (δx, δu)``, stored time-major:
+    ``W = [A B] (N, B, nx, nx+nu)`` and ``Hs = [[Q, Sᵀ], [S, R]] (N, B, nx+nu, nx+nu)``, of which the cleaned
+    ``A, B, Q, R, S`` are (batch-first) views. A sweep reads one stage of every instance at a time: stored
+    time-major, that stage is one contiguous block (see :func:`_time_major`).
 
     The cost is in memory: the blocks are checked and cleaned once stacked (not as five, often strided,
     views of one Hessian), in place, and ``Hs`` is filled block by block: every new buffer of megabytes
     costs its page faults (B = 256, N = 30, nx = 8, nu = 4: 5 ms, against 11 ms for :func:`_sanitize` alone)."""
-    nx, n = lqr.A.shape[-1], lqr.A.shape[-1] + lqr.B.shape[-1]
-    W = torch.cat([lqr.A, lqr.B], -1)
-    Hs = lqr.Q.new_empty(*lqr.Q.shape[:-2], n, n)
-    Hs[..., :nx, :nx], Hs[..., :nx, nx:], Hs[..., nx:, :nx], Hs[..., nx:, nx:] = lqr.Q, _mT(lqr.S), lqr.S, lqr.R
-    finite = all_finite([W, Hs, lqr.QN, lqr.C, lqr.D, lqr.CN])
-    drop = ~finite.reshape(-1, 1, 1, 1)
+    Bsz, N, nx, nu = lqr.B.shape
+    n = nx + nu
+    tm = lambda a: a.transpose(0, 1)  # noqa: E731
+    W = lqr.A.new_empty(N, Bsz, nx, n)
+    W[..., :nx], W[..., nx:] = tm(lqr.A), tm(lqr.B)
+    Hs = lqr.Q.new_empty(N, Bsz, n, n)
+    Hs[..., :nx, :nx], Hs[..., :nx, nx:], Hs[..., nx:, :nx], Hs[..., nx:, nx:] = \
+        tm(lqr.Q), tm(_mT(lqr.S)), tm(lqr.S), tm(lqr.R)
+    finite = all_finite([tm(W), tm(Hs), lqr.QN, lqr.C, lqr.D, lqr.CN])
+    drop = ~finite.reshape(1, -1, 1, 1)
     W.masked_fill_(drop, 0.0)
     Hs.masked_fill_(drop, 0.0)
     Hs.diagonal(dim1=-2, dim2=-1).masked_fill_(drop[..., 0], 1.0)
     fields = {name: _clean(getattr(lqr, name), finite, eye=name == "QN") for name in _OTHER_FIELDS}
-    cleaned = LQR(A=W[..., :nx], B=W[..., nx:], Q=Hs[..., :nx, :nx], R=Hs[..., nx:, nx:], S=Hs[..., nx:, :nx],
-                  **fields)
+    cleaned = LQR(A=tm(W[..., :nx]), B=tm(W[..., nx:]), Q=tm(Hs[..., :nx, :nx]), R=tm(Hs[..., nx:, nx:]),
+                  S=tm(Hs[..., nx:, :nx]), **fields)
     return cleaned, finite, W, Hs
+
+
+def _time_major(stages: list) -> Tensor:
+    """The per-stage tensors ``(B, ...)`` of a sweep as one batch-first ``(B, len, ...)`` view of a time-major
+    buffer. A later sweep reads ``[:, t]``: one contiguous block, where a batch-first buffer would give B
+    pieces a stage apart. Measured on one CPU core at B = 256, one 8 × 8 matrix-vector product a stage: 39 µs
+    time-major against 94 µs batch-first (memory, not arithmetic: the small products are cache-bound)."""
+    return torch.stack(stages, 0).transpose(0, 1)
 
 
 def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance: Optional[float] = None) -> RiccatiFactor:
@@ -497,8 +511,8 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         else:
             CD = lqr.A.new_zeros(Bsz, N, 0, nx + nu)
     for t in range(N - 1, -1, -1):
-        Wt = W[:, t]
-        H = Hs[:, t] + _mm(_mT(Wt), _mm(P, Wt))
+        Wt = W[t]
+        H = Hs[t] + _mm(_mT(Wt), _mm(P, Wt))
         Quu, Qux = _sym(H[..., nx:, nx:]), H[..., nx:, :nx]
         if constrained:
             M = torch.cat([CD[:, t], G_next @ Wt], -2)
@@ -533,13 +547,13 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         Ps[t], Ks[t], Quus[t], Quxs[t], chols[t] = P, K, Quu, Qux, L
     return RiccatiFactor(
         lqr=lqr,
-        K=torch.stack(Ks, 1),
-        P=torch.stack(Ps, 1),
+        K=_time_major(Ks),
+        P=_time_major(Ps),
         ok=finite & (torch.stack(infos, 1) == 0).all(1),
-        Quu=torch.stack(Quus, 1),
-        Qux=torch.stack(Quxs, 1),
-        chol=torch.stack(chols, 1),
-        free=torch.stack(frees, 1) if constrained else None,
+        Quu=_time_major(Quus),
+        Qux=_time_major(Quxs),
+        chol=_time_major(chols),
+        free=_time_major(frees) if constrained else None,
         stage=stage,
         terminal=terminal,
     )
