@@ -425,6 +425,41 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
         assert torch.allclose(a, b, rtol=1e-8, atol=1e-8 * float(b.abs().max())), (a, b)
 
 
+@pytest.mark.parametrize("declared", [False, True])
+def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, monkeypatch):
+    """``compact_below``: once instances have finished, the next iterations run on the others alone (gathered,
+    with their own parameters). Every field of the solution and of its history is the same as without, where
+    instances stop at different iterations and a parameter differs per instance (the spring constant), one
+    instance fails (a NaN goal), and, declared linear-quadratic, the first expansion is gathered too."""
+    from torchtraj import interior_point
+
+    gathers = []
+    original = interior_point._param_rows
+    monkeypatch.setattr(interior_point, "_param_rows", lambda params, index: gathers.append(index) or original(
+        params, index))
+    x0 = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2], [0.1, 0.0], [0.9, 0.4], [0.4, -0.2]], dtype=F64)
+    k = torch.tensor([2.0, 1.0, 3.0, 2.5, 1.5, 2.0], dtype=F64)
+    goal = torch.tensor([-0.5, 0.0], dtype=F64).repeat(6, 1)
+    goal[4, 0] = float("nan")
+    problem = oscillator(linear_quadratic=declared).with_params(k=k, goal=goal)
+    def same(a, b, name):  # bit for bit, NaN where NaN
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=name)
+
+    whole = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.0))
+    assert not gathers
+    gathered = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.99))
+    assert len(gathers) >= 2 and len(set(whole.iterations.tolist())) >= 3
+    assert whole.status[4] == tt.Status.NON_FINITE and int(whole.converged.sum()) == 5
+    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
+        same(getattr(gathered, name), getattr(whole, name), name)
+    for name in whole.multipliers:
+        same(gathered.multipliers[name], whole.multipliers[name], name)
+    for name in ("cost", "max_violation", "step_size", "regularization"):
+        same(getattr(gathered.history, name), getattr(whole.history, name), name)
+    for name in whole.history.extra:
+        same(gathered.history.extra[name], whole.history.extra[name], name)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("declared", [False, True])
 def test_cuda_graphs_replay_the_eager_solve(declared):

@@ -48,6 +48,13 @@ The rest is IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), with i
   IPOPT's rule (first ``δ_w^0``, or ``κ_w^- δ_w^{last}``, then ``κ_w^+`` or ``κ̄_w^+`` per attempt) and the
   batch is factorised again, instances that already succeeded keeping their factor.
 
+* **Finished instances leave the batch** (``compact_below``): once the running instances are at most that
+  share of the batch being iterated, their rows are gathered (iterate, model, filter, parameters) and the
+  next iterations run on them alone; the others' results are written back. The arithmetic of an instance is
+  unchanged, bit for bit, and the batch's spread of iteration counts no longer costs the slowest one's
+  iterations for all: the time of an iteration grows about linearly with the batch past a few dozen
+  instances (one CPU core, the bench's ``linear_box``: 112 ms at B = 256, 57 at 128, 35 at 64).
+
 Left out, and what happens instead: there is no feasibility-restoration phase and no second-order
 correction. An instance whose line search finds no acceptable step keeps its iterate and
 retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regularization_max`` its status
@@ -140,6 +147,10 @@ class IPOptions:
     #: On a GPU, replay the per-iteration kernels from CUDA graphs (:mod:`torchtraj.graphs`); no effect on a CPU
     #: or with ``compile``.
     cuda_graphs: bool = False
+    #: Once the running instances are at most this share of the batch being iterated, the next iterations run
+    #: on them alone (:func:`_compacted`); ``0`` never. Off with ``compile`` and CUDA graphs, whose kernels are
+    #: specialised to the batch size.
+    compact_below: float = 0.75
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
 
@@ -576,6 +587,65 @@ def _barrier_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
     return mu, filt
 
 
+def _rows(value, index: Tensor):
+    """The rows ``index`` of a batch-first tensor or dataclass (:class:`Model`'s ``knots`` is per stage)."""
+    if isinstance(value, Tensor):
+        return value[index]
+    return type(value)(**{f.name: getattr(value, f.name) if f.name == "knots" else _rows(getattr(value, f.name), index)
+                          for f in fields(value)})
+
+
+def _param_rows(params, index: Tensor) -> dict:
+    """The rows ``index`` of the batched parameters; a shared one (stride 0) stays an expanded view."""
+    shared = lambda v: v.shape[0] == 1 or v.stride(0) == 0  # noqa: E731
+    return {k: v[:1].expand(index.shape[0], *v.shape[1:]) if shared(v) else v[index] for k, v in params.items()}
+
+
+@dataclass
+class _Final:
+    """What the solution reports of every instance of the full batch, written back as instances leave the
+    iterated set (:func:`_compacted`) and at the end."""
+
+    X: Tensor
+    U: Tensor
+    lam: Tensor
+    z: Tensor
+    zN: Tensor
+    nu: Tensor
+    nuN: Tensor
+    J: Tensor
+    violation: Tensor
+    status: Tensor
+    iterations: Tensor
+    K: Tensor
+
+    @classmethod
+    def of(cls, it: Iterate, model: Model, status: Tensor, iterations: Tensor, K: Tensor) -> "_Final":
+        return cls(X=it.X, U=it.U, lam=it.lam, z=it.z, zN=it.zN, nu=it.nu, nuN=it.nuN, J=model.J,
+                   violation=model.violation, status=status, iterations=iterations, K=K)
+
+    def write(self, index: Tensor, rows: "_Final") -> "_Final":
+        """Overwrite the rows ``index`` with ``rows`` (in place: the buffers are this object's own copies)."""
+        for f in fields(self):
+            getattr(self, f.name)[index] = getattr(rows, f.name)
+        return self
+
+
+def _full_history(rows: list) -> History:
+    """The history of the full batch from records ``(index, values, iteration)`` of the iterated rows ``index``
+    (``None``: all): an iteration's row, or (``iteration`` false) the values that the instances about to leave
+    the iterated set repeat from then on, with step size 0."""
+    full, previous = [], None
+    for index, row, iteration in rows:
+        if index is not None:
+            row = {k: (torch.zeros_like(v) if k == "step_size" else v.clone()).index_copy_(0, index, row[k])
+                   for k, v in previous.items()}
+        if iteration:
+            full.append(row)
+        previous = row
+    return History.from_rows(full)
+
+
 def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[IPOptions] = None,
                          X0: Optional[Tensor] = None, method: str = "ipm") -> Solution:
     """Solve ``problem`` from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and, optionally, states ``X0 (B, N+1, nx)``
@@ -604,6 +674,8 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     rows = []
     theta_max = theta_min = None
     base = None
+    compacting = opts.compact_below > 0 and not opts.compile and not (opts.cuda_graphs and x0.device.type == "cuda")
+    index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
@@ -619,8 +691,24 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
         diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
         status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
         running = status == Status.RUNNING
-        if step == opts.iterations or not bool(running.any()):
+        count = int(running.sum())
+        if step == opts.iterations or count == 0:
             break
+        if compacting and count <= opts.compact_below * running.shape[0]:
+            # the finished instances' results are final: iterate on the running ones alone
+            now = _Final.of(it, model, status, iterations, K)
+            final = _rows(now, torch.arange(running.shape[0], device=x0.device)) if final is None \
+                else final.write(index, now)  # the first: copies of the full batch's
+            # what the history repeats for the instances that leave (its values at their final iterate)
+            rows.append((index, {"cost": model.J, "max_violation": model.violation, "step_size": torch.zeros_like(mu),
+                                 "regularization": floor, "barrier": mu, "kkt_error": error}, False))
+            keep = running.nonzero().squeeze(-1)
+            index = keep if index is None else index[keep]
+            it, model, filt, base = _rows(it, keep), _rows(model, keep), _rows(filt, keep), \
+                None if base is None else _rows(base, keep)
+            mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running = (
+                v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running))
+            params = _param_rows(params, keep)
         mu, filt = _barrier_update(cons, model, it, mu, running, filt, tol, opts)
         lqr, rhs = newton_lqr(model, it, mu, x0, nx)
         delta = floor
@@ -646,16 +734,20 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
         blown = running & (~d.ok | (floor > opts.regularization_max))
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         iterations = iterations + running.long()
-        rows.append({"cost": model.J, "max_violation": model.violation, "step_size": torch.where(take, ls.alpha, 0.0),
-                     "regularization": delta, "barrier": mu, "kkt_error": error})
+        rows.append((index, {"cost": model.J, "max_violation": model.violation,
+                             "step_size": torch.where(take, ls.alpha, 0.0), "regularization": delta, "barrier": mu,
+                             "kkt_error": error}, True))
         if opts.verbose:
             logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  mu %.1e  running %d", method, step,
                         model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),
                         running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
+    out = _Final.of(it, model, status, iterations, K)
+    out = out if final is None else final.write(index, out)
     knots = cons.ineq_knot_mask
-    multipliers = multiplier_blocks(cons, torch.cat([it.z * knots, it.nu], -1), torch.cat([it.zN, it.nuN], -1))
+    multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
     return Solution(
-        X=it.X, U=it.U, K=K, cost=model.J, max_violation=model.violation, status=status, iterations=iterations,
-        history=History.from_rows(rows), costate=it.lam, multipliers=multipliers, method=method,
+        X=out.X, U=out.U, K=out.K, cost=out.J, max_violation=out.violation, status=out.status,
+        iterations=out.iterations, history=_full_history(rows), costate=out.lam, multipliers=multipliers,
+        method=method,
     )
