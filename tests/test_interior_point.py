@@ -434,14 +434,15 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, mo
     from torchtraj import interior_point
 
     gathers = []
-    original = interior_point._param_rows
-    monkeypatch.setattr(interior_point, "_param_rows", lambda params, index: gathers.append(index) or original(
+    original = interior_point.param_rows
+    monkeypatch.setattr(interior_point, "param_rows", lambda params, index: gathers.append(index) or original(
         params, index))
     x0 = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2], [0.1, 0.0], [0.9, 0.4], [0.4, -0.2]], dtype=F64)
     k = torch.tensor([2.0, 1.0, 3.0, 2.5, 1.5, 2.0], dtype=F64)
     goal = torch.tensor([-0.5, 0.0], dtype=F64).repeat(6, 1)
     goal[4, 0] = float("nan")
     problem = oscillator(linear_quadratic=declared).with_params(k=k, goal=goal)
+
     def same(a, b, name):  # bit for bit, NaN where NaN
         torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=name)
 

@@ -21,10 +21,20 @@ from .compiled import matvec
 Params = Mapping[str, Tensor]
 
 
+def shared_param(value: Tensor) -> bool:
+    """Whether a batched parameter is one instance's value for all: expanded from it (stride 0), or B = 1."""
+    return value.shape[0] == 1 or value.stride(0) == 0
+
+
+def param_rows(params: Params, index: Tensor) -> dict:
+    """The rows ``index`` of the batched parameters; a shared one stays an expanded view (and shared)."""
+    return {k: v[:1].expand(index.shape[0], *v.shape[1:]) if shared_param(v) else v[index] for k, v in params.items()}
+
+
 def _split_params(params: Params) -> tuple[dict, dict, bool]:
-    """``(p, p_dims, all_shared)``: a parameter expanded from one instance (stride 0, or B = 1) is shared and
+    """``(p, p_dims, all_shared)``: a parameter expanded from one instance (:func:`shared_param`) is shared and
     passed as that instance's value with vmap dimension ``None``; the others keep their batch dimension 0."""
-    shared = {k for k, v in params.items() if v.shape[0] == 1 or v.stride(0) == 0}
+    shared = {k for k, v in params.items() if shared_param(v)}
     p = {k: (v[0] if k in shared else v) for k, v in params.items()}
     p_dims = {k: (None if k in shared else 0) for k in params}
     return p, p_dims, len(shared) == len(params)

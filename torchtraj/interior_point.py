@@ -73,7 +73,7 @@ import torch
 from torch import Tensor
 
 from .altro import multiplier_blocks
-from .batching import map_stage, map_state, rollout
+from .batching import map_stage, map_state, param_rows, rollout
 from .compiled import kernel
 from .compiled import matvec as _mv
 from .constraints import Constraints
@@ -148,7 +148,7 @@ class IPOptions:
     #: or with ``compile``.
     cuda_graphs: bool = False
     #: Once the running instances are at most this share of the batch being iterated, the next iterations run
-    #: on them alone (:func:`_compacted`); ``0`` never. Off with ``compile`` and CUDA graphs, whose kernels are
+    #: on them alone (module docstring); ``0`` never. Off with ``compile`` and CUDA graphs, whose kernels are
     #: specialised to the batch size.
     compact_below: float = 0.75
     #: Log one line per iteration through the ``torchtraj`` logger.
@@ -544,10 +544,14 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
 
 
 # ------------------------------------------------------------------------------------------ solver
+def _graphs_used(opts: IPOptions, device: torch.device) -> bool:
+    """Whether the kernels are replayed from CUDA graphs: asked for, not compiled, on a CUDA ``device``."""
+    return opts.cuda_graphs and not opts.compile and device.type == "cuda"
+
+
 def _kernel(fn, opts: IPOptions, device: torch.device):
-    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (``opts.cuda_graphs``, on a CUDA ``device``),
-    or itself."""
-    if opts.cuda_graphs and not opts.compile and device.type == "cuda":
+    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (:func:`_graphs_used`), or itself."""
+    if _graphs_used(opts, device):
         return graphed(fn)
     return kernel(fn, opts.compile)
 
@@ -595,16 +599,10 @@ def _rows(value, index: Tensor):
                           for f in fields(value)})
 
 
-def _param_rows(params, index: Tensor) -> dict:
-    """The rows ``index`` of the batched parameters; a shared one (stride 0) stays an expanded view."""
-    shared = lambda v: v.shape[0] == 1 or v.stride(0) == 0  # noqa: E731
-    return {k: v[:1].expand(index.shape[0], *v.shape[1:]) if shared(v) else v[index] for k, v in params.items()}
-
-
 @dataclass
 class _Final:
     """What the solution reports of every instance of the full batch, written back as instances leave the
-    iterated set (:func:`_compacted`) and at the end."""
+    iterated set (``IPOptions.compact_below``) and at the end."""
 
     X: Tensor
     U: Tensor
@@ -629,6 +627,12 @@ class _Final:
         for f in fields(self):
             getattr(self, f.name)[index] = getattr(rows, f.name)
         return self
+
+
+def _history_row(model: Model, step_size: Tensor, regularization: Tensor, mu: Tensor, error: Tensor) -> dict:
+    """One iteration's entry of the history, ``(B,)`` each."""
+    return {"cost": model.J, "max_violation": model.violation, "step_size": step_size,
+            "regularization": regularization, "barrier": mu, "kkt_error": error}
 
 
 def _full_history(rows: list) -> History:
@@ -674,7 +678,7 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     rows = []
     theta_max = theta_min = None
     base = None
-    compacting = opts.compact_below > 0 and not opts.compile and not (opts.cuda_graphs and x0.device.type == "cuda")
+    compacting = opts.compact_below > 0 and not opts.compile and not _graphs_used(opts, x0.device)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
@@ -700,15 +704,14 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
             final = _rows(now, torch.arange(running.shape[0], device=x0.device)) if final is None \
                 else final.write(index, now)  # the first: copies of the full batch's
             # what the history repeats for the instances that leave (its values at their final iterate)
-            rows.append((index, {"cost": model.J, "max_violation": model.violation, "step_size": torch.zeros_like(mu),
-                                 "regularization": floor, "barrier": mu, "kkt_error": error}, False))
+            rows.append((index, _history_row(model, torch.zeros_like(mu), floor, mu, error), False))
             keep = running.nonzero().squeeze(-1)
             index = keep if index is None else index[keep]
             it, model, filt, base = _rows(it, keep), _rows(model, keep), _rows(filt, keep), \
                 None if base is None else _rows(base, keep)
             mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running = (
                 v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running))
-            params = _param_rows(params, keep)
+            params = param_rows(params, keep)
         mu, filt = _barrier_update(cons, model, it, mu, running, filt, tol, opts)
         lqr, rhs = newton_lqr(model, it, mu, x0, nx)
         delta = floor
@@ -734,9 +737,7 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
         blown = running & (~d.ok | (floor > opts.regularization_max))
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         iterations = iterations + running.long()
-        rows.append((index, {"cost": model.J, "max_violation": model.violation,
-                             "step_size": torch.where(take, ls.alpha, 0.0), "regularization": delta, "barrier": mu,
-                             "kkt_error": error}, True))
+        rows.append((index, _history_row(model, torch.where(take, ls.alpha, 0.0), delta, mu, error), True))
         if opts.verbose:
             logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  mu %.1e  running %d", method, step,
                         model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),
