@@ -61,8 +61,8 @@ class Problem:
         linear_quadratic: declares the dynamics and every constraint affine in ``(x, u)`` and the costs
             quadratic (parameters may enter any way). The interior-point method then expands the problem
             once and evaluates its derivatives at later iterates by products, and implicit differentiation
-            factorises once and refines by one Newton step (the cost Hessian is the Lagrangian's). Checked at construction: the
-            Jacobians and cost Hessians at a second probe point must equal those at the first.
+            factorises once and refines by one Newton step (the cost Hessian is the Lagrangian's). Checked at
+            construction: the Jacobians and cost Hessians at a second probe point must equal those at the first.
     """
 
     dynamics: StageFn
@@ -255,7 +255,7 @@ class Problem:
         if self.linear_quadratic:
             self._check_linear_quadratic(x, u, p)
 
-    def _second_derivatives(self, x: Tensor, u: Tensor, p: Params) -> dict:
+    def _constant_derivatives(self, x: Tensor, u: Tensor, p: Params) -> dict:
         """The derivatives that a linear-quadratic problem has constant: Jacobians of the dynamics and
         constraints, Hessians of the costs, at ``(x, u)``."""
         from torch.func import hessian, jacrev
@@ -276,14 +276,14 @@ class Problem:
         return out
 
     def _check_linear_quadratic(self, x: Tensor, u: Tensor, p: Params) -> None:
-        """Raise ValueError unless the derivatives of :meth:`_second_derivatives` agree at ``(x, u)`` and at a
+        """Raise ValueError unless the derivatives of :meth:`_constant_derivatives` agree at ``(x, u)`` and at a
         second, pseudo-random point (a declaration check, not a proof: a function may be affine near both)."""
         x, u, p = x.detach(), u.detach(), {k: v.detach() for k, v in p.items()}
         g = torch.Generator().manual_seed(0)
         scale = 1.0 + float(torch.cat([x, u]).abs().max())
         dx = scale * torch.randn(x.shape, generator=g, dtype=torch.float64).to(x)
         du = scale * torch.randn(u.shape, generator=g, dtype=torch.float64).to(u)
-        first, second = self._second_derivatives(x, u, p), self._second_derivatives(x + dx, u + du, p)
+        first, second = self._constant_derivatives(x, u, p), self._constant_derivatives(x + dx, u + du, p)
         tol = float(torch.finfo(x.dtype).eps) ** 0.5
         for name, a in first.items():
             b = second[name]
