@@ -251,3 +251,27 @@ def test_stacked_sanitisation_matches_the_blockwise_one():
     # stored time-major: (N, B, ...)
     assert torch.equal(W, torch.cat([blockwise.A, blockwise.B], -1).transpose(0, 1))
     assert torch.equal(Hs[:, 1:3], torch.eye(5, dtype=torch.float64).expand(3, 2, 5, 5))
+
+
+def test_stacked_blocks_and_a_hessian_shift_give_the_blockwise_factorisation():
+    import dataclasses
+
+    lqr, rhs = random_lqr(B=3, N=4, nx=3, nu=2, seed=11)
+    W = torch.cat([lqr.A, lqr.B], -1)
+    H = torch.cat([torch.cat([lqr.Q, lqr.S.transpose(-1, -2)], -1), torch.cat([lqr.S, lqr.R], -1)], -2)
+    stacked = LQR.from_blocks(W, H, lqr.QN)
+    assert stacked.W is W and torch.equal(stacked.S, lqr.S)
+    assert dataclasses.replace(stacked, Q=lqr.Q.clone()).W is None  # a replaced block is no view of H
+    shift = torch.tensor([0.0, 0.5, 2.0], dtype=torch.float64)
+    d = shift.reshape(3, 1, 1, 1)
+    eye = lambda n: torch.eye(n, dtype=torch.float64)  # noqa: E731
+    shifted = LQR(A=lqr.A, B=lqr.B, Q=lqr.Q + d * eye(3), R=lqr.R + d * eye(2), S=lqr.S, QN=lqr.QN + d[:, 0] * eye(3))
+    ref, got = factorize(shifted), factorize(stacked, shift=shift)
+    assert torch.equal(ref.K, got.K) and torch.equal(ref.P, got.P)
+    assert torch.equal(got.lqr.Q, shifted.Q) and torch.equal(got.lqr.QN, shifted.QN)
+    # unconstrained and unregularised: the costates are the value function's gradients, as the sweep's
+    assert got.exact and not factorize(stacked, regularization=shift).exact
+    by_value = got.solve(rhs, multipliers=True)
+    got.exact = False
+    by_sweep = got.solve(rhs, multipliers=True)
+    assert torch.allclose(by_value.costate, by_sweep.costate, rtol=0, atol=1e-11)

@@ -66,7 +66,7 @@ estimate; slacks at ``max(−g, κ_1)``.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Optional
 
 import torch
@@ -334,9 +334,8 @@ def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int):
     barrierN = it.zN - it.yN + (mu.unsqueeze(-1) + it.zN * model.gN) / it.sN
     gradN = model.LNx - it.lam[:, -1] + _mv(model.GN.transpose(-1, -2), barrierN)
     me, meN = model.h.shape[-1], model.hN.shape[-1]
-    lqr = LQR(
-        A=model.fz[..., :nx], B=model.fz[..., nx:], Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx],
-        QN=HN,
+    lqr = LQR.from_blocks(
+        model.fz, H, HN,
         C=model.Hz[..., :nx] if me else None, D=model.Hz[..., nx:] if me else None,
         mask=torch.ones_like(model.h) if me else None,
         CN=model.HN if meN else None, maskN=torch.ones_like(model.hN) if meN else None,
@@ -344,14 +343,6 @@ def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int):
     rhs = LQRVectors(q=grad[..., :nx], r=grad[..., nx:], qN=gradN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
                      e=model.h if me else None, eN=model.hN if meN else None)
     return lqr, rhs
-
-
-def regularized(lqr: LQR, delta: Tensor) -> LQR:
-    """``lqr`` with ``δ_w I`` added to every Hessian block (``delta (B,)``)."""
-    d = delta.reshape(-1, 1, 1, 1)
-    eye_x = torch.eye(lqr.Q.shape[-1], dtype=lqr.Q.dtype, device=lqr.Q.device)
-    eye_u = torch.eye(lqr.R.shape[-1], dtype=lqr.R.dtype, device=lqr.R.device)
-    return replace(lqr, Q=lqr.Q + d * eye_x, R=lqr.R + d * eye_u, QN=lqr.QN + d[:, 0] * eye_x)
 
 
 @dataclass
@@ -372,8 +363,9 @@ class Direction:
 
 
 def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterate, mu: Tensor) -> Direction:
-    """Factorise the regularised system, solve it and recover ``Δs``, ``Δz`` (FATROP eq. 8)."""
-    factor = factorize(regularized(lqr, delta))
+    """Factorise the system regularised by ``δ_w I`` (``delta (B,)``), solve it and recover ``Δs``, ``Δz`` (FATROP
+    eq. 8)."""
+    factor = factorize(lqr, shift=delta)
     sol = factor.solve(rhs, multipliers=True)
     dX, dU = sol.dx, sol.du
     dw = torch.cat([dX[:, :-1], dU], -1)
