@@ -98,3 +98,20 @@ def test_compile_flag_reaches_the_solver_options():
     assert compiled(with_compile(tt.ILQROptions())) and not compiled(tt.ALTROOptions()) and not compiled(None)
     assert mpc_bench.parser().parse_args(["--compile"]).compile
     assert bench_main.parser().parse_args(["--grad", "--compile"]).compile
+
+
+def test_mehrotra_rows_of_the_gradient_benchmark():
+    """``--grad --method ipm --barrier mehrotra``: the linear_box rows run the IPM's Mehrotra mode and say so, and
+    their gradients agree with central differences; the flag is refused where it would not apply."""
+    from torchtraj.bench import grad as bench_grad
+
+    parser = bench_main.parser()
+    for args in (["--barrier", "mehrotra"], ["--grad", "--barrier", "mehrotra"],
+                 ["--grad", "--method", "ipm", "--barrier", "mehrotra", "--compile"]):
+        with pytest.raises(SystemExit):
+            bench_main._check(parser, parser.parse_args(args))
+    lines = []
+    rows = bench_grad.run([4], seed=0, method="ipm", say=lambda text="": lines.append(text), with_mpc=False,
+                          lq_options=tt.IPOptions(barrier_strategy="mehrotra"))
+    ours = next(r for r in rows if r.solver == "torchtraj/ipm+mehrotra")
+    assert ours.converged == "4/4" and ours.grad_vs_fd < 1e-6, lines

@@ -48,6 +48,15 @@ The rest is IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), with i
   IPOPT's rule (first ``δ_w^0``, or ``κ_w^- δ_w^{last}``, then ``κ_w^+`` or ``κ̄_w^+`` per attempt) and the
   batch is factorised again, instances that already succeeded keeping their factor.
 
+* **Mehrotra's predictor-corrector** (``barrier_strategy="mehrotra"``, opt-in; IPOPT's ``mehrotra_algorithm``, for
+  LPs and convex QPs): each iteration solves the factorised system twice, first for the affine-scaling step
+  (``S z = 0``), whose largest steps to the boundary give ``μ_aff``; then ``μ = σ μ̄`` with
+  ``σ = min((μ_aff / μ̄)³, σ_max)`` and the average complementarity ``μ̄`` (within ``[tol/10, 10³ μ̄_0]``), and the
+  corrector step for ``S z = μ − ΔS_aff Δz_aff``. No line search: the fraction-to-boundary steps are taken whole (a
+  step the boundary cuts to round-off counts as a failed one). On the bench's box-constrained linear system
+  (B = 256) it takes 6.9 iterations on average, at most 11, against 10.9 and 17; on the nonlinear pendulum with
+  state bounds, without a globalisation, 80 against 28, and one instance ends at another local optimum: it is not
+  the default.
 * **Finished instances leave the batch** (``compact_below``): once the running instances are at most that
   share of the batch being iterated, their rows are gathered (iterate, model, filter, parameters) and the
   next iterations run on them alone; the others' results are written back. The arithmetic of an instance is
@@ -81,7 +90,7 @@ from .derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_
 from .graphs import graphed
 from .ilqr import _first_true, _where, total_cost
 from .problem import Problem
-from .riccati import LQR, LQRVectors, all_finite, factorize
+from .riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
 from .solution import History, Solution
 from .status import Status
 
@@ -151,8 +160,24 @@ class IPOptions:
     #: on them alone (module docstring); ``0`` never. Off with ``compile`` and CUDA graphs, whose kernels are
     #: specialised to the batch size.
     compact_below: float = 0.75
+    #: ``"monotone"``: the Fiacco-McCormick update with the filter line search (IPOPT's and FATROP's default).
+    #: ``"mehrotra"``: Mehrotra's predictor-corrector (IPOPT's ``mehrotra_algorithm``: the probing barrier parameter,
+    #: the affine corrector, no line search, the steps to the boundary taken whole). For convex problems (linear
+    #: dynamics and constraints, convex costs), where it takes fewer iterations; without a globalisation, it may
+    #: fail on others. Not with ``compile`` or ``cuda_graphs``.
+    barrier_strategy: str = "monotone"
+    #: ``σ_max`` of the probing update (``sigma_max``), and the factor of the initial average complementarity that
+    #: bounds its ``μ`` (``mu_max_fact``).
+    mehrotra_sigma_max: float = 100.0
+    mehrotra_mu_max_factor: float = 1e3
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
+
+    def __post_init__(self):
+        if self.barrier_strategy not in ("monotone", "mehrotra"):
+            raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
+        if self.barrier_strategy == "mehrotra" and (self.compile or self.cuda_graphs):
+            raise ValueError("barrier_strategy='mehrotra' runs eager: set compile=False and cuda_graphs=False")
 
     def tolerance_for(self, dtype: torch.dtype) -> float:
         if self.tolerance is not None:
@@ -208,8 +233,12 @@ class Model:
 
 
 def _pick(mask: Tensor, a, b):
-    """The batch-first dataclass ``a`` where ``mask (B,)``, else ``b`` (field by field)."""
-    return type(a)(**{f.name: _where(mask, getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
+    """The batch-first dataclass ``a`` where ``mask (B,)``, else ``b`` (field by field; a field that is no tensor,
+    as a :class:`Direction`'s factor, is kept where ``a`` and ``b`` share it, else ``None``)."""
+    def one(x, y):
+        return _where(mask, x, y) if isinstance(x, Tensor) else (x if x is y else None)
+
+    return type(a)(**{f.name: one(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
 
 
 def _flat_abs(*parts: Tensor) -> Tensor:
@@ -320,19 +349,18 @@ def complementarity_error(cons: Constraints, it: Iterate, mu: Tensor, opts: IPOp
 
 
 # ------------------------------------------------------------------------------------- Newton step
-def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int):
-    """The reduced primal-dual system (FATROP eq. 9) as LQR matrices (without ``δ_w``) and right-hand side."""
-    B = x0.shape[0]
-    m = mu.reshape(B, 1, 1)
+def _targets(mu: Tensor, target: Optional[tuple]):
+    """The complementarity targets ``(stage (B, N|1, mi|1), terminal (B, miN|1))``: ``μ`` on every row, or ``target``."""
+    return (mu.reshape(-1, 1, 1), mu.unsqueeze(-1)) if target is None else target
+
+
+def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, target: Optional[tuple] = None):
+    """The reduced primal-dual system (FATROP eq. 9) as LQR matrices (without ``δ_w``) and right-hand side
+    (:func:`newton_rhs`)."""
     sigma = it.z / it.s  # rows off at a knot: z = 0
     sigmaN = it.zN / it.sN
     H = model.Lzz + model.Gz.transpose(-1, -2) @ (sigma.unsqueeze(-1) * model.Gz)
     HN = model.LNxx + model.GN.transpose(-1, -2) @ (sigmaN.unsqueeze(-1) * model.GN)
-    barrier = (it.z - it.y + (m + it.z * model.g) / it.s) * model.knots  # zero on rows that are off
-    grad = model.Lz + _mv(model.Gz.transpose(-1, -2), barrier)
-    grad = torch.cat([grad[..., :nx] - it.lam[:, :-1], grad[..., nx:]], -1)
-    barrierN = it.zN - it.yN + (mu.unsqueeze(-1) + it.zN * model.gN) / it.sN
-    gradN = model.LNx - it.lam[:, -1] + _mv(model.GN.transpose(-1, -2), barrierN)
     me, meN = model.h.shape[-1], model.hN.shape[-1]
     lqr = LQR.from_blocks(
         model.fz, H, HN,
@@ -340,9 +368,21 @@ def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int):
         mask=torch.ones_like(model.h) if me else None,
         CN=model.HN if meN else None, maskN=torch.ones_like(model.hN) if meN else None,
     )
-    rhs = LQRVectors(q=grad[..., :nx], r=grad[..., nx:], qN=gradN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
-                     e=model.h if me else None, eN=model.hN if meN else None)
-    return lqr, rhs
+    return lqr, newton_rhs(model, it, mu, x0, nx, target)
+
+
+def newton_rhs(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, target: Optional[tuple] = None):
+    """The right-hand side of the reduced system for the complementarity ``S z = μ`` or, given, ``S z = target``
+    row by row (:func:`_targets`)."""
+    m, mN = _targets(mu, target)
+    barrier = (it.z - it.y + (m + it.z * model.g) / it.s) * model.knots  # zero on rows that are off
+    grad = model.Lz + _mv(model.Gz.transpose(-1, -2), barrier)
+    grad = torch.cat([grad[..., :nx] - it.lam[:, :-1], grad[..., nx:]], -1)
+    barrierN = it.zN - it.yN + (mN + it.zN * model.gN) / it.sN
+    gradN = model.LNx - it.lam[:, -1] + _mv(model.GN.transpose(-1, -2), barrierN)
+    me, meN = model.h.shape[-1], model.hN.shape[-1]
+    return LQRVectors(q=grad[..., :nx], r=grad[..., nx:], qN=gradN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
+                      e=model.h if me else None, eN=model.hN if meN else None)
 
 
 @dataclass
@@ -360,29 +400,33 @@ class Direction:
     dnuN: Tensor
     K: Tensor
     ok: Tensor
+    factor: Optional[RiccatiFactor] = None  # kept when asked for (a corrector reuses it)
 
 
-def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterate, mu: Tensor) -> Direction:
-    """Factorise the system regularised by ``δ_w I`` (``delta (B,)``), solve it and recover ``Δs``, ``Δz`` (FATROP
-    eq. 8)."""
-    factor = factorize(lqr, shift=delta)
+def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterate, mu: Tensor,
+              target: Optional[tuple] = None, factor: Optional[RiccatiFactor] = None,
+              keep_factor: bool = False) -> Direction:
+    """Factorise the system regularised by ``δ_w I`` (``delta (B,)``; or take its ``factor``), solve it and recover
+    ``Δs``, ``Δz`` (FATROP eq. 8) for the complementarity ``μ`` or ``target`` (:func:`newton_rhs`)."""
+    factor = factorize(lqr, shift=delta) if factor is None else factor
     sol = factor.solve(rhs, multipliers=True)
     dX, dU = sol.dx, sol.du
     dw = torch.cat([dX[:, :-1], dU], -1)
     Gdw = _mv(model.Gz, dw)
     GdwN = _mv(model.GN, dX[:, -1])
     on = model.knots
-    m = mu.reshape(-1, 1, 1)
+    m, mN = _targets(mu, target)
     ds = (-(model.g + it.s) - Gdw) * on
     dz = (m + it.z * model.g + it.z * Gdw) / it.s * on
     dsN = -(model.gN + it.sN) - GdwN
-    dzN = (mu.unsqueeze(-1) + it.zN * model.gN + it.zN * GdwN) / it.sN
+    dzN = (mN + it.zN * model.gN + it.zN * GdwN) / it.sN
     dnu = sol.nu if sol.nu is not None else it.nu.new_zeros(it.nu.shape)
     dnuN = sol.nuN if sol.nuN is not None else it.nuN.new_zeros(it.nuN.shape)
     finite = all_finite([dX, dU, sol.costate])
     # the full step takes the multipliers y of g + s = 0 to z + Δz (stationarity in s)
     dy, dyN = (it.z + dz - it.y) * on, it.zN + dzN - it.yN
-    return Direction(dX, dU, ds, dsN, dz, dzN, dy, dyN, sol.costate, dnu, dnuN, factor.K, factor.ok & finite)
+    return Direction(dX, dU, ds, dsN, dz, dzN, dy, dyN, sol.costate, dnu, dnuN, factor.K, factor.ok & finite,
+                     factor if keep_factor else None)
 
 
 # ------------------------------------------------------------------------------------- line search
@@ -434,12 +478,17 @@ class Filter:
         return Filter(torch.where(slot.unsqueeze(-1), entry, self.entries), self.slot + mask.long())
 
 
+def fraction_to_boundary(it: Iterate, d: Direction, tau: Tensor) -> tuple:
+    """The largest primal and dual steps ``(B,)`` that keep ``s`` and ``z`` at least ``1 − τ`` of their distance to zero."""
+    a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
+    a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
+    return a_max, a_dual
+
+
 def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):
     """At the current iterate, for the line search (``(B,)`` each): the largest primal and dual steps of the
     fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``, the barrier objective ``φ`` and its slope ``∇φ · Δ``."""
-    tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
-    a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
-    a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
+    a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
     knots = model.knots
     phi = model.J - mu * _log_barrier(it.s, it.sN, knots)
     barrier_slope = torch.where(knots > 0, d.ds / it.s, 0.0).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
@@ -583,6 +632,36 @@ def _barrier_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
     return mu, filt
 
 
+def _complementarity(it: Iterate, knots: Tensor, ds: Tensor = None, dsN: Tensor = None, dz: Tensor = None,
+                     dzN: Tensor = None) -> Tensor:
+    """The average ``sᵀz`` over the rows that apply ``(B,)``, at ``(s + Δs, z + Δz)`` when steps are given."""
+    s, sN, z, zN = it.s, it.sN, it.z, it.zN
+    if ds is not None:
+        s, sN, z, zN = s + ds, sN + dsN, z + dz, zN + dzN
+    count = (knots.sum() + it.sN.shape[-1]).clamp_min(1)
+    return ((s * z * knots).flatten(1).sum(-1) + (sN * zN).sum(-1)) / count
+
+
+def mehrotra_corrector(model: Model, it: Iterate, predictor: Direction, lqr: LQR, delta: Tensor, x0: Tensor,
+                       floor: float, ceiling: Tensor, opts: IPOptions) -> tuple:
+    """Mehrotra's probing barrier parameter and corrector step (IPOPT's ``mehrotra_algorithm``), from the affine-scaling
+    ``predictor`` (the step for ``S z = 0``) and its factorisation: ``μ = σ μ̄``, ``σ = min((μ_aff / μ̄)³, σ_max)``
+    with the average complementarity ``μ̄`` now and ``μ_aff`` after the largest predictor steps to the boundary, kept
+    within ``[floor, ceiling (B,)]``, then the step for ``S z = μ − ΔS_aff Δz_aff``. Returns ``(μ (B,), direction)``."""
+    knots = model.knots
+    a_p, a_d = fraction_to_boundary(it, predictor, torch.ones_like(delta))
+    ap, ad = a_p.reshape(-1, 1, 1), a_d.reshape(-1, 1, 1)
+    average = _complementarity(it, knots)
+    affine = _complementarity(it, knots, ap * predictor.ds, a_p.unsqueeze(-1) * predictor.dsN, ad * predictor.dz,
+                              a_d.unsqueeze(-1) * predictor.dzN)
+    sigma = torch.clamp((affine / torch.where(average > 0, average, 1.0)) ** 3, max=opts.mehrotra_sigma_max)
+    mu = torch.maximum(torch.minimum(sigma * average, ceiling), torch.full_like(ceiling, floor))
+    target = (mu.reshape(-1, 1, 1) - predictor.ds * predictor.dz, mu.unsqueeze(-1) - predictor.dsN * predictor.dzN)
+    rhs = newton_rhs(model, it, mu, x0, it.X.shape[-1], target)
+    factor = predictor.factor if predictor.factor is not None else factorize(lqr, shift=delta)
+    return mu, direction(lqr, rhs, delta, model, it, mu, target, factor=factor)
+
+
 def _rows(value, index: Tensor):
     """The rows ``index`` of a batch-first tensor or dataclass (:class:`Model`'s ``knots`` is per stage)."""
     if isinstance(value, Tensor):
@@ -671,6 +750,10 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     theta_max = theta_min = None
     base = None
     compacting = opts.compact_below > 0 and not opts.compile and not _graphs_used(opts, x0.device)
+    mehrotra = opts.barrier_strategy == "mehrotra"
+    # IPOPT's mu_max: its factor times the initial average complementarity (barrier_initial without inequalities)
+    ceiling = opts.mehrotra_mu_max_factor * torch.where(
+        (cons.ineq_knot_mask.sum() + cons.miN) > 0, _complementarity(it, cons.ineq_knot_mask), opts.barrier_initial)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
@@ -701,23 +784,39 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
             index = keep if index is None else index[keep]
             it, model, filt, base = _rows(it, keep), _rows(model, keep), _rows(filt, keep), \
                 None if base is None else _rows(base, keep)
-            mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running = (
-                v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running))
+            mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running, ceiling = (
+                v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running,
+                                  ceiling))
             params = param_rows(params, keep)
-        mu, filt = _barrier_update(cons, model, it, mu, running, filt, tol, opts)
-        lqr, rhs = newton_lqr(model, it, mu, x0, nx)
+        if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
+            target_mu = torch.zeros_like(mu)
+        else:
+            mu, filt = _barrier_update(cons, model, it, mu, running, filt, tol, opts)
+            target_mu = mu
+        lqr, rhs = newton_lqr(model, it, target_mu, x0, nx)
         delta = floor
-        d = direction_k(lqr, rhs, delta, model, it, mu)
+        d = direction_k(lqr, rhs, delta, model, it, target_mu, keep_factor=mehrotra)
         pending = running & ~d.ok
         for _ in range(opts.regularization_attempts):
             if not bool(pending.any()):
                 break
             delta = torch.where(pending, _next_regularization(delta, last, opts), delta)
             pending = pending & (delta <= opts.regularization_max)
-            d = _pick(pending, direction_k(lqr, rhs, delta, model, it, mu), d)
+            d = _pick(pending, direction_k(lqr, rhs, delta, model, it, target_mu, keep_factor=mehrotra), d)
             pending = pending & ~d.ok
         factored = running & d.ok
-        ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts)
+        if mehrotra:  # no line search: the corrector's largest steps to the boundary
+            mu, d = mehrotra_corrector(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, opts)
+            factored = factored & d.ok
+            a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
+            # a step the boundary cuts to round-off is no step: the instance retries with a larger δ_w, as after a
+            # failed line search
+            tiny = 10 * torch.finfo(x0.dtype).eps * (1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1))
+            size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
+            stalled = (a_max * size <= tiny) & (size > tiny)
+            ls = Step(advance(it, d, a_max, a_dual, mu, model.knots, opts), a_max, factored & ~stalled, filt)
+        else:
+            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts)
         take = factored & ls.found
         it = _pick(take, ls.it, it)
         filt = _pick(take, ls.filter, filt)

@@ -70,6 +70,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--cuda-graphs", action="store_true",
                    help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
                         "(IPOptions.cuda_graphs; no effect on a CPU)")
+    p.add_argument("--barrier", choices=("monotone", "mehrotra"), default="monotone",
+                   help="with --grad --method ipm: the barrier strategy of the linear_box rows (IPOptions.barrier_strategy; "
+                        "mehrotra is for convex problems, so the pendulum rows stay monotone)")
     p.add_argument("--mpc", action="store_true",
                    help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
                         "own: python -m torchtraj.bench --mpc --help)")
@@ -85,6 +88,9 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error(f"--threads must be >= 1, got {args.threads}")
     if args.cuda_graphs and not (args.grad and args.method == Method.IPM.value and not args.compile):
         p.error("--cuda-graphs goes with --grad --method ipm, without --compile")
+    if args.barrier != "monotone" and not (args.grad and args.method == Method.IPM.value and not args.compile
+                                           and not args.cuda_graphs):
+        p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch.cuda.is_available() is False")
 
@@ -163,8 +169,11 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
             options = with_compile(OPTIONS[Method(name)]())
         if args.cuda_graphs:
             options = dataclasses.replace(OPTIONS[Method.IPM](), cuda_graphs=True)
+        lq_options = None
+        if args.barrier != "monotone":
+            lq_options = dataclasses.replace(OPTIONS[Method.IPM](), barrier_strategy=args.barrier)
         rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, options=options,
-                        with_mpc=not args.no_reference, gradients=args.gradients)
+                        with_mpc=not args.no_reference, gradients=args.gradients, lq_options=lq_options)
         return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0
     method = Method(args.method)
     options, applied = make_options(method, cost_tolerance=args.cost_tolerance,

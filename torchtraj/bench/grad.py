@@ -473,8 +473,9 @@ def header() -> str:
 
 def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, device="cpu",
         pendulum_batches: Optional[list] = None, options=None, with_mpc: bool = True,
-        gradients: str = "implicit") -> list:
-    """Run the protocol, print one line per row through ``say``, return the rows."""
+        gradients: str = "implicit", lq_options=None) -> list:
+    """Run the protocol, print one line per row through ``say``, return the rows. ``lq_options`` (default
+    ``options``) are those of the linear_box rows: a convex problem, for which the IPM's Mehrotra mode is made."""
     system = linear_system(seed, dtype, device)
     problem = lq_problem(system)
     have_mpc, why = mpc_available() if with_mpc else (False, "mpc.pytorch off (--no-reference)")
@@ -490,13 +491,15 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     graphs = getattr(options, "cuda_graphs", False) and torch.device(device).type == "cuda"
     label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+graphs" if graphs else "") \
         + ("+unrolled" if gradients == "unrolled" else "")
+    lq_label = label + ("+mehrotra" if getattr(lq_options, "barrier_strategy", None) == "mehrotra" else "")
+    pendulum_options, options = options, lq_options or options
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
     torchtraj_lq(problem, *warm, method, options, fd=False, gradients=gradients)
     if have_mpc:
         mpc_pytorch_lq(problem, *warm, fd=False)
     for batch in batches:
         x0, Xbar, Ubar, dirs = _instances(batch, seed, system)
-        ours = GradRow("linear_box", label, batch)
+        ours = GradRow("linear_box", lq_label, batch)
         U_ours = None
         try:
             warm_up = ""
@@ -531,6 +534,7 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
         rows.append(theirs)
     for batch, ratio in speedups:
         say(f"speed-up B={batch}: mpc.pytorch total / torchtraj total = {ratio:.3g}")
+    options = pendulum_options
     if pendulum_batches:
         say()
         pend = constrained_pendulum(dtype, device)
