@@ -275,3 +275,29 @@ def test_stacked_blocks_and_a_hessian_shift_give_the_blockwise_factorisation():
     got.exact = False
     by_sweep = got.solve(rhs, multipliers=True)
     assert torch.allclose(by_value.costate, by_sweep.costate, rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("regularized", [False, True])
+def test_declared_bounds_give_the_solution_of_the_same_rows_back_propagated(regularized):
+    """Rows ``±δu_i + e = 0`` declared ``LQR.bounds`` hold their controls without the SVD recursion: the same steps,
+    costates and row multipliers as the general rows, with and without ``ρ``, active rows masked per instance."""
+    import dataclasses
+
+    B, N, nx, nu = 5, 6, 3, 3
+    lqr, rhs = random_lqr(B=B, N=N, nx=nx, nu=nu, seed=12)
+    bounds = torch.cat([torch.eye(nu), -torch.eye(nu)]).to(torch.float64)  # upper rows, then lower rows
+    g = torch.Generator().manual_seed(13)
+    upper = torch.rand(B, N, nu, generator=g) > 0.6
+    lower = (torch.rand(B, N, nu, generator=g) > 0.6) & ~upper  # never both on one control
+    mask = torch.cat([upper, lower], -1).to(torch.float64)
+    rows = LQR(A=lqr.A, B=lqr.B, Q=lqr.Q, R=lqr.R, S=lqr.S, QN=lqr.QN, C=torch.zeros(B, N, 2 * nu, nx,
+               dtype=torch.float64), D=bounds.expand(B, N, 2 * nu, nu), mask=mask)
+    rhs.e = torch.randn(B, N, 2 * nu, generator=g, dtype=torch.float64)
+    rho = torch.full((B,), 0.3, dtype=torch.float64) if regularized else None
+    general = factorize(rows, rho).solve(rhs, multipliers=True)
+    declared = factorize(dataclasses.replace(rows, bounds=bounds), rho)
+    assert declared.stage is None and torch.equal(declared.fixed, (upper | lower).to(torch.float64))
+    held = declared.solve(rhs, multipliers=True)
+    for name in ("dx", "du", "costate", "nu"):
+        assert torch.allclose(getattr(held, name), getattr(general, name), rtol=0, atol=1e-10), name
+    assert float(mask.sum()) > 10 and float(held.nu.abs().amax()) > 1e-2

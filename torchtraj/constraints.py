@@ -98,6 +98,20 @@ class Constraints:
             return _Rows(slice(rows[0], rows[-1] + 1), len(rows))
         return _Rows(torch.tensor(rows, dtype=torch.long, device=bound.device), len(rows))
 
+    def bound_rows(self):
+        """``(mi, nu)``: where every constraint row is a control bound, the rows' signed selection ``∂g/∂u`` (``+1`` on
+        the ``u_upper`` rows, ``−1`` on the ``u_lower`` ones; :attr:`torchtraj.riccati.LQR.bounds`); else ``None``."""
+        upper, lower = self.u_upper_idx, self.u_lower_idx
+        if self.me or self.meN or self.miN or not self.mi or self.mi != len(upper) + len(lower):
+            return None
+        prob = self.problem
+        controls = torch.arange(prob.nu, device=prob.device)
+        selection = torch.zeros(self.mi, prob.nu, dtype=prob.dtype, device=prob.device)
+        for start, rows, sign in ((0, upper, 1.0), (len(upper), lower, -1.0)):
+            if len(rows):
+                selection[torch.arange(start, start + len(rows), device=prob.device), controls[rows.index]] = sign
+        return selection
+
     @property
     def empty(self) -> bool:
         return self.me + self.mi + self.meN + self.miN == 0

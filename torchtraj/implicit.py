@@ -305,8 +305,9 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
     e, C, D, mask, eN, CN, maskN = _rows(cons, X, U, params, tol, active)
     zeros = torch.zeros_like
+    # control bounds alone: the Riccati core holds the controls of the active rows (no back-propagation, no SVD)
     lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx,
-              C=C, D=D, mask=mask, CN=CN, maskN=maskN)
+              C=C, D=D, mask=mask, CN=CN, maskN=maskN, bounds=cons.bound_rows())
     gradient = LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=zeros(X[:, 1:]), x0=zeros(x0),
                           e=None if e is None else zeros(e), eN=None if eN is None else zeros(eN))
     ok = torch.ones(X.shape[0], dtype=torch.bool, device=X.device)
@@ -346,6 +347,8 @@ def dependent_rows(factor: RiccatiFactor) -> Tensor:
     lqr = factor.lqr
     B = lqr.A.shape[0]
     lost = lqr.A.new_zeros(B)
+    if factor.fixed is not None:  # declared bounds: two active rows on one control
+        return (lqr.mask @ lqr.bounds.abs() - 1.0).clamp(min=0.0).sum((1, 2))
     if factor.stage is None:
         return lost
     kept = factor.terminal.gmask.sum(-1)

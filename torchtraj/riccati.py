@@ -81,6 +81,12 @@ class LQR:
     stacked over ``z = (δx, δu)``, ``W = [A B]`` and ``H = [[Q, Sᵀ], [S, R]]``, of which ``A`` … ``S`` are views: the
     sweep then copies two blocks instead of five strided ones. A replaced ``A`` … ``S`` (``dataclasses.replace``) no
     longer is such a view, and the stacked blocks are dropped.
+
+    ``bounds (m, nu)`` declares the stage rows simple bounds: ``C = 0`` and ``D = bounds``, a signed selection (each
+    row ``±1`` on one control), without terminal rows. An active row then holds its control at ``δu_i = ∓e``, and the
+    recursion fixes those controls instead of back-propagating rows (no SVD): where ``f`` marks the free controls,
+    ``K = −(F Q_uu F + I − F)⁻¹ F Q_ux`` with ``F = diag(f)``, and the row's multiplier is the stationarity residual
+    of its control, ``ν = −bounds_i (Q_uu δu + Q_ux δx + Q_u)``. Two active rows on one control depend on each other.
     """
 
     A: Tensor
@@ -98,6 +104,7 @@ class LQR:
     rootN: Optional[Tensor] = None
     W: Optional[Tensor] = None
     H: Optional[Tensor] = None
+    bounds: Optional[Tensor] = None
 
     def __post_init__(self):
         if self.W is not None and not _views_of_blocks(self):
@@ -113,6 +120,11 @@ class LQR:
     @property
     def constrained(self) -> bool:
         return self.C is not None or self.CN is not None
+
+    @property
+    def propagated(self) -> bool:
+        """Whether the rows take the constraint back-propagation (rows that are not declared ``bounds``)."""
+        return self.constrained and self.bounds is None
 
 
 def _views_of_blocks(lqr: LQR) -> bool:
@@ -195,12 +207,14 @@ class RiccatiFactor:
     #: the gains minimise every stage's Q-function exactly (no ``ρ``, no constraint rows): the costates are
     #: the value function's gradients ``λ_k = P_k δx_k + p_k``
     exact: bool = False
+    #: ``(B, N, nu)``: 1 on the controls that active ``bounds`` rows hold (``None`` without declared bounds)
+    fixed: Optional[Tensor] = None
 
     def solve(self, rhs: LQRVectors, multipliers: bool = False) -> LQRSolution:
         """Solve the LQR problem for the right-hand side ``rhs`` (one backward and one forward sweep)."""
         lqr = self.lqr
         Bsz, N, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.B.shape[-1]
-        constrained = lqr.constrained
+        constrained = lqr.propagated
         p_next = rhs.qN
         g_next = None
         ks, ps = [None] * N, [None] * (N + 1)
@@ -208,6 +222,7 @@ class RiccatiFactor:
         ps[N] = p_next
         if constrained:
             g_next = self._terminal_rhs(rhs)
+        held = self._held(rhs)
         for t in range(N - 1, -1, -1):
             A, Bu, P_next = lqr.A[:, t], lqr.B[:, t], self.P[:, t + 1]
             c = rhs.c[:, t]
@@ -227,6 +242,10 @@ class RiccatiFactor:
                 kw = -_cholesky_solve(_mv(_mT(Vf), grad).unsqueeze(-1), self.chol[:, t]).squeeze(-1)
                 k = kc + _mv(Vf, kw)
                 g_next = _mv(_mT(con.U2), con.rest * t0) * con.gmask
+            elif held is not None:  # the held controls at their values, the free ones minimise given them
+                free, value = 1.0 - self.fixed[:, t], held[:, t]
+                grad = (Qu + _mv(Quu, value)) * free
+                k = value - _cholesky_solve(grad.unsqueeze(-1), self.chol[:, t]).squeeze(-1)
             else:
                 k = -_cholesky_solve(Qu.unsqueeze(-1), self.chol[:, t]).squeeze(-1)
             Quuk = _mv(Quu, k)
@@ -244,6 +263,14 @@ class RiccatiFactor:
         return out
 
     # ------------------------------------------------------------------ helpers
+    def _held(self, rhs: LQRVectors) -> Optional[Tensor]:
+        """``(B, N, nu)``: the values ``δu_i = ∓e`` at which the active ``bounds`` rows hold their controls."""
+        if self.fixed is None:
+            return None
+        if rhs.e is None:
+            return torch.zeros_like(self.fixed)
+        return -(rhs.e * self.lqr.mask) @ self.lqr.bounds.to(rhs.e.dtype)
+
     def _terminal_rhs(self, rhs: LQRVectors) -> Tensor:
         con = self.terminal
         eN = rhs.eN * self.lqr.maskN if rhs.eN is not None else rhs.qN.new_zeros(rhs.qN.shape[0], 0)
@@ -268,7 +295,11 @@ class RiccatiFactor:
         dx, du = out.dx, out.du
         nus = [None] * N
         nuN = None
-        if lqr.constrained:
+        if self.fixed is not None:  # a held control's stationarity residual, on the rows that hold it
+            grad_u = (self.Quu @ du.unsqueeze(-1) + self.Qux @ dx[:, :-1].unsqueeze(-1)).squeeze(-1) \
+                + torch.stack(Qus, 1)
+            out.nu = ((-grad_u * self.fixed) @ lqr.bounds.T.to(grad_u.dtype)) * lqr.mask
+        if lqr.propagated:
             m = lqr.C.shape[2] if lqr.C is not None else 0
             eta = dx.new_zeros(Bsz, nx)  # multiplier of G_0 rows: absorbed by the initial condition
             for t in range(N):
@@ -300,7 +331,7 @@ class RiccatiFactor:
                 lam = lam + _mv(_mT(lqr.C[:, t] * lqr.mask[:, t].unsqueeze(-1)), nus[t])
             lams[t] = lam
         out.costate = torch.stack(lams, 1)
-        if lqr.C is not None:
+        if lqr.propagated and lqr.C is not None:
             out.nu = torch.stack(nus, 1)
         if lqr.CN is not None:
             out.nuN = nuN
@@ -461,7 +492,7 @@ def _sanitize(lqr: LQR):
     finite = all_finite([lqr.A, lqr.B, lqr.Q, lqr.R, lqr.S, lqr.QN, lqr.C, lqr.D, lqr.CN])
     fields = {name: _clean(getattr(lqr, name), finite, eye=name in ("Q", "R", "QN"))
               for name in ("A", "B", "Q", "R", "S") + _OTHER_FIELDS}
-    return LQR(**fields), finite
+    return LQR(bounds=lqr.bounds, **fields), finite
 
 
 def _sanitize_stacked(lqr: LQR, shift: Optional[Tensor] = None):
@@ -497,7 +528,7 @@ def _sanitize_stacked(lqr: LQR, shift: Optional[Tensor] = None):
     Hs.masked_fill_(drop, 0.0)
     Hs.diagonal(dim1=-2, dim2=-1).masked_fill_(drop[..., 0], 1.0)
     fields = {name: _clean(QN if name == "QN" else getattr(lqr, name), finite, eye=name == "QN") for name in _OTHER_FIELDS}
-    cleaned = LQR(A=tm(W[..., :nx]), B=tm(W[..., nx:]), Q=tm(Hs[..., :nx, :nx]), R=tm(Hs[..., nx:, nx:]),
+    cleaned = LQR(bounds=lqr.bounds, A=tm(W[..., :nx]), B=tm(W[..., nx:]), Q=tm(Hs[..., :nx, :nx]), R=tm(Hs[..., nx:, nx:]),
                   S=tm(Hs[..., nx:, :nx]), **fields)
     return cleaned, finite, W, Hs
 
@@ -523,7 +554,7 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         shift: ``δ (B,)`` added to the whole Hessian, every ``Q``, ``R`` and ``QN`` (IPOPT's inertia
             correction ``δ_w I``): the factorised problem, and the returned ``lqr``, are the shifted one.
     """
-    exact = regularization is None and not lqr.constrained
+    exact = regularization is None and not lqr.propagated
     lqr, finite, W, Hs = _sanitize_stacked(lqr, shift)
     Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
     dtype = lqr.A.dtype
@@ -538,7 +569,12 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
     # of nine, larger ones. On CPU PyTorch multiplies small batched matrices (m·n·k < 400) in a scalar
     # loop that costs more than its BLAS call per instance. Measured at B = 256, nx = 8, nu = 4, a stage:
     # the Q blocks 120 µs against 340 µs one by one, P 100 µs against 390 µs for Qxx + KᵀQux + QuxᵀK + KᵀQuuK.
-    constrained = lqr.constrained
+    constrained = lqr.propagated
+    held = None
+    if lqr.bounds is not None:
+        if lqr.CN is not None:
+            raise ValueError("LQR.bounds declares the stage rows simple bounds: no terminal rows go with them")
+        held = (lqr.mask @ lqr.bounds.abs().to(dtype)).clamp(max=1.0)  # (B, N, nu)
     P = lqr.QN
     Ps, Ks, Quus, Quxs, chols = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N
     frees = [None] * N
@@ -585,6 +621,11 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
             stage[t] = _Constraint(U=U, inv_s=inv_s, V=V, rest=rest, U2=U2, gmask=gmask, G=G)
             frees[t] = Vf
             G_next = G
+        elif held is not None:  # the held controls out of the free ones' system
+            free = 1.0 - held[:, t]
+            Hu = (Quu + rho) * free.unsqueeze(-1) * free.unsqueeze(-2) + torch.diag_embed(held[:, t])
+            L, info = _cholesky(Hu)
+            K = -_factored_solve(Hu, L, info, Qux * free.unsqueeze(-1))
         else:
             Hu = Quu + rho
             L, info = _cholesky(Hu)
@@ -605,6 +646,7 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         stage=stage,
         terminal=terminal,
         exact=exact,
+        fixed=held,
     )
 
 
