@@ -331,7 +331,10 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     s_d = torch.clamp(multipliers / count, min=s_max) / s_max
     slack_grad = (it.y - it.z) * knots  # stationarity in s
     dual_error = _flat_abs(grad_x, Lz[:, :, nx:], grad_N, slack_grad, it.yN - it.zN).amax(-1) / s_d
-    finite = all_finite([Lz, Lzz, LNxx, fz, Gz, Hz, GN, HN, J.unsqueeze(1), theta.unsqueeze(1)])
+    if base is None:
+        finite = all_finite([Lz, Lzz, LNxx, fz, Gz, Hz, GN, HN, J.unsqueeze(1), theta.unsqueeze(1)])
+    else:  # the constant derivatives were checked with the first expansion
+        finite = base.model.finite & all_finite([Lz, LNx, J.unsqueeze(1), theta.unsqueeze(1)])
     return Model(J, Lz, Lzz, LNx, LNxx, f, fz, g, Gz, h, Hz, gN, GN, hN, HN, theta, violation, dual_error,
                  primal_error, finite, knots)
 
