@@ -797,15 +797,21 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
             mu, filt = _barrier_update(cons, model, it, mu, running, filt, tol, opts)
             target_mu = mu
         lqr, rhs = newton_lqr(model, it, target_mu, x0, nx)
+
+        def attempt(delta):  # (Mehrotra runs eager, keeping the factorisation for its corrector; kernels take no kwargs)
+            if mehrotra:
+                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True)
+            return direction_k(lqr, rhs, delta, model, it, target_mu)
+
         delta = floor
-        d = direction_k(lqr, rhs, delta, model, it, target_mu, keep_factor=mehrotra)
+        d = attempt(delta)
         pending = running & ~d.ok
         for _ in range(opts.regularization_attempts):
             if not bool(pending.any()):
                 break
             delta = torch.where(pending, _next_regularization(delta, last, opts), delta)
             pending = pending & (delta <= opts.regularization_max)
-            d = _pick(pending, direction_k(lqr, rhs, delta, model, it, target_mu, keep_factor=mehrotra), d)
+            d = _pick(pending, attempt(delta), d)
             pending = pending & ~d.ok
         factored = running & d.ok
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
