@@ -347,8 +347,8 @@ def dependent_rows(factor: RiccatiFactor) -> Tensor:
     lqr = factor.lqr
     B = lqr.A.shape[0]
     lost = lqr.A.new_zeros(B)
-    if factor.fixed is not None:  # declared bounds: two active rows on one control
-        return (lqr.mask @ lqr.bounds.abs() - 1.0).clamp(min=0.0).sum((1, 2))
+    if factor.fixed is not None:  # declared bounds: each active row holds one control, two rows one control twice
+        return lqr.mask.sum((1, 2)) - factor.fixed.sum((1, 2))
     if factor.stage is None:
         return lost
     kept = factor.terminal.gmask.sum(-1)

@@ -481,6 +481,14 @@ class Filter:
         return Filter(torch.where(slot.unsqueeze(-1), entry, self.entries), self.slot + mask.long())
 
 
+def _step_and_round_off(it: Iterate, d: Direction) -> tuple:
+    """``(|Δw|∞, 10 ε (1 + |w|∞))``, ``(B,)`` each, of the primal step ``Δw = (ΔX, ΔU)``: a step below the second
+    is at round-off (IPOPT's tiny step)."""
+    scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
+    size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
+    return size, 10 * torch.finfo(it.X.dtype).eps * scale
+
+
 def fraction_to_boundary(it: Iterate, d: Direction, tau: Tensor) -> tuple:
     """The largest primal and dual steps ``(B,)`` that keep ``s`` and ``z`` at least ``1 − τ`` of their distance to zero."""
     a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
@@ -564,9 +572,8 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     round only while a ``pending`` instance has found no acceptable step."""
     B, L = it.X.shape[0], opts.line_search_steps
     a_max, a_dual, phi, slope = _kernel(step_measures, opts, it.X.device)(model, it, d, mu, opts)
-    scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
-    size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
-    tiny = size < 10 * torch.finfo(it.X.dtype).eps * scale  # IPOPT's tiny step: taken whole, no filter entry
+    size, round_off = _step_and_round_off(it, d)
+    tiny = size < round_off  # IPOPT's tiny step: taken whole, no filter entry
     powers = opts.line_search_decrease ** torch.arange(L, dtype=it.X.dtype, device=it.X.device)
     rows = torch.arange(B, device=it.X.device)
     found, alpha, f_type = tiny, torch.where(tiny, a_max, 0.0), tiny
@@ -635,34 +642,37 @@ def _barrier_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
     return mu, filt
 
 
-def _complementarity(it: Iterate, knots: Tensor, ds: Tensor = None, dsN: Tensor = None, dz: Tensor = None,
-                     dzN: Tensor = None) -> Tensor:
-    """The average ``sᵀz`` over the rows that apply ``(B,)``, at ``(s + Δs, z + Δz)`` when steps are given."""
-    s, sN, z, zN = it.s, it.sN, it.z, it.zN
-    if ds is not None:
-        s, sN, z, zN = s + ds, sN + dsN, z + dz, zN + dzN
-    count = (knots.sum() + it.sN.shape[-1]).clamp_min(1)
+def _complementarity(s: Tensor, sN: Tensor, z: Tensor, zN: Tensor, knots: Tensor) -> Tensor:
+    """The average ``sᵀz`` over the rows that apply, ``(B,)`` (zero without inequality rows)."""
+    count = (knots.sum() + sN.shape[-1]).clamp_min(1)
     return ((s * z * knots).flatten(1).sum(-1) + (sN * zN).sum(-1)) / count
 
 
-def mehrotra_corrector(model: Model, it: Iterate, predictor: Direction, lqr: LQR, delta: Tensor, x0: Tensor,
-                       floor: float, ceiling: Tensor, opts: IPOptions) -> tuple:
-    """Mehrotra's probing barrier parameter and corrector step (IPOPT's ``mehrotra_algorithm``), from the affine-scaling
-    ``predictor`` (the step for ``S z = 0``) and its factorisation: ``μ = σ μ̄``, ``σ = min((μ_aff / μ̄)³, σ_max)``
-    with the average complementarity ``μ̄`` now and ``μ_aff`` after the largest predictor steps to the boundary, kept
-    within ``[floor, ceiling (B,)]``, then the step for ``S z = μ − ΔS_aff Δz_aff``. Returns ``(μ (B,), direction)``."""
+def mehrotra_step(model: Model, it: Iterate, predictor: Direction, lqr: LQR, delta: Tensor, x0: Tensor,
+                  floor: float, ceiling: Tensor, filt: Filter, factored: Tensor, opts: IPOptions) -> tuple:
+    """Mehrotra's probing barrier parameter and corrector step (IPOPT's ``mehrotra_algorithm``), from the
+    affine-scaling ``predictor`` (the step for ``S z = 0``) and its factorisation: ``μ = σ μ̄``,
+    ``σ = min((μ_aff / μ̄)³, σ_max)`` with the average complementarity ``μ̄`` now and ``μ_aff`` after the largest
+    predictor steps to the boundary, kept within ``[floor, ceiling (B,)]``; then the step for
+    ``S z = μ − ΔS_aff Δz_aff``, taken whole to the fraction-to-boundary limits (no line search). A step that the
+    boundary cuts to round-off is not found, as after a failed line search. Returns ``(μ (B,), direction, step)``."""
     knots = model.knots
     a_p, a_d = fraction_to_boundary(it, predictor, torch.ones_like(delta))
     ap, ad = a_p.reshape(-1, 1, 1), a_d.reshape(-1, 1, 1)
-    average = _complementarity(it, knots)
-    affine = _complementarity(it, knots, ap * predictor.ds, a_p.unsqueeze(-1) * predictor.dsN, ad * predictor.dz,
-                              a_d.unsqueeze(-1) * predictor.dzN)
+    average = _complementarity(it.s, it.sN, it.z, it.zN, knots)
+    affine = _complementarity(it.s + ap * predictor.ds, it.sN + a_p.unsqueeze(-1) * predictor.dsN,
+                              it.z + ad * predictor.dz, it.zN + a_d.unsqueeze(-1) * predictor.dzN, knots)
     sigma = torch.clamp((affine / torch.where(average > 0, average, 1.0)) ** 3, max=opts.mehrotra_sigma_max)
     mu = torch.maximum(torch.minimum(sigma * average, ceiling), torch.full_like(ceiling, floor))
     target = (mu.reshape(-1, 1, 1) - predictor.ds * predictor.dz, mu.unsqueeze(-1) - predictor.dsN * predictor.dzN)
     rhs = newton_rhs(model, it, mu, x0, it.X.shape[-1], target)
     factor = predictor.factor if predictor.factor is not None else factorize(lqr, shift=delta)
-    return mu, direction(lqr, rhs, delta, model, it, mu, target, factor=factor)
+    d = direction(lqr, rhs, delta, model, it, mu, target, factor=factor)
+    a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
+    size, round_off = _step_and_round_off(it, d)
+    stalled = (a_max * size <= round_off) & (size > round_off)
+    found = factored & d.ok & ~stalled
+    return mu, d, Step(advance(it, d, a_max, a_dual, mu, knots, opts), a_max, found, filt)
 
 
 def _rows(value, index: Tensor):
@@ -754,9 +764,8 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     base = None
     compacting = opts.compact_below > 0 and not opts.compile and not _graphs_used(opts, x0.device)
     mehrotra = opts.barrier_strategy == "mehrotra"
-    # IPOPT's mu_max: its factor times the initial average complementarity (barrier_initial without inequalities)
-    ceiling = opts.mehrotra_mu_max_factor * torch.where(
-        (cons.ineq_knot_mask.sum() + cons.miN) > 0, _complementarity(it, cons.ineq_knot_mask), opts.barrier_initial)
+    # IPOPT's mu_max: its factor times the initial average complementarity
+    ceiling = opts.mehrotra_mu_max_factor * _complementarity(it.s, it.sN, it.z, it.zN, cons.ineq_knot_mask)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
@@ -798,7 +807,7 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
             target_mu = mu
         lqr, rhs = newton_lqr(model, it, target_mu, x0, nx)
 
-        def attempt(delta):  # (Mehrotra runs eager, keeping the factorisation for its corrector; kernels take no kwargs)
+        def attempt(delta):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels: no kwargs)
             if mehrotra:
                 return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True)
             return direction_k(lqr, rhs, delta, model, it, target_mu)
@@ -815,15 +824,8 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
             pending = pending & ~d.ok
         factored = running & d.ok
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
-            mu, d = mehrotra_corrector(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, opts)
+            mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
-            a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
-            # a step the boundary cuts to round-off is no step: the instance retries with a larger δ_w, as after a
-            # failed line search
-            tiny = 10 * torch.finfo(x0.dtype).eps * (1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1))
-            size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
-            stalled = (a_max * size <= tiny) & (size > tiny)
-            ls = Step(advance(it, d, a_max, a_dual, mu, model.knots, opts), a_max, factored & ~stalled, filt)
         else:
             ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts)
         take = factored & ls.found

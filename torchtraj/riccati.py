@@ -254,12 +254,13 @@ class RiccatiFactor:
         k_all = torch.stack(ks, 1)
         p_all = torch.stack(ps, 1)
         # the sums over stages once, after the sweep: seven operations a stage fewer
-        dV1 = (k_all * torch.stack(Qus, 1)).sum((1, 2))
+        Qu_all = torch.stack(Qus, 1)
+        dV1 = (k_all * Qu_all).sum((1, 2))
         dV2 = 0.5 * (k_all * torch.stack(Quuks, 1)).sum((1, 2))
         dx, du = self._forward(rhs, k_all)
         out = LQRSolution(dx=dx, du=du, k=k_all, p=p_all, dV1=dV1, dV2=dV2)
         if multipliers:
-            self._multipliers(rhs, out, Qus)
+            self._multipliers(rhs, out, Qu_all)
         return out
 
     # ------------------------------------------------------------------ helpers
@@ -288,7 +289,7 @@ class RiccatiFactor:
             us.append(u)
         return torch.stack(xs, 1), torch.stack(us, 1)
 
-    def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qus: list) -> None:
+    def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qu: Tensor) -> None:
         """Recover ν (forward, from the u-stationarity of each stage) and λ (backward)."""
         lqr = self.lqr
         Bsz, N, nx = lqr.A.shape[0], lqr.A.shape[1], lqr.A.shape[-1]
@@ -297,14 +298,14 @@ class RiccatiFactor:
         nuN = None
         if self.fixed is not None:  # a held control's stationarity residual, on the rows that hold it
             grad_u = (self.Quu @ du.unsqueeze(-1) + self.Qux @ dx[:, :-1].unsqueeze(-1)).squeeze(-1) \
-                + torch.stack(Qus, 1)
+                + Qu
             out.nu = ((-grad_u * self.fixed) @ lqr.bounds.T.to(grad_u.dtype)) * lqr.mask
         if lqr.propagated:
             m = lqr.C.shape[2] if lqr.C is not None else 0
             eta = dx.new_zeros(Bsz, nx)  # multiplier of G_0 rows: absorbed by the initial condition
             for t in range(N):
                 con = self.stage[t]
-                grad_u = _mv(self.Quu[:, t], du[:, t]) + _mv(self.Qux[:, t], dx[:, t]) + Qus[t]
+                grad_u = _mv(self.Quu[:, t], du[:, t]) + _mv(self.Qux[:, t], dx[:, t]) + Qu[:, t]
                 fixed = -con.inv_s * _mv(_mT(con.V), grad_u)  # (B, nu)
                 mt = con.U.shape[-1]
                 nu_hat = _pad_rows(fixed.unsqueeze(-1), mt).squeeze(-1) + _mv(con.U2, eta * con.gmask)
@@ -527,9 +528,10 @@ def _sanitize_stacked(lqr: LQR, shift: Optional[Tensor] = None):
     W.masked_fill_(drop, 0.0)
     Hs.masked_fill_(drop, 0.0)
     Hs.diagonal(dim1=-2, dim2=-1).masked_fill_(drop[..., 0], 1.0)
-    fields = {name: _clean(QN if name == "QN" else getattr(lqr, name), finite, eye=name == "QN") for name in _OTHER_FIELDS}
-    cleaned = LQR(bounds=lqr.bounds, A=tm(W[..., :nx]), B=tm(W[..., nx:]), Q=tm(Hs[..., :nx, :nx]), R=tm(Hs[..., nx:, nx:]),
-                  S=tm(Hs[..., nx:, :nx]), **fields)
+    fields = {name: _clean(QN if name == "QN" else getattr(lqr, name), finite, eye=name == "QN")
+              for name in _OTHER_FIELDS}
+    cleaned = LQR(A=tm(W[..., :nx]), B=tm(W[..., nx:]), Q=tm(Hs[..., :nx, :nx]), R=tm(Hs[..., nx:, nx:]),
+                  S=tm(Hs[..., nx:, :nx]), bounds=lqr.bounds, **fields)
     return cleaned, finite, W, Hs
 
 

@@ -71,8 +71,8 @@ def parser() -> argparse.ArgumentParser:
                    help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
                         "(IPOptions.cuda_graphs; no effect on a CPU)")
     p.add_argument("--barrier", choices=("monotone", "mehrotra"), default="monotone",
-                   help="with --grad --method ipm: the barrier strategy of the linear_box rows (IPOptions.barrier_strategy; "
-                        "mehrotra is for convex problems, so the pendulum rows stay monotone)")
+                   help="with --grad --method ipm: the barrier strategy of the linear_box rows "
+                        "(IPOptions.barrier_strategy; mehrotra is for convex problems, so the pendulum rows stay monotone)")
     p.add_argument("--mpc", action="store_true",
                    help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
                         "own: python -m torchtraj.bench --mpc --help)")

@@ -492,9 +492,9 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+graphs" if graphs else "") \
         + ("+unrolled" if gradients == "unrolled" else "")
     lq_label = label + ("+mehrotra" if getattr(lq_options, "barrier_strategy", None) == "mehrotra" else "")
-    pendulum_options, options = options, lq_options or options
+    lq_options = lq_options or options
     warm = _instances(2, seed, system)  # untimed: first calls build torch.func's and the solvers' machinery
-    torchtraj_lq(problem, *warm, method, options, fd=False, gradients=gradients)
+    torchtraj_lq(problem, *warm, method, lq_options, fd=False, gradients=gradients)
     if have_mpc:
         mpc_pytorch_lq(problem, *warm, fd=False)
     for batch in batches:
@@ -504,11 +504,11 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
         try:
             warm_up = ""
             if compiled:  # compile at this batch size, untimed
-                _, seconds = _timed(lambda: torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options, fd=False,
+                _, seconds = _timed(lambda: torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, lq_options, fd=False,
                                                          gradients=gradients),
                                     device)
                 warm_up = f"; untimed compiling run {seconds:.0f} s"
-            fields, U_ours = torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, options, gradients=gradients)
+            fields, U_ours = torchtraj_lq(problem, x0, Xbar, Ubar, dirs, method, lq_options, gradients=gradients)
             for k, v in fields.items():
                 setattr(ours, k, v)
             saturated = float((U_ours.abs() > U_MAX - 1e-6).to(torch.float64).mean())
@@ -534,7 +534,6 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
         rows.append(theirs)
     for batch, ratio in speedups:
         say(f"speed-up B={batch}: mpc.pytorch total / torchtraj total = {ratio:.3g}")
-    options = pendulum_options
     if pendulum_batches:
         say()
         pend = constrained_pendulum(dtype, device)
