@@ -25,3 +25,20 @@ def pendulum10(N=10, **changes):
     problem = tt.Problem(dynamics=model.discrete(0.1), stage_cost=stage_cost, terminal_cost=terminal_cost,
                          x0=torch.zeros(2, dtype=F64), horizon=N, nu=1, params=params, name="pendulum10")
     return problem.replace(**changes)
+
+
+def oscillator(**changes):
+    """A linear oscillator (RK4 of a linear ODE is linear) with quadratic costs, ``|u| ≤ 0.6``, the state row
+    ``x₀ ≥ −0.2`` (short of the goal ``x₀ = −0.5``) and a terminal velocity: a linear-quadratic problem."""
+    base = dict(
+        dynamics=tt.rk4(lambda x, u, p: torch.stack([x[1], u[0] - p["k"] * x[0] - 0.1 * x[1]]), 0.2),
+        stage_cost=lambda x, u, p: 0.5 * ((x - p["goal"]) ** 2).sum() + 0.05 * (u * u).sum(),
+        terminal_cost=lambda x, p: 5.0 * ((x - p["goal"]) ** 2).sum(),
+        state_ineq=lambda x, p: (-0.2 - x[0]).reshape(1),
+        terminal_eq=lambda x, p: x[1:] - p["goal"][1:],
+        x0=torch.tensor([0.5, 0.0], dtype=F64), horizon=15, nu=1,
+        params={"k": torch.tensor(2.0, dtype=F64), "goal": torch.tensor([-0.5, 0.0], dtype=F64)},
+        u_lower=torch.tensor([-0.6], dtype=F64), u_upper=torch.tensor([0.6], dtype=F64),
+    )
+    base.update(changes)
+    return tt.Problem(**base)

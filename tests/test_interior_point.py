@@ -16,7 +16,7 @@ import torch
 
 import torchtraj as tt
 from kkt import kkt_residuals
-from small_problems import pendulum10
+from small_problems import oscillator, pendulum10
 from torchtraj.batching import map_stage, rollout
 from torchtraj.constraints import Constraints
 
@@ -369,23 +369,6 @@ def test_obstacles_from_a_state_guess_around_them(reference):
     assert stationarity < 1e-7 and dual_min >= 0 and complementarity < 1e-7
 
 
-def oscillator(**changes):
-    """A linear oscillator (RK4 of a linear ODE is linear) with quadratic costs, ``|u| ≤ 0.6``, the state row
-    ``x₀ ≥ −0.2`` (short of the goal ``x₀ = −0.5``) and a terminal velocity: a linear-quadratic problem."""
-    base = dict(
-        dynamics=tt.rk4(lambda x, u, p: torch.stack([x[1], u[0] - p["k"] * x[0] - 0.1 * x[1]]), 0.2),
-        stage_cost=lambda x, u, p: 0.5 * ((x - p["goal"]) ** 2).sum() + 0.05 * (u * u).sum(),
-        terminal_cost=lambda x, p: 5.0 * ((x - p["goal"]) ** 2).sum(),
-        state_ineq=lambda x, p: (-0.2 - x[0]).reshape(1),
-        terminal_eq=lambda x, p: x[1:] - p["goal"][1:],
-        x0=torch.tensor([0.5, 0.0], dtype=F64), horizon=15, nu=1,
-        params={"k": torch.tensor(2.0, dtype=F64), "goal": torch.tensor([-0.5, 0.0], dtype=F64)},
-        u_lower=torch.tensor([-0.6], dtype=F64), u_upper=torch.tensor([0.6], dtype=F64),
-    )
-    base.update(changes)
-    return tt.Problem(**base)
-
-
 def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
     """Declared ``linear_quadratic``, the IPM takes the torch.func expansion once and its derivatives by
     products after that; its iterates, multipliers and implicit gradients are those of the plain IPM."""
@@ -407,7 +390,8 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
         k = torch.tensor(2.0, dtype=F64, requires_grad=True)
         goal = torch.tensor([-0.5, 0.0], dtype=F64, requires_grad=True)
         calls.clear()
-        sol = tt.solve(problem.with_params(k=k, goal=goal), x0, method="ipm")
+        # without the crossover, which only the declared problem takes (tests/test_crossover.py)
+        sol = tt.solve(problem.with_params(k=k, goal=goal), x0, method="ipm", options=tt.IPOptions(crossover=False))
         assert bool(sol.converged.all()), sol.status
         loss = (sol.U ** 2).sum() + sol.X[:, -5:].sum() + sol.cost.sum()
         out[declared] = (sol, len(calls), torch.autograd.grad(loss, [x0, k, goal]))
@@ -446,9 +430,10 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, mo
     def same(a, b, name):  # bit for bit, NaN where NaN
         torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=name)
 
-    whole = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.0))
+    # the crossover gathers the instances it tries too (tests/test_crossover.py)
+    whole = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.0, crossover=False))
     assert not gathers
-    gathered = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.99))
+    gathered = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.99, crossover=False))
     assert len(gathers) >= 2 and len(set(whole.iterations.tolist())) >= 3
     assert whole.status[4] == tt.Status.NON_FINITE and int(whole.converged.sum()) == 5
     for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):

@@ -63,6 +63,14 @@ The rest is IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), with i
   unchanged, bit for bit, and the batch's spread of iteration counts no longer costs the slowest one's
   iterations for all: the time of an iteration grows about linearly with the batch past a few dozen
   instances (one CPU core, the bench's ``linear_box``: 112 ms at B = 256, 57 at 128, 35 at 64).
+* **Active-set crossover** (linear-quadratic problems, ``crossover``; :mod:`torchtraj.crossover`): once an
+  instance's ``E_0 ≤ crossover_from``, the rows with ``z > s`` are held as equalities and one Riccati solve gives
+  the KKT point of that set exactly; it ends the instance where it passes the convergence test, else up to
+  ``crossover_rounds`` primal-dual active-set updates are tried. Where every row is a control bound, up to
+  ``crossover_start_rounds`` sets are tried before the first iteration, from the unconstrained optimum. On the
+  bench's box-constrained linear system (B = 256) every instance ends there, after 3.8 rounds on average (at most
+  6), at its KKT point to round-off (``|U − U*| ≤ 4e-10`` against ``1e-5`` at the tolerance), in 0.41 s against
+  1.1 s for the iterations alone (one CPU core).
 
 Left out, and what happens instead: there is no feasibility-restoration phase and no second-order
 correction. An instance whose line search finds no acceptable step keeps its iterate and
@@ -74,6 +82,7 @@ estimate; slacks at ``max(−g, κ_1)``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, fields
 from typing import Optional
@@ -83,6 +92,7 @@ from torch import Tensor
 
 from .altro import multiplier_blocks
 from .batching import map_stage, map_state, param_rows, rollout
+from . import crossover
 from .compiled import kernel
 from .compiled import matvec as _mv
 from .constraints import Constraints
@@ -166,6 +176,19 @@ class IPOptions:
     #: dynamics and constraints, convex costs), where it takes fewer iterations; without a globalisation, it may
     #: fail on others. Not with ``compile`` or ``cuda_graphs``.
     barrier_strategy: str = "monotone"
+    #: Of a linear-quadratic problem (``Problem.linear_quadratic``) with inequality rows: once an instance's KKT
+    #: error ``E_0`` is below ``crossover_from``, try at every iteration the exact solve with its proposed active set
+    #: held (:mod:`torchtraj.crossover`); where the result passes the convergence test the instance ends there, at
+    #: its KKT point to round-off.
+    crossover: bool = True
+    crossover_from: float = 1e-3
+    #: Active sets tried per crossover: the proposed one, then the primal-dual active-set updates of its result.
+    #: Each round solves one Newton system and counts as an iteration.
+    crossover_rounds: int = 2
+    #: Where every inequality row is a control bound: active sets tried before the first iteration, from none held
+    #: (the unconstrained optimum) — the primal-dual active-set method; the instances it settles never iterate.
+    #: ``0`` skips it.
+    crossover_start_rounds: int = 8
     #: ``σ_max`` of the probing update (``sigma_max``), and the factor of the initial average complementarity that
     #: bounds its ``μ`` (``mu_max_fact``).
     mehrotra_sigma_max: float = 100.0
@@ -176,6 +199,9 @@ class IPOptions:
     def __post_init__(self):
         if self.barrier_strategy not in ("monotone", "mehrotra"):
             raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
+        if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:
+            raise ValueError(f"crossover_rounds and crossover_start_rounds must be >= 0, got {self.crossover_rounds} "
+                             f"and {self.crossover_start_rounds}")
         if self.barrier_strategy == "mehrotra" and (self.compile or self.cuda_graphs):
             raise ValueError("barrier_strategy='mehrotra' runs eager: set compile=False and cuda_graphs=False")
 
@@ -234,11 +260,14 @@ class Model:
 
 def _pick(mask: Tensor, a, b):
     """The batch-first dataclass ``a`` where ``mask (B,)``, else ``b`` (field by field; a field that is no tensor,
-    as a :class:`Direction`'s factor, is kept where ``a`` and ``b`` share it, else ``None``)."""
-    def one(x, y):
+    as a :class:`Direction`'s factor, is kept where ``a`` and ``b`` share it, else ``None``; :class:`Model`'s
+    ``knots``, per stage, is ``a``'s)."""
+    def one(name, x, y):
+        if name == "knots":
+            return x
         return _where(mask, x, y) if isinstance(x, Tensor) else (x if x is y else None)
 
-    return type(a)(**{f.name: one(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
+    return type(a)(**{f.name: one(f.name, getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
 
 
 def _flat_abs(*parts: Tensor) -> Tensor:
@@ -642,6 +671,67 @@ def _barrier_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
     return mu, filt
 
 
+def kkt_error(cons: Constraints, model: Model, it: Iterate, opts: IPOptions) -> Tensor:
+    """The convergence measure ``E_0`` ``(B,)``: the largest of the scaled dual, primal and complementarity errors."""
+    zero = it.s.new_zeros(it.s.shape[0])
+    return torch.maximum(torch.maximum(model.dual_error, model.primal_error), complementarity_error(cons, it, zero, opts))
+
+
+def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: Iterate, x0: Tensor, base: Base,
+                opts: IPOptions, tol: float, error: Tensor, K: Tensor, trying: Tensor, rounds: int,
+                start: bool = False) -> tuple:
+    """The crossover (:mod:`torchtraj.crossover`) of the instances ``trying``: up to ``rounds`` active sets, the
+    first proposed by the iterate (``start``: none held, the unconstrained optimum), each next one the
+    primal-dual active-set update of the last candidate; an instance leaves once a candidate passes the convergence
+    test ``E_0 ≤ tol``, or once its set stops changing or its system fails. Returns ``(iterate, model, E_0, gains
+    K, rounds (B,))``: the accepted candidates' values, the given ones elsewhere, and the rounds each instance took
+    part in, negative where none was accepted."""
+    B = trying.shape[0]
+    index = trying.nonzero().squeeze(-1)  # the rows still tried
+    knots = model.knots
+    active = crossover.proposed_active_set(_rows(it, index), knots)
+    if start:
+        active = tuple(torch.zeros_like(a) for a in active)
+    taken = torch.zeros(B, dtype=torch.long, device=index.device)
+    pieces = []
+    for _ in range(rounds):
+        whole = index.numel() == B  # nothing to gather
+        sub = (lambda v: v) if whole else (lambda v: None if v is None else _rows(v, index))  # noqa: E731
+        sub_it = sub(it)
+        c = crossover.candidate(sub(model), cons, sub_it, x0 if whole else x0[index], active)
+        new = Iterate(**{f.name: getattr(c, f.name) for f in fields(Iterate)})
+        # eager: the gathered batch changes from round to round
+        new_model = expand(problem, cons, params if whole else param_rows(params, index), new, opts, sub(base))
+        new_error = kkt_error(cons, new_model, new, opts)
+        now = c.ok & new_model.finite & (new_error <= tol)
+        taken = taken.index_add(0, index, torch.ones_like(index))
+        rows = now.nonzero().squeeze(-1)
+        pieces.append((index[rows], _rows(new, rows), _values(new_model, rows), new_error[rows], c.K[rows]))
+        following = crossover.next_active_set(c, active, knots)
+        going = (~now & c.ok & crossover.changed(active, following)).nonzero().squeeze(-1)
+        if going.numel() == 0:
+            break
+        index, active = index[going], tuple(a[going] for a in following)
+    done = torch.cat([p[0] for p in pieces])
+    new = type(it)(**{f.name: torch.cat([getattr(p[1], f.name) for p in pieces]) for f in fields(it)})
+    it = type(it)(**{f.name: getattr(it, f.name).index_copy(0, done, getattr(new, f.name)) for f in fields(it)})
+    values = {name: getattr(model, name).index_copy(0, done, torch.cat([p[2][name] for p in pieces]))
+              for name in _VALUE_FIELDS}
+    accepted = torch.zeros_like(trying).index_fill(0, done, True)
+    return (it, dataclasses.replace(model, **values), error.index_copy(0, done, torch.cat([p[3] for p in pieces])),
+            K.index_copy(0, done, torch.cat([p[4] for p in pieces])), torch.where(accepted, taken, -taken))
+
+
+#: The fields of a linear-quadratic problem's :class:`Model` that change from point to point (its Jacobians and
+#: Hessians are the problem's constants).
+_VALUE_FIELDS = ("J", "Lz", "LNx", "f", "g", "h", "gN", "hN", "theta", "violation", "dual_error", "primal_error",
+                 "finite")
+
+
+def _values(model: Model, rows: Tensor) -> dict:
+    return {name: getattr(model, name)[rows] for name in _VALUE_FIELDS}
+
+
 def _complementarity(s: Tensor, sN: Tensor, z: Tensor, zN: Tensor, knots: Tensor) -> Tensor:
     """The average ``sᵀz`` over the rows that apply, ``(B,)`` (zero without inequality rows)."""
     count = (knots.sum() + sN.shape[-1]).clamp_min(1)
@@ -764,6 +854,10 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     base = None
     compacting = opts.compact_below > 0 and not opts.compile and not _graphs_used(opts, x0.device)
     mehrotra = opts.barrier_strategy == "mehrotra"
+    crossing = opts.crossover and problem.linear_quadratic and cons.mi + cons.miN > 0
+    # from the unconstrained optimum only where every row is a control bound: with state rows the active-set
+    # updates can go round in circles (the oscillator of the tests: eight sets without settling)
+    starting = crossing and opts.crossover_start_rounds > 0 and cons.bound_rows() is not None
     # IPOPT's mu_max: its factor times the initial average complementarity
     ceiling = opts.mehrotra_mu_max_factor * _complementarity(it.s, it.sN, it.z, it.zN, cons.ineq_knot_mask)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
@@ -775,13 +869,21 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
             theta_max, theta_min = opts.theta_max_factor * theta_0, opts.theta_min_factor * theta_0
         running = status == Status.RUNNING
-        error = torch.maximum(torch.maximum(model.dual_error, model.primal_error),
-                              complementarity_error(cons, it, torch.zeros_like(mu), opts))
+        error = kkt_error(cons, model, it, opts)
         status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
         status = torch.where(running & model.finite & (error <= tol), int(Status.CONVERGED), status)
         diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
         status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
         running = status == Status.RUNNING
+        start = starting and step == 0
+        rounds = opts.crossover_start_rounds if start else opts.crossover_rounds
+        trying = running & ((error <= opts.crossover_from) | start) if crossing and rounds > 0 else None
+        if trying is not None and bool(trying.any()):
+            it, model, error, K, taken = _cross_over(problem, cons, params, model, it, x0, base, opts, tol, error, K,
+                                                     trying, rounds, start)
+            status = torch.where(taken > 0, int(Status.CONVERGED), status)
+            iterations = iterations + taken.abs()  # each round solves a Newton system, as an iteration
+            running = status == Status.RUNNING
         count = int(running.sum())
         if step == opts.iterations or count == 0:
             break

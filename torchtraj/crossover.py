@@ -1,0 +1,137 @@
+r"""Active-set crossover: the interior-point method's last iterations replaced by one exact solve.
+
+ALTRO solves to a coarse tolerance and then, "once the active inequality constraints are known", switches to an
+active-set Newton projection for a precise answer (papers/altro.md §III-D). For a problem whose dynamics and
+constraints are affine in ``w = (X, U)`` and whose costs are quadratic (``Problem.linear_quadratic``) that switch
+is exact: with a set ``A`` of inequality rows held as equalities, the KKT conditions
+
+.. math::
+
+    \nabla J(w) + \nabla c(w)^T y = 0, \qquad c(w) = 0,\qquad
+    c = (\text{dynamics},\ \text{initial state},\ h,\ g_A)
+
+are linear, and one Newton step from any point, the equality-constrained LQR problem of the shared Riccati core
+(:mod:`torchtraj.riccati`) with the cost gradient as linear term, the defects and the row values as affine terms,
+lands on their solution ``(w_A, y_A)``: the costates ``λ``, the equality multipliers ``ν`` and the multipliers
+``y_{A}`` of the held rows come out of the same solve. That point is optimal for the problem exactly when the
+rows outside ``A`` hold there (``g ≤ 0``) and the held rows' multipliers are not negative, and it is the problem's
+KKT point to round-off, however loose the iterate it started from.
+
+The interior-point iterate proposes ``A``: the rows whose multiplier exceeds their slack, ``z > s`` (near a
+solution an active row has ``s ≈ μ/z → 0`` and an inactive one ``z ≈ μ/s → 0``: the strict-complementarity
+indicator). The candidate is accepted by the interior-point method's own convergence test, ``E_0 ≤ tol`` at the
+primal-dual point with slacks ``s = max(−g, 0)``, multipliers ``z = max(y, 0)`` on the held rows and zero
+elsewhere: a row outside ``A`` that the candidate violates leaves a primal residual ``g + s = g``, a negative
+multiplier a dual residual ``y − z``, and the test also reads every stationarity and feasibility residual. Where
+it fails, the instance goes on with its interior-point iterate, unchanged, and tries again at a later one; the
+reduced Hessian must also be positive definite (``RiccatiFactor.ok``), so that ``w_A`` is a strict minimiser
+with ``A`` held.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Optional
+
+import torch
+from torch import Tensor
+
+from .compiled import matvec as _mv
+from .constraints import Constraints
+from .riccati import LQR, LQRVectors, factorize
+
+if TYPE_CHECKING:  # the interior-point module imports this one
+    from .interior_point import Iterate, Model
+
+
+def _mT(a: Tensor) -> Tensor:
+    return a.transpose(-1, -2)
+
+
+def proposed_active_set(it: "Iterate", knots: Tensor) -> tuple:
+    """``(stage (B, N, mi), terminal (B, miN))``: 1 on the inequality rows whose multiplier exceeds their slack."""
+    return ((it.z > it.s) & (knots > 0)).to(it.s.dtype), (it.zN > it.sN).to(it.s.dtype)
+
+
+def held_lqr(model: "Model", cons: Constraints, active: Tensor, activeN: Tensor) -> LQR:
+    """The LQR matrices of the KKT system with the equality rows and the rows of ``active`` held: the Lagrangian
+    Hessian (the cost's, the problem being linear-quadratic), the dynamics' Jacobians, the rows ``[h; g]``
+    (``[h_N; g_N]`` at the end), and the control bounds held by the core itself where they are the only rows."""
+    nx = model.fz.shape[-2]
+    rows = torch.cat([model.Hz, model.Gz], -2)
+    rowsN = torch.cat([model.HN, model.GN], -2)
+    stage, terminal = {}, {}
+    if rows.shape[-2]:
+        mask = torch.cat([torch.ones_like(model.h), active], -1)
+        stage = dict(C=rows[..., :nx], D=rows[..., nx:], mask=mask, bounds=cons.bound_rows())
+    if rowsN.shape[-2]:
+        terminal = dict(CN=rowsN, maskN=torch.cat([torch.ones_like(model.hN), activeN], -1))
+    return LQR.from_blocks(model.fz, model.Lzz, model.LNxx, **stage, **terminal)
+
+
+def held_rhs(model: "Model", it: "Iterate", x0: Tensor) -> LQRVectors:
+    """The right-hand side whose solve gives the new point and the multipliers themselves (not their steps): the
+    cost gradient (the Lagrangian's, less the multipliers' terms), the defects and the rows' values."""
+    nx = it.X.shape[-1]
+    cost = model.Lz - _mv(_mT(model.fz), it.lam[:, 1:]) - _mv(_mT(model.Hz), it.nu) - _mv(_mT(model.Gz), it.y)
+    costN = model.LNx - _mv(_mT(model.HN), it.nuN) - _mv(_mT(model.GN), it.yN)
+    e = torch.cat([model.h, model.g], -1)
+    eN = torch.cat([model.hN, model.gN], -1)
+    return LQRVectors(q=cost[..., :nx], r=cost[..., nx:], qN=costN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
+                      e=e if e.shape[-1] else None, eN=eN if eN.shape[-1] else None)
+
+
+@dataclass
+class Candidate:
+    """The KKT point of the held set: the new iterate's fields (slacks and multipliers as the module docstring
+    sets them), the feedback gains ``K (B, N, nu, nx)`` of the held system and ``ok (B,)``, whether its reduced
+    Hessians were positive definite."""
+
+    X: Tensor
+    U: Tensor
+    s: Tensor
+    sN: Tensor
+    z: Tensor
+    zN: Tensor
+    y: Tensor
+    yN: Tensor
+    lam: Tensor
+    nu: Tensor
+    nuN: Tensor
+    K: Tensor
+    ok: Tensor
+
+
+def candidate(model: "Model", cons: Constraints, it: "Iterate", x0: Tensor,
+              active: Optional[tuple] = None) -> Candidate:
+    """One Newton step onto the KKT point of the rows ``active`` (default :func:`proposed_active_set`) held."""
+    knots = model.knots
+    active, activeN = proposed_active_set(it, knots) if active is None else active
+    factor = factorize(held_lqr(model, cons, active, activeN))
+    sol = factor.solve(held_rhs(model, it, x0), multipliers=True)
+    me, meN = model.h.shape[-1], model.hN.shape[-1]
+    rows = sol.nu if sol.nu is not None else it.s.new_zeros(*it.s.shape[:2], me + it.s.shape[-1])
+    rowsN = sol.nuN if sol.nuN is not None else it.sN.new_zeros(it.sN.shape[0], meN + it.sN.shape[-1])
+    y, yN = rows[..., me:] * active, rowsN[..., meN:] * activeN
+    dw = torch.cat([sol.dx[:, :-1], sol.du], -1)
+    g = (model.g + _mv(model.Gz, dw)) * knots  # the rows are affine: their values at the new point
+    gN = model.gN + _mv(model.GN, sol.dx[:, -1])
+    # rows off at a knot keep a unit slack, as the initial iterate gives them
+    s = torch.where(knots > 0, torch.clamp(-g, min=0.0), 1.0)
+    return Candidate(X=it.X + sol.dx, U=it.U + sol.du, s=s, sN=torch.clamp(-gN, min=0.0), z=y.clamp_min(0.0),
+                     zN=yN.clamp_min(0.0), y=y, yN=yN, lam=sol.costate, nu=rows[..., :me], nuN=rowsN[..., :meN],
+                     K=factor.K, ok=factor.ok)
+
+
+def next_active_set(c: Candidate, active: tuple, knots: Tensor) -> tuple:
+    """The primal-dual active-set update of a candidate (Hintermüller, Ito & Kunisch 2002): a held row stays where
+    its multiplier is positive, a free one joins where the candidate violates it, ``y + g > 0`` (held rows have
+    ``g = 0``, free ones ``y = 0``)."""
+    stage = torch.where(active[0] > 0, (c.y > 0).to(c.y.dtype), (c.s == 0).to(c.y.dtype) * (knots > 0))
+    terminal = torch.where(active[1] > 0, (c.yN > 0).to(c.y.dtype), (c.sN == 0).to(c.y.dtype))
+    return stage, terminal
+
+
+def changed(active: tuple, following: tuple) -> Tensor:
+    """``(B,)``: whether the active sets differ."""
+    return (active[0] != following[0]).flatten(1).any(-1) | (active[1] != following[1]).flatten(1).any(-1)
