@@ -720,3 +720,27 @@ def test_rows_where_an_ipm_bound_arc_begins_join_the_active_set():
     fd = (loss_and_grad(mass + eps)[0] - loss_and_grad(mass - eps)[0]) / (2 * eps)
     assert abs(float(analytic)) > 1.0
     assert abs(fd - float(analytic)) <= 1e-6 * abs(fd)
+
+
+def test_a_declared_linear_quadratic_problem_gives_the_same_kkt_system():
+    """Declared ``linear_quadratic``, the KKT system takes its derivatives at one knot and moves the values and
+    gradients from there: the same matrices and Newton right-hand side as the derivatives at every knot, at a
+    point that is no solution (defects, rows off their bounds) and with a parameter per instance."""
+    from small_problems import oscillator
+
+    g = torch.Generator().manual_seed(3)
+    B, N = 4, 15
+    X = torch.randn(B, N + 1, 2, generator=g, dtype=F64)
+    U = torch.randn(B, N, 1, generator=g, dtype=F64)
+    x0 = torch.randn(B, 2, generator=g, dtype=F64)
+    params = {"k": torch.tensor([2.0, 1.0, 3.0, 2.5], dtype=F64),
+              "goal": torch.tensor([-0.5, 0.0], dtype=F64).repeat(B, 1)}
+    systems = [implicit.kkt_system(oscillator(linear_quadratic=declared), x0, X, U, params)
+               for declared in (False, True)]
+    plain, declared = systems
+    for name in ("A", "B", "Q", "R", "S", "QN", "C", "D", "CN", "mask", "maskN"):
+        torch.testing.assert_close(getattr(declared.lqr, name), getattr(plain.lqr, name), rtol=1e-12, atol=1e-12)
+    for name in ("q", "r", "qN", "c", "x0", "e", "eN"):
+        a, b = getattr(declared.newton, name), getattr(plain.newton, name)
+        assert float(b.abs().max()) > 1e-2, name  # the point is off its solution in every part
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

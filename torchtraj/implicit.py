@@ -131,6 +131,7 @@ from torch.autograd.function import once_differentiable
 from torch.func import grad, jvp, vmap
 
 from .batching import map_stage, map_state
+from .compiled import matvec as _mv
 from .constraints import Constraints
 from .derivatives import (linearize_dynamics, problem_lagrangian_hessian, quadratize_cost, stage_jacobian,
                           terminal_jacobian)
@@ -288,7 +289,8 @@ def active_rows(problem: Problem, X: Tensor, U: Tensor, params, constrained: boo
 
 def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool = True,
                active_tolerance: Optional[float] = None, multipliers: Optional[Multipliers] = None,
-               active: Optional[tuple] = None, gauss_newton: bool = False) -> KKTSystem:
+               active: Optional[tuple] = None, gauss_newton: bool = False,
+               need_multipliers: bool = True) -> KKTSystem:
     """The factorised KKT system at ``X (B, N+1, nx)``, ``U (B, N, nu)`` from ``x0 (B, nx)``.
 
     ``params`` are batched to B. Without ``multipliers`` they are computed from the cost Hessian (one
@@ -297,12 +299,17 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     constraints are left out (the KKT conditions of the unconstrained problem, for methods that ignore
     constraints). ``gauss_newton``: the cost Hessian instead of the Lagrangian's (iLQR's model, the
     unrolled mode of the module docstring); its factorisation is the one that computes the multipliers.
+    ``need_multipliers=False``: with the cost Hessian, where the caller takes the multipliers from a Newton step
+    instead, they are not computed (zero), which saves a solve.
     """
     cons = _constraints(problem, constrained)
     tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
     nx = X.shape[-1]
-    f, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
-    _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
+    if problem.linear_quadratic:
+        f, A, Bm, lz, lzz, lNx, lNxx = _linear_quadratic_expansion(problem, X, U, params)
+    else:
+        f, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
+        _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
     e, C, D, mask, eN, CN, maskN = _rows(cons, X, U, params, tol, active)
     zeros = torch.zeros_like
     # control bounds alone: the Riccati core holds the controls of the active rows (no back-propagation, no SVD)
@@ -315,7 +322,9 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     # of a linear-quadratic problem the cost Hessian is the Lagrangian's: one factorisation is exact
     gauss_newton = gauss_newton or problem.linear_quadratic
     first = factorize(lqr) if multipliers is None or gauss_newton else None  # of the cost Hessian
-    if multipliers is None:
+    if multipliers is None and gauss_newton and not need_multipliers:
+        multipliers = Multipliers(zeros(X), None if e is None else zeros(e), None if eN is None else zeros(eN))
+    elif multipliers is None:
         step = first.solve(gradient, multipliers=True)
         multipliers, ok = Multipliers(step.costate, step.nu, step.nuN), first.ok
     else:  # the rows' activity may have changed: a multiplier lives on active rows only
@@ -334,6 +343,23 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     factor = factorize(lqr)
     return KKTSystem(lqr=lqr, factor=factor, newton=newton, multipliers=multipliers, ok=ok & factor.ok,
                      degenerate=dependent_rows(factor) > 0.5)
+
+
+def _linear_quadratic_expansion(problem: Problem, X: Tensor, U: Tensor, params):
+    """:func:`linearize_dynamics` and :func:`quadratize_cost` of a linear-quadratic problem
+    (``Problem.linear_quadratic``): its Jacobians and Hessians do not depend on the point, nor, the problem
+    functions having no time argument, on the stage, so they are taken at the first knot of each instance and
+    broadcast over the stages (views); the values and gradients move with them from there (exactly, the
+    dynamics being affine and the costs quadratic)."""
+    f0, A, Bm = linearize_dynamics(problem.dynamics, X[:, :2], U[:, :1], params)
+    _, lz0, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X[:, :2], U[:, :1], params)
+    N = U.shape[1]
+    A, Bm, lzz = (t.expand(t.shape[0], N, *t.shape[2:]) for t in (A, Bm, lzz))
+    dz = torch.cat([X[:, :-1] - X[:, :1], U - U[:, :1]], -1)
+    f = f0 + _mv(torch.cat([A, Bm], -1), dz)
+    lz = lz0 + _mv(lzz, dz)
+    lNx = lNx + _mv(lNxx, X[:, -1] - X[:, 1])
+    return f, A, Bm, lz, lzz, lNx, lNxx
 
 
 def dependent_rows(factor: RiccatiFactor) -> Tensor:
@@ -434,7 +460,8 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
     joined = torch.zeros(B, dtype=torch.long, device=X.device)  # rounds in which an instance's set grew
     for _ in range(2 * max(steps, 1)):
-        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active)
+        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active,
+                         need_multipliers=not exact)
         s = kkt.factor.solve(kkt.newton, multipliers=True)
         size = torch.maximum(s.dx.abs().flatten(1).amax(-1), s.du.abs().flatten(1).amax(-1))
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
