@@ -370,18 +370,23 @@ def test_obstacles_from_a_state_guess_around_them(reference):
 
 
 def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
-    """Declared ``linear_quadratic``, the IPM takes the torch.func expansion once and its derivatives by
-    products after that; its iterates, multipliers and implicit gradients are those of the plain IPM."""
+    """Declared ``linear_quadratic``, the IPM takes the torch.func expansion once, at each instance's first stage,
+    and its derivatives by products after that; its iterates, multipliers and implicit gradients are those of the
+    plain IPM, which expands at every stage of every iterate."""
     from torchtraj import interior_point
 
     calls = []
-    original = interior_point.problem_lagrangian_expansion
 
-    def counted(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
+    def counted(name):
+        original = getattr(interior_point, name)
 
-    monkeypatch.setattr(interior_point, "problem_lagrangian_expansion", counted)
+        def call(*args, **kwargs):
+            calls.append(name)
+            return original(*args, **kwargs)
+        return call
+
+    for name in ("problem_lagrangian_expansion", "quadratic_stage_hessian"):
+        monkeypatch.setattr(interior_point, name, counted(name))
     x0s = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2]], dtype=F64)
     out = {}
     for declared in (False, True):
@@ -394,9 +399,10 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
         sol = tt.solve(problem.with_params(k=k, goal=goal), x0, method="ipm", options=tt.IPOptions(crossover=False))
         assert bool(sol.converged.all()), sol.status
         loss = (sol.U ** 2).sum() + sol.X[:, -5:].sum() + sol.cost.sum()
-        out[declared] = (sol, len(calls), torch.autograd.grad(loss, [x0, k, goal]))
+        out[declared] = (sol, list(calls), torch.autograd.grad(loss, [x0, k, goal]))
     (plain, plain_calls, plain_grads), (lq, lq_calls, lq_grads) = out[False], out[True]
-    assert lq_calls == 1 and plain_calls == int(plain.iterations.max()) + 1
+    assert lq_calls == ["quadratic_stage_hessian"]
+    assert plain_calls == ["problem_lagrangian_expansion"] * (int(plain.iterations.max()) + 1)
     assert torch.equal(lq.iterations, plain.iterations)
     X, U = lq.X.detach(), lq.U.detach()
     assert bool(((X[:, 1:-1, 0] < -0.2 + 1e-6).sum(-1) >= 1).all())  # the state row holds on an arc

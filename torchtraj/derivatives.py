@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev
 
-from .batching import map_state
+from .batching import map_stage, map_state
 
 Params = Mapping[str, Tensor]
 
@@ -95,6 +95,35 @@ def stage_hessian(fn: Callable, X: Tensor, U: Tensor, params: Params):
 def terminal_hessian(fn: Callable, xN: Tensor, params: Params):
     """Value ``(B,)``, gradient ``(B, nx)`` and Hessian ``(B, nx, nx)`` of a scalar ``fn(x, p)``."""
     return map_state(_value_gradient_hessian(fn), xN, params)
+
+
+def _from_first_stage(X: Tensor, U: Tensor) -> Tensor:
+    """``z_k − z_0 (B, N, nx+nu)``: every stage point's offset from its instance's first."""
+    Z = _stage_points(X, U)
+    return Z - Z[:, :1]
+
+
+def _broadcast(derivative: Tensor, N: int) -> Tensor:
+    return derivative.expand(derivative.shape[0], N, *derivative.shape[2:])
+
+
+def affine_stage_jacobian(fn: Callable, X: Tensor, U: Tensor, params: Params):
+    """:func:`stage_jacobian` of an ``fn`` affine in ``(x, u)``, as a linear-quadratic problem's are
+    (``Problem.linear_quadratic``): the Jacobian at each instance's first stage, broadcast over the stages (a view:
+    the problem functions take no stage index, so it is every stage's); the values are evaluated at every stage.
+    One differentiation per instance instead of one per stage."""
+    _, jac = stage_jacobian(fn, X[:, :1], U[:, :1], params)
+    return map_stage(fn, X[:, : U.shape[1]], U, params), _broadcast(jac, U.shape[1])
+
+
+def quadratic_stage_hessian(fn: Callable, X: Tensor, U: Tensor, params: Params):
+    """:func:`stage_hessian` of a quadratic scalar ``fn(x, u, p)``, as :func:`affine_stage_jacobian`: the Hessian
+    of the first stage broadcast, the values and gradients moved from there (exactly, for a quadratic ``fn``)."""
+    value, grad, hess = stage_hessian(fn, X[:, :1], U[:, :1], params)
+    hess = _broadcast(hess, U.shape[1])
+    dz = _from_first_stage(X, U)
+    hdz = (hess @ dz.unsqueeze(-1)).squeeze(-1)
+    return value + (grad * dz).sum(-1) + 0.5 * (dz * hdz).sum(-1), grad + hdz, hess
 
 
 def linearize_dynamics(dynamics: Callable, X: Tensor, U: Tensor, params: Params):

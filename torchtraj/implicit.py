@@ -131,9 +131,9 @@ from torch.autograd.function import once_differentiable
 from torch.func import grad, jvp, vmap
 
 from .batching import map_stage, map_state
-from .compiled import matvec as _mv
 from .constraints import Constraints
-from .derivatives import (linearize_dynamics, problem_lagrangian_hessian, quadratize_cost, stage_jacobian,
+from .derivatives import (affine_stage_jacobian, linearize_dynamics, problem_lagrangian_hessian,
+                          quadratic_stage_hessian, quadratize_cost, stage_jacobian, terminal_hessian,
                           terminal_jacobian)
 from .problem import Problem
 from .riccati import LQR, LQRVectors, RiccatiFactor, factorize
@@ -347,19 +347,13 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
 
 def _linear_quadratic_expansion(problem: Problem, X: Tensor, U: Tensor, params):
     """:func:`linearize_dynamics` and :func:`quadratize_cost` of a linear-quadratic problem
-    (``Problem.linear_quadratic``): its Jacobians and Hessians do not depend on the point, nor, the problem
-    functions having no time argument, on the stage, so they are taken at the first knot of each instance and
-    broadcast over the stages (views); the values and gradients move with them from there (exactly, the
-    dynamics being affine and the costs quadratic)."""
-    f0, A, Bm = linearize_dynamics(problem.dynamics, X[:, :2], U[:, :1], params)
-    _, lz0, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X[:, :2], U[:, :1], params)
-    N = U.shape[1]
-    A, Bm, lzz = (t.expand(t.shape[0], N, *t.shape[2:]) for t in (A, Bm, lzz))
-    dz = torch.cat([X[:, :-1] - X[:, :1], U - U[:, :1]], -1)
-    f = f0 + _mv(torch.cat([A, Bm], -1), dz)
-    lz = lz0 + _mv(lzz, dz)
-    lNx = lNx + _mv(lNxx, X[:, -1] - X[:, 1])
-    return f, A, Bm, lz, lzz, lNx, lNxx
+    (``Problem.linear_quadratic``): the derivatives at each instance's first stage, broadcast over the stages
+    (:func:`~torchtraj.derivatives.affine_stage_jacobian`)."""
+    nx = X.shape[-1]
+    f, fz = affine_stage_jacobian(problem.dynamics, X, U, params)
+    _, lz, lzz = quadratic_stage_hessian(problem.stage_cost, X, U, params)
+    _, lNx, lNxx = terminal_hessian(problem.terminal_cost, X[:, -1], params)
+    return f, fz[..., :nx], fz[..., nx:], lz, lzz, lNx, lNxx
 
 
 def dependent_rows(factor: RiccatiFactor) -> Tensor:

@@ -96,7 +96,8 @@ from . import crossover
 from .compiled import kernel
 from .compiled import matvec as _mv
 from .constraints import Constraints
-from .derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_jacobian
+from .derivatives import (affine_stage_jacobian, problem_lagrangian_expansion, quadratic_stage_hessian, stage_jacobian,
+                          terminal_hessian, terminal_jacobian)
 from .graphs import graphed
 from .ilqr import _first_true, _where, total_cost
 from .problem import Problem
@@ -276,9 +277,10 @@ def _flat_abs(*parts: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------------------- expansion
-def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians: bool):
+def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians: bool, affine: bool = False):
     """Values (and Jacobians) of the stage inequalities (rows off at a knot are zero), stage equalities,
-    terminal inequalities and equalities."""
+    terminal inequalities and equalities; ``affine``: rows affine in ``(x, u)``, their stage Jacobians taken once
+    per instance (:func:`~torchtraj.derivatives.affine_stage_jacobian`)."""
     N, nx, nu = U.shape[-2], X.shape[-1], U.shape[-1]
     lead = X.shape[:-2]
     nz = nx + nu
@@ -288,7 +290,7 @@ def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians
         if not m:
             return X.new_zeros(*lead, N, 0), X.new_zeros(*lead, N, 0, nz)
         if jacobians:
-            return stage_jacobian(fn, Xs, U, params)
+            return (affine_stage_jacobian if affine else stage_jacobian)(fn, Xs, U, params)
         return map_stage(fn, Xs, U, params), None
 
     def terminal(fn, m):
@@ -329,13 +331,32 @@ def _linear_quadratic_derivatives(it: Iterate, base: Base):
     return Lz, m.Lzz, LNx, m.LNxx, m.fz, m.Gz, m.Hz, m.GN, m.HN
 
 
+def _linear_quadratic_expansion(problem: Problem, cons: Constraints, params, it: Iterate) -> tuple:
+    """The first expansion of a linear-quadratic problem: every Jacobian and Hessian taken once per instance and
+    broadcast over the stages (:func:`~torchtraj.derivatives.affine_stage_jacobian`); the Lagrangian's Hessian is
+    the costs' (affine rows have no curvature), its gradient the costs' and the multipliers' terms."""
+    X, U = it.X, it.U
+    f, fz = affine_stage_jacobian(problem.dynamics, X[:, :-1], U, params)
+    _, lz, Lzz = quadratic_stage_hessian(problem.stage_cost, X[:, :-1], U, params)
+    _, lNx, LNxx = terminal_hessian(problem.terminal_cost, X[:, -1], params)
+    g, Gz, h, Hz, gN, GN, hN, HN = _constraint_parts(cons, X, U, params, jacobians=True, affine=True)
+    # stored whole, not as broadcast views: products with a gathered copy (compact_below) then round alike
+    fz, Lzz, Gz, Hz = (t.contiguous() for t in (fz, Lzz, Gz, Hz))
+    mT = lambda a: a.transpose(-1, -2)  # noqa: E731
+    Lz = lz + _mv(mT(fz), it.lam[:, 1:]) + _mv(mT(Hz), it.nu) + _mv(mT(Gz), it.y)
+    LNx = lNx + _mv(mT(HN), it.nuN) + _mv(mT(GN), it.yN)
+    return Lz, Lzz, LNx, LNxx, f, fz, g, Gz, h, Hz, gN, GN, hN, HN
+
+
 def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions,
            base: Optional[Base] = None) -> Model:
     """Everything the iteration needs at ``it``: one pass of ``torch.func`` over the batch, or, given the
     ``base`` expansion of a linear-quadratic problem, the values alone and its derivatives by products."""
     X, U = it.X, it.U
     nx = X.shape[-1]
-    if base is None:
+    if base is None and problem.linear_quadratic:
+        Lz, Lzz, LNx, LNxx, f, fz, g, Gz, h, Hz, gN, GN, hN, HN = _linear_quadratic_expansion(problem, cons, params, it)
+    elif base is None:
         _, Lz, Lzz, _, LNx, LNxx = problem_lagrangian_expansion(problem, cons, X, U, params, it.lam, it.nu, it.y,
                                                                 it.nuN, it.yN)
         f, fz = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
@@ -680,56 +701,61 @@ def kkt_error(cons: Constraints, model: Model, it: Iterate, opts: IPOptions) -> 
 def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: Iterate, x0: Tensor, base: Base,
                 opts: IPOptions, tol: float, error: Tensor, K: Tensor, trying: Tensor, rounds: int,
                 start: bool = False) -> tuple:
-    """The crossover (:mod:`torchtraj.crossover`) of the instances ``trying``: up to ``rounds`` active sets, the
-    first proposed by the iterate (``start``: none held, the unconstrained optimum), each next one the
-    primal-dual active-set update of the last candidate; an instance leaves once a candidate passes the convergence
-    test ``E_0 ≤ tol``, or once its set stops changing or its system fails. Returns ``(iterate, model, E_0, gains
-    K, rounds (B,))``: the accepted candidates' values, the given ones elsewhere, and the rounds each instance took
-    part in, negative where none was accepted."""
+    """The crossover (:mod:`torchtraj.crossover`) of the instances ``trying``, gathered: up to ``rounds`` active
+    sets, the first proposed by the iterate (``start``: none held, the unconstrained optimum), each next one the
+    primal-dual active-set update of the last candidate. An instance's rounds end where its set stops changing (the
+    candidate is then the KKT point of its set), where its system fails, or with the last round; the candidates
+    they end with are then checked together, and accepted where they pass the convergence test ``E_0 ≤ tol``.
+    Returns ``(iterate, model, E_0, gains K, rounds (B,))``: the accepted candidates' values, the given ones
+    elsewhere, and the rounds each instance took part in, negative where none was accepted."""
     B = trying.shape[0]
     index = trying.nonzero().squeeze(-1)  # the rows still tried
+    whole = index.numel() == B
+    sub_model, sub_it = (model, it) if whole else (_rows(model, index), _rows(it, index))
+    sub_x0 = x0 if whole else x0[index]
     knots = model.knots
-    active = crossover.proposed_active_set(_rows(it, index), knots)
+    active = crossover.proposed_active_set(sub_it, knots)
     if start:
         active = tuple(torch.zeros_like(a) for a in active)
     taken = torch.zeros(B, dtype=torch.long, device=index.device)
-    pieces = []
-    for _ in range(rounds):
-        whole = index.numel() == B  # nothing to gather
-        sub = (lambda v: v) if whole else (lambda v: None if v is None else _rows(v, index))  # noqa: E731
-        sub_it = sub(it)
-        c = crossover.candidate(sub(model), cons, sub_it, x0 if whole else x0[index], active)
-        new = Iterate(**{f.name: getattr(c, f.name) for f in fields(Iterate)})
-        # eager: the gathered batch changes from round to round
-        new_model = expand(problem, cons, params if whole else param_rows(params, index), new, opts, sub(base))
-        new_error = kkt_error(cons, new_model, new, opts)
-        now = c.ok & new_model.finite & (new_error <= tol)
+    ended = []  # per round: the rows it ended, their candidates' iterates, gains and factorisations' success
+    for r in range(rounds):
+        c = crossover.candidate(sub_model, cons, sub_it, sub_x0, active)
         taken = taken.index_add(0, index, torch.ones_like(index))
-        rows = now.nonzero().squeeze(-1)
-        pieces.append((index[rows], _rows(new, rows), _values(new_model, rows), new_error[rows], c.K[rows]))
         following = crossover.next_active_set(c, active, knots)
-        going = (~now & c.ok & crossover.changed(active, following)).nonzero().squeeze(-1)
-        if going.numel() == 0:
+        going = c.ok & crossover.changed(active, following)
+        if r == rounds - 1:
+            going = torch.zeros_like(going)
+        rows = (~going).nonzero().squeeze(-1)
+        ended.append((index[rows], _rows(_candidate_iterate(c), rows), c.K[rows], c.ok[rows]))
+        on = going.nonzero().squeeze(-1)
+        if on.numel() == 0:
             break
-        index, active = index[going], tuple(a[going] for a in following)
-    done = torch.cat([p[0] for p in pieces])
-    new = type(it)(**{f.name: torch.cat([getattr(p[1], f.name) for p in pieces]) for f in fields(it)})
-    it = type(it)(**{f.name: getattr(it, f.name).index_copy(0, done, getattr(new, f.name)) for f in fields(it)})
-    values = {name: getattr(model, name).index_copy(0, done, torch.cat([p[2][name] for p in pieces]))
-              for name in _VALUE_FIELDS}
+        index, sub_model, sub_it, sub_x0 = index[on], _rows(sub_model, on), _rows(sub_it, on), sub_x0[on]
+        active = tuple(a[on] for a in following)
+    done = torch.cat([e[0] for e in ended])
+    new = Iterate(**{f.name: torch.cat([getattr(e[1], f.name) for e in ended]) for f in fields(Iterate)})
+    # one expansion checks them all (eager: the gathered batch changes from call to call)
+    new_model = expand(problem, cons, param_rows(params, done), new, opts, None if base is None else _rows(base, done))
+    new_error = kkt_error(cons, new_model, new, opts)
+    accept = torch.cat([e[3] for e in ended]) & new_model.finite & (new_error <= tol)
+    rows = accept.nonzero().squeeze(-1)
+    done, new = done[rows], _rows(new, rows)
+    it = Iterate(**{f.name: getattr(it, f.name).index_copy(0, done, getattr(new, f.name)) for f in fields(Iterate)})
+    values = {name: getattr(model, name).index_copy(0, done, getattr(new_model, name)[rows]) for name in _VALUE_FIELDS}
     accepted = torch.zeros_like(trying).index_fill(0, done, True)
-    return (it, dataclasses.replace(model, **values), error.index_copy(0, done, torch.cat([p[3] for p in pieces])),
-            K.index_copy(0, done, torch.cat([p[4] for p in pieces])), torch.where(accepted, taken, -taken))
+    return (it, dataclasses.replace(model, **values), error.index_copy(0, done, new_error[rows]),
+            K.index_copy(0, done, torch.cat([e[2] for e in ended])[rows]), torch.where(accepted, taken, -taken))
+
+
+def _candidate_iterate(c: "crossover.Candidate") -> Iterate:
+    return Iterate(**{f.name: getattr(c, f.name) for f in fields(Iterate)})
 
 
 #: The fields of a linear-quadratic problem's :class:`Model` that change from point to point (its Jacobians and
 #: Hessians are the problem's constants).
 _VALUE_FIELDS = ("J", "Lz", "LNx", "f", "g", "h", "gN", "hN", "theta", "violation", "dual_error", "primal_error",
                  "finite")
-
-
-def _values(model: Model, rows: Tensor) -> dict:
-    return {name: getattr(model, name)[rows] for name in _VALUE_FIELDS}
 
 
 def _complementarity(s: Tensor, sN: Tensor, z: Tensor, zN: Tensor, knots: Tensor) -> Tensor:
