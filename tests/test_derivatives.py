@@ -108,3 +108,29 @@ def test_derivatives_keep_dtype_and_batch_shapes(dtype):
     X, U = X.to(dtype), U.to(dtype)
     f, A, Bm = linearize_dynamics(prob.dynamics, X, U, prob.batched_params(3))
     assert A.dtype == dtype and A.shape == (3, prob.N, 2, 2) and Bm.shape == (3, prob.N, 2, 1)
+
+
+def test_derivatives_of_affine_and_quadratic_functions_at_one_stage_are_every_stages():
+    """A linear-quadratic problem's functions differentiated at each instance's first stage: the broadcast Jacobians
+    and Hessians, the values and the moved gradients are those taken at every stage (a parameter per instance)."""
+    from torchtraj.derivatives import affine_stage_jacobian, quadratic_stage_hessian, stage_hessian, stage_jacobian
+
+    g = torch.Generator().manual_seed(1)
+    B, N, nx, nu = 3, 7, 3, 2
+    X = torch.randn(B, N, nx, generator=g, dtype=torch.float64)
+    U = torch.randn(B, N, nu, generator=g, dtype=torch.float64)
+    params = {"M": torch.randn(B, 4, nx + nu, generator=g, dtype=torch.float64),
+              "c": torch.randn(B, 4, generator=g, dtype=torch.float64)}
+
+    def affine(x, u, p):
+        return p["M"] @ torch.cat([x, u]) + p["c"]
+
+    def quadratic(x, u, p):
+        r = affine(x, u, p)
+        return 0.5 * (r @ r) + r.sum()
+
+    for once, every in ((affine_stage_jacobian(affine, X, U, params), stage_jacobian(affine, X, U, params)),
+                        (quadratic_stage_hessian(quadratic, X, U, params), stage_hessian(quadratic, X, U, params))):
+        for a, b in zip(once, every):
+            assert a.shape == b.shape and float(b.abs().max()) > 1e-1
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
