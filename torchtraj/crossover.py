@@ -83,21 +83,11 @@ def held_rhs(model: "Model", it: "Iterate", x0: Tensor) -> LQRVectors:
 
 @dataclass
 class Candidate:
-    """The KKT point of the held set: the new iterate's fields (slacks and multipliers as the module docstring
-    sets them), the feedback gains ``K (B, N, nu, nx)`` of the held system and ``ok (B,)``, whether its reduced
-    Hessians were positive definite."""
+    """The KKT point of the held set: the new ``point`` (slacks and multipliers as the module docstring sets them),
+    the feedback gains ``K (B, N, nu, nx)`` of the held system and ``ok (B,)``, whether its reduced Hessians were
+    positive definite."""
 
-    X: Tensor
-    U: Tensor
-    s: Tensor
-    sN: Tensor
-    z: Tensor
-    zN: Tensor
-    y: Tensor
-    yN: Tensor
-    lam: Tensor
-    nu: Tensor
-    nuN: Tensor
+    point: "Iterate"
     K: Tensor
     ok: Tensor
 
@@ -118,17 +108,20 @@ def candidate(model: "Model", cons: Constraints, it: "Iterate", x0: Tensor,
     gN = model.gN + _mv(model.GN, sol.dx[:, -1])
     # rows off at a knot keep a unit slack, as the initial iterate gives them
     s = torch.where(knots > 0, torch.clamp(-g, min=0.0), 1.0)
-    return Candidate(X=it.X + sol.dx, U=it.U + sol.du, s=s, sN=torch.clamp(-gN, min=0.0), z=y.clamp_min(0.0),
-                     zN=yN.clamp_min(0.0), y=y, yN=yN, lam=sol.costate, nu=rows[..., :me], nuN=rowsN[..., :meN],
-                     K=factor.K, ok=factor.ok)
+    from .interior_point import Iterate  # here: that module imports this one
+
+    point = Iterate(X=it.X + sol.dx, U=it.U + sol.du, s=s, sN=torch.clamp(-gN, min=0.0), z=y.clamp_min(0.0),
+                    zN=yN.clamp_min(0.0), y=y, yN=yN, lam=sol.costate, nu=rows[..., :me], nuN=rowsN[..., :meN])
+    return Candidate(point=point, K=factor.K, ok=factor.ok)
 
 
 def next_active_set(c: Candidate, active: tuple, knots: Tensor) -> tuple:
     """The primal-dual active-set update of a candidate (Hintermüller, Ito & Kunisch 2002): a held row stays where
     its multiplier is positive, a free one joins where the candidate violates it, ``y + g > 0`` (held rows have
     ``g = 0``, free ones ``y = 0``)."""
-    stage = torch.where(active[0] > 0, (c.y > 0).to(c.y.dtype), (c.s == 0).to(c.y.dtype) * (knots > 0))
-    terminal = torch.where(active[1] > 0, (c.yN > 0).to(c.y.dtype), (c.sN == 0).to(c.y.dtype))
+    p = c.point
+    stage = torch.where(active[0] > 0, (p.y > 0).to(p.y.dtype), (p.s == 0).to(p.y.dtype) * (knots > 0))
+    terminal = torch.where(active[1] > 0, (p.yN > 0).to(p.y.dtype), (p.sN == 0).to(p.y.dtype))
     return stage, terminal
 
 

@@ -727,7 +727,7 @@ def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: I
         if r == rounds - 1:
             going = torch.zeros_like(going)
         rows = (~going).nonzero().squeeze(-1)
-        ended.append((index[rows], _rows(_candidate_iterate(c), rows), c.K[rows], c.ok[rows]))
+        ended.append((index[rows], _rows(c.point, rows), c.K[rows], c.ok[rows]))
         on = going.nonzero().squeeze(-1)
         if on.numel() == 0:
             break
@@ -746,10 +746,6 @@ def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: I
     accepted = torch.zeros_like(trying).index_fill(0, done, True)
     return (it, dataclasses.replace(model, **values), error.index_copy(0, done, new_error[rows]),
             K.index_copy(0, done, torch.cat([e[2] for e in ended])[rows]), torch.where(accepted, taken, -taken))
-
-
-def _candidate_iterate(c: "crossover.Candidate") -> Iterate:
-    return Iterate(**{f.name: getattr(c, f.name) for f in fields(Iterate)})
 
 
 #: The fields of a linear-quadratic problem's :class:`Model` that change from point to point (its Jacobians and
