@@ -38,14 +38,11 @@ from torch import Tensor
 
 from .compiled import matvec as _mv
 from .constraints import Constraints
+from .derivatives import multiplier_terms
 from .riccati import LQR, LQRVectors, factorize
 
 if TYPE_CHECKING:  # the interior-point module imports this one
     from .interior_point import Iterate, Model
-
-
-def _mT(a: Tensor) -> Tensor:
-    return a.transpose(-1, -2)
 
 
 def proposed_active_set(it: "Iterate", knots: Tensor) -> tuple:
@@ -73,8 +70,9 @@ def held_rhs(model: "Model", it: "Iterate", x0: Tensor) -> LQRVectors:
     """The right-hand side whose solve gives the new point and the multipliers themselves (not their steps): the
     cost gradient (the Lagrangian's, less the multipliers' terms), the defects and the rows' values."""
     nx = it.X.shape[-1]
-    cost = model.Lz - _mv(_mT(model.fz), it.lam[:, 1:]) - _mv(_mT(model.Hz), it.nu) - _mv(_mT(model.Gz), it.y)
-    costN = model.LNx - _mv(_mT(model.HN), it.nuN) - _mv(_mT(model.GN), it.yN)
+    stage, terminal = multiplier_terms(model.fz, model.Hz, model.Gz, model.HN, model.GN, it.lam[:, 1:], it.nu, it.y,
+                                       it.nuN, it.yN)
+    cost, costN = model.Lz - stage, model.LNx - terminal
     e = torch.cat([model.h, model.g], -1)
     eN = torch.cat([model.hN, model.gN], -1)
     return LQRVectors(q=cost[..., :nx], r=cost[..., nx:], qN=costN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],

@@ -31,6 +31,7 @@ from torch import Tensor
 from torch.func import jacrev
 
 from .batching import map_stage, map_state
+from .compiled import matvec
 
 Params = Mapping[str, Tensor]
 
@@ -124,6 +125,17 @@ def quadratic_stage_hessian(fn: Callable, X: Tensor, U: Tensor, params: Params):
     dz = _from_first_stage(X, U)
     hdz = (hess @ dz.unsqueeze(-1)).squeeze(-1)
     return value + (grad * dz).sum(-1) + 0.5 * (dz * hdz).sum(-1), grad + hdz, hess
+
+
+def multiplier_terms(fz: Tensor, Hz: Tensor, Gz: Tensor, HN: Tensor, GN: Tensor, costate_next: Tensor, nu: Tensor,
+                     mu: Tensor, nuN: Tensor, muN: Tensor) -> tuple:
+    """The multipliers' part of the Lagrangian gradients by the constraints' Jacobians: ``(B, N, nz)``
+    ``f_zᵀ λ_{k+1} + h_zᵀ ν_k + g_zᵀ μ_k`` at the stages and ``(B, nx)`` ``h_{N,x}ᵀ ν_N + g_{N,x}ᵀ μ_N`` at the end
+    (``Hz (B, N, me, nz)``, ``nu (B, N, me)`` and so on; the ``−λ_kᵀ x_k`` terms are left to the caller)."""
+    def tmv(a: Tensor, v: Tensor) -> Tensor:
+        return matvec(a.transpose(-1, -2), v)
+
+    return tmv(fz, costate_next) + tmv(Hz, nu) + tmv(Gz, mu), tmv(HN, nuN) + tmv(GN, muN)
 
 
 def linearize_dynamics(dynamics: Callable, X: Tensor, U: Tensor, params: Params):

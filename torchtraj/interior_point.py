@@ -96,8 +96,8 @@ from . import crossover
 from .compiled import kernel
 from .compiled import matvec as _mv
 from .constraints import Constraints
-from .derivatives import (affine_stage_jacobian, problem_lagrangian_expansion, quadratic_stage_hessian, stage_jacobian,
-                          terminal_hessian, terminal_jacobian)
+from .derivatives import (affine_stage_jacobian, multiplier_terms, problem_lagrangian_expansion, quadratic_stage_hessian,
+                          stage_jacobian, terminal_hessian, terminal_jacobian)
 from .graphs import graphed
 from .ilqr import _first_true, _where, total_cost
 from .problem import Problem
@@ -261,14 +261,11 @@ class Model:
 
 def _pick(mask: Tensor, a, b):
     """The batch-first dataclass ``a`` where ``mask (B,)``, else ``b`` (field by field; a field that is no tensor,
-    as a :class:`Direction`'s factor, is kept where ``a`` and ``b`` share it, else ``None``; :class:`Model`'s
-    ``knots``, per stage, is ``a``'s)."""
-    def one(name, x, y):
-        if name == "knots":
-            return x
+    as a :class:`Direction`'s factor, is kept where ``a`` and ``b`` share it, else ``None``)."""
+    def one(x, y):
         return _where(mask, x, y) if isinstance(x, Tensor) else (x if x is y else None)
 
-    return type(a)(**{f.name: one(f.name, getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
+    return type(a)(**{f.name: one(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
 
 
 def _flat_abs(*parts: Tensor) -> Tensor:
@@ -325,9 +322,9 @@ def _linear_quadratic_derivatives(it: Iterate, base: Base):
     gradient moves with the constant cost Hessian, and the constant Jacobians carry the multipliers."""
     X, U, m = it.X, it.U, base.model
     dz = torch.cat([X[:, :-1] - base.X[:, :-1], U - base.U], -1)
-    mT = lambda a: a.transpose(-1, -2)  # noqa: E731
-    Lz = m.Lz + _mv(m.Lzz, dz) + _mv(mT(m.fz), it.lam[:, 1:]) + _mv(mT(m.Hz), it.nu) + _mv(mT(m.Gz), it.y)
-    LNx = m.LNx + _mv(m.LNxx, X[:, -1] - base.X[:, -1]) + _mv(mT(m.HN), it.nuN) + _mv(mT(m.GN), it.yN)
+    stage, terminal = multiplier_terms(m.fz, m.Hz, m.Gz, m.HN, m.GN, it.lam[:, 1:], it.nu, it.y, it.nuN, it.yN)
+    Lz = m.Lz + _mv(m.Lzz, dz) + stage
+    LNx = m.LNx + _mv(m.LNxx, X[:, -1] - base.X[:, -1]) + terminal
     return Lz, m.Lzz, LNx, m.LNxx, m.fz, m.Gz, m.Hz, m.GN, m.HN
 
 
@@ -342,9 +339,8 @@ def _linear_quadratic_expansion(problem: Problem, cons: Constraints, params, it:
     g, Gz, h, Hz, gN, GN, hN, HN = _constraint_parts(cons, X, U, params, jacobians=True, affine=True)
     # stored whole, not as broadcast views: products with a gathered copy (compact_below) then round alike
     fz, Lzz, Gz, Hz = (t.contiguous() for t in (fz, Lzz, Gz, Hz))
-    mT = lambda a: a.transpose(-1, -2)  # noqa: E731
-    Lz = lz + _mv(mT(fz), it.lam[:, 1:]) + _mv(mT(Hz), it.nu) + _mv(mT(Gz), it.y)
-    LNx = lNx + _mv(mT(HN), it.nuN) + _mv(mT(GN), it.yN)
+    stage, terminal = multiplier_terms(fz, Hz, Gz, HN, GN, it.lam[:, 1:], it.nu, it.y, it.nuN, it.yN)
+    Lz, LNx = lz + stage, lNx + terminal
     return Lz, Lzz, LNx, LNxx, f, fz, g, Gz, h, Hz, gN, GN, hN, HN
 
 
