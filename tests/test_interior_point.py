@@ -453,32 +453,75 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, mo
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("declared", [False, True])
-def test_cuda_graphs_replay_the_eager_solve(declared):
+@pytest.mark.parametrize("case", ["general", "declared", "bounds"])
+def test_cuda_graphs_replay_the_eager_solve(case):
     """``IPOptions(cuda_graphs=True)`` on a GPU: every kernel captured, and the same statuses, iterations and
-    solutions as the eager solve to rounding (the Cholesky factors by formulas instead of LAPACK-like calls), the
-    second solve replaying the graphs the first captured, and the gradients too; on the oscillator with its
-    inequality rows (its torch.func expansion captured, or, declared linear-quadratic, its products)."""
-    from torchtraj.graphs import graphed
+    solutions as the eager solve to rounding (the Cholesky factors by formulas instead of LAPACK-like calls), and
+    the same gradients (refinement's Newton steps and the adjoint solve graphed too). The second graphed solve, of
+    a new problem object with a new parameter tensor as a training step makes, replays the graphs the first
+    captured: none is captured again. On the oscillator with its inequality rows (its torch.func expansion
+    captured), declared linear-quadratic (its products, and the crossover's candidates on the whole batch), and
+    with control bounds alone (the crossover's start rounds)."""
+    from torchtraj import crossover, implicit
+    from torchtraj.graphs import _GRAPHED, graphed
     from torchtraj.interior_point import direction
 
-    problem = oscillator(linear_quadratic=declared, terminal_eq=None).to(device="cuda")
+    changes = dict(general={}, declared=dict(linear_quadratic=True),
+                   bounds=dict(linear_quadratic=True, state_ineq=None))[case]
+    problem = oscillator(terminal_eq=None, **changes).to(device="cuda")
     x0s = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2]], dtype=F64, device="cuda")
-    out = {}
+    out, captured = {}, []
     for graphs in (False, True, True):
         x0 = x0s.clone().requires_grad_(True)
+        k = problem.params["k"].clone().requires_grad_(True)
         with warnings.catch_warnings():
             warnings.simplefilter("error", RuntimeWarning)  # every kernel captured: none falls back to eager
-            sol = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(cuda_graphs=graphs))
-        assert bool(sol.converged.all()), sol.status
-        (grad,) = torch.autograd.grad((sol.U ** 2).sum() + sol.X[:, -5:].sum(), [x0])
-        out.setdefault(graphs, []).append((sol, grad))
-    assert len(graphed(direction).graphs) >= 1
+            sol = tt.solve(problem.with_params(k=k), x0, method="ipm", options=tt.IPOptions(cuda_graphs=graphs))
+            assert bool(sol.converged.all()), sol.status
+            grads = torch.autograd.grad((sol.U ** 2).sum() + sol.X[:, -5:].sum(), [x0, k])
+        out.setdefault(graphs, []).append((sol, grads))
+        captured.append(sum(len(w.graphs) for w in _GRAPHED.values()))
+    assert captured[2] == captured[1] > captured[0]
+    assert len(graphed(direction).graphs) >= 1 and len(graphed(implicit._adjoint).graphs) >= 1
+    assert len(graphed(implicit._newton_step).graphs) >= 1
+    if case != "general":
+        assert len(graphed(crossover.candidate).graphs) >= 1
     (eager, g_eager), = out[False]
-    for sol, grad in out[True]:
+    for sol, grads in out[True]:
         assert torch.equal(sol.iterations, eager.iterations)
         assert torch.allclose(sol.X, eager.X, atol=1e-10) and torch.allclose(sol.U, eager.U, atol=1e-10)
-        assert torch.allclose(grad, g_eager, atol=1e-10)
+        for a, b in zip(grads, g_eager):
+            assert torch.allclose(a, b, atol=1e-10)
+
+
+def test_graph_keys_follow_the_problems_functions_and_the_options_values():
+    """A CUDA graph's key (:mod:`torchtraj.graphs`) reads a problem as its functions and the shapes of its tensors,
+    its constraints as their problem, and options by value: the solve of a new problem object with new parameter
+    tensors replays the last one's graphs, and reads the new tensors. New functions or other settings are new
+    graphs. (The keys are made on any device; only their replay needs a GPU.)"""
+    from torchtraj.graphs import _flatten, _rebuild
+
+    def key_of(problem, options):
+        tensors, key = [], []
+        template = _flatten((problem, Constraints(problem), options), tensors, key)
+        return tuple(key), template, tensors
+
+    problem = oscillator(linear_quadratic=True)
+    k2, k3 = torch.tensor(2.0, dtype=F64), torch.tensor(3.0, dtype=F64)
+    key, _, _ = key_of(problem.with_params(k=k2), tt.IPOptions(cuda_graphs=True))
+    same, template, tensors = key_of(problem.with_params(k=k3), tt.IPOptions(cuda_graphs=True))
+    assert same == key
+    assert key_of(problem.with_params(k=k2), tt.IPOptions(cuda_graphs=True, tolerance=1e-6))[0] != key
+    other_cost = problem.replace(stage_cost=lambda x, u, p: (u * u).sum())
+    assert key_of(other_cost.with_params(k=k2), tt.IPOptions(cuda_graphs=True))[0] != key
+    # made again around copies of the tensors (a graph's static inputs), the constraints read those copies
+    copies = [t.clone() for t in tensors]
+    rebuilt, cons, _ = _rebuild(template, copies)
+    assert any(cons.problem.params["k"] is c for c in copies) and float(cons.problem.params["k"]) == 3.0
+    X, U = torch.randn(2, 16, 2, dtype=F64), torch.randn(2, 15, 1, dtype=F64)
+    original = Constraints(problem.with_params(k=k3))
+    params = {n: v.expand(2, *v.shape) for n, v in problem.with_params(k=k3).params.items()}
+    assert torch.equal(cons.max_violation(X, U, params), original.max_violation(X, U, params))
 
 
 def test_mehrotra_reaches_the_monotone_optimum_in_fewer_iterations():

@@ -61,6 +61,9 @@ class ConstraintValues:
 class Constraints:
     """Stage and terminal constraint functions of ``problem`` in the solver layout."""
 
+    #: What a CUDA graph makes these constraints again from (:mod:`torchtraj.graphs`).
+    graph_rebuilt_from = ("problem",)
+
     def __init__(self, problem: Problem):
         self.problem = problem
         sizes = problem.constraint_sizes()

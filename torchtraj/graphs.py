@@ -5,8 +5,12 @@ kernels, each with its share of Python, dispatcher and launch cost (``python -m 
 --device cuda``: 2,500 launches an interior-point iteration on ``linear_box``). A CUDA graph records a kernel's
 launches once and replays them as one. :func:`graphed` wraps a function of tensors:
 
-* its arguments are flattened (tensors, ``None``, dataclasses, tuples, lists and dicts of them; any other value
-  is a constant of the graph, held by identity: a problem, its constraints, the options);
+* its arguments are flattened: tensors, ``None``, dataclasses holding tensors (iterates, LQR matrices, a problem
+  with its parameters), tuples, lists and dicts of them, and objects that name the attributes they are made from
+  (``graph_rebuilt_from``: a problem's :class:`~torchtraj.constraints.Constraints`). Options, dataclasses
+  without tensors, are part of the graph's key by value; any other value (a problem's functions) is a constant
+  of the graph, held by identity. So a solve of a new problem object with the same functions and new parameter
+  tensors, as a training step makes, replays the graphs of the last one;
 * on the first call for a set of shapes, dtypes and constants it runs the function twice on a side stream
   (warm-up: lazy initialisation, workspace allocation) and captures a third run into a graph reading static
   copies of the tensor arguments;
@@ -17,8 +21,7 @@ The wrapped function must not synchronise with the host (no ``.item()``, ``bool(
 and must launch the same kernels whatever the values: the solvers' kernels decide per instance by masks, and the
 loops with host decisions (line-search rounds, regularisation attempts, iterations) stay in Python around them.
 Answers are those of the eager kernels to rounding (the same kernels run). Each wrapper keeps
-:data:`GRAPHS_KEPT` graphs, the most recently used, each with its own memory pool; a new problem object is a
-new constant, so a training loop that rebuilds its problem each step captures each kernel once a step.
+:data:`GRAPHS_KEPT` graphs, the most recently used, each with its own memory pool.
 """
 
 from __future__ import annotations
@@ -42,9 +45,22 @@ def _flatten(value, tensors: list, key: list):
         tensors.append(value)
         key.append(("T", tuple(value.shape), value.dtype, value.device, value.stride()))
         return _Slot(len(tensors) - 1)
-    if dataclasses.is_dataclass(value) and not isinstance(value, type) and _holds_tensors(value):
-        key.append(("D", type(value)))
-        return (type(value), {f.name: _flatten(getattr(value, f.name), tensors, key) for f in dataclasses.fields(value)})
+    rebuilt_from = getattr(type(value), "graph_rebuilt_from", None)
+    if rebuilt_from is not None:  # made again from these attributes, its constructor's arguments
+        key.append(("R", type(value)))
+        return (type(value), {name: _flatten(getattr(value, name), tensors, key) for name in rebuilt_from})
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        if _holds_tensors(value):
+            key.append(("D", type(value)))
+            return (type(value), {f.name: _flatten(getattr(value, f.name), tensors, key)
+                                  for f in dataclasses.fields(value)})
+        settings = (type(value), tuple(getattr(value, f.name) for f in dataclasses.fields(value)))
+        try:  # options: by value, as a new copy of the same settings is the same graph
+            hash(settings)
+            key.append(("V", settings))
+        except TypeError:
+            key.append(("C", id(value)))
+        return _Constant(value)
     if isinstance(value, (tuple, list)):
         key.append(("S", type(value), len(value)))
         return (type(value), [_flatten(v, tensors, key) for v in value])
@@ -59,8 +75,16 @@ def _flatten(value, tensors: list, key: list):
 
 
 def _holds_tensors(value) -> bool:
-    """Whether a dataclass is data (iterates, models, LQR matrices) rather than a constant (a problem, options)."""
-    return any(isinstance(getattr(value, f.name), Tensor) for f in dataclasses.fields(value))
+    """Whether a dataclass is data (iterates, models, LQR matrices, a problem with its parameters) rather than a
+    constant (options)."""
+    def tensors_in(v) -> bool:
+        if isinstance(v, Tensor):
+            return True
+        if isinstance(v, dict):
+            return any(tensors_in(x) for x in v.values())
+        return isinstance(v, (tuple, list)) and any(tensors_in(x) for x in v)
+
+    return any(tensors_in(getattr(value, f.name)) for f in dataclasses.fields(value))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -132,6 +132,7 @@ from torch.func import grad, jvp, vmap
 
 from .batching import map_stage, map_state
 from .constraints import Constraints
+from .graphs import graphed
 from .derivatives import (affine_stage_jacobian, linearize_dynamics, problem_lagrangian_hessian,
                           quadratic_stage_hessian, quadratize_cost, stage_jacobian, terminal_hessian,
                           terminal_jacobian)
@@ -421,7 +422,7 @@ class Refined:
 
 def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: int = 4, constrained: bool = True,
            active_tolerance: Optional[float] = None, mask: Optional[Tensor] = None,
-           solver_multipliers: Optional[Mapping[str, Tensor]] = None) -> Refined:
+           solver_multipliers: Optional[Mapping[str, Tensor]] = None, cuda_graphs: bool = False) -> Refined:
     """Newton (SQP) steps on the KKT conditions with the active set held fixed (module docstring).
 
     ``x0 (B, nx)``, ``X (B, N+1, nx)``, ``U (B, N, nu)``, ``params`` batched to B. The active set is
@@ -437,6 +438,7 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``), or, of a linear-quadratic problem
     (``Problem.linear_quadratic``), once it has taken a step: the KKT conditions of an active set are then
     linear, and one step solves them. Only the instances in ``mask (B,)`` (default: all) move.
+    ``cuda_graphs``: on a GPU, each step's system and solve are replayed from a CUDA graph (:mod:`torchtraj.graphs`).
     """
     cons = _constraints(problem, constrained)
     B = X.shape[0]
@@ -453,10 +455,9 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     multipliers = None
     active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
     joined = torch.zeros(B, dtype=torch.long, device=X.device)  # rounds in which an instance's set grew
+    step = graphed(_newton_step) if cuda_graphs else _newton_step
     for _ in range(2 * max(steps, 1)):
-        kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active,
-                         need_multipliers=not exact)
-        s = kkt.factor.solve(kkt.newton, multipliers=True)
+        kkt, s = step(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active, not exact)
         size = torch.maximum(s.dx.abs().flatten(1).amax(-1), s.du.abs().flatten(1).amax(-1))
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
         Xn, Un = X + s.dx, U + s.du
@@ -484,6 +485,15 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         if not bool(moving.any()):
             return Refined(X, U, multipliers, taken, size, kkt, active, stationary)
     return Refined(X, U, multipliers, taken, size, None, active, stationary)
+
+
+def _newton_step(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool,
+                 active_tolerance: Optional[float], multipliers: Optional[Multipliers], active: tuple,
+                 need_multipliers: bool) -> tuple:
+    """``(kkt, step)``: :func:`refine`'s KKT system at ``(X, U)`` and its Newton step, with the multipliers."""
+    kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active,
+                     need_multipliers=need_multipliers)
+    return kkt, kkt.factor.solve(kkt.newton, multipliers=True)
 
 
 # ------------------------------------------------------------------------------ the adjoint
@@ -572,6 +582,15 @@ def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: d
     return s.costate[:, 0], p_bar, kkt
 
 
+def _adjoint(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor, U_bar: Tensor,
+             constrained: bool, active_tolerance: Optional[float], kkt: Optional[KKTSystem],
+             multipliers: Optional[Multipliers], active: Optional[tuple], gauss_newton: bool) -> tuple:
+    """:func:`backward_solve` as the backward pass uses it: ``(x0_bar, p_bar, kkt.ok, kkt.degenerate)``."""
+    x0_bar, p_bar, kkt = backward_solve(problem, x0, X, U, params, X_bar, U_bar, constrained, active_tolerance, kkt,
+                                        multipliers, active, gauss_newton)
+    return x0_bar, p_bar, kkt.ok, kkt.degenerate
+
+
 # --------------------------------------------------------------------------- the autograd layer
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Spec:
@@ -585,6 +604,7 @@ class _Spec:
     active_tolerance: Optional[float]
     refined: Optional[Refined]
     gauss_newton: bool = False  # the unrolled mode (module docstring)
+    cuda_graphs: bool = False  # the adjoint replayed from a CUDA graph (attach_gradients)
 
 
 class ImplicitSolution(torch.autograd.Function):
@@ -608,19 +628,21 @@ class ImplicitSolution(torch.autograd.Function):
         X, U, x0, *values = ctx.saved_tensors
         params = dict(zip(spec.names, values))
         refined = spec.refined
-        x0_bar, p_bar, kkt = backward_solve(
-            spec.problem, x0, X, U, params, X_bar, U_bar, spec.constrained, spec.active_tolerance,
-            None if refined is None else refined.kkt, None if refined is None else refined.multipliers,
-            None if refined is None else refined.active, spec.gauss_newton)
+        adjoint = graphed(_adjoint) if spec.cuda_graphs else _adjoint
+        x0_bar, p_bar, ok, dependent = adjoint(
+            spec.problem, x0, X, U, params, X_bar.contiguous(), U_bar.contiguous(), spec.constrained,
+            spec.active_tolerance, None if refined is None else refined.kkt,
+            None if refined is None else refined.multipliers, None if refined is None else refined.active,
+            spec.gauss_newton)
         B = X.shape[0]
         finite = torch.isfinite(x0_bar).all(-1)
         for v in p_bar.values():
             finite = finite & torch.isfinite(v.reshape(B, -1)).all(-1)
         # one reason per instance, the first that applies (module docstring)
-        unfactorised = spec.usable & ~kkt.ok
-        degenerate = spec.usable & kkt.ok & kkt.degenerate
-        not_kkt = spec.usable & kkt.ok & ~kkt.degenerate & ~spec.stationary
-        keep = spec.usable & kkt.ok & ~kkt.degenerate & spec.stationary & finite
+        unfactorised = spec.usable & ~ok
+        degenerate = spec.usable & ok & dependent
+        not_kkt = spec.usable & ok & ~dependent & ~spec.stationary
+        keep = spec.usable & ok & ~dependent & spec.stationary & finite
         non_finite = spec.usable & ~keep & ~unfactorised & ~degenerate & ~not_kkt
         reasons = [(unfactorised, "the KKT system could not be factorised (reduced Hessian not positive "
                                   "definite: not a strict local minimum with the active set held, often a "
@@ -663,7 +685,7 @@ def _violation(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params) -> Te
 
 def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor], solution: Solution,
                      refine_steps: int = 4, active_tolerance: Optional[float] = None,
-                     gradients: str = "implicit") -> Solution:
+                     gradients: str = "implicit", cuda_graphs: bool = False) -> Solution:
     """``solution`` with ``X``, ``U`` and ``cost`` differentiable with respect to ``x0`` and ``params``.
 
     Args:
@@ -677,6 +699,8 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
             default :func:`default_active_tolerance`.
         gradients: ``"implicit"`` (exact, this module) or ``"unrolled"`` (the derivative of a final
             iLQR step at the solver's point, unrefined: module docstring).
+        cuda_graphs: on a GPU, replay refinement's Newton steps and the backward pass's adjoint solve from
+            CUDA graphs (:mod:`torchtraj.graphs`; ``tt.solve`` passes the method options' ``cuda_graphs``).
 
     Instances whose status is not ``CONVERGED`` get zero gradients (and are not refined); a
     ``RuntimeWarning`` names them. So do, at the backward pass, instances that refinement could not
@@ -698,13 +722,13 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
     violation, refined = solution.max_violation, None
     if refine_steps > 0 and bool(usable.any()):
         refined = refine(problem, x0_d, X, U, detached, refine_steps, constrained, active_tolerance, usable,
-                         {k: v.detach() for k, v in solution.multipliers.items()})
+                         {k: v.detach() for k, v in solution.multipliers.items()}, cuda_graphs)
         X, U = refined.X, refined.U
         violation = torch.where(usable, _violation(problem, x0_d, X, U, detached), violation)
     names = tuple(params)
     stationary = torch.ones_like(usable) if refined is None else refined.stationary
     spec = _Spec(problem=problem, names=names, usable=usable, stationary=stationary, constrained=constrained,
-                 active_tolerance=active_tolerance, refined=refined, gauss_newton=unrolled)
+                 active_tolerance=active_tolerance, refined=refined, gauss_newton=unrolled, cuda_graphs=cuda_graphs)
     X, U = ImplicitSolution.apply(spec, X, U, x0, *(params[n] for n in names))
     cost = objective(problem, X, U, params)
     # where an instance gets no gradient, its cost gets none either (not even the explicit ∂l/∂p)

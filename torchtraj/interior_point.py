@@ -704,6 +704,9 @@ def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: I
     they end with are then checked together, and accepted where they pass the convergence test ``E_0 ≤ tol``.
     Returns ``(iterate, model, E_0, gains K, rounds (B,))``: the accepted candidates' values, the given ones
     elsewhere, and the rounds each instance took part in, negative where none was accepted."""
+    if _graphs_used(opts, x0.device):
+        return _cross_over_masked(problem, cons, params, model, it, x0, base, opts, tol, error, K, trying, rounds,
+                                  start)
     B = trying.shape[0]
     index = trying.nonzero().squeeze(-1)  # the rows still tried
     whole = index.numel() == B
@@ -742,6 +745,36 @@ def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: I
     accepted = torch.zeros_like(trying).index_fill(0, done, True)
     return (it, dataclasses.replace(model, **values), error.index_copy(0, done, new_error[rows]),
             K.index_copy(0, done, torch.cat([e[2] for e in ended])[rows]), torch.where(accepted, taken, -taken))
+
+
+def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model, it: Iterate, x0: Tensor,
+                       base: Base, opts: IPOptions, tol: float, error: Tensor, K: Tensor, trying: Tensor, rounds: int,
+                       start: bool) -> tuple:
+    """:func:`_cross_over` on the whole batch, for CUDA graphs: the rows not tried, or whose rounds have ended, are
+    masked instead of gathered, so that every round's candidate, and the expansion that checks them, keep the
+    batch's shapes and replay one graph each. Each row keeps the candidate its rounds ended with."""
+    knots = model.knots
+    active = crossover.proposed_active_set(it, knots)
+    if start:
+        active = tuple(torch.zeros_like(a) for a in active)
+    candidate = _kernel(crossover.candidate, opts, x0.device)
+    going, taken, ended = trying, torch.zeros_like(trying, dtype=torch.long), None
+    for r in range(rounds):
+        c = candidate(model, cons, it, x0, active)
+        ended = c if ended is None else crossover.Candidate(
+            point=_pick(going, c.point, ended.point), K=_where(going, c.K, ended.K), ok=torch.where(going, c.ok, ended.ok))
+        taken = taken + going.long()
+        following = crossover.next_active_set(c, active, knots)
+        going = going & c.ok & crossover.changed(active, following)
+        if r == rounds - 1 or not bool(going.any()):
+            break
+        active = following  # the rows no longer going ignore theirs
+    new_model = _kernel(expand, opts, x0.device)(problem, cons, params, ended.point, opts, base)
+    new_error = kkt_error(cons, new_model, ended.point, opts)
+    accept = trying & ended.ok & new_model.finite & (new_error <= tol)
+    values = {name: _where(accept, getattr(new_model, name), getattr(model, name)) for name in _VALUE_FIELDS}
+    return (_pick(accept, ended.point, it), dataclasses.replace(model, **values), torch.where(accept, new_error, error),
+            _where(accept, ended.K, K), torch.where(accept, taken, -taken))
 
 
 #: The fields of a linear-quadratic problem's :class:`Model` that change from point to point (its Jacobians and

@@ -124,7 +124,8 @@ def solve(
     detached = {k: v.detach() for k, v in params.items()}
     solution = _dispatch(problem, method, opts, x0.detach().contiguous(), U0.detach().contiguous(),
                          None if X0 is None else X0.detach(), detached, B, duals)
-    return implicit.attach_gradients(problem, x0, params, solution, gradients=gradients)
+    graphs = getattr(opts, "cuda_graphs", False) and not getattr(opts, "compile", False)
+    return implicit.attach_gradients(problem, x0, params, solution, gradients=gradients, cuda_graphs=graphs)
 
 
 def check_problem_and_method(problem, method: Union[str, Method]) -> Method:
