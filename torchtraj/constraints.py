@@ -59,13 +59,17 @@ class ConstraintValues:
 
 
 class Constraints:
-    """Stage and terminal constraint functions of ``problem`` in the solver layout."""
+    """Stage and terminal constraint functions of ``problem`` in the solver layout; none with ``ignored`` (the
+    KKT conditions of a method that ignores them).
 
-    #: What a CUDA graph makes these constraints again from (:mod:`torchtraj.graphs`).
-    graph_rebuilt_from = ("problem",)
+    Made on the host (the bounds' finite entries are read there), so outside CUDA graphs: a graphed kernel takes
+    them as an argument, and its graph makes them again from ``graph_rebuilt_from`` (:mod:`torchtraj.graphs`)."""
 
-    def __init__(self, problem: Problem):
+    graph_rebuilt_from = ("problem", "ignored")
+
+    def __init__(self, problem: Problem, ignored: bool = False):
         self.problem = problem
+        self.ignored = ignored
         sizes = problem.constraint_sizes()
         self.u_upper_idx = self._finite(problem.u_upper)
         self.u_lower_idx = self._finite(problem.u_lower)
@@ -89,6 +93,9 @@ class Constraints:
             knot_mask[0, self.ineq_blocks[name]] = 0.0
         #: ``(N, mi)``: 1 where a stage inequality row applies at knot k.
         self.ineq_knot_mask = knot_mask
+        if ignored:
+            self.me = self.mi = self.meN = self.miN = 0
+        self._bound_selection = self._bound_selection_of_rows()
 
     @staticmethod
     def _finite(bound):
@@ -104,6 +111,9 @@ class Constraints:
     def bound_rows(self):
         """``(mi, nu)``: where every constraint row is a control bound, the rows' signed selection ``∂g/∂u`` (``+1`` on
         the ``u_upper`` rows, ``−1`` on the ``u_lower`` ones; :attr:`torchtraj.riccati.LQR.bounds`); else ``None``."""
+        return self._bound_selection
+
+    def _bound_selection_of_rows(self):
         upper, lower = self.u_upper_idx, self.u_lower_idx
         if self.me or self.meN or self.miN or not self.mi or self.mi != len(upper) + len(lower):
             return None

@@ -116,7 +116,8 @@ class _Captured:
     inputs: list  # static copies of the tensor arguments
     outputs: list  # the graph's output tensors
     template: object  # the output's structure
-    constants: tuple  # the constants' objects, kept alive while the graph reads their tensors
+    arguments: tuple  # the arguments made from the static copies: the graph reads their tensors (and those their
+    # constructors made, as a Constraints' knot mask), which must live as long as it
 
 
 class Graphed:
@@ -168,17 +169,7 @@ class Graphed:
             out = self.fn(*args)
         outputs = []
         out_template = _flatten(out, outputs, [])
-        return _Captured(graph, inputs, outputs, out_template, tuple(_constants(template)))
-
-
-def _constants(template):
-    """The constants' objects in a template of :func:`_flatten`."""
-    if isinstance(template, _Constant):
-        yield template.value
-    elif isinstance(template, tuple):
-        _, parts = template
-        for v in (parts.values() if isinstance(parts, dict) else parts):
-            yield from _constants(v)
+        return _Captured(graph, inputs, outputs, out_template, args)
 
 
 _GRAPHED: dict = {}

@@ -174,10 +174,8 @@ def requires_gradients(x0: Tensor, params: Mapping[str, Tensor]) -> bool:
 
 # ----------------------------------------------------------------------------- linearisation
 def _constraints(problem: Problem, constrained: bool) -> Constraints:
-    cons = Constraints(problem)
-    if not constrained:  # the method ignores them: so do its KKT conditions
-        cons.me = cons.mi = cons.meN = cons.miN = 0
-    return cons
+    """The problem's constraints, none where the method ignores them (so do its KKT conditions)."""
+    return Constraints(problem, ignored=not constrained)
 
 
 @dataclasses.dataclass
@@ -291,7 +289,7 @@ def active_rows(problem: Problem, X: Tensor, U: Tensor, params, constrained: boo
 def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool = True,
                active_tolerance: Optional[float] = None, multipliers: Optional[Multipliers] = None,
                active: Optional[tuple] = None, gauss_newton: bool = False,
-               need_multipliers: bool = True) -> KKTSystem:
+               need_multipliers: bool = True, cons: Optional[Constraints] = None) -> KKTSystem:
     """The factorised KKT system at ``X (B, N+1, nx)``, ``U (B, N, nu)`` from ``x0 (B, nx)``.
 
     ``params`` are batched to B. Without ``multipliers`` they are computed from the cost Hessian (one
@@ -301,9 +299,10 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
     constraints). ``gauss_newton``: the cost Hessian instead of the Lagrangian's (iLQR's model, the
     unrolled mode of the module docstring); its factorisation is the one that computes the multipliers.
     ``need_multipliers=False``: with the cost Hessian, where the caller takes the multipliers from a Newton step
-    instead, they are not computed (zero), which saves a solve.
+    instead, they are not computed (zero), which saves a solve. ``cons``: the problem's constraints, made once by
+    the caller (made here if not given).
     """
-    cons = _constraints(problem, constrained)
+    cons = _constraints(problem, constrained) if cons is None else cons
     tol = default_active_tolerance(X.dtype) if active_tolerance is None else active_tolerance
     nx = X.shape[-1]
     if problem.linear_quadratic:
@@ -457,7 +456,8 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     joined = torch.zeros(B, dtype=torch.long, device=X.device)  # rounds in which an instance's set grew
     step = graphed(_newton_step) if cuda_graphs else _newton_step
     for _ in range(2 * max(steps, 1)):
-        kkt, s = step(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active, not exact)
+        kkt, s = step(problem, cons, x0, X, U, params, constrained, active_tolerance, multipliers, active,
+                      not exact)
         size = torch.maximum(s.dx.abs().flatten(1).amax(-1), s.du.abs().flatten(1).amax(-1))
         scale = 1 + torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
         Xn, Un = X + s.dx, U + s.du
@@ -487,12 +487,12 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     return Refined(X, U, multipliers, taken, size, None, active, stationary)
 
 
-def _newton_step(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool,
+def _newton_step(problem: Problem, cons: Constraints, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool,
                  active_tolerance: Optional[float], multipliers: Optional[Multipliers], active: tuple,
                  need_multipliers: bool) -> tuple:
     """``(kkt, step)``: :func:`refine`'s KKT system at ``(X, U)`` and its Newton step, with the multipliers."""
     kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active,
-                     need_multipliers=need_multipliers)
+                     need_multipliers=need_multipliers, cons=cons)
     return kkt, kkt.factor.solve(kkt.newton, multipliers=True)
 
 
@@ -558,19 +558,21 @@ def parameter_gradients(problem: Problem, cons: Constraints, X: Tensor, U: Tenso
 def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor,
                    U_bar: Tensor, constrained: bool = True, active_tolerance: Optional[float] = None,
                    kkt: Optional[KKTSystem] = None, multipliers: Optional[Multipliers] = None,
-                   active: Optional[tuple] = None, gauss_newton: bool = False):
+                   active: Optional[tuple] = None, gauss_newton: bool = False,
+                   cons: Optional[Constraints] = None):
     """Gradients ``(x0_bar (B, nx), {name: (B, *shape)}, kkt)`` of a loss with cotangents
     ``X_bar (B, N+1, nx)``, ``U_bar (B, N, nu)`` at the solution ``(X, U)`` from ``x0 (B, nx)``.
 
     ``params`` are batched to B; ``kkt``, ``multipliers`` and the ``active`` set at ``(X, U)`` are reused
     when given (from :func:`refine`). ``kkt`` is returned too: ``kkt.ok`` is False where the KKT system
     could not be factorised, ``kkt.degenerate`` where its active rows are linearly dependent.
-    ``gauss_newton``: the adjoint of iLQR's model instead of the KKT matrix (unrolled mode).
+    ``gauss_newton``: the adjoint of iLQR's model instead of the KKT matrix (unrolled mode). ``cons``: the
+    problem's constraints, made once by the caller (made here if not given).
     """
-    cons = _constraints(problem, constrained)
+    cons = _constraints(problem, constrained) if cons is None else cons
     if kkt is None:
         kkt = kkt_system(problem, x0, X, U, params, constrained, active_tolerance, multipliers, active,
-                         gauss_newton)
+                         gauss_newton, cons=cons)
     multipliers = kkt.multipliers if multipliers is None else multipliers
     zeros = torch.zeros_like
     rhs = LQRVectors(q=X_bar[:, :-1], r=U_bar, qN=X_bar[:, -1], c=zeros(X[:, 1:]), x0=zeros(x0),
@@ -582,12 +584,12 @@ def backward_solve(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: d
     return s.costate[:, 0], p_bar, kkt
 
 
-def _adjoint(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor, U_bar: Tensor,
-             constrained: bool, active_tolerance: Optional[float], kkt: Optional[KKTSystem],
+def _adjoint(problem: Problem, cons: Constraints, x0: Tensor, X: Tensor, U: Tensor, params: dict, X_bar: Tensor,
+             U_bar: Tensor, constrained: bool, active_tolerance: Optional[float], kkt: Optional[KKTSystem],
              multipliers: Optional[Multipliers], active: Optional[tuple], gauss_newton: bool) -> tuple:
     """:func:`backward_solve` as the backward pass uses it: ``(x0_bar, p_bar, kkt.ok, kkt.degenerate)``."""
     x0_bar, p_bar, kkt = backward_solve(problem, x0, X, U, params, X_bar, U_bar, constrained, active_tolerance, kkt,
-                                        multipliers, active, gauss_newton)
+                                        multipliers, active, gauss_newton, cons)
     return x0_bar, p_bar, kkt.ok, kkt.degenerate
 
 
@@ -630,7 +632,7 @@ class ImplicitSolution(torch.autograd.Function):
         refined = spec.refined
         adjoint = graphed(_adjoint) if spec.cuda_graphs else _adjoint
         x0_bar, p_bar, ok, dependent = adjoint(
-            spec.problem, x0, X, U, params, X_bar.contiguous(), U_bar.contiguous(), spec.constrained,
+            spec.problem, _constraints(spec.problem, spec.constrained), x0, X, U, params, X_bar.contiguous(), U_bar.contiguous(), spec.constrained,
             spec.active_tolerance, None if refined is None else refined.kkt,
             None if refined is None else refined.multipliers, None if refined is None else refined.active,
             spec.gauss_newton)
