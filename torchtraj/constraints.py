@@ -126,6 +126,12 @@ class Constraints:
         return selection
 
     @property
+    def back_propagated(self) -> bool:
+        """Whether the Riccati core takes these rows, held as equalities, by its constraint back-propagation (an SVD
+        a stage, whose error check reads the device: no CUDA graph), rather than as declared control bounds."""
+        return not self.empty and self.bound_rows() is None
+
+    @property
     def empty(self) -> bool:
         return self.me + self.mi + self.meN + self.miN == 0
 

@@ -127,6 +127,7 @@ class Graphed:
         self.fn = fn
         self.graphs: OrderedDict = OrderedDict()
         self.eager: set = set()  # keys whose capture failed
+        self.captures = 0  # graphs captured so far
 
     def __call__(self, *args):
         tensors, key = [], []
@@ -167,6 +168,7 @@ class Graphed:
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph):
             out = self.fn(*args)
+        self.captures += 1
         outputs = []
         out_template = _flatten(out, outputs, [])
         return _Captured(graph, inputs, outputs, out_template, args)

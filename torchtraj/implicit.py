@@ -437,7 +437,8 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``), or, of a linear-quadratic problem
     (``Problem.linear_quadratic``), once it has taken a step: the KKT conditions of an active set are then
     linear, and one step solves them. Only the instances in ``mask (B,)`` (default: all) move.
-    ``cuda_graphs``: on a GPU, each step's system and solve are replayed from a CUDA graph (:mod:`torchtraj.graphs`).
+    ``cuda_graphs``: on a GPU, each step's system and solve are replayed from a CUDA graph (:mod:`torchtraj.graphs`),
+    where the rows are control bounds alone or there are none.
     """
     cons = _constraints(problem, constrained)
     B = X.shape[0]
@@ -454,7 +455,8 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     multipliers = None
     active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
     joined = torch.zeros(B, dtype=torch.long, device=X.device)  # rounds in which an instance's set grew
-    step = graphed(_newton_step) if cuda_graphs else _newton_step
+    # (general rows take the Riccati core's SVD, which cannot be captured)
+    step = graphed(_newton_step) if cuda_graphs and not cons.back_propagated else _newton_step
     for _ in range(2 * max(steps, 1)):
         kkt, s = step(problem, cons, x0, X, U, params, constrained, active_tolerance, multipliers, active,
                       not exact)
@@ -630,9 +632,10 @@ class ImplicitSolution(torch.autograd.Function):
         X, U, x0, *values = ctx.saved_tensors
         params = dict(zip(spec.names, values))
         refined = spec.refined
-        adjoint = graphed(_adjoint) if spec.cuda_graphs else _adjoint
+        cons = _constraints(spec.problem, spec.constrained)
+        adjoint = graphed(_adjoint) if spec.cuda_graphs and not cons.back_propagated else _adjoint
         x0_bar, p_bar, ok, dependent = adjoint(
-            spec.problem, _constraints(spec.problem, spec.constrained), x0, X, U, params, X_bar.contiguous(), U_bar.contiguous(), spec.constrained,
+            spec.problem, cons, x0, X, U, params, X_bar.contiguous(), U_bar.contiguous(), spec.constrained,
             spec.active_tolerance, None if refined is None else refined.kkt,
             None if refined is None else refined.multipliers, None if refined is None else refined.active,
             spec.gauss_newton)
@@ -702,7 +705,9 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
         gradients: ``"implicit"`` (exact, this module) or ``"unrolled"`` (the derivative of a final
             iLQR step at the solver's point, unrefined: module docstring).
         cuda_graphs: on a GPU, replay refinement's Newton steps and the backward pass's adjoint solve from
-            CUDA graphs (:mod:`torchtraj.graphs`; ``tt.solve`` passes the method options' ``cuda_graphs``).
+            CUDA graphs (:mod:`torchtraj.graphs`; ``tt.solve`` passes the method options' ``cuda_graphs``), where
+            the constraint rows are control bounds alone or there are none (the Riccati core's SVD of general
+            rows cannot be captured).
 
     Instances whose status is not ``CONVERGED`` get zero gradients (and are not refined); a
     ``RuntimeWarning`` names them. So do, at the backward pass, instances that refinement could not

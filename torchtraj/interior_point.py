@@ -704,7 +704,7 @@ def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: I
     they end with are then checked together, and accepted where they pass the convergence test ``E_0 ≤ tol``.
     Returns ``(iterate, model, E_0, gains K, rounds (B,))``: the accepted candidates' values, the given ones
     elsewhere, and the rounds each instance took part in, negative where none was accepted."""
-    if _graphs_used(opts, x0.device):
+    if _graphs_used(opts, x0.device) and not cons.back_propagated:
         return _cross_over_masked(problem, cons, params, model, it, x0, base, opts, tol, error, K, trying, rounds,
                                   start)
     B = trying.shape[0]
@@ -752,7 +752,8 @@ def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model
                        start: bool) -> tuple:
     """:func:`_cross_over` on the whole batch, for CUDA graphs: the rows not tried, or whose rounds have ended, are
     masked instead of gathered, so that every round's candidate, and the expansion that checks them, keep the
-    batch's shapes and replay one graph each. Each row keeps the candidate its rounds ended with."""
+    batch's shapes and replay one graph each. Each row keeps the candidate its rounds ended with. Where the held
+    rows are control bounds alone (general rows take the core's SVD, which cannot be captured)."""
     knots = model.knots
     active = crossover.proposed_active_set(it, knots)
     if start:
