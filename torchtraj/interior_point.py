@@ -164,8 +164,8 @@ class IPOptions:
     max_state: float = 1e8
     #: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.compiled`).
     compile: bool = False
-    #: On a GPU, replay the per-iteration kernels from CUDA graphs (:mod:`torchtraj.graphs`); no effect on a CPU
-    #: or with ``compile``.
+    #: On a GPU, replay the per-iteration kernels, the crossover's candidates and the implicit layer's Newton step
+    #: and adjoint solve from CUDA graphs (:mod:`torchtraj.graphs`); no effect on a CPU or with ``compile``.
     cuda_graphs: bool = False
     #: Once the running instances are at most this share of the batch being iterated, the next iterations run
     #: on them alone (module docstring); ``0`` never. Off with ``compile`` and CUDA graphs, whose kernels are
