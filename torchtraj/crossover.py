@@ -50,6 +50,13 @@ def proposed_active_set(it: "Iterate", knots: Tensor) -> tuple:
     return ((it.z > it.s) & (knots > 0)).to(it.s.dtype), (it.zN > it.sN).to(it.s.dtype)
 
 
+def first_active_set(it: "Iterate", knots: Tensor, start: bool) -> tuple:
+    """The set a crossover's first round holds: none at the ``start`` (the unconstrained optimum), else the
+    :func:`proposed_active_set`."""
+    active = proposed_active_set(it, knots)
+    return tuple(torch.zeros_like(a) for a in active) if start else active
+
+
 def held_lqr(model: "Model", cons: Constraints, active: Tensor, activeN: Tensor) -> LQR:
     """The LQR matrices of the KKT system with the equality rows and the rows of ``active`` held: the Lagrangian
     Hessian (the cost's, the problem being linear-quadratic), the dynamics' Jacobians, the rows ``[h; g]``

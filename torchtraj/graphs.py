@@ -174,6 +174,13 @@ class Graphed:
         return _Captured(graph, inputs, outputs, out_template, args)
 
 
+def graphs_used(options, device: torch.device) -> bool:
+    """Whether a solve's kernels are replayed from CUDA graphs: ``options.cuda_graphs`` asked for, not
+    ``options.compile``, on a CUDA ``device`` (elsewhere no argument is flattened)."""
+    return getattr(options, "cuda_graphs", False) and not getattr(options, "compile", False) \
+        and device.type == "cuda"
+
+
 _GRAPHED: dict = {}
 
 

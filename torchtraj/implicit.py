@@ -455,8 +455,7 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     multipliers = None
     active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
     joined = torch.zeros(B, dtype=torch.long, device=X.device)  # rounds in which an instance's set grew
-    # (general rows take the Riccati core's SVD, which cannot be captured)
-    step = graphed(_newton_step) if cuda_graphs and not cons.back_propagated else _newton_step
+    step = _graphed_where_capturable(_newton_step, cuda_graphs, cons)
     for _ in range(2 * max(steps, 1)):
         kkt, s = step(problem, cons, x0, X, U, params, constrained, active_tolerance, multipliers, active,
                       not exact)
@@ -487,6 +486,12 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         if not bool(moving.any()):
             return Refined(X, U, multipliers, taken, size, kkt, active, stationary)
     return Refined(X, U, multipliers, taken, size, None, active, stationary)
+
+
+def _graphed_where_capturable(fn, cuda_graphs: bool, cons: Constraints):
+    """``fn`` replayed from CUDA graphs where asked, unless the rows take the Riccati core's SVD (general rows held
+    as equalities), which cannot be captured: then ``fn`` itself."""
+    return graphed(fn) if cuda_graphs and not cons.back_propagated else fn
 
 
 def _newton_step(problem: Problem, cons: Constraints, x0: Tensor, X: Tensor, U: Tensor, params, constrained: bool,
@@ -633,7 +638,7 @@ class ImplicitSolution(torch.autograd.Function):
         params = dict(zip(spec.names, values))
         refined = spec.refined
         cons = _constraints(spec.problem, spec.constrained)
-        adjoint = graphed(_adjoint) if spec.cuda_graphs and not cons.back_propagated else _adjoint
+        adjoint = _graphed_where_capturable(_adjoint, spec.cuda_graphs, cons)
         x0_bar, p_bar, ok, dependent = adjoint(
             spec.problem, cons, x0, X, U, params, X_bar.contiguous(), U_bar.contiguous(), spec.constrained,
             spec.active_tolerance, None if refined is None else refined.kkt,
@@ -705,7 +710,7 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
         gradients: ``"implicit"`` (exact, this module) or ``"unrolled"`` (the derivative of a final
             iLQR step at the solver's point, unrefined: module docstring).
         cuda_graphs: on a GPU, replay refinement's Newton steps and the backward pass's adjoint solve from
-            CUDA graphs (:mod:`torchtraj.graphs`; ``tt.solve`` passes the method options' ``cuda_graphs``), where
+            CUDA graphs (:mod:`torchtraj.graphs`; ``tt.solve`` passes :func:`~torchtraj.graphs.graphs_used`), where
             the constraint rows are control bounds alone or there are none (the Riccati core's SVD of general
             rows cannot be captured).
 

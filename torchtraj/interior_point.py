@@ -98,7 +98,7 @@ from .compiled import matvec as _mv
 from .constraints import Constraints
 from .derivatives import (affine_stage_jacobian, multiplier_terms, problem_lagrangian_expansion, quadratic_stage_hessian,
                           stage_jacobian, terminal_hessian, terminal_jacobian)
-from .graphs import graphed
+from .graphs import graphed, graphs_used
 from .ilqr import _first_true, _where, total_cost
 from .problem import Problem
 from .riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
@@ -641,14 +641,10 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
 
 
 # ------------------------------------------------------------------------------------------ solver
-def _graphs_used(opts: IPOptions, device: torch.device) -> bool:
-    """Whether the kernels are replayed from CUDA graphs: asked for, not compiled, on a CUDA ``device``."""
-    return opts.cuda_graphs and not opts.compile and device.type == "cuda"
-
-
 def _kernel(fn, opts: IPOptions, device: torch.device):
-    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (:func:`_graphs_used`), or itself."""
-    if _graphs_used(opts, device):
+    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (:func:`~torchtraj.graphs.graphs_used`), or
+    itself."""
+    if graphs_used(opts, device):
         return graphed(fn)
     return kernel(fn, opts.compile)
 
@@ -704,7 +700,7 @@ def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: I
     they end with are then checked together, and accepted where they pass the convergence test ``E_0 ≤ tol``.
     Returns ``(iterate, model, E_0, gains K, rounds (B,))``: the accepted candidates' values, the given ones
     elsewhere, and the rounds each instance took part in, negative where none was accepted."""
-    if _graphs_used(opts, x0.device) and not cons.back_propagated:
+    if graphs_used(opts, x0.device) and not cons.back_propagated:
         return _cross_over_masked(problem, cons, params, model, it, x0, base, opts, tol, error, K, trying, rounds,
                                   start)
     B = trying.shape[0]
@@ -713,9 +709,7 @@ def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: I
     sub_model, sub_it = (model, it) if whole else (_rows(model, index), _rows(it, index))
     sub_x0 = x0 if whole else x0[index]
     knots = model.knots
-    active = crossover.proposed_active_set(sub_it, knots)
-    if start:
-        active = tuple(torch.zeros_like(a) for a in active)
+    active = crossover.first_active_set(sub_it, knots, start)
     taken = torch.zeros(B, dtype=torch.long, device=index.device)
     ended = []  # per round: the rows it ended, their candidates' iterates, gains and factorisations' success
     for r in range(rounds):
@@ -755,9 +749,7 @@ def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model
     batch's shapes and replay one graph each. Each row keeps the candidate its rounds ended with. Where the held
     rows are control bounds alone (general rows take the core's SVD, which cannot be captured)."""
     knots = model.knots
-    active = crossover.proposed_active_set(it, knots)
-    if start:
-        active = tuple(torch.zeros_like(a) for a in active)
+    active = crossover.first_active_set(it, knots, start)
     candidate = _kernel(crossover.candidate, opts, x0.device)
     going, taken, ended = trying, torch.zeros_like(trying, dtype=torch.long), None
     for r in range(rounds):
@@ -904,7 +896,7 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
     rows = []
     theta_max = theta_min = None
     base = None
-    compacting = opts.compact_below > 0 and not opts.compile and not _graphs_used(opts, x0.device)
+    compacting = opts.compact_below > 0 and not opts.compile and not graphs_used(opts, x0.device)
     mehrotra = opts.barrier_strategy == "mehrotra"
     crossing = opts.crossover and problem.linear_quadratic and cons.mi + cons.miN > 0
     # from the unconstrained optimum only where every row is a control bound: with state rows the active-set

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from . import implicit
 from .altro import ALTROOptions, solve_altro
+from .graphs import graphs_used
 from .ilqr import ILQROptions, solve_ilqr
 from .interior_point import IPOptions, solve_interior_point
 from .problem import Problem
@@ -124,8 +125,8 @@ def solve(
     detached = {k: v.detach() for k, v in params.items()}
     solution = _dispatch(problem, method, opts, x0.detach().contiguous(), U0.detach().contiguous(),
                          None if X0 is None else X0.detach(), detached, B, duals)
-    graphs = getattr(opts, "cuda_graphs", False) and not getattr(opts, "compile", False)
-    return implicit.attach_gradients(problem, x0, params, solution, gradients=gradients, cuda_graphs=graphs)
+    return implicit.attach_gradients(problem, x0, params, solution, gradients=gradients,
+                                     cuda_graphs=graphs_used(opts, x0.device))
 
 
 def check_problem_and_method(problem, method: Union[str, Method]) -> Method:
