@@ -1,5 +1,7 @@
 """The interior-point method's active-set crossover on linear-quadratic problems (torchtraj/crossover.py)."""
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 
@@ -103,6 +105,32 @@ def test_a_batch_crosses_over_as_each_instance_alone():
         assert alone.status[0] == batch.status[i] and alone.iterations[0] == batch.iterations[i]
         torch.testing.assert_close(batch.U[i], alone.U[0], rtol=0, atol=1e-12)
         torch.testing.assert_close(batch.X[i], alone.X[0], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("start_rounds", [8, 1])
+def test_the_masked_crossover_of_cuda_graphs_gives_the_gathered_answers(monkeypatch, start_rounds):
+    """With CUDA graphs the crossover masks the rows it is done with instead of gathering the others
+    (``_cross_over_masked``). Forced here on the CPU, where the graphed kernels run eagerly: with a failing
+    instance in the batch, the others reach KKT points to round-off, with the statuses, iteration counts and
+    answers of the gathered crossover; with one start round, most instances iterate and cross over later,
+    a few at a time."""
+    from torchtraj import interior_point
+
+    problem = double_integrator()
+    x0 = torch.cat([_starts(), torch.tensor([[float("nan"), 0.0]], dtype=F64)])
+    gathered = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(crossover_start_rounds=start_rounds))
+    monkeypatch.setattr(interior_point, "graphs_used", lambda options, device: options.cuda_graphs)
+    masked = tt.solve(problem, x0, method="ipm",
+                      options=tt.IPOptions(crossover_start_rounds=start_rounds, cuda_graphs=True))
+    assert masked.status[-1] == tt.Status.NON_FINITE and bool(masked.converged[:-1].all())
+    assert torch.equal(masked.status, gathered.status) and torch.equal(masked.iterations, gathered.iterations)
+    torch.testing.assert_close(masked.U[:-1], gathered.U[:-1], rtol=0, atol=1e-12)
+    torch.testing.assert_close(masked.K[:-1], gathered.K[:-1], rtol=0, atol=1e-12)
+    ok = masked.converged
+    solved = SimpleNamespace(X=masked.X[ok], U=masked.U[ok], costate=masked.costate[ok],
+                             multipliers={k: v[ok] for k, v in masked.multipliers.items()})
+    stationarity, most_negative, complementarity = kkt_residuals(problem, solved)
+    assert stationarity < 1e-13 and most_negative >= 0.0 and complementarity < 1e-13
 
 
 def test_a_problem_not_declared_linear_quadratic_is_not_crossed_over():
