@@ -8,7 +8,7 @@ minimising the distance of its own optimal trajectories to the demonstrations,
     loss(θ) = mean_b |X_b(θ) − X_b*|²,
 
 with gradients through ``tt.solve(..., method="altro")`` by implicit differentiation of the KKT
-conditions, the active obstacle rows held as equalities (``torchtraj.implicit``). Every epoch (one
+conditions, the active obstacle rows held as equalities (``torchtraj.differentiation.implicit``). Every epoch (one
 L-BFGS step) prints the loss and the parameter error; with matplotlib installed the curves are saved
 to ``learn_cost.png``.
 
@@ -23,8 +23,8 @@ import time
 import torch
 
 import torchtraj as tt
-from torchtraj.altro import ALTROOptions
-from torchtraj.constraints import Constraints
+from torchtraj.core.constraints import Constraints
+from torchtraj.solvers.altro.options import ALTROOptions
 
 F64 = torch.float64
 TRUE = {"goal": [2.0, 0.3]}

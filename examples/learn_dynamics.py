@@ -8,7 +8,7 @@ from the same states, and its parameters are fitted by minimising
     loss(θ) = mean_b |U_b(θ) − U_b*|² + |X_b(θ) − X_b*|²,
 
 whose gradient flows through ``tt.solve`` by implicit differentiation of the KKT conditions
-(``torchtraj.implicit``). Parameters are learnt in log space (they stay positive) by L-BFGS; every
+(``torchtraj.differentiation.implicit``). Parameters are learnt in log space (they stay positive) by L-BFGS; every
 epoch prints the largest relative parameter error (target: below 1e-3). With matplotlib installed the
 loss and error curves are saved to ``learn_dynamics.png``.
 

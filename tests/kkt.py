@@ -3,8 +3,9 @@
 import torch
 
 import torchtraj as tt
-from torchtraj.batching import map_stage
-from torchtraj.constraints import Constraints
+import torchtraj.kkt
+from torchtraj.core.batching import map_stage
+from torchtraj.core.constraints import Constraints
 
 
 def kkt_residuals(problem, sol):
@@ -17,7 +18,7 @@ def kkt_residuals(problem, sol):
     X = sol.X.detach().clone().requires_grad_(True)
     U = sol.U.detach().clone().requires_grad_(True)
     lam, m = sol.costate, sol.multipliers
-    L = tt.ilqr.total_cost(problem, X, U, params).sum()
+    L = tt.kkt.total_cost(problem, X, U, params).sum()
     L = L + (lam[:, 1:] * (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:])).sum()
     values = c.evaluate(X, U, params)
     products = [torch.zeros(1, dtype=X.dtype)]

@@ -2,9 +2,9 @@
 
 import pytest
 import torch
+from kkt import kkt_residuals
 
 import torchtraj as tt
-from kkt import kkt_residuals
 
 FAST = ["double_integrator", "pendulum", "parallel_park"]
 SLOW = ["cartpole", "car_3obs", "quadrotor2d", "car_escape"]

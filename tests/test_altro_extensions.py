@@ -4,12 +4,12 @@ import pytest
 import torch
 
 import torchtraj as tt
-from torchtraj.augmented_lagrangian import AugmentedLagrangian, Duals
-from torchtraj.batching import rollout
 from torchtraj.bench.time_penalized import solve_time_penalized
-from torchtraj.constraints import Constraints
+from torchtraj.core.batching import rollout
+from torchtraj.core.constraints import Constraints
 from torchtraj.riccati import factorize
-from torchtraj.sqrt_riccati import downdate, factorize_sqrt
+from torchtraj.riccati.square_root import downdate, factorize_sqrt
+from torchtraj.solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
 
 
 def test_downdate_is_a_cholesky_factor_of_the_difference():
@@ -122,7 +122,7 @@ def test_time_penalized_parallel_park_is_shorter_and_feasible():
 def test_float32_cartpole_reaches_the_float64_solution(square_root, reference):
     """float32 ALTRO on the cart-pole: cost within 1e-4 relative of the float64 optimum, violation within 1e-4.
     Measured (2 cores): square-root pass 2.4e-5 relative, violation 2.1e-6; standard pass 1.5e-5, 1.9e-6."""
-    from torchtraj.projection import ProjectionOptions
+    from torchtraj.solvers.altro.projection import ProjectionOptions
 
     problem = tt.problems.get("cartpole", dtype=torch.float32)
     opts = tt.problems.altro_options("cartpole", square_root=square_root, cost_tolerance=1e-6,

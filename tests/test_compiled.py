@@ -1,4 +1,4 @@
-"""``compile=True`` (torchtraj.compiled): the same solver logic on torch.compile'd kernels gives the eager answers.
+"""``compile=True`` (torchtraj.core.compiled): the same solver logic on torch.compile'd kernels gives the eager answers.
 
 Default run: the MPC policy's warm-started ALTRO steps on a short horizon, and a float32 ALTRO solve with a failing
 instance. ``-m slow``: ALTRO to convergence with its projection. Each first call compiles its kernels (about a minute

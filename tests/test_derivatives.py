@@ -4,8 +4,8 @@ import pytest
 import torch
 
 import torchtraj as tt
-from torchtraj.constraints import Constraints
-from torchtraj.derivatives import (
+from torchtraj.core.constraints import Constraints
+from torchtraj.core.derivatives import (
     linearize_dynamics,
     problem_lagrangian_hessian,
     quadratize_cost,
@@ -113,7 +113,7 @@ def test_derivatives_keep_dtype_and_batch_shapes(dtype):
 def test_derivatives_of_affine_and_quadratic_functions_at_one_stage_are_every_stages():
     """A linear-quadratic problem's functions differentiated at each instance's first stage: the broadcast Jacobians
     and Hessians, the values and the moved gradients are those taken at every stage (a parameter per instance)."""
-    from torchtraj.derivatives import affine_stage_jacobian, quadratic_stage_hessian, stage_hessian, stage_jacobian
+    from torchtraj.core.derivatives import affine_stage_jacobian, quadratic_stage_hessian, stage_hessian, stage_jacobian
 
     g = torch.Generator().manual_seed(1)
     B, N, nx, nu = 3, 7, 3, 2

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 import torchtraj as tt
-from torchtraj.batching import rollout
-from torchtraj.ilqr import total_cost
+from torchtraj.core.batching import rollout
+from torchtraj.kkt import total_cost
 
 TIGHT = tt.ILQROptions(cost_tolerance=1e-10, gradient_tolerance=1e-6)
 

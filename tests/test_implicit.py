@@ -10,16 +10,16 @@ import warnings
 
 import pytest
 import torch
+from small_problems import pendulum10
 from torch.func import hessian, jacrev
 
 import torchtraj as tt
-from small_problems import pendulum10
-from torchtraj import implicit
-from torchtraj.altro import ALTROOptions
-from torchtraj.batching import rollout
-from torchtraj.constraints import Constraints
-from torchtraj.projection import ProjectionOptions
-from torchtraj.solution import History
+from torchtraj.core.batching import rollout
+from torchtraj.core.constraints import Constraints
+from torchtraj.core.solution import History
+from torchtraj.differentiation import implicit
+from torchtraj.solvers.altro.options import ALTROOptions
+from torchtraj.solvers.altro.projection import ProjectionOptions
 
 F64 = torch.float64
 
@@ -370,7 +370,7 @@ def test_refine_reaches_round_off_stationarity():
 
     def reduced_gradient(U):
         U = U.detach().clone().requires_grad_(True)
-        J = implicit.objective(problem, rollout(problem.dynamics, x0, U, params), U, params)
+        J = tt.kkt.total_cost(problem, rollout(problem.dynamics, x0, U, params), U, params)
         return torch.autograd.grad(J.sum(), U)[0]
 
     refined = implicit.refine(problem, x0, sol.X, sol.U, params, constrained=False)

@@ -13,12 +13,12 @@ import warnings
 
 import pytest
 import torch
-
-import torchtraj as tt
 from kkt import kkt_residuals
 from small_problems import oscillator, pendulum10
-from torchtraj.batching import map_stage, rollout
-from torchtraj.constraints import Constraints
+
+import torchtraj as tt
+from torchtraj.core.batching import map_stage, rollout
+from torchtraj.core.constraints import Constraints
 
 F64 = torch.float64
 FAST = ["double_integrator", "pendulum"]
@@ -266,7 +266,7 @@ def test_unconstrained_problem_matches_ilqr():
 
     def reduced_gradient(U):
         U = U.detach().clone().requires_grad_(True)
-        J = tt.ilqr.total_cost(problem, rollout(problem.dynamics, x0, U, params), U, params)
+        J = tt.kkt.total_cost(problem, rollout(problem.dynamics, x0, U, params), U, params)
         return float(torch.autograd.grad(J.sum(), U)[0].abs().max())
 
     assert reduced_gradient(ipm.U) < 1e-7 < 1e-3 * reduced_gradient(problem.u_init.unsqueeze(0))
@@ -373,7 +373,7 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
     """Declared ``linear_quadratic``, the IPM takes the torch.func expansion once, at each instance's first stage,
     and its derivatives by products after that; its iterates, multipliers and implicit gradients are those of the
     plain IPM, which expands at every stage of every iterate."""
-    from torchtraj import interior_point
+    from torchtraj.solvers.ipm import solver as interior_point
 
     calls = []
 
@@ -421,7 +421,7 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, mo
     with their own parameters). Every field of the solution and of its history is the same as without, where
     instances stop at different iterations and a parameter differs per instance (the spring constant), one
     instance fails (a NaN goal), and, declared linear-quadratic, the first expansion is gathered too."""
-    from torchtraj import interior_point
+    from torchtraj.solvers.ipm import solver as interior_point
 
     gathers = []
     original = interior_point.param_rows
@@ -463,9 +463,10 @@ def test_cuda_graphs_replay_the_eager_solve(case):
     candidates and refinement hold the state row, which takes the Riccati core's SVD: eager), and with control
     bounds alone (the crossover's start rounds on the whole batch, refinement's Newton step and the adjoint solve
     graphed too)."""
-    from torchtraj import crossover, implicit
-    from torchtraj.graphs import _GRAPHED, graphed
-    from torchtraj.interior_point import direction
+    from torchtraj.core.graphs import _GRAPHED, graphed
+    from torchtraj.differentiation import implicit
+    from torchtraj.solvers.ipm import crossover
+    from torchtraj.solvers.ipm.solver import direction
 
     changes = dict(general={}, declared=dict(linear_quadratic=True),
                    bounds=dict(linear_quadratic=True, state_ineq=None))[case]
@@ -496,11 +497,11 @@ def test_cuda_graphs_replay_the_eager_solve(case):
 
 
 def test_graph_keys_follow_the_problems_functions_and_the_options_values():
-    """A CUDA graph's key (:mod:`torchtraj.graphs`) reads a problem as its functions and the shapes of its tensors,
+    """A CUDA graph's key (:mod:`torchtraj.core.graphs`) reads a problem as its functions and the shapes of its tensors,
     its constraints as their problem, and options by value: the solve of a new problem object with new parameter
     tensors replays the last one's graphs, and reads the new tensors. New functions or other settings are new
     graphs. (The keys are made on any device; only their replay needs a GPU.)"""
-    from torchtraj.graphs import _flatten, _rebuild
+    from torchtraj.core.graphs import _flatten, _rebuild
 
     def key_of(problem, options):
         tensors, key = [], []

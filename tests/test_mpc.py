@@ -17,7 +17,7 @@ import torch
 import envs
 import torchtraj as tt
 from torchtraj.bench import mpc as bench
-from torchtraj.mpc import DEFAULT_ALTRO
+from torchtraj.control.mpc import DEFAULT_ALTRO
 
 
 def pendulum_mpc(iterations=2, **kwargs):

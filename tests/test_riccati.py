@@ -302,7 +302,7 @@ def test_declared_bounds_give_the_solution_of_the_same_rows_back_propagated(regu
         assert torch.allclose(getattr(held, name), getattr(general, name), rtol=0, atol=1e-10), name
     assert float(mask.sum()) > 10 and float(held.nu.abs().amax()) > 1e-2
     # both rows of one control active: one row depends on the other, as the back-propagation finds too
-    from torchtraj.implicit import dependent_rows
+    from torchtraj.differentiation.implicit import dependent_rows
 
     both = mask.clone()
     both[1, 2, 0] = both[1, 2, nu] = 1.0

@@ -1,15 +1,15 @@
 """torchtraj: batched, differentiable trajectory optimisation in PyTorch."""
 
-from .altro import ALTROOptions
-from .ilqr import ILQROptions
-from .interior_point import IPOptions
-from .projection import ProjectionOptions
+from .control.mpc import MPC
+from .core.problem import Problem
+from .core.solution import History, Solution
+from .core.status import Status
 from .integrators import euler, rk4
-from .mpc import MPC
-from .problem import Problem
-from .solution import History, Solution
+from .iterations.ilqr import ILQROptions
 from .solve import Method, solve
-from .status import Status
+from .solvers.altro.options import ALTROOptions
+from .solvers.altro.projection import ProjectionOptions
+from .solvers.ipm.options import IPOptions
 from .time_penalty import TimePenalized, time_penalized
 
 __all__ = ["ALTROOptions", "History", "ILQROptions", "IPOptions", "MPC", "ProjectionOptions", "Method", "Problem", "Solution", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]

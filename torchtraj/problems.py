@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from . import models
-from .problem import Problem
+from .core.problem import Problem
 
 _ARRAY_FIELDS = ("x0", "goal", "Q", "R", "Qf", "u_lower", "u_upper", "x_lower", "x_upper", "circles", "u_init")
 
@@ -274,8 +274,8 @@ def altro_options(name: str, **changes):
     """:class:`~torchtraj.ALTROOptions` for problem ``name``: :data:`REFERENCE_ACCURACY`, the problem's
     own overrides (``ProblemSpec.altro``), then ``changes``. ``gradient_tolerance`` and other
     :class:`~torchtraj.ILQROptions` fields go to the inner iLQR."""
-    from .altro import ALTROOptions
-    from .ilqr import ILQROptions
+    from .iterations.ilqr import ILQROptions
+    from .solvers.altro.options import ALTROOptions
 
     fields = {**REFERENCE_ACCURACY, **spec(name).altro, **changes}
     inner_names = set(ILQROptions.__dataclass_fields__) - {"cost_tolerance", "verbose"}

@@ -16,13 +16,16 @@ from typing import Optional, Union
 import torch
 from torch import Tensor
 
-from . import implicit
-from .altro import ALTROOptions, solve_altro
-from .graphs import graphs_used
-from .ilqr import ILQROptions, solve_ilqr
-from .interior_point import IPOptions, solve_interior_point
-from .problem import Problem
-from .solution import Solution
+from .core.graphs import graphs_used
+from .core.problem import Problem
+from .core.solution import Solution
+from .differentiation import implicit
+from .iterations.ilqr import ILQROptions
+from .solvers.altro.options import ALTROOptions
+from .solvers.altro.solver import solve_altro
+from .solvers.ilqr import solve_ilqr
+from .solvers.ipm.options import IPOptions
+from .solvers.ipm.solver import solve_interior_point
 
 
 class Method(str, enum.Enum):
@@ -94,14 +97,14 @@ def solve(
             multipliers of the slack rows ``s_k = 0`` at ``−λ_{k+1}``, their value at a KKT point.
         gradients: how a differentiable solve (below) differentiates: ``"implicit"`` (exact: the
             implicit function theorem at the refined KKT point) or ``"unrolled"`` (cheaper, approximate:
-            the derivative of one final iLQR step at the solver's point, :mod:`torchtraj.implicit`).
+            the derivative of one final iLQR step at the solver's point, :mod:`torchtraj.differentiation.implicit`).
 
     Returns:
         A :class:`~torchtraj.Solution` with per-instance status. The batch size B is the common
         leading dimension of ``x0``, ``U0``, ``X0`` and the batched parameters (1 if none has one).
         When grad is enabled and ``x0`` or a tensor of ``problem.params`` requires grad, ``X``, ``U``
         and ``cost`` are differentiable with respect to them by implicit differentiation of the KKT
-        conditions, at the solution refined by Newton steps (:mod:`torchtraj.implicit`; instances
+        conditions, at the solution refined by Newton steps (:mod:`torchtraj.differentiation.implicit`; instances
         that did not converge get zero gradients and a warning).
     """
     method = check_problem_and_method(problem, method)
@@ -126,7 +129,7 @@ def solve(
     solution = _dispatch(problem, method, opts, x0.detach().contiguous(), U0.detach().contiguous(),
                          None if X0 is None else X0.detach(), detached, B, duals)
     return implicit.attach_gradients(problem, x0, params, solution, gradients=gradients,
-                                     cuda_graphs=graphs_used(opts, x0.device))
+                                     cuda_graphs=graphs_used(opts, x0.device), constrained=method is not Method.ILQR)
 
 
 def check_problem_and_method(problem, method: Union[str, Method]) -> Method:

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from . import integrators
-from .problem import Problem
+from .core.problem import Problem
 
 
 @dataclass

@@ -21,8 +21,16 @@ import torch
 from .. import problems
 from ..solve import OPTIONS, Method, solve
 from . import profile, table
-from .runs import (Row, batch_x0, make_options, relative_difference, run_reference, run_torchtraj, skip_reason,
-                   with_compile)
+from .runs import (
+    Row,
+    batch_x0,
+    make_options,
+    relative_difference,
+    run_reference,
+    run_torchtraj,
+    skip_reason,
+    with_compile,
+)
 
 REFERENCE_SOLVERS = ("ipopt", "fatrop")
 #: Batch of the ALTRO throughput line (issue: pendulum, sample_x0 seed 0, B = 1024 in one batch).

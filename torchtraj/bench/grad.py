@@ -48,12 +48,13 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from .. import implicit, problems
-from ..constraints import Constraints
-from ..problem import Problem
-from ..solution import Solution
+from .. import problems
+from ..core.constraints import Constraints
+from ..core.problem import Problem
+from ..core.solution import Solution
+from ..core.status import Status
+from ..differentiation import implicit
 from ..solve import solve
-from ..status import Status
 from .runs import compiled as is_compiled
 
 NX, NU, HORIZON, U_MAX = 8, 4, 30, 0.5
@@ -263,7 +264,7 @@ def directional(inputs: dict, dirs: dict) -> dict:
 @dataclass
 class Resolved:
     """What the check compares of one solve, by instance: ``loss``, ``status``, ``cost``, ``U`` and the
-    active set ``(B, m)`` as :func:`torchtraj.implicit.active_rows` identifies it (the set the implicit
+    active set ``(B, m)`` as :func:`torchtraj.differentiation.implicit.active_rows` identifies it (the set the implicit
     gradient holds fixed)."""
 
     loss: Tensor
@@ -374,7 +375,7 @@ def fd_by_instance(resolve: Callable, theta: dict, dirs: dict, analytic: dict, n
 
 def not_minimal(run: ByInstance) -> dict:
     """``{instance: multiplier}`` of the converged instances that hold an inequality row active with a
-    multiplier below ``−tol`` (:func:`torchtraj.implicit.default_active_tolerance`): KKT points of their
+    multiplier below ``−tol`` (:func:`torchtraj.differentiation.implicit.default_active_tolerance`): KKT points of their
     active set but not local minima (releasing the row lowers the cost). Their gradients are still those
     of the solver's map where its re-solves stop at the same active set."""
     sol, problem = run.solution, run.problem

@@ -42,9 +42,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..control.mpc import DEFAULT_ALTRO, MPC
+from ..core.problem import Problem
 from . import profile
-from ..mpc import DEFAULT_ALTRO, MPC
-from ..problem import Problem
 
 IDS = {"pendulum": "torchtraj/Pendulum-v0", "cartpole": "torchtraj/CartPoleSwingUp-v0", "car": "torchtraj/Car-v0"}
 
@@ -124,7 +124,7 @@ def car_problem(env, horizon: int = 30, margin: float = 0.15) -> Problem:
                    u_init=torch.tensor([1.0, 0.0], dtype=torch.float64), dt=dt, name="car_mpc")
 
 
-#: ALTRO options of each task's controller, on top of :data:`torchtraj.mpc.DEFAULT_ALTRO`.
+#: ALTRO options of each task's controller, on top of :data:`torchtraj.control.mpc.DEFAULT_ALTRO`.
 TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0}}
 
 

@@ -23,9 +23,9 @@ import numpy as np
 import torch
 
 from .. import problems
-from ..problem import Problem
+from ..core.problem import Problem
+from ..core.status import Status
 from ..solve import OPTIONS, Method, solve
-from ..status import Status
 
 
 @dataclass

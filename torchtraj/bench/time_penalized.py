@@ -5,10 +5,10 @@ from __future__ import annotations
 import time
 
 from .. import models, problems
-from ..altro import ALTROOptions
-from ..projection import ProjectionOptions
+from ..core.status import Status
 from ..solve import Method, solve
-from ..status import Status
+from ..solvers.altro.options import ALTROOptions
+from ..solvers.altro.projection import ProjectionOptions
 from ..time_penalty import time_penalized
 
 #: ``R_τ`` of eq. (34) for the demonstration problems. For the parallel park, ``R_τ = 1`` makes time dominate

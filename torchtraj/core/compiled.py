@@ -5,13 +5,13 @@ the Riccati sweep N small factorisations — and at small batches their fixed pe
 arithmetic, is the time: a pendulum MPC step (N = 30, 3 iterations) takes 63-74 ms on two CPU cores at B = 1.
 Compiled by inductor into fused loops, it takes 3.5 ms (``python -m torchtraj.bench --mpc --compile``). The kernels:
 
-* one iLQR iteration (:func:`torchtraj.ilqr.ilqr_step`: the ``torch.func`` expansion, the Riccati sweep of
+* one iLQR iteration (:func:`torchtraj.solvers.ilqr.ilqr_step`: the ``torch.func`` expansion, the Riccati sweep of
   :mod:`torchtraj.riccati`, the line search's batched rollouts and the step acceptance) — one graph while the
   line search takes a single round of step sizes (``B ≤ 8192 / line_search_steps``), else one per round;
 * the initial rollout, objective and violation, and the final gains and costates (iLQR) or cost and violation
   (ALTRO);
 * per ALTRO iteration, the violation, the multiplier update and the objective under the new multipliers
-  (:func:`torchtraj.altro._measures`), and the MPC policy's own multiplier update.
+  (:func:`torchtraj.solvers.altro.stages._measures`), and the MPC policy's own multiplier update.
 
 The loops over iterations, the masks and the host synchronisations stay in Python, so the solver's logic is the
 same code in both modes and its answers agree to rounding (``tests/test_compiled.py``).

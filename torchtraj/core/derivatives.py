@@ -12,7 +12,7 @@ At every stage point ``z_k = (x_k, u_k)``, k = 0..N-1, of every instance at once
   implicit-differentiation backward pass).
 
 Every function is the user's per-instance function wrapped by ``jacrev`` and mapped over batch
-and time by :mod:`torchtraj.batching`; nothing is differentiated by hand.
+and time by :mod:`torchtraj.core.batching`; nothing is differentiated by hand.
 
 Why reverse mode everywhere, although the Jacobians are square or tall and forward mode would
 be the textbook choice: with PyTorch 2.13 on CPU, ``vmap(jacfwd(·))`` routes products with
@@ -230,7 +230,7 @@ def problem_lagrangian_hessian(problem, constraints, X, U, params, costate, nu=N
     ``L_k = l(x, u) + λ_{k+1}ᵀ f(x, u) + ν_kᵀ h(x, u) + μ_kᵀ g(x, u)`` and
     ``L_N = l_N(x) + ν_Nᵀ h_N(x) + μ_Nᵀ g_N(x)`` with ``costate (B, N+1, nx)`` (λ), stage
     multipliers ``nu (B, N, me)``, ``mu (B, N, mi)`` and terminal ``nuN (B, meN)``, ``muN (B, miN)``
-    in the layout of :class:`~torchtraj.constraints.Constraints` (missing ones are zero).
+    in the layout of :class:`~torchtraj.core.constraints.Constraints` (missing ones are zero).
     Returns ``(H (B, N, nx+nu, nx+nu), H_N (B, nx, nx))``.
     """
     stage, terminal = _problem_lagrangians(problem, constraints, X.shape[-1])

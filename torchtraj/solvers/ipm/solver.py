@@ -3,7 +3,7 @@ r"""A primal-dual interior-point method on multiple shooting, batched (FATROP, p
 FATROP (§II-B, §III) is IPOPT's algorithm applied to the multiple-shooting problem, with the
 reduced primal-dual system solved by a Riccati recursion generalised to stagewise equality
 constraints. Here the inequality rows ``g(z) ≤ 0`` of the problem (the stacked blocks of
-:class:`~torchtraj.constraints.Constraints`: path and terminal inequalities and finite bounds) get
+:class:`~torchtraj.core.constraints.Constraints`: path and terminal inequalities and finite bounds) get
 slacks ``s ≥ 0`` and the barrier problem (FATROP eq. 3, with this library's sign of ``g``) is
 
 .. math::
@@ -63,7 +63,7 @@ The rest is IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), with i
   unchanged, bit for bit, and the batch's spread of iteration counts no longer costs the slowest one's
   iterations for all: the time of an iteration grows about linearly with the batch past a few dozen
   instances (one CPU core, the bench's ``linear_box``: 112 ms at B = 256, 57 at 128, 35 at 64).
-* **Active-set crossover** (linear-quadratic problems, ``crossover``; :mod:`torchtraj.crossover`): once an
+* **Active-set crossover** (linear-quadratic problems, ``crossover``; :mod:`torchtraj.solvers.ipm.crossover`): once an
   instance's ``E_0 ≤ crossover_from``, the rows with ``z > s`` are held as equalities and one Riccati solve gives
   the KKT point of that set exactly; it ends the instance where it passes the convergence test, else up to
   ``crossover_rounds`` primal-dual active-set updates are tried. Where every row is a control bound, up to
@@ -90,180 +90,38 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .altro import multiplier_blocks
-from .batching import map_stage, map_state, param_rows, rollout
+from ...core.batching import map_stage, map_state, param_rows, rollout
+from ...core.compiled import kernel
+from ...core.compiled import matvec as _mv
+from ...core.constraints import Constraints, multiplier_blocks
+from ...core.derivatives import (
+    affine_stage_jacobian,
+    multiplier_terms,
+    problem_lagrangian_expansion,
+    quadratic_stage_hessian,
+    stage_jacobian,
+    terminal_hessian,
+    terminal_jacobian,
+)
+from ...core.graphs import graphed, graphs_used
+from ...core.masks import first_true, where_rows
+from ...core.problem import Problem
+from ...core.solution import History, Solution
+from ...core.status import Status
+from ...kkt.model import total_cost
+from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
 from . import crossover
-from .compiled import kernel
-from .compiled import matvec as _mv
-from .constraints import Constraints
-from .derivatives import (affine_stage_jacobian, multiplier_terms, problem_lagrangian_expansion, quadratic_stage_hessian,
-                          stage_jacobian, terminal_hessian, terminal_jacobian)
-from .graphs import graphed, graphs_used
-from .ilqr import _first_true, _where, total_cost
-from .problem import Problem
-from .riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
-from .solution import History, Solution
-from .status import Status
+from .iterate import Iterate, Model
+from .options import IPOptions
 
 logger = logging.getLogger("torchtraj")
-
-
-@dataclass
-class IPOptions:
-    """Options of :func:`solve_interior_point`; defaults are IPOPT's (FATROP uses the same)."""
-
-    #: Converged when the unscaled-barrier error ``E_0`` is below this (``tol``); ``None``: 1e-8 in float64,
-    #: 1e-6 in float32 (the test is absolute: at 1e-5 the pendulum, whose multipliers are below 5e-4, stops
-    #: 1.6e-3 above its optimum in float32 and float64 alike; at 1e-6, 1.4e-4).
-    tolerance: Optional[float] = None
-    #: Maximum iterations (steps taken or attempted; ``max_iter``).
-    iterations: int = 1000
-    #: Initial barrier parameter ``μ_0`` (``mu_init``).
-    barrier_initial: float = 0.1
-    #: ``κ_μ`` and ``θ_μ`` of the barrier update (``mu_linear_decrease_factor``, ``mu_superlinear_decrease_power``).
-    barrier_decrease: float = 0.2
-    barrier_power: float = 1.5
-    #: The barrier problem is solved when ``E_μ ≤ κ_ε μ`` (``barrier_tol_factor``).
-    barrier_tolerance_factor: float = 10.0
-    #: ``τ_min`` of the fraction-to-boundary rule (``tau_min``).
-    fraction_to_boundary: float = 0.99
-    #: ``s_max`` of the error scaling (IPOPT eq. 5).
-    scaling_threshold: float = 100.0
-    #: Slack push from zero ``κ_1`` (``bound_push``) and initial inequality multipliers (``bound_mult_init_val``).
-    bound_push: float = 1e-2
-    dual_initial: float = 1.0
-    #: ``κ_Σ``: the multipliers stay within ``[μ/(κ_Σ s), κ_Σ μ/s]`` (``kappa_sigma``).
-    dual_safeguard: float = 1e10
-    #: Filter margins ``γ_θ``, ``γ_φ``, Armijo ``η_φ``, switching ``δ, s_θ, s_φ``, limits ``θ_max``, ``θ_min`` as
-    #: factors of ``max(1, θ_0)``.
-    filter_theta: float = 1e-5
-    filter_phi: float = 1e-8
-    armijo: float = 1e-8
-    switching: float = 1.0
-    switching_theta_power: float = 1.1
-    switching_phi_power: float = 2.3
-    theta_max_factor: float = 1e4
-    theta_min_factor: float = 1e-4
-    #: Entries kept per instance in the filter.
-    filter_size: int = 64
-    #: Backtracking factor, the number of step sizes tried and how many are evaluated together per round.
-    line_search_decrease: float = 0.5
-    line_search_steps: int = 20
-    line_search_parallel: int = 4
-    #: Inertia correction ``δ_w``: first value, bounds and factors (``first_hessian_perturbation``,
-    #: ``min/max_hessian_perturbation``, ``perturb_inc_fact_first``, ``perturb_inc_fact``, ``perturb_dec_fact``).
-    regularization_first: float = 1e-4
-    regularization_min: float = 1e-20
-    regularization_max: float = 1e40
-    regularization_increase_first: float = 100.0
-    regularization_increase: float = 8.0
-    regularization_decrease: float = 1.0 / 3.0
-    #: Factorisation attempts per iteration before the instance gives up.
-    regularization_attempts: int = 40
-    #: Divergence limit on ``|x|`` (``diverging_iterates_tol``: 1e20 in IPOPT; ``max_state`` of the other methods).
-    max_state: float = 1e8
-    #: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.compiled`).
-    compile: bool = False
-    #: On a GPU, replay the per-iteration kernels, the crossover's candidates and the implicit layer's Newton step
-    #: and adjoint solve from CUDA graphs (:mod:`torchtraj.graphs`); no effect on a CPU or with ``compile``.
-    cuda_graphs: bool = False
-    #: Once the running instances are at most this share of the batch being iterated, the next iterations run
-    #: on them alone (module docstring); ``0`` never. Off with ``compile`` and CUDA graphs, whose kernels are
-    #: specialised to the batch size.
-    compact_below: float = 0.75
-    #: ``"monotone"``: the Fiacco-McCormick update with the filter line search (IPOPT's and FATROP's default).
-    #: ``"mehrotra"``: Mehrotra's predictor-corrector (IPOPT's ``mehrotra_algorithm``: the probing barrier parameter,
-    #: the affine corrector, no line search, the steps to the boundary taken whole). For convex problems (linear
-    #: dynamics and constraints, convex costs), where it takes fewer iterations; without a globalisation, it may
-    #: fail on others. Not with ``compile`` or ``cuda_graphs``.
-    barrier_strategy: str = "monotone"
-    #: Of a linear-quadratic problem (``Problem.linear_quadratic``) with inequality rows: once an instance's KKT
-    #: error ``E_0`` is below ``crossover_from``, try at every iteration the exact solve with its proposed active set
-    #: held (:mod:`torchtraj.crossover`); where the result passes the convergence test the instance ends there, at
-    #: its KKT point to round-off.
-    crossover: bool = True
-    crossover_from: float = 1e-3
-    #: Active sets tried per crossover: the proposed one, then the primal-dual active-set updates of its result.
-    #: Each round solves one Newton system and counts as an iteration.
-    crossover_rounds: int = 2
-    #: Where every inequality row is a control bound: active sets tried before the first iteration, from none held
-    #: (the unconstrained optimum) — the primal-dual active-set method; the instances it settles never iterate.
-    #: ``0`` skips it.
-    crossover_start_rounds: int = 8
-    #: ``σ_max`` of the probing update (``sigma_max``), and the factor of the initial average complementarity that
-    #: bounds its ``μ`` (``mu_max_fact``).
-    mehrotra_sigma_max: float = 100.0
-    mehrotra_mu_max_factor: float = 1e3
-    #: Log one line per iteration through the ``torchtraj`` logger.
-    verbose: bool = False
-
-    def __post_init__(self):
-        if self.barrier_strategy not in ("monotone", "mehrotra"):
-            raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
-        if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:
-            raise ValueError(f"crossover_rounds and crossover_start_rounds must be >= 0, got {self.crossover_rounds} "
-                             f"and {self.crossover_start_rounds}")
-        if self.barrier_strategy == "mehrotra" and (self.compile or self.cuda_graphs):
-            raise ValueError("barrier_strategy='mehrotra' runs eager: set compile=False and cuda_graphs=False")
-
-    def tolerance_for(self, dtype: torch.dtype) -> float:
-        if self.tolerance is not None:
-            return self.tolerance
-        return 1e-8 if dtype == torch.float64 else 1e-6
-
-
-@dataclass
-class Iterate:
-    """Primal-dual point of the batch: states, controls, slacks ``s`` and multipliers ``z`` of the stage
-    ``(B, N, mi)`` and terminal ``(B, miN)`` inequalities, costates ``lam (B, N+1, nx)``, equality
-    multipliers ``nu (B, N, me)``, ``nuN (B, meN)``."""
-
-    X: Tensor
-    U: Tensor
-    s: Tensor
-    sN: Tensor
-    z: Tensor
-    zN: Tensor
-    y: Tensor
-    yN: Tensor
-    lam: Tensor
-    nu: Tensor
-    nuN: Tensor
-
-
-
-@dataclass
-class Model:
-    """Values and derivatives at an iterate (one expansion), and the measures of its optimality."""
-
-    J: Tensor  # (B,) objective
-    Lz: Tensor  # (B, N, nz) gradient of the stage Lagrangians (without -λ_k x_k)
-    Lzz: Tensor
-    LNx: Tensor
-    LNxx: Tensor
-    f: Tensor  # (B, N, nx) dynamics values; fz their Jacobians
-    fz: Tensor
-    g: Tensor  # (B, N, mi), Gz (B, N, mi, nz); masked rows are zero
-    Gz: Tensor
-    h: Tensor
-    Hz: Tensor
-    gN: Tensor
-    GN: Tensor
-    hN: Tensor
-    HN: Tensor
-    theta: Tensor  # (B,) ‖c‖₁
-    violation: Tensor  # (B,) largest violation of the problem's constraints and the dynamics
-    dual_error: Tensor  # (B,) scaled largest Lagrangian gradient entry
-    primal_error: Tensor  # (B,) largest residual of the barrier problem's constraints
-    finite: Tensor  # (B,)
-    knots: Tensor  # (N, mi): 1 where a stage inequality row applies
 
 
 def _pick(mask: Tensor, a, b):
     """The batch-first dataclass ``a`` where ``mask (B,)``, else ``b`` (field by field; a field that is no tensor,
     as a :class:`Direction`'s factor, is kept where ``a`` and ``b`` share it, else ``None``)."""
     def one(x, y):
-        return _where(mask, x, y) if isinstance(x, Tensor) else (x if x is y else None)
+        return where_rows(mask, x, y) if isinstance(x, Tensor) else (x if x is y else None)
 
     return type(a)(**{f.name: one(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
 
@@ -277,7 +135,7 @@ def _flat_abs(*parts: Tensor) -> Tensor:
 def _constraint_parts(cons: Constraints, X: Tensor, U: Tensor, params, jacobians: bool, affine: bool = False):
     """Values (and Jacobians) of the stage inequalities (rows off at a knot are zero), stage equalities,
     terminal inequalities and equalities; ``affine``: rows affine in ``(x, u)``, their stage Jacobians taken once
-    per instance (:func:`~torchtraj.derivatives.affine_stage_jacobian`)."""
+    per instance (:func:`~torchtraj.core.derivatives.affine_stage_jacobian`)."""
     N, nx, nu = U.shape[-2], X.shape[-1], U.shape[-1]
     lead = X.shape[:-2]
     nz = nx + nu
@@ -330,7 +188,7 @@ def _linear_quadratic_derivatives(it: Iterate, base: Base):
 
 def _linear_quadratic_expansion(problem: Problem, cons: Constraints, params, it: Iterate) -> tuple:
     """The first expansion of a linear-quadratic problem: every Jacobian and Hessian taken once per instance and
-    broadcast over the stages (:func:`~torchtraj.derivatives.affine_stage_jacobian`); the Lagrangian's Hessian is
+    broadcast over the stages (:func:`~torchtraj.core.derivatives.affine_stage_jacobian`); the Lagrangian's Hessian is
     the costs' (affine rows have no curvature), its gradient the costs' and the multipliers' terms."""
     X, U = it.X, it.U
     f, fz = affine_stage_jacobian(problem.dynamics, X[:, :-1], U, params)
@@ -630,7 +488,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         alphas = a_max.unsqueeze(1) * powers[start:start + per_round]
         accept, f_ok = _kernel(trial, opts, it.X.device)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                                theta_min, alphas, opts)
-        idx = _first_true(accept)
+        idx = first_true(accept)
         new = accept.any(1) & ~found
         alpha = torch.where(new, alphas[rows, idx], alpha)
         f_type = torch.where(new, f_ok[rows, idx], f_type)
@@ -642,7 +500,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
 
 # ------------------------------------------------------------------------------------------ solver
 def _kernel(fn, opts: IPOptions, device: torch.device):
-    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (:func:`~torchtraj.graphs.graphs_used`), or
+    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (:func:`~torchtraj.core.graphs.graphs_used`), or
     itself."""
     if graphs_used(opts, device):
         return graphed(fn)
@@ -693,7 +551,7 @@ def kkt_error(cons: Constraints, model: Model, it: Iterate, opts: IPOptions) -> 
 def _cross_over(problem: Problem, cons: Constraints, params, model: Model, it: Iterate, x0: Tensor, base: Base,
                 opts: IPOptions, tol: float, error: Tensor, K: Tensor, trying: Tensor, rounds: int,
                 start: bool = False) -> tuple:
-    """The crossover (:mod:`torchtraj.crossover`) of the instances ``trying``, gathered: up to ``rounds`` active
+    """The crossover (:mod:`torchtraj.solvers.ipm.crossover`) of the instances ``trying``, gathered: up to ``rounds`` active
     sets, the first proposed by the iterate (``start``: none held, the unconstrained optimum), each next one the
     primal-dual active-set update of the last candidate. An instance's rounds end where its set stops changing (the
     candidate is then the KKT point of its set), where its system fails, or with the last round; the candidates
@@ -755,7 +613,7 @@ def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model
     for r in range(rounds):
         c = candidate(model, cons, it, x0, active)
         ended = c if ended is None else crossover.Candidate(
-            point=_pick(going, c.point, ended.point), K=_where(going, c.K, ended.K), ok=torch.where(going, c.ok, ended.ok))
+            point=_pick(going, c.point, ended.point), K=where_rows(going, c.K, ended.K), ok=torch.where(going, c.ok, ended.ok))
         taken = taken + going.long()
         following = crossover.next_active_set(c, active, knots)
         going = going & c.ok & crossover.changed(active, following)
@@ -765,9 +623,9 @@ def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model
     new_model = _kernel(expand, opts, x0.device)(problem, cons, params, ended.point, opts, base)
     new_error = kkt_error(cons, new_model, ended.point, opts)
     accept = trying & ended.ok & new_model.finite & (new_error <= tol)
-    values = {name: _where(accept, getattr(new_model, name), getattr(model, name)) for name in _VALUE_FIELDS}
+    values = {name: where_rows(accept, getattr(new_model, name), getattr(model, name)) for name in _VALUE_FIELDS}
     return (_pick(accept, ended.point, it), dataclasses.replace(model, **values), torch.where(accept, new_error, error),
-            _where(accept, ended.K, K), torch.where(accept, taken, -taken))
+            where_rows(accept, ended.K, K), torch.where(accept, taken, -taken))
 
 
 #: The fields of a linear-quadratic problem's :class:`Model` that change from point to point (its Jacobians and
@@ -977,7 +835,7 @@ def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, optio
         take = factored & ls.found
         it = _pick(take, ls.it, it)
         filt = _pick(take, ls.filter, filt)
-        K = _where(take, d.K, K)
+        K = where_rows(take, d.K, K)
         last = torch.where(take & (delta > 0), delta, last)
         missed = factored & ~ls.found
         floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),

@@ -47,15 +47,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .altro import ALTROOptions, multiplier_blocks, stack_blocks
-from .augmented_lagrangian import AugmentedLagrangian, Duals
-from .compiled import kernel
-from .constraints import Constraints
-from .ilqr import ILQROptions
-from .problem import Problem
-from .solution import Solution
-from .solve import Method, check_problem_and_method, solve
-from .status import Status
+from ..core.compiled import kernel
+from ..core.constraints import Constraints, multiplier_blocks, stack_blocks
+from ..core.problem import Problem
+from ..core.solution import Solution
+from ..core.status import Status
+from ..iterations.ilqr import ILQROptions
+from ..solve import Method, check_problem_and_method, solve
+from ..solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
+from ..solvers.altro.options import ALTROOptions
 
 #: ALTRO's settings for MPC: no projection (the applied control is clamped to its bounds anyway, and the projection
 #: adds 12 % (median) to 26 % (mean) to a pendulum step at B = 1); the rest are ALTRO's defaults.
@@ -87,7 +87,7 @@ class MPC(torch.nn.Module):
         observation_to_params: maps observations to per-instance parameters ``{name: (B, ...)}`` (a car's observed
             obstacles); default none.
         compile: ``torch.compile`` the solver's kernels (sets the options' ``compile``, see
-            :mod:`torchtraj.compiled`): the first calls for a batch size compile (tens of seconds to minutes); later
+            :mod:`torchtraj.core.compiled`): the first calls for a batch size compile (tens of seconds to minutes); later
             pendulum steps (N = 30) take 3.5 ms against 63-74 ms eager at B = 1, 17 ms against 132 ms at B = 64.
 
     Call: ``mpc(observations, params=None)`` with observations ``(n_obs,)`` or ``(B, n_obs)``, numpy or torch,

@@ -3,7 +3,7 @@ r"""iLQR for batches of unconstrained problems (ALTRO §II-A, papers/altro.md).
 Each iteration, for every instance still running:
 
 1. expand the problem around the current rollout ``(X, U)``: ``A_k, B_k`` from the dynamics,
-   ``l_z, l_zz`` from the costs (:mod:`torchtraj.derivatives`);
+   ``l_z, l_zz`` from the costs (:mod:`torchtraj.core.derivatives`);
 2. backward pass (:mod:`torchtraj.riccati`) with the regularisation ``ρ`` added to ``Q_uu``
    (eq. 13): gains ``K_k``, feedforward ``d_k``, expected change ``ΔV(α) = α dV1 + α² dV2``
    (eq. 16). A failed Cholesky factorisation raises ``ρ`` and skips the step;
@@ -26,26 +26,24 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Optional
 
 import torch
 from torch import Tensor
 
-from .batching import closed_loop_rollout, map_stage, map_state, rollout
-from .compiled import kernel
-from .constraints import Constraints
-from .derivatives import linearize_dynamics, quadratize_cost
-from .problem import Problem
-from .riccati import LQR, LQRVectors, factorize
-from .solution import History, Solution
-from .status import Status
+from ..core.batching import closed_loop_rollout
+from ..core.compiled import kernel
+from ..core.masks import first_true, where_rows
+from ..core.problem import Problem
+from ..core.status import Status
+from ..kkt.model import cost_model, total_cost
+from ..riccati import factorize
 
 logger = logging.getLogger("torchtraj")
 
 
 @dataclass
 class ILQROptions:
-    """Options of :func:`solve_ilqr`; defaults are ALTRO's (Altro.jl ``SolverOptions``)."""
+    """Options of iLQR (method ``"ilqr"``) and of ALTRO's inner iLQR; defaults are ALTRO's (Altro.jl ``SolverOptions``)."""
 
     #: Maximum iterations (``iterations_inner``).
     iterations: int = 300
@@ -77,32 +75,10 @@ class ILQROptions:
     max_cost: float = 1e8
     max_state: float = 1e8
     #: ``torch.compile`` the per-iteration kernels (rollouts, objective, expansion, Riccati); the first solve of
-    #: each problem and shape compiles them (:mod:`torchtraj.compiled`).
+    #: each problem and shape compiles them (:mod:`torchtraj.core.compiled`).
     compile: bool = False
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
-
-
-def total_cost(problem: Problem, X: Tensor, U: Tensor, params) -> Tensor:
-    """Objective of ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``."""
-    stage = map_stage(problem.stage_cost, X[..., :-1, :], U, params).sum(-1)
-    return stage + map_state(problem.terminal_cost, X[..., -1, :], params)
-
-
-def expand(problem: Problem, X: Tensor, U: Tensor, params):
-    """The LQR model of ``problem`` around ``(X, U)``: matrices and gradient right-hand sides."""
-    nx = X.shape[-1]
-    _, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
-    _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
-    lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx)
-    rhs = LQRVectors(
-        q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=torch.zeros_like(X[:, 1:]), x0=torch.zeros_like(X[:, 0])
-    )
-    return lqr, rhs
-
-
-def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
 
 
 def _update_regularization(rho, drho, success, opts: ILQROptions):
@@ -115,14 +91,6 @@ def _update_regularization(rho, drho, success, opts: ILQROptions):
     d_inc = torch.clamp(drho * phi, min=phi)
     r_inc = torch.clamp(rho * d_inc, min=opts.regularization_min)
     return torch.where(success, r_dec, r_inc), torch.where(success, d_dec, d_inc)
-
-
-def _first_true(mask: Tensor) -> Tensor:
-    """Index of the first true entry of each row of ``mask (B, l)`` (``l − 1`` where none is): the count of
-    leading false entries. Not ``argmax``: compiled for float32 batches shorter than a vector register, inductor
-    (torch 2.13) reads the argmax of the loop's remainder uninitialised (``tests/test_compiled.py``)."""
-    leading = (~mask).to(torch.long).cumprod(-1).sum(-1)
-    return leading.clamp(max=mask.shape[-1] - 1)
 
 
 def _scaled_step(d: Tensor, U: Tensor) -> Tensor:
@@ -161,9 +129,9 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
         accept = (torch.isfinite(Jc) & bounded & (expected > 0)
                   & (ratio > opts.line_search_lower) & (ratio < opts.line_search_upper))
-        idx = _first_true(accept)  # first (largest) accepted step of the round
+        idx = first_true(accept)  # first (largest) accepted step of the round
         new = accept.any(1) & ~found
-        Xa, Ua = _where(new, Xc[rows, idx], Xa), _where(new, Uc[rows, idx], Ua)
+        Xa, Ua = where_rows(new, Xc[rows, idx], Xa), where_rows(new, Uc[rows, idx], Ua)
         Ja, alpha = torch.where(new, Jc[rows, idx], Ja), torch.where(new, alphas[idx], alpha)
         found = found | new
         if start + per_round < L and bool((found | ~active).all()):
@@ -174,7 +142,7 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
 class CostObjective:
     """The problem's own objective, as the iLQR loop sees it: a value and an LQR expansion.
 
-    The augmented-Lagrangian objective of :mod:`torchtraj.augmented_lagrangian` has the same two methods.
+    The augmented-Lagrangian objective of :mod:`torchtraj.solvers.altro.augmented_lagrangian` has the same two methods.
     """
 
     def __init__(self, problem: Problem):
@@ -185,7 +153,7 @@ class CostObjective:
         return total_cost(self.problem, X, U, params)
 
     def expand(self, X: Tensor, U: Tensor, params):
-        return expand(self.problem, X, U, params)
+        return cost_model(self.problem, X, U, params)
 
 
 @dataclass
@@ -238,7 +206,7 @@ def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts:
     take = active & success & ~stationary
     dJ = J - Jn
     grad = _scaled_step(k, U)
-    X, U, J = _where(take, Xn, X), _where(take, Un, U), torch.where(take, Jn, J)
+    X, U, J = where_rows(take, Xn, X), where_rows(take, Un, U), torch.where(take, Jn, J)
     rho_new, drho_new = _update_regularization(rho, drho, success | stationary, opts)
     rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)
     converged = active & ok & (stationary | (take & (dJ.abs() < cost_tolerance) & (grad < opts.gradient_tolerance)))
@@ -257,65 +225,7 @@ def start_status(x0: Tensor, X: Tensor, J: Tensor, opts: ILQROptions) -> Tensor:
     return torch.where(x0_finite & ~start_ok, int(Status.INFEASIBLE_START), status)
 
 
-def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ILQROptions] = None) -> Solution:
-    """Solve ``problem`` from ``x0 (B, nx)`` and controls ``U0 (B, N, nu)`` by iLQR; constraints are ignored.
-
-    ``params`` are the problem's parameters expanded to the batch (``Problem.batched_params``).
-    """
-    opts = options or ILQROptions()
-    B = x0.shape[0]
-    constraints = Constraints(problem)
-    objective = CostObjective(problem)
-    X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
-    U = U0
-    J = kernel(total_cost, opts.compile)(problem, X, U, params)
-    status = start_status(x0, X, J, opts)
-    active = status == Status.RUNNING
-    rho = torch.full((B,), opts.regularization_initial, dtype=x0.dtype, device=x0.device)
-    drho = torch.zeros_like(rho)
-    iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
-    rows = []
-    for it in range(opts.iterations):
-        if not bool(active.any()):  # the only host synchronisation of an iteration
-            break
-        s = ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts)
-        X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
-        iterations = iterations + active.long()
-        status = torch.where(s.converged, int(Status.CONVERGED), status)
-        status = torch.where(s.blown, int(Status.MAX_REGULARIZATION), status)
-        active = status == Status.RUNNING
-        rows.append({
-            "cost": J, "max_violation": constraints.max_violation(X, U, params),
-            "step_size": s.alpha, "regularization": rho,
-        })
-        if opts.verbose:
-            _log_iteration("ilqr", it, J, rho, active)
-    status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    K, costate = kernel(_gains_and_costates, opts.compile)(problem, X, U, params, rho)
-    violation = constraints.max_violation(X, U, params)
-    return Solution(
-        X=X, U=U, K=K, cost=J, max_violation=violation, status=status, iterations=iterations,
-        history=History.from_rows(rows), costate=costate, method="ilqr",
-    )
-
-
-def _gains_and_costates(problem: Problem, X: Tensor, U: Tensor, params, rho: Tensor):
-    """Feedback gains and costates at the solution."""
-    lqr, rhs = expand(problem, X, U, params)
-    return factorize(lqr, rho).K, _adjoint(lqr, rhs)
-
-
-def _adjoint(lqr: LQR, rhs: LQRVectors) -> Tensor:
-    """Costates of the unconstrained problem: ``λ_N = l_Nx``, ``λ_k = l_x + A_kᵀ λ_{k+1}``."""
-    lam = rhs.qN
-    lams = [lam]
-    for k in range(lqr.A.shape[1] - 1, -1, -1):
-        lam = rhs.q[:, k] + (lqr.A[:, k].transpose(-1, -2) @ lam.unsqueeze(-1)).squeeze(-1)
-        lams.append(lam)
-    return torch.stack(lams[::-1], 1)
-
-
-def _log_iteration(name: str, it: int, J: Tensor, rho: Tensor, active: Tensor) -> None:
+def log_iteration(name: str, it: int, J: Tensor, rho: Tensor, active: Tensor) -> None:
     running = active.sum().item()
     logger.info("%s %4d  cost %.10g..%.10g  reg %.2e  running %d", name, it, J.min().item(), J.max().item(),
                 rho.max().item(), running)

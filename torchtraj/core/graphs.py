@@ -7,7 +7,7 @@ launches once and replays them as one. :func:`graphed` wraps a function of tenso
 
 * its arguments are flattened: tensors, ``None``, dataclasses holding tensors (iterates, LQR matrices, a problem
   with its parameters), tuples, lists and dicts of them, and objects that name the attributes they are made from
-  (``graph_rebuilt_from``: a problem's :class:`~torchtraj.constraints.Constraints`). Options, dataclasses
+  (``graph_rebuilt_from``: a problem's :class:`~torchtraj.core.constraints.Constraints`). Options, dataclasses
   without tensors, are part of the graph's key by value; any other value (a problem's functions) is a constant
   of the graph, held by identity. So a solve of a new problem object with the same functions and new parameter
   tensors, as a training step makes, replays the graphs of the last one;

@@ -31,10 +31,10 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from ...core.batching import map_stage
+from ...core.derivatives import linearize_dynamics, quadratize_cost, stage_jacobian, terminal_jacobian
+from ...riccati import LQR, LQRVectors, factorize
 from .augmented_lagrangian import AugmentedLagrangian
-from .batching import map_stage
-from .derivatives import linearize_dynamics, quadratize_cost, stage_jacobian, terminal_jacobian
-from .riccati import LQR, LQRVectors, factorize
 
 
 @dataclass
@@ -70,7 +70,7 @@ class Projected:
 
     ``violation (B,)`` is the largest violation of the active set and dynamics; ``costate (B, N+1, nx)``,
     ``stage (B, N, m)`` and ``terminal (B, mN)`` are multipliers in the stacked layout of
-    :class:`~torchtraj.augmented_lagrangian.AugmentedLagrangian` (zero on inactive rows).
+    :class:`~torchtraj.solvers.altro.augmented_lagrangian.AugmentedLagrangian` (zero on inactive rows).
     """
 
     X: Tensor

@@ -1,105 +1,28 @@
-r"""ALTRO for batches of constrained problems (papers/altro.md, Algorithm 4).
-
-1. **AL-iLQR** (§II-A, Algorithm 1): iLQR on the augmented Lagrangian
-   (:mod:`torchtraj.augmented_lagrangian`) for fixed multipliers ``λ`` and penalties ``μ``; when an
-   instance's inner solve converges (or reaches ``iterations_inner``), and its largest violation is still
-   above ``constraint_tolerance``, its duals are updated by eqs. (17)-(18) and the inner solve goes on.
-   The outer and inner loops are flattened into one batched loop: every instance takes one iLQR
-   iteration per pass and is at its own place in its own outer loop, so a fast instance never waits for
-   a slow one's inner solve; instances that finished are frozen by masks.
-2. **Projection** (§III-D, :mod:`torchtraj.projection`) of the coarse solution onto the active
-   constraints to ``projection.tolerance`` (1e-8). It also takes the instances whose inner solve converged
-   but which spent ``iterations_outer`` dual updates above ``constraint_tolerance``: at large penalties
-   iLQR's steps on the ill-conditioned augmented Lagrangian barely move the last violations, which is the
-   case the projection's Newton steps are made for (a minimum-time parallel park stalls at 2e-5). Such
-   an instance is ``CONVERGED`` if the projection meets its tolerance, ``MAX_ITERATIONS`` otherwise.
-
-Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem
-(:mod:`torchtraj.infeasible`, :mod:`torchtraj.time_penalty`); the square-root backward pass (§III-A)
-is :func:`torchtraj.sqrt_riccati.factorize_sqrt`, chosen by ``square_root=True``.
-"""
+r"""ALTRO's two stages on a batch: the augmented-Lagrangian iLQR stage (Algorithm 1, outer and inner loops flattened
+into one batched loop) and its finish, the projection (§III-D) and the :class:`~torchtraj.Solution` (module
+docstring of :mod:`torchtraj.solvers.altro.solver`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Union
 
 import torch
 from torch import Tensor
 
+from ...core.batching import map_stage
+from ...core.compiled import kernel
+from ...core.constraints import Constraints, multiplier_blocks, stack_blocks
+from ...core.problem import Problem
+from ...core.solution import History, Solution
+from ...core.status import Status
+from ...iterations.ilqr import ilqr_step, log_iteration, start_status
+from ...kkt.model import total_cost
+from ...riccati import factorize
+from ...riccati.square_root import factorize_sqrt
 from .augmented_lagrangian import AugmentedLagrangian, Duals
-from .batching import map_stage, rollout
-from .compiled import kernel
-from .constraints import Constraints
-from .ilqr import ILQROptions, _log_iteration, ilqr_step, start_status, total_cost
-from .problem import Problem
-from .projection import ProjectionOptions, project
-from .riccati import factorize
-from .solution import History, Solution
-from .sqrt_riccati import factorize_sqrt
-from .status import Status
-
-
-@dataclass
-class ALTROOptions:
-    """Options of :func:`solve_altro`; defaults are Altro.jl's ``SolverOptions``."""
-
-    #: Options of the inner iLQR (its ``iterations`` is unused: see ``iterations_inner``).
-    ilqr: ILQROptions = field(default_factory=ILQROptions)
-    #: The AL stage stops once the largest violation is below this (``constraint_tolerance``).
-    constraint_tolerance: float = 1e-6
-    #: Inner convergence on the cost change while the constraints are not met (``cost_tolerance_intermediate``),
-    cost_tolerance_intermediate: float = 1e-4
-    #: ... and once they are (``cost_tolerance``).
-    cost_tolerance: float = 1e-4
-    #: Initial penalty ``μ`` (``penalty_initial``), its scaling ``φ`` (``penalty_scaling``) and cap.
-    penalty_initial: float = 1.0
-    penalty_scaling: float = 10.0
-    penalty_max: float = 1e8
-    #: Multipliers are clipped to ``±dual_max``.
-    dual_max: float = 1e8
-    #: Outer (dual update) iterations and iLQR iterations per outer iteration.
-    iterations_outer: int = 30
-    iterations_inner: int = 300
-    #: Square-root backward pass (§III-A) instead of the standard one.
-    square_root: bool = False
-    #: Run the projection stage (``False`` gives plain AL-iLQR, method ``"al-ilqr"``).
-    projection: bool = True
-    projection_options: ProjectionOptions = field(default_factory=ProjectionOptions)
-    #: Cost ``½ R_s |s|²`` on the slack controls of an infeasible start (§III-B, eq. 32).
-    slack_cost: float = 1.0
-    #: Log one line per iteration through the ``torchtraj`` logger.
-    verbose: bool = False
-
-
-def multiplier_blocks(constraints: Constraints, stage: Tensor, terminal: Tensor) -> dict:
-    """Stacked ``(B, N, mi + me)`` / ``(B, miN + meN)`` duals split into named blocks."""
-    c = constraints
-    out = {name: v for name, v in c.split_ineq(stage[..., :c.mi]).items()}
-    if c.me:
-        out["stage_eq"] = stage[..., c.mi:]
-    if c.miN:
-        out["terminal_ineq"] = terminal[..., :c.miN]
-    if c.meN:
-        out["terminal_eq"] = terminal[..., c.miN:]
-    return out
-
-
-def stack_blocks(constraints: Constraints, blocks: dict, fill: float, like: Tensor):
-    """Inverse of :func:`multiplier_blocks`: per-block tensors (missing ones filled) → stacked layout."""
-    c = constraints
-    B, N = like.shape[0], c.problem.N
-
-    def get(name, shape):
-        value = blocks.get(name)
-        if value is None:
-            return like.new_full(shape, fill)
-        return torch.as_tensor(value, dtype=like.dtype, device=like.device).expand(shape)
-
-    parts = [get(name, (B, N, rows.stop - rows.start)) for name, rows in c.ineq_blocks.items()]
-    stage = torch.cat(parts + [get("stage_eq", (B, N, c.me))], -1)
-    terminal = torch.cat([get("terminal_ineq", (B, c.miN)), get("terminal_eq", (B, c.meN))], -1)
-    return stage, terminal
+from .options import ALTROOptions
+from .projection import project
 
 
 def initial_duals(constraints: Constraints, opts: ALTROOptions, like: Tensor, warm: Optional[dict]) -> Duals:
@@ -118,20 +41,6 @@ def initial_duals(constraints: Constraints, opts: ALTROOptions, like: Tensor, wa
     return Duals(lam, lamN, mu, muN)
 
 
-def solve_altro(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ALTROOptions] = None,
-                X0: Optional[Tensor] = None, method: str = "altro", duals: Optional[dict] = None) -> Solution:
-    """Solve ``problem`` from ``x0 (B, nx)``, ``U0 (B, N, nu)`` (and, for an infeasible start, states
-    ``X0 (B, N+1, nx)``) by ALTRO. ``params`` are the batched parameters; ``duals`` an optional warm
-    start of the multipliers and penalties (see :func:`torchtraj.solve`)."""
-    opts = options or ALTROOptions()
-    if X0 is not None:
-        from .infeasible import solve_infeasible
-
-        return solve_infeasible(problem, x0, U0, X0, params, opts, method, duals)
-    X = kernel(rollout, opts.ilqr.compile)(problem.dynamics, x0, U0, params)
-    return run_altro(problem, x0, X, U0, params, opts, method, duals)
-
-
 @dataclass
 class ALStage:
     """State of the batch when the AL stage ends (inputs of the projection)."""
@@ -146,13 +55,6 @@ class ALStage:
     rows: list
     K: Tensor  # gains of each instance's last backward pass (B, N, nu, nx)
     stalled: Tensor  # (B,) outer iterations spent, last inner solve converged: left to the projection
-
-
-def run_altro(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
-              method: str, duals: Optional[dict] = None) -> Solution:
-    """The AL stage from a dynamically consistent ``(X, U)`` of ``problem``, then the projection."""
-    stage = al_stage(problem, x0, X, U, params, opts, method, duals)
-    return finish(stage, x0, params, opts, method)
 
 
 def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
@@ -208,7 +110,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
                      "penalty": _largest_penalty(al.duals),
                      "outer_iteration": outer_count.to(J.dtype)})
         if opts.verbose:
-            _log_iteration(method, it, J, rho, running)
+            log_iteration(method, it, J, rho, running)
     status = torch.where(running, int(Status.MAX_ITERATIONS), status)
     return ALStage(problem, al, X, U, status, al_done, iterations, rows, K, stalled)
 

@@ -26,11 +26,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .batching import map_stage, map_state
-from .constraints import Constraints
-from .derivatives import stage_jacobian, terminal_jacobian
-from .ilqr import expand, total_cost
-from .sqrt_riccati import psd_root
+from ...core.batching import map_stage, map_state
+from ...core.constraints import Constraints
+from ...core.derivatives import stage_jacobian, terminal_jacobian
+from ...kkt.model import cost_model, total_cost
+from ...riccati.square_root import psd_root
 
 
 def _joint(lqr) -> Tensor:
@@ -69,7 +69,7 @@ def _lift(t: Tensor, extra: int) -> Tensor:
 
 
 class AugmentedLagrangian:
-    """``L_A`` of ``problem`` for fixed duals; same interface as :class:`~torchtraj.ilqr.CostObjective`."""
+    """``L_A`` of ``problem`` for fixed duals; same interface as :class:`~torchtraj.solvers.ilqr.CostObjective`."""
 
     def __init__(self, constraints: Constraints, duals: Duals, square_root: bool = False):
         self.constraints = constraints
@@ -137,7 +137,7 @@ class AugmentedLagrangian:
 
     def expand(self, X: Tensor, U: Tensor, params):
         """LQR model of ``L_A`` around ``(X, U)`` (eqs. 5-12)."""
-        lqr, rhs = expand(self.problem, X, U, params)
+        lqr, rhs = cost_model(self.problem, X, U, params)
         nx = X.shape[-1]
         d = self.duals
         if self.m:

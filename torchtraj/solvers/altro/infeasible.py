@@ -19,10 +19,11 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from ...core.batching import map_stage, rollout
+from ...core.constraints import Constraints
+from ...core.problem import Problem
 from .augmented_lagrangian import AugmentedLagrangian, Duals
-from .batching import map_stage, rollout
-from .constraints import Constraints
-from .problem import Problem
+from .stages import ALStage, al_stage, finish, initial_duals
 
 
 def slack_problem(problem: Problem, slack_cost: float) -> Problem:
@@ -67,7 +68,6 @@ def solve_infeasible(problem: Problem, x0: Tensor, U0: Tensor, X0: Tensor, param
     constraints; the slack rows start at ``penalty_initial`` and at zero, or, given ``warm["costate"]``, at
     ``ν_k = −λ_{k+1}``: stationarity in ``s_k`` of ``½ R_s |s_k|² + λ_{k+1}ᵀ(f + s_k − x_{k+1}) + ν_kᵀ s_k`` at
     ``s = 0``."""
-    from .altro import ALStage, al_stage, finish, initial_duals
 
     nx, nu = problem.nx, problem.nu
     X0 = torch.cat([x0.unsqueeze(1), X0[:, 1:]], 1)

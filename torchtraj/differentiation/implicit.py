@@ -9,7 +9,7 @@ read ``F(w, y, θ) = 0``:
     \nabla_w \mathcal L(w, y, θ) = 0, \qquad c(w, θ) = 0,
 
 with the Lagrangian (the sign conventions of :mod:`torchtraj.riccati` and
-:func:`torchtraj.derivatives.problem_lagrangian_hessian`)
+:func:`torchtraj.core.derivatives.problem_lagrangian_hessian`)
 
 .. math::
 
@@ -27,7 +27,7 @@ the reverse-mode product is therefore
     \bar θ = (∂F/∂θ)^T s,\qquad K s = -\begin{bmatrix} \bar w \\ 0 \end{bmatrix}.
 
 The system ``K s = -(w̄, 0)`` is exactly the KKT system of the equality-constrained LQR problem
-with Hessian ``∇²\mathcal L`` (:func:`~torchtraj.derivatives.problem_lagrangian_hessian`), the
+with Hessian ``∇²\mathcal L`` (:func:`~torchtraj.core.derivatives.problem_lagrangian_hessian`), the
 linearised dynamics, the active constraint rows as stagewise equalities (inactive rows masked
 off), linear terms ``(q, r, q_N) = w̄`` and zero defects, initial state and constraint
 offsets. It is solved by the batched Riccati core (:func:`torchtraj.riccati.factorize` and
@@ -130,19 +130,24 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 from torch.func import grad, jvp, vmap
 
-from .batching import map_stage, map_state
-from .constraints import Constraints
-from .graphs import graphed
-from .derivatives import (affine_stage_jacobian, linearize_dynamics, problem_lagrangian_hessian,
-                          quadratic_stage_hessian, quadratize_cost, stage_jacobian, terminal_hessian,
-                          terminal_jacobian)
-from .problem import Problem
-from .riccati import LQR, LQRVectors, RiccatiFactor, factorize
-from .solution import Solution
-from .status import Status
-
-#: Methods whose solutions ignore the problem's constraints: their KKT conditions are the unconstrained ones.
-UNCONSTRAINED_METHODS = frozenset({"ilqr"})
+from ..core.batching import map_stage, map_state
+from ..core.constraints import Constraints
+from ..core.derivatives import (
+    affine_stage_jacobian,
+    linearize_dynamics,
+    problem_lagrangian_hessian,
+    quadratic_stage_hessian,
+    quadratize_cost,
+    stage_jacobian,
+    terminal_hessian,
+    terminal_jacobian,
+)
+from ..core.graphs import graphed
+from ..core.problem import Problem
+from ..core.solution import Solution
+from ..core.status import Status
+from ..kkt.model import total_cost
+from ..riccati import LQR, LQRVectors, RiccatiFactor, factorize
 
 #: How a differentiable solve differentiates (``tt.solve(..., gradients=...)``).
 GRADIENT_MODES = ("implicit", "unrolled")
@@ -348,7 +353,7 @@ def kkt_system(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, const
 def _linear_quadratic_expansion(problem: Problem, X: Tensor, U: Tensor, params):
     """:func:`linearize_dynamics` and :func:`quadratize_cost` of a linear-quadratic problem
     (``Problem.linear_quadratic``): the derivatives at each instance's first stage, broadcast over the stages
-    (:func:`~torchtraj.derivatives.affine_stage_jacobian`)."""
+    (:func:`~torchtraj.core.derivatives.affine_stage_jacobian`)."""
     nx = X.shape[-1]
     f, fz = affine_stage_jacobian(problem.dynamics, X, U, params)
     _, lz, lzz = quadratic_stage_hessian(problem.stage_cost, X, U, params)
@@ -437,7 +442,7 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     round-off (``|δw|∞ ≤ 1e3 ε (1 + |w|∞)``), or, of a linear-quadratic problem
     (``Problem.linear_quadratic``), once it has taken a step: the KKT conditions of an active set are then
     linear, and one step solves them. Only the instances in ``mask (B,)`` (default: all) move.
-    ``cuda_graphs``: on a GPU, each step's system and solve are replayed from a CUDA graph (:mod:`torchtraj.graphs`),
+    ``cuda_graphs``: on a GPU, each step's system and solve are replayed from a CUDA graph (:mod:`torchtraj.core.graphs`),
     where the rows are control bounds alone or there are none.
     """
     cons = _constraints(problem, constrained)
@@ -680,12 +685,6 @@ def _indices(mask: Tensor) -> list:
     return torch.nonzero(mask).reshape(-1).tolist()
 
 
-def objective(problem: Problem, X: Tensor, U: Tensor, params) -> Tensor:
-    """``sum_k l(x_k, u_k, p) + l_N(x_N, p)``: ``(B,)`` for ``X (B, N+1, nx)``, differentiable in all inputs."""
-    stage = map_stage(problem.stage_cost, X[:, :-1], U, params).sum(-1)
-    return stage + map_state(problem.terminal_cost, X[:, -1], params)
-
-
 def _violation(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params) -> Tensor:
     """Largest constraint violation (as every method reports it), dynamics and initial-state defect ``(B,)``."""
     defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
@@ -695,7 +694,7 @@ def _violation(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params) -> Te
 
 def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor], solution: Solution,
                      refine_steps: int = 4, active_tolerance: Optional[float] = None,
-                     gradients: str = "implicit", cuda_graphs: bool = False) -> Solution:
+                     gradients: str = "implicit", cuda_graphs: bool = False, constrained: bool = True) -> Solution:
     """``solution`` with ``X``, ``U`` and ``cost`` differentiable with respect to ``x0`` and ``params``.
 
     Args:
@@ -710,9 +709,11 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
         gradients: ``"implicit"`` (exact, this module) or ``"unrolled"`` (the derivative of a final
             iLQR step at the solver's point, unrefined: module docstring).
         cuda_graphs: on a GPU, replay refinement's Newton steps and the backward pass's adjoint solve from
-            CUDA graphs (:mod:`torchtraj.graphs`; ``tt.solve`` passes :func:`~torchtraj.graphs.graphs_used`), where
+            CUDA graphs (:mod:`torchtraj.core.graphs`; ``tt.solve`` passes :func:`~torchtraj.core.graphs.graphs_used`), where
             the constraint rows are control bounds alone or there are none (the Riccati core's SVD of general
             rows cannot be captured).
+        constrained: whether the solution is a KKT point of the constrained problem; ``False`` for a method that
+            ignores the constraints, whose KKT conditions are then the unconstrained ones.
 
     Instances whose status is not ``CONVERGED`` get zero gradients (and are not refined); a
     ``RuntimeWarning`` names them. So do, at the backward pass, instances that refinement could not
@@ -727,7 +728,6 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
         warnings.warn(f"implicit gradients: instance(s) {_indices(~usable)} did not converge (status "
                       f"{Status.describe(solution.status[~usable])}); their gradients will be zero",
                       RuntimeWarning, stacklevel=3)
-    constrained = solution.method not in UNCONSTRAINED_METHODS
     x0_d = x0.detach()
     detached = {k: v.detach() for k, v in params.items()}
     X, U = solution.X.detach(), solution.U.detach()
@@ -742,7 +742,7 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
     spec = _Spec(problem=problem, names=names, usable=usable, stationary=stationary, constrained=constrained,
                  active_tolerance=active_tolerance, refined=refined, gauss_newton=unrolled, cuda_graphs=cuda_graphs)
     X, U = ImplicitSolution.apply(spec, X, U, x0, *(params[n] for n in names))
-    cost = objective(problem, X, U, params)
+    cost = total_cost(problem, X, U, params)
     # where an instance gets no gradient, its cost gets none either (not even the explicit ∂l/∂p)
     keep = usable.to(cost.dtype)
     cost = keep * cost + (1 - keep) * cost.detach()

@@ -31,33 +31,31 @@ with ``A`` held.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import torch
 from torch import Tensor
 
-from .compiled import matvec as _mv
-from .constraints import Constraints
-from .derivatives import multiplier_terms
-from .riccati import LQR, LQRVectors, factorize
-
-if TYPE_CHECKING:  # the interior-point module imports this one
-    from .interior_point import Iterate, Model
+from ...core.compiled import matvec as _mv
+from ...core.constraints import Constraints
+from ...core.derivatives import multiplier_terms
+from ...riccati import LQR, LQRVectors, factorize
+from .iterate import Iterate, Model
 
 
-def proposed_active_set(it: "Iterate", knots: Tensor) -> tuple:
+def proposed_active_set(it: Iterate, knots: Tensor) -> tuple:
     """``(stage (B, N, mi), terminal (B, miN))``: 1 on the inequality rows whose multiplier exceeds their slack."""
     return ((it.z > it.s) & (knots > 0)).to(it.s.dtype), (it.zN > it.sN).to(it.s.dtype)
 
 
-def first_active_set(it: "Iterate", knots: Tensor, start: bool) -> tuple:
+def first_active_set(it: Iterate, knots: Tensor, start: bool) -> tuple:
     """The set a crossover's first round holds: none at the ``start`` (the unconstrained optimum), else the
     :func:`proposed_active_set`."""
     active = proposed_active_set(it, knots)
     return tuple(torch.zeros_like(a) for a in active) if start else active
 
 
-def held_lqr(model: "Model", cons: Constraints, active: Tensor, activeN: Tensor) -> LQR:
+def held_lqr(model: Model, cons: Constraints, active: Tensor, activeN: Tensor) -> LQR:
     """The LQR matrices of the KKT system with the equality rows and the rows of ``active`` held: the Lagrangian
     Hessian (the cost's, the problem being linear-quadratic), the dynamics' Jacobians, the rows ``[h; g]``
     (``[h_N; g_N]`` at the end), and the control bounds held by the core itself where they are the only rows."""
@@ -73,7 +71,7 @@ def held_lqr(model: "Model", cons: Constraints, active: Tensor, activeN: Tensor)
     return LQR.from_blocks(model.fz, model.Lzz, model.LNxx, **stage, **terminal)
 
 
-def held_rhs(model: "Model", it: "Iterate", x0: Tensor) -> LQRVectors:
+def held_rhs(model: Model, it: Iterate, x0: Tensor) -> LQRVectors:
     """The right-hand side whose solve gives the new point and the multipliers themselves (not their steps): the
     cost gradient (the Lagrangian's, less the multipliers' terms), the defects and the rows' values."""
     nx = it.X.shape[-1]
@@ -92,12 +90,12 @@ class Candidate:
     the feedback gains ``K (B, N, nu, nx)`` of the held system and ``ok (B,)``, whether its reduced Hessians were
     positive definite."""
 
-    point: "Iterate"
+    point: Iterate
     K: Tensor
     ok: Tensor
 
 
-def candidate(model: "Model", cons: Constraints, it: "Iterate", x0: Tensor,
+def candidate(model: Model, cons: Constraints, it: Iterate, x0: Tensor,
               active: Optional[tuple] = None) -> Candidate:
     """One Newton step onto the KKT point of the rows ``active`` (default :func:`proposed_active_set`) held."""
     knots = model.knots
@@ -113,7 +111,6 @@ def candidate(model: "Model", cons: Constraints, it: "Iterate", x0: Tensor,
     gN = model.gN + _mv(model.GN, sol.dx[:, -1])
     # rows off at a knot keep a unit slack, as the initial iterate gives them
     s = torch.where(knots > 0, torch.clamp(-g, min=0.0), 1.0)
-    from .interior_point import Iterate  # here: that module imports this one
 
     point = Iterate(X=it.X + sol.dx, U=it.U + sol.du, s=s, sN=torch.clamp(-gN, min=0.0), z=y.clamp_min(0.0),
                     zN=yN.clamp_min(0.0), y=y, yN=yN, lam=sol.costate, nu=rows[..., :me], nuN=rowsN[..., :meN])

@@ -49,8 +49,8 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .compiled import matmul as _mm
-from .compiled import matvec as _mv
+from ..core.compiled import matmul as _mm
+from ..core.compiled import matvec as _mv
 
 
 def _mT(a: Tensor) -> Tensor:
@@ -73,7 +73,7 @@ class LQR:
     Shapes: ``A (B, N, nx, nx)``, ``B (B, N, nx, nu)``, ``Q (B, N, nx, nx)``, ``R (B, N, nu, nu)``,
     ``S (B, N, nu, nx)``, ``QN (B, nx, nx)``; optional equality constraints ``C (B, N, m, nx)``,
     ``D (B, N, m, nu)`` with row mask ``mask (B, N, m)``, and ``CN (B, mN, nx)`` with ``maskN (B, mN)``.
-    The square-root pass (:mod:`torchtraj.sqrt_riccati`) may be given square roots of the cost
+    The square-root pass (:mod:`torchtraj.riccati.square_root`) may be given square roots of the cost
     Hessians: rows ``root (B, N, r, nx+nu)`` with ``[[Q, Sᵀ], [S, R]] = rootᵀ root`` and
     ``rootN (B, rN, nx)`` with ``QN = rootNᵀ rootN``.
 
@@ -420,7 +420,7 @@ def _factored_solve(H: Tensor, L: Tensor, info: Tensor, b: Tensor) -> Tensor:
 
 
 def _mm_stacked(a: Tensor, b: Tensor) -> Tensor:
-    """``a @ b`` for the blocks stacked over ``(δx, δu)``: as :func:`torchtraj.compiled.matmul`, but written
+    """``a @ b`` for the blocks stacked over ``(δx, δu)``: as :func:`torchtraj.core.compiled.matmul`, but written
     as a broadcast sum when traced whatever the contraction ``nx + nu``, so that the congruence
     ``Eᵀ H E`` of :func:`factorize` stays in inductor's loops as its unstacked products did."""
     if torch.compiler.is_compiling():

@@ -31,7 +31,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .riccati import LQR, RiccatiFactor, _mT, _sanitize
+from . import LQR, RiccatiFactor, _mT, _sanitize
 
 
 def psd_root(H: Tensor) -> Tensor:

@@ -63,7 +63,7 @@ class Constraints:
     KKT conditions of a method that ignores them).
 
     Made on the host (the bounds' finite entries are read there), so outside CUDA graphs: a graphed kernel takes
-    them as an argument, and its graph makes them again from ``graph_rebuilt_from`` (:mod:`torchtraj.graphs`)."""
+    them as an argument, and its graph makes them again from ``graph_rebuilt_from`` (:mod:`torchtraj.core.graphs`)."""
 
     graph_rebuilt_from = ("problem", "ignored")
 
@@ -188,3 +188,33 @@ class Constraints:
     def split_ineq(self, values: Tensor) -> dict:
         """``{block: values[..., rows]}`` for a stage-inequality tensor ``(..., mi)``."""
         return {name: values[..., rows] for name, rows in self.ineq_blocks.items() if rows.stop > rows.start}
+
+
+def multiplier_blocks(constraints: Constraints, stage: Tensor, terminal: Tensor) -> dict:
+    """Stacked ``(B, N, mi + me)`` / ``(B, miN + meN)`` duals split into named blocks."""
+    c = constraints
+    out = {name: v for name, v in c.split_ineq(stage[..., :c.mi]).items()}
+    if c.me:
+        out["stage_eq"] = stage[..., c.mi:]
+    if c.miN:
+        out["terminal_ineq"] = terminal[..., :c.miN]
+    if c.meN:
+        out["terminal_eq"] = terminal[..., c.miN:]
+    return out
+
+
+def stack_blocks(constraints: Constraints, blocks: dict, fill: float, like: Tensor):
+    """Inverse of :func:`multiplier_blocks`: per-block tensors (missing ones filled) → stacked layout."""
+    c = constraints
+    B, N = like.shape[0], c.problem.N
+
+    def get(name, shape):
+        value = blocks.get(name)
+        if value is None:
+            return like.new_full(shape, fill)
+        return torch.as_tensor(value, dtype=like.dtype, device=like.device).expand(shape)
+
+    parts = [get(name, (B, N, rows.stop - rows.start)) for name, rows in c.ineq_blocks.items()]
+    stage = torch.cat(parts + [get("stage_eq", (B, N, c.me))], -1)
+    terminal = torch.cat([get("terminal_ineq", (B, c.miN)), get("terminal_eq", (B, c.meN))], -1)
+    return stage, terminal

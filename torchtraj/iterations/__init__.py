@@ -1,0 +1,1 @@
+"""Iterations shared by several solvers: one (AL-)iLQR iteration (:mod:`.ilqr`)."""

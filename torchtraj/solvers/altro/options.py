@@ -1,0 +1,40 @@
+"""Options of ALTRO (methods ``"altro"`` and ``"al-ilqr"``); defaults are Altro.jl's ``SolverOptions``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ...iterations.ilqr import ILQROptions
+from .projection import ProjectionOptions
+
+
+@dataclass
+class ALTROOptions:
+    """Options of :func:`solve_altro`; defaults are Altro.jl's ``SolverOptions``."""
+
+    #: Options of the inner iLQR (its ``iterations`` is unused: see ``iterations_inner``).
+    ilqr: ILQROptions = field(default_factory=ILQROptions)
+    #: The AL stage stops once the largest violation is below this (``constraint_tolerance``).
+    constraint_tolerance: float = 1e-6
+    #: Inner convergence on the cost change while the constraints are not met (``cost_tolerance_intermediate``),
+    cost_tolerance_intermediate: float = 1e-4
+    #: ... and once they are (``cost_tolerance``).
+    cost_tolerance: float = 1e-4
+    #: Initial penalty ``μ`` (``penalty_initial``), its scaling ``φ`` (``penalty_scaling``) and cap.
+    penalty_initial: float = 1.0
+    penalty_scaling: float = 10.0
+    penalty_max: float = 1e8
+    #: Multipliers are clipped to ``±dual_max``.
+    dual_max: float = 1e8
+    #: Outer (dual update) iterations and iLQR iterations per outer iteration.
+    iterations_outer: int = 30
+    iterations_inner: int = 300
+    #: Square-root backward pass (§III-A) instead of the standard one.
+    square_root: bool = False
+    #: Run the projection stage (``False`` gives plain AL-iLQR, method ``"al-ilqr"``).
+    projection: bool = True
+    projection_options: ProjectionOptions = field(default_factory=ProjectionOptions)
+    #: Cost ``½ R_s |s|²`` on the slack controls of an infeasible start (§III-B, eq. 32).
+    slack_cost: float = 1.0
+    #: Log one line per iteration through the ``torchtraj`` logger.
+    verbose: bool = False

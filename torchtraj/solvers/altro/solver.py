@@ -1,0 +1,53 @@
+r"""ALTRO for batches of constrained problems (papers/altro.md, Algorithm 4).
+
+1. **AL-iLQR** (§II-A, Algorithm 1): iLQR on the augmented Lagrangian
+   (:mod:`torchtraj.solvers.altro.augmented_lagrangian`) for fixed multipliers ``λ`` and penalties ``μ``; when an
+   instance's inner solve converges (or reaches ``iterations_inner``), and its largest violation is still
+   above ``constraint_tolerance``, its duals are updated by eqs. (17)-(18) and the inner solve goes on.
+   The outer and inner loops are flattened into one batched loop: every instance takes one iLQR
+   iteration per pass and is at its own place in its own outer loop, so a fast instance never waits for
+   a slow one's inner solve; instances that finished are frozen by masks.
+2. **Projection** (§III-D, :mod:`torchtraj.solvers.altro.projection`) of the coarse solution onto the active
+   constraints to ``projection.tolerance`` (1e-8). It also takes the instances whose inner solve converged
+   but which spent ``iterations_outer`` dual updates above ``constraint_tolerance``: at large penalties
+   iLQR's steps on the ill-conditioned augmented Lagrangian barely move the last violations, which is the
+   case the projection's Newton steps are made for (a minimum-time parallel park stalls at 2e-5). Such
+   an instance is ``CONVERGED`` if the projection meets its tolerance, ``MAX_ITERATIONS`` otherwise.
+
+Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem
+(:mod:`torchtraj.solvers.altro.infeasible`, :mod:`torchtraj.time_penalty`); the square-root backward pass (§III-A)
+is :func:`torchtraj.riccati.square_root.factorize_sqrt`, chosen by ``square_root=True``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+from torch import Tensor
+
+from ...core.batching import rollout
+from ...core.compiled import kernel
+from ...core.problem import Problem
+from ...core.solution import Solution
+from .infeasible import solve_infeasible
+from .options import ALTROOptions
+from .stages import al_stage, finish
+
+
+def solve_altro(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ALTROOptions] = None,
+                X0: Optional[Tensor] = None, method: str = "altro", duals: Optional[dict] = None) -> Solution:
+    """Solve ``problem`` from ``x0 (B, nx)``, ``U0 (B, N, nu)`` (and, for an infeasible start, states
+    ``X0 (B, N+1, nx)``) by ALTRO. ``params`` are the batched parameters; ``duals`` an optional warm
+    start of the multipliers and penalties (see :func:`torchtraj.solve`)."""
+    opts = options or ALTROOptions()
+    if X0 is not None:
+        return solve_infeasible(problem, x0, U0, X0, params, opts, method, duals)
+    X = kernel(rollout, opts.ilqr.compile)(problem.dynamics, x0, U0, params)
+    return run_altro(problem, x0, X, U0, params, opts, method, duals)
+
+
+def run_altro(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: ALTROOptions,
+              method: str, duals: Optional[dict] = None) -> Solution:
+    """The AL stage from a dynamically consistent ``(X, U)`` of ``problem``, then the projection."""
+    stage = al_stage(problem, x0, X, U, params, opts, method, duals)
+    return finish(stage, x0, params, opts, method)

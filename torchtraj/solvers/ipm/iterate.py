@@ -1,0 +1,54 @@
+"""The interior-point method's primal-dual iterate and its model (values and derivatives at the iterate)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+
+@dataclass
+class Iterate:
+    """Primal-dual point of the batch: states, controls, slacks ``s`` and multipliers ``z`` of the stage
+    ``(B, N, mi)`` and terminal ``(B, miN)`` inequalities, costates ``lam (B, N+1, nx)``, equality
+    multipliers ``nu (B, N, me)``, ``nuN (B, meN)``."""
+
+    X: Tensor
+    U: Tensor
+    s: Tensor
+    sN: Tensor
+    z: Tensor
+    zN: Tensor
+    y: Tensor
+    yN: Tensor
+    lam: Tensor
+    nu: Tensor
+    nuN: Tensor
+
+
+
+@dataclass
+class Model:
+    """Values and derivatives at an iterate (one expansion), and the measures of its optimality."""
+
+    J: Tensor  # (B,) objective
+    Lz: Tensor  # (B, N, nz) gradient of the stage Lagrangians (without -λ_k x_k)
+    Lzz: Tensor
+    LNx: Tensor
+    LNxx: Tensor
+    f: Tensor  # (B, N, nx) dynamics values; fz their Jacobians
+    fz: Tensor
+    g: Tensor  # (B, N, mi), Gz (B, N, mi, nz); masked rows are zero
+    Gz: Tensor
+    h: Tensor
+    Hz: Tensor
+    gN: Tensor
+    GN: Tensor
+    hN: Tensor
+    HN: Tensor
+    theta: Tensor  # (B,) ‖c‖₁
+    violation: Tensor  # (B,) largest violation of the problem's constraints and the dynamics
+    dual_error: Tensor  # (B,) scaled largest Lagrangian gradient entry
+    primal_error: Tensor  # (B,) largest residual of the barrier problem's constraints
+    finite: Tensor  # (B,)
+    knots: Tensor  # (N, mi): 1 where a stage inequality row applies

@@ -1,0 +1,112 @@
+"""Options of the interior-point method (method ``"ipm"``); defaults are IPOPT's (FATROP uses the same)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+
+@dataclass
+class IPOptions:
+    """Options of :func:`solve_interior_point`; defaults are IPOPT's (FATROP uses the same)."""
+
+    #: Converged when the unscaled-barrier error ``E_0`` is below this (``tol``); ``None``: 1e-8 in float64,
+    #: 1e-6 in float32 (the test is absolute: at 1e-5 the pendulum, whose multipliers are below 5e-4, stops
+    #: 1.6e-3 above its optimum in float32 and float64 alike; at 1e-6, 1.4e-4).
+    tolerance: Optional[float] = None
+    #: Maximum iterations (steps taken or attempted; ``max_iter``).
+    iterations: int = 1000
+    #: Initial barrier parameter ``μ_0`` (``mu_init``).
+    barrier_initial: float = 0.1
+    #: ``κ_μ`` and ``θ_μ`` of the barrier update (``mu_linear_decrease_factor``, ``mu_superlinear_decrease_power``).
+    barrier_decrease: float = 0.2
+    barrier_power: float = 1.5
+    #: The barrier problem is solved when ``E_μ ≤ κ_ε μ`` (``barrier_tol_factor``).
+    barrier_tolerance_factor: float = 10.0
+    #: ``τ_min`` of the fraction-to-boundary rule (``tau_min``).
+    fraction_to_boundary: float = 0.99
+    #: ``s_max`` of the error scaling (IPOPT eq. 5).
+    scaling_threshold: float = 100.0
+    #: Slack push from zero ``κ_1`` (``bound_push``) and initial inequality multipliers (``bound_mult_init_val``).
+    bound_push: float = 1e-2
+    dual_initial: float = 1.0
+    #: ``κ_Σ``: the multipliers stay within ``[μ/(κ_Σ s), κ_Σ μ/s]`` (``kappa_sigma``).
+    dual_safeguard: float = 1e10
+    #: Filter margins ``γ_θ``, ``γ_φ``, Armijo ``η_φ``, switching ``δ, s_θ, s_φ``, limits ``θ_max``, ``θ_min`` as
+    #: factors of ``max(1, θ_0)``.
+    filter_theta: float = 1e-5
+    filter_phi: float = 1e-8
+    armijo: float = 1e-8
+    switching: float = 1.0
+    switching_theta_power: float = 1.1
+    switching_phi_power: float = 2.3
+    theta_max_factor: float = 1e4
+    theta_min_factor: float = 1e-4
+    #: Entries kept per instance in the filter.
+    filter_size: int = 64
+    #: Backtracking factor, the number of step sizes tried and how many are evaluated together per round.
+    line_search_decrease: float = 0.5
+    line_search_steps: int = 20
+    line_search_parallel: int = 4
+    #: Inertia correction ``δ_w``: first value, bounds and factors (``first_hessian_perturbation``,
+    #: ``min/max_hessian_perturbation``, ``perturb_inc_fact_first``, ``perturb_inc_fact``, ``perturb_dec_fact``).
+    regularization_first: float = 1e-4
+    regularization_min: float = 1e-20
+    regularization_max: float = 1e40
+    regularization_increase_first: float = 100.0
+    regularization_increase: float = 8.0
+    regularization_decrease: float = 1.0 / 3.0
+    #: Factorisation attempts per iteration before the instance gives up.
+    regularization_attempts: int = 40
+    #: Divergence limit on ``|x|`` (``diverging_iterates_tol``: 1e20 in IPOPT; ``max_state`` of the other methods).
+    max_state: float = 1e8
+    #: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.core.compiled`).
+    compile: bool = False
+    #: On a GPU, replay the per-iteration kernels, the crossover's candidates and the implicit layer's Newton step
+    #: and adjoint solve from CUDA graphs (:mod:`torchtraj.core.graphs`); no effect on a CPU or with ``compile``.
+    cuda_graphs: bool = False
+    #: Once the running instances are at most this share of the batch being iterated, the next iterations run
+    #: on them alone (module docstring); ``0`` never. Off with ``compile`` and CUDA graphs, whose kernels are
+    #: specialised to the batch size.
+    compact_below: float = 0.75
+    #: ``"monotone"``: the Fiacco-McCormick update with the filter line search (IPOPT's and FATROP's default).
+    #: ``"mehrotra"``: Mehrotra's predictor-corrector (IPOPT's ``mehrotra_algorithm``: the probing barrier parameter,
+    #: the affine corrector, no line search, the steps to the boundary taken whole). For convex problems (linear
+    #: dynamics and constraints, convex costs), where it takes fewer iterations; without a globalisation, it may
+    #: fail on others. Not with ``compile`` or ``cuda_graphs``.
+    barrier_strategy: str = "monotone"
+    #: Of a linear-quadratic problem (``Problem.linear_quadratic``) with inequality rows: once an instance's KKT
+    #: error ``E_0`` is below ``crossover_from``, try at every iteration the exact solve with its proposed active set
+    #: held (:mod:`torchtraj.solvers.ipm.crossover`); where the result passes the convergence test the instance ends there, at
+    #: its KKT point to round-off.
+    crossover: bool = True
+    crossover_from: float = 1e-3
+    #: Active sets tried per crossover: the proposed one, then the primal-dual active-set updates of its result.
+    #: Each round solves one Newton system and counts as an iteration.
+    crossover_rounds: int = 2
+    #: Where every inequality row is a control bound: active sets tried before the first iteration, from none held
+    #: (the unconstrained optimum) — the primal-dual active-set method; the instances it settles never iterate.
+    #: ``0`` skips it.
+    crossover_start_rounds: int = 8
+    #: ``σ_max`` of the probing update (``sigma_max``), and the factor of the initial average complementarity that
+    #: bounds its ``μ`` (``mu_max_fact``).
+    mehrotra_sigma_max: float = 100.0
+    mehrotra_mu_max_factor: float = 1e3
+    #: Log one line per iteration through the ``torchtraj`` logger.
+    verbose: bool = False
+
+    def __post_init__(self):
+        if self.barrier_strategy not in ("monotone", "mehrotra"):
+            raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
+        if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:
+            raise ValueError(f"crossover_rounds and crossover_start_rounds must be >= 0, got {self.crossover_rounds} "
+                             f"and {self.crossover_start_rounds}")
+        if self.barrier_strategy == "mehrotra" and (self.compile or self.cuda_graphs):
+            raise ValueError("barrier_strategy='mehrotra' runs eager: set compile=False and cuda_graphs=False")
+
+    def tolerance_for(self, dtype: torch.dtype) -> float:
+        if self.tolerance is not None:
+            return self.tolerance
+        return 1e-8 if dtype == torch.float64 else 1e-6
