@@ -13,21 +13,26 @@ the vector environment truncates too; the registered ``max_episode_steps`` is th
 wrapper that ``gymnasium.make`` adds agrees with it. ``gymnasium.make(id, max_episode_steps=k)`` can only shorten
 episodes (its TimeLimit sits on top of the environment's own limit); to lengthen them, construct the class
 directly or pass ``max_episode_steps`` to ``make_vec``.
+
+Each task module is also the task as pure functions (:mod:`envs.core`): ``envs.pendulum.dynamics`` (the step the
+environment takes), ``envs.pendulum.reward`` (the reward it pays), ``envs.pendulum.problem(params, horizon)`` (the MPC
+controller's :class:`torchtraj.Problem`, built on the same functions), likewise for ``envs.cartpole`` and
+``envs.car``; ``env.problem(...)`` is the problem of an environment instance, single or vector.
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 
-from .car import CarEnv, CarVectorEnv
-from .cartpole import CartPoleSwingUpEnv, CartPoleSwingUpVectorEnv
-from .core import ModelEnv
-from .pendulum import PendulumEnv, PendulumVectorEnv
+from .car import CarEnv, CarParams, CarVectorEnv
+from .cartpole import CartPoleParams, CartPoleSwingUpEnv, CartPoleSwingUpVectorEnv
+from .core import ModelEnv, upright_error
+from .pendulum import PendulumEnv, PendulumParams, PendulumVectorEnv
 from .vector import ModelVectorEnv
 
 __all__ = [
-    "CarEnv", "CarVectorEnv", "CartPoleSwingUpEnv", "CartPoleSwingUpVectorEnv", "ModelEnv", "ModelVectorEnv",
-    "PendulumEnv", "PendulumVectorEnv", "IDS",
+    "CarEnv", "CarParams", "CarVectorEnv", "CartPoleParams", "CartPoleSwingUpEnv", "CartPoleSwingUpVectorEnv",
+    "ModelEnv", "ModelVectorEnv", "PendulumEnv", "PendulumParams", "PendulumVectorEnv", "IDS", "upright_error",
 ]
 
 MAX_EPISODE_STEPS = 200

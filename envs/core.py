@@ -9,6 +9,19 @@ A model-based controller that plans with ``env.model``, ``env.model_params`` and
 dynamics the environment steps, not with a copy that could drift from it. Quantities drawn at reset that stay fixed
 for the episode (the car's obstacles) form the episode's *layout*.
 
+Each task module (:mod:`envs.pendulum`, :mod:`envs.cartpole`, :mod:`envs.car`) is written as pure functions, in
+the manner of Gymnasium's ``phys2d`` environments, around a frozen dataclass of the task's parameters
+(``env.params``)::
+
+    dynamics(x, u, p) -> x_next                      the step F the environment takes (per instance)
+    reward(x, u, x_next, layout, params) -> r        the reward the environment pays
+    terminated(x_next, layout, params) -> bool       where the task ends episodes
+    problem(params, horizon, ...) -> Problem         the MPC controller's problem, built on ``dynamics``
+
+The functions broadcast over leading batch dimensions, so one definition serves a controller (one instance, no
+batch dimension, as torchtraj's per-instance functions are written) and the environments (``(B, nx)``): the class
+methods below call them. ``env.problem(...)`` is ``problem(env.params, ...)``.
+
 The task functions of a subclass (``_observe``, ``_reward``, ``_terminated``, ``_info``) take batch-first tensors
 ``x: (B, nx)``, ``u: (B, nu)``, layout ``{name: (B, ...)}``, so the native vector environment (:mod:`envs.vector`)
 runs the same definitions over all its sub-environments at once; a single environment calls them with ``B = 1``.
@@ -22,7 +35,7 @@ the state into NaN silently.
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Optional
+from typing import Any, Callable, Mapping, Optional
 
 import gymnasium as gym
 import numpy as np
@@ -30,15 +43,21 @@ import torch
 from gymnasium import spaces
 from torch import Tensor
 
+from torchtraj.core.problem import Problem
 from torchtraj.models import Model
 
 DTYPE = torch.float64
 Layout = Mapping[str, Tensor]
+StepFn = Callable[[Tensor, Tensor, Mapping[str, Tensor]], Tensor]
+
+# every environment here steps at 20 Hz: the cart-pole and car problems' dt (tf / N = 5 / 100), close to the
+# pendulum problem's 3 / 50, and one clock for all keeps render_fps a class constant
+DT = 0.05
 
 
-def wrap_angle(angle: Tensor) -> Tensor:
-    """``angle`` wrapped into ``[−π, π)``."""
-    return torch.remainder(angle + torch.pi, 2.0 * torch.pi) - torch.pi
+def upright_error(theta: Tensor) -> Tensor:
+    """``wrap(θ − π) ∈ [−π, π)``: the angle from upright of a pendulum that hangs at θ = 0 (any shape)."""
+    return torch.remainder(theta, 2.0 * torch.pi) - torch.pi
 
 
 def clip_actions(u: Tensor, low: Tensor, high: Tensor) -> Tensor:
@@ -59,19 +78,21 @@ class ModelEnv(gym.Env[np.ndarray, np.ndarray]):
         observation_size: length of the observation vector.
         max_episode_steps: steps after which an episode is truncated.
         render_mode: ``None`` or ``"rgb_array"``.
+        step: the per-instance step ``(x, u, p) -> x_next`` (the task module's ``dynamics``); by default
+            ``model.discrete(dt, "rk4")``.
 
-    Attributes a controller reads: ``model``, ``model_params`` (dict of 0-dim float64 tensors), ``dt``,
-    ``max_episode_steps``, ``state`` (``(nx,)`` float64 tensor), ``elapsed_steps``, and
-    :meth:`observation_to_state`.
+    Attributes a controller reads: ``params`` (the task's frozen parameter dataclass), ``model``,
+    ``model_params`` (dict of 0-dim float64 tensors), ``dt``, ``max_episode_steps``, ``state`` (``(nx,)``
+    float64 tensor), ``elapsed_steps``, :meth:`observation_to_state`, and :meth:`problem`, the controller's
+    :class:`torchtraj.Problem`.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
-    # every environment here steps at 20 Hz: the cart-pole and car problems' dt (tf / N = 5 / 100), close to the
-    # pendulum problem's 3 / 50, and one clock for all keeps render_fps a class constant
-    dt = 0.05
+    dt = DT
+    params: Any = None  # the task's frozen parameter dataclass, set by subclasses
 
     def __init__(self, model: Model, action_low, action_high, observation_size: int, max_episode_steps: int,
-                 render_mode: Optional[str] = None):
+                 render_mode: Optional[str] = None, step: Optional[StepFn] = None):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         if int(max_episode_steps) != max_episode_steps or max_episode_steps < 1:
@@ -80,7 +101,7 @@ class ModelEnv(gym.Env[np.ndarray, np.ndarray]):
         self.model_params = {k: v.to(DTYPE) for k, v in model.params.items()}
         self.max_episode_steps = int(max_episode_steps)
         self.render_mode = render_mode
-        self._step_fn = model.discrete(self.dt, "rk4")
+        self._step_fn = step if step is not None else model.discrete(self.dt, "rk4")
         low, high = np.asarray(action_low, np.float64), np.asarray(action_high, np.float64)
         self.action_space = spaces.Box(low, high, dtype=np.float64)
         self.observation_space = spaces.Box(-np.inf, np.inf, (observation_size,), dtype=np.float64)
@@ -126,6 +147,10 @@ class ModelEnv(gym.Env[np.ndarray, np.ndarray]):
         """The model state ``(..., nx)`` of observations ``(..., observation_size)``, numpy or torch, as given."""
         state = obs[..., : self.model.nx]
         return state.clone() if isinstance(state, Tensor) else np.array(state, dtype=np.float64)
+
+    def problem(self, **options) -> Problem:
+        """The controller's problem for this environment: the task module's ``problem(self.params, **options)``."""
+        raise NotImplementedError
 
     # ------------------------------------------------------------------ Gymnasium API
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict[str, Any]] = None):

@@ -29,6 +29,8 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from torch import Tensor
 
+from torchtraj.core.problem import Problem
+
 from .core import DTYPE, ModelEnv, clip_actions
 
 
@@ -43,8 +45,10 @@ class ModelVectorEnv(VectorEnv):
         render_mode: ``None`` or ``"rgb_array"`` (:meth:`render` returns one frame per sub-environment).
         **env_kwargs: the single environment's arguments (``max_episode_steps`` and the task's own).
 
-    Attributes a controller reads: ``model``, ``model_params`` (float64 tensors on ``device``), ``dt``,
-    ``max_episode_steps``, ``state`` ``(B, nx)``, ``elapsed_steps`` ``(B,)``, :meth:`observation_to_state`.
+    Attributes a controller reads: ``params`` (the task's parameters, shared by all sub-environments), ``model``,
+    ``model_params`` (float64 tensors on ``device``), ``dt``, ``max_episode_steps``, ``state`` ``(B, nx)``,
+    ``elapsed_steps`` ``(B,)``, :meth:`observation_to_state`, and :meth:`problem`, the controller's
+    :class:`torchtraj.Problem` (one instance; the controller batches it over the sub-environments).
     """
 
     env_class: type[ModelEnv] = ModelEnv
@@ -62,7 +66,7 @@ class ModelVectorEnv(VectorEnv):
         self.device = torch.device(device)
         self.array_type = array_type
         self.render_mode = render_mode
-        self.model, self.dt, self.max_episode_steps = env.model, env.dt, env.max_episode_steps
+        self.model, self.dt, self.max_episode_steps, self.params = env.model, env.dt, env.max_episode_steps, env.params
         self.model_params = {k: v.to(self.device) for k, v in env.model_params.items()}
         self.single_observation_space = env.observation_space
         self.single_action_space = env.action_space
@@ -92,6 +96,10 @@ class ModelVectorEnv(VectorEnv):
     def observation_to_state(self, obs):
         """The model states ``(..., nx)`` of observations ``(..., observation_size)``, numpy or torch."""
         return self.single_env.observation_to_state(obs)
+
+    def problem(self, **options) -> Problem:
+        """The controller's problem, the single environment's :meth:`~envs.core.ModelEnv.problem` (on the CPU)."""
+        return self.single_env.problem(**options)
 
     # ------------------------------------------------------------------ Gymnasium API
     def reset(self, *, seed: Union[int, Sequence[Optional[int]], None] = None, options: Optional[dict] = None):

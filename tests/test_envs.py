@@ -158,6 +158,37 @@ def test_dynamics_are_the_torchtraj_model(env_id):
     torch.testing.assert_close(venv.state, expected, rtol=0, atol=1e-12)
 
 
+MODULE_OF = {"torchtraj/Pendulum-v0": envs.pendulum, "torchtraj/CartPoleSwingUp-v0": envs.cartpole,
+             "torchtraj/Car-v0": envs.car}
+
+
+@pytest.mark.parametrize("env_id", envs.IDS)
+def test_controller_problem_is_built_on_the_environments_own_functions(env_id):
+    env, module = gym.make(env_id).unwrapped, MODULE_OF[env_id]
+    problem = env.problem(horizon=7)
+    assert problem.N == 7 and problem.dt == env.dt and problem.dynamics is module.dynamics
+    np.testing.assert_array_equal(problem.u_lower.numpy(), env.action_space.low)
+    np.testing.assert_array_equal(problem.u_upper.numpy(), env.action_space.high)
+    venv = gym.make_vec(env_id, num_envs=2)
+    assert venv.params == env.params and venv.problem(horizon=7).params.keys() == problem.params.keys()
+    obs, _ = env.reset(seed=2)
+    rng = np.random.default_rng(2)
+    layout = {"obstacles": env.obstacles} if env_id == "torchtraj/Car-v0" else {}
+    for _ in range(10):
+        x = env.state
+        u = torch.as_tensor(rng.uniform(env.action_space.low, env.action_space.high))
+        obs, reward, terminated, _, _ = env.step(u.numpy())
+        x_next = problem.dynamics(x, u, problem.params)  # the controller's prediction, exactly the step taken
+        assert torch.equal(x_next, env.state)
+        assert float(module.reward(x, u, x_next, layout, env.params)) == reward  # the reward the env pays
+        if env_id == "torchtraj/Pendulum-v0":  # the controller's stage cost is that reward, negated, over dt
+            assert float(problem.stage_cost(x, u, problem.params)) == -env.dt * reward
+        if terminated:
+            break
+    with pytest.raises(TypeError, match="params"):
+        module.problem(envs.PendulumParams() if env_id != "torchtraj/Pendulum-v0" else envs.CarParams())
+
+
 @pytest.mark.parametrize("env_id", envs.IDS)
 def test_render_draws_the_state(env_id):
     env = gym.make(env_id, render_mode="rgb_array")
