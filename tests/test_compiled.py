@@ -13,7 +13,6 @@ import torch
 
 import envs
 import torchtraj as tt
-from torchtraj.bench import mpc as bench
 
 pytest.importorskip("torch._inductor")
 pytestmark = pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
@@ -48,7 +47,7 @@ def test_compiled_altro_matches_eager_on_a_constrained_problem():
 
 def test_compiled_mpc_steps_match_eager():
     env = envs.PendulumEnv()
-    problem = bench.pendulum_problem(env, horizon=5)
+    problem = env.problem(horizon=5)
     eager, compiled = tt.MPC(problem, iterations=2), tt.MPC(problem, iterations=2, compile=True)
     assert compiled.options.ilqr.compile and not eager.options.ilqr.compile
     x = torch.tensor([[0.3, 2.0], [3.0, 0.2]], dtype=torch.float64)

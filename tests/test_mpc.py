@@ -22,7 +22,7 @@ from torchtraj.control.mpc import DEFAULT_ALTRO
 
 def pendulum_mpc(iterations=2, **kwargs):
     env = envs.PendulumEnv()
-    return tt.MPC(bench.pendulum_problem(env), "altro", iterations, **kwargs), env
+    return tt.MPC(env.problem(), "altro", iterations, **kwargs), env
 
 
 def step_options(iterations):
@@ -150,7 +150,7 @@ def test_ilqr_method_and_a_new_batch_size():
 
 
 def test_construction_errors_name_the_argument():
-    problem = bench.pendulum_problem(envs.PendulumEnv())
+    problem = envs.PendulumEnv().problem()
     with pytest.raises(ValueError, match="method"):
         tt.MPC(problem, "newton")
     with pytest.raises(ValueError, match="iterations"):

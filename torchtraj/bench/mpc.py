@@ -4,25 +4,18 @@ r"""MPC on the torchtraj environments: the controllers, their acceptance runs an
 of a run seeded ``s`` is the single environment seeded ``s + i``; a vector environment of B sub-environments plays
 them with one batched :class:`~torchtraj.MPC` call per step), and the time per control step at B = 1 and B = 64.
 
-Controllers (:func:`controller`), all ``method="altro"`` without projection, 3 iterations per control step, stage
-costs times ``dt``, and ``e = wrap(θ − π)`` the angle from upright (smooth except at hanging, so the cost pulls
-towards the nearer upright side and never counts a full turn as progress)::
+Controllers (:func:`controller`): each environment's own problem, ``envs.<task>.problem(env.params)`` (see the
+"Controller Problem" section of the environment's docstring: the pendulum's cost is its reward, negated; the
+cart-pole's and the car's are quadratics with the reward's optimum, the car's obstacles constraints), on the step
+the environment takes, solved by ``method="altro"`` without projection, 3 iterations per control step, warm-started
+from the previous step's shifted solution::
 
-    pendulum  N = 30 (1.5 s):  ℓ = dt (e² + 0.1 ω² + 0.001 τ²),   ℓ_N = e² + 0.1 ω²,   |τ| ≤ 3
-    cartpole  N = 40 (2 s):    ℓ = dt (x² + e² + 0.01 (ẋ² + θ̇² + F²)),   ℓ_N = x² + e² + 0.1 (ẋ² + θ̇²),
-                               |F| ≤ 3,   |x| ≤ 2 (the rail ends at 2.4)
-    car       N = 30 (1.5 s):  ℓ = dt (‖p − g‖² + 0.01 ‖u‖²),   ℓ_N = 10 ‖p − g‖²,   0 ≤ v ≤ 3,   |ω| ≤ 3,
-                               ‖p − c_i‖ ≥ r_i + 0.15 for each observed obstacle (a per-instance parameter);
-                               penalty_initial = 100
+    pendulum  N = 30 (1.5 s),  |τ| ≤ 3
+    cartpole  N = 40 (2 s),    |F| ≤ 3,   |x| ≤ 2 (the rail ends at 2.4)
+    car       N = 30 (1.5 s),  0 ≤ v ≤ 3,   |ω| ≤ 3,   ‖p − c_i‖ ≥ r_i + 0.15 for each observed obstacle
 
-The pendulum cost is the environment's own reward, negated. Terminal costs stand in for the rest of the episode,
-with no terminal equality (the receding horizon cannot always reach the goal within N steps). Measured choices:
-the cart-pole swings up in 4-6 s with ``ℓ_N`` of weight 1 (32 seeds); weight 3 takes 5-6.5 s, weight 10 takes
-6-7 s with the cart out to |x| ≈ 2.1, and horizons of 30 or 60 steps do worse than 40. Its rail is a state bound
-0.4 inside the rail, as the augmented Lagrangian meets a bound only approximately within 3 iterations. For the same
-reason the car's obstacles are inflated by 0.15 (with 0.05, 3 of 32 seeds clip an obstacle; with 0.15, none of
-192) and the penalties start at ``penalty_initial = 100`` (with ALTRO's default of 1, 17 of 64 seeds drive into an
-obstacle right ahead in the first steps from a cold start, before the multipliers have grown).
+The car's penalties start at ``penalty_initial = 100`` (:data:`TASK_OPTIONS`): with ALTRO's default of 1, 17 of
+64 seeds drive into an obstacle right ahead in the first steps from a cold start, before the multipliers have grown.
 
 Success of an episode (200 steps, 10 s):
 
@@ -40,88 +33,17 @@ from typing import Callable, Optional
 
 import numpy as np
 import torch
-from torch import Tensor
+
+import envs  # the environments and their controllers' problems; importing it registers the environments
+from envs.core import upright_error
 
 from ..control.mpc import DEFAULT_ALTRO, MPC
-from ..core.problem import Problem
 from . import profile
 
 IDS = {"pendulum": "torchtraj/Pendulum-v0", "cartpole": "torchtraj/CartPoleSwingUp-v0", "car": "torchtraj/Car-v0"}
 
-
-def upright_error(theta: Tensor) -> Tensor:
-    """``wrap(θ − π) ∈ [−π, π)``: the angle from upright of a pendulum that hangs at θ = 0."""
-    return torch.remainder(theta, 2.0 * torch.pi) - torch.pi
-
-
-def _bounds(env) -> tuple[Tensor, Tensor]:
-    space = env.single_action_space if hasattr(env, "single_action_space") else env.action_space
-    return torch.as_tensor(space.low, dtype=torch.float64), torch.as_tensor(space.high, dtype=torch.float64)
-
-
-# ---------------------------------------------------------------------------------------------- problems
-def pendulum_problem(env, horizon: int = 30) -> Problem:
-    """The pendulum controller's problem for a ``torchtraj/Pendulum-v0`` environment (module docstring)."""
-    dt = env.dt
-
-    def stage(x, u, p):
-        e = upright_error(x[0])
-        return dt * (e * e + 0.1 * x[1] * x[1] + 0.001 * u[0] * u[0])
-
-    def terminal(x, p):
-        e = upright_error(x[0])
-        return e * e + 0.1 * x[1] * x[1]
-
-    low, high = _bounds(env)
-    return Problem(dynamics=env.model.discrete(dt, "rk4"), stage_cost=stage, terminal_cost=terminal,
-                   x0=torch.zeros(2, dtype=torch.float64), horizon=horizon, nu=1, params=dict(env.model_params),
-                   u_lower=low, u_upper=high, dt=dt, name="pendulum_mpc")
-
-
-def cartpole_problem(env, horizon: int = 40, rail_margin: float = 0.4, terminal_weight: float = 1.0) -> Problem:
-    """The cart-pole controller's problem for a ``torchtraj/CartPoleSwingUp-v0`` environment (module docstring)."""
-    dt, limit, inf = env.dt, env.single_env.rail_limit if hasattr(env, "single_env") else env.rail_limit, np.inf
-
-    def stage(x, u, p):
-        e = upright_error(x[1])
-        return dt * (x[0] * x[0] + e * e + 0.01 * (x[2] * x[2] + x[3] * x[3] + u[0] * u[0]))
-
-    def terminal(x, p):
-        e = upright_error(x[1])
-        return terminal_weight * (x[0] * x[0] + e * e + 0.1 * (x[2] * x[2] + x[3] * x[3]))
-
-    low, high = _bounds(env)
-    box = torch.tensor([limit - rail_margin, inf, inf, inf], dtype=torch.float64)
-    return Problem(dynamics=env.model.discrete(dt, "rk4"), stage_cost=stage, terminal_cost=terminal,
-                   x0=torch.zeros(4, dtype=torch.float64), horizon=horizon, nu=1, params=dict(env.model_params),
-                   u_lower=low, u_upper=high, x_lower=-box, x_upper=box, dt=dt, name="cartpole_mpc")
-
-
-def car_problem(env, horizon: int = 30, margin: float = 0.15) -> Problem:
-    """The car controller's problem for a ``torchtraj/Car-v0`` environment (module docstring); its ``obstacles``
-    parameter ``(n, 3)`` is a placeholder far away, replaced per call by the observed layouts ``(B, n, 3)``."""
-    dt = env.dt
-    n = env.single_env.num_obstacles if hasattr(env, "single_env") else env.num_obstacles
-
-    def stage(x, u, p):
-        d = x[:2] - p["goal"]
-        return dt * ((d * d).sum() + 0.01 * (u * u).sum())
-
-    def terminal(x, p):
-        d = x[:2] - p["goal"]
-        return 10.0 * (d * d).sum()
-
-    def outside_obstacles(x, p):
-        c = p["obstacles"]
-        return (c[:, 2] + margin) ** 2 - (x[0] - c[:, 0]) ** 2 - (x[1] - c[:, 1]) ** 2
-
-    low, high = _bounds(env)
-    far = torch.tensor([1e3, 1e3, 0.1], dtype=torch.float64).expand(n, 3)
-    return Problem(dynamics=env.model.discrete(dt, "rk4"), stage_cost=stage, terminal_cost=terminal,
-                   x0=torch.zeros(3, dtype=torch.float64), horizon=horizon, nu=2,
-                   params={"goal": env.goal.to(torch.float64).cpu(), "obstacles": far},
-                   state_ineq=outside_obstacles if n else None, u_lower=low, u_upper=high,
-                   u_init=torch.tensor([1.0, 0.0], dtype=torch.float64), dt=dt, name="car_mpc")
+#: The problem builder of each task, ``problem(params, **options)``: the environment module's own.
+PROBLEMS = {"pendulum": envs.pendulum.problem, "cartpole": envs.cartpole.problem, "car": envs.car.problem}
 
 
 #: ALTRO options of each task's controller, on top of :data:`torchtraj.control.mpc.DEFAULT_ALTRO`.
@@ -131,15 +53,15 @@ TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0
 def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, problem_options=None,
                compile: bool = False, **options) -> MPC:
     """The :class:`~torchtraj.MPC` of ``task`` (``"pendulum"``, ``"cartpole"``, ``"car"``) for ``env``, a single or
-    vector environment of that task; ``problem_options`` go to the task's problem builder, ``compile`` to the
-    policy, ``options`` are :class:`~torchtraj.ALTROOptions` fields to change from :data:`TASK_OPTIONS`."""
-    build = {"pendulum": pendulum_problem, "cartpole": cartpole_problem, "car": car_problem}
-    if task not in build:
-        raise ValueError(f"unknown task {task!r}; known tasks are {sorted(build)}")
+    vector environment of that task; ``problem_options`` go to the task's problem builder (:data:`PROBLEMS`, called
+    with ``env.params``), ``compile`` to the policy, ``options`` are :class:`~torchtraj.ALTROOptions` fields to
+    change from :data:`TASK_OPTIONS`."""
+    if task not in PROBLEMS:
+        raise ValueError(f"unknown task {task!r}; known tasks are {sorted(PROBLEMS)}")
     problem_options = dict(problem_options or {})
     if horizon is not None:
         problem_options["horizon"] = horizon
-    problem = build[task](env, **problem_options)
+    problem = PROBLEMS[task](env.params, **problem_options)
     opts = dataclasses.replace(DEFAULT_ALTRO, **{**TASK_OPTIONS[task], **options})
     if task != "car":
         return MPC(problem, "altro", iterations, opts, compile=compile)
@@ -263,8 +185,6 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
     ``first_call_s`` is all of it."""
     import gymnasium as gym
 
-    import envs  # noqa: F401  (registers the environments)
-
     venv = gym.make_vec(IDS[task], num_envs=batch)
     mpc = controller(task, venv, horizon=horizon, iterations=iterations, compile=compile)
     obs, _ = venv.reset(seed=seed)
@@ -296,8 +216,6 @@ def acceptance(task: str, num_envs: int = 100, episodes_per_env: int = 1, seed: 
     MPC call per step; with one episode per environment, episode ``i`` is the single environment seeded
     ``seed + i``."""
     import gymnasium as gym
-
-    import envs  # noqa: F401  (registers the environments)
 
     venv = gym.make_vec(IDS[task], num_envs=num_envs)
     return run_episodes(venv, controller(task, venv, **controller_options), episodes_per_env, seed)
