@@ -3,11 +3,12 @@
 Run:  python examples/mpc_car.py [--seeds 4]      (saves mpc_car.png when matplotlib is installed)
 
 The environment is ``torchtraj/Car-v0``: each seed draws its own layout of four circles between the start and the
-goal (3, 3); the episode ends on reaching the goal (within 0.2) or on a collision. The controller
-(torchtraj.bench.mpc.car_problem) minimises the squared distance to the goal over a 1.5 s horizon (N = 30), ten
-times more at its end, with 0 ≤ v ≤ 3, |ω| ≤ 3 and every circle (inflated by 0.15) as constraints. The circles are
-a per-instance parameter read from each observation, so one batched ALTRO solve (3 iterations, warm-started)
-serves every layout. An episode succeeds when the car reaches the goal without a collision.
+goal (3, 3); the episode ends on reaching the goal (within 0.2) or on a collision. The controller's problem is
+the environment's own (``venv.problem()``, i.e. envs.car.problem, on the step the environment takes): it minimises
+the squared distance to the goal over a 1.5 s horizon (N = 30), ten times more at its end, with 0 ≤ v ≤ 3,
+|ω| ≤ 3 and every circle (inflated by 0.15) as constraints. The circles are a per-instance parameter read from
+each observation, so one batched ALTRO solve (3 iterations, warm-started) serves every layout. An episode
+succeeds when the car reaches the goal without a collision.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ import argparse
 import gymnasium as gym
 import numpy as np
 
-import envs  # noqa: F401  (registers the torchtraj environments)
-from torchtraj.bench import mpc as recipes
+import envs  # noqa: F401  (registers the torchtraj environments; each builds its controller's problem)
+from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
 
 
 def main(argv=None):
@@ -29,12 +30,12 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     venv = gym.make_vec("torchtraj/Car-v0", num_envs=args.seeds)
-    mpc = recipes.controller("car", venv)
+    mpc = bench.controller("car", venv)
     print(f"MPC: {mpc}")
-    run = recipes.run_episodes(venv, mpc, seed=args.seed)
+    run = bench.run_episodes(venv, mpc, seed=args.seed)
     wins = 0
     for episode in sorted(run.episodes, key=lambda e: e.env):
-        ok = recipes.car_success(episode)
+        ok = bench.car_success(episode)
         wins += ok
         print(f"seed {args.seed + episode.env}: return {episode.total:6.2f}  steps {len(episode.rewards):3d}  "
               f"collided: {bool(episode.infos['collided'].any())}  success: {ok}")
@@ -61,7 +62,7 @@ def _plot(run, goal, goal_radius, path):
         ax.add_patch(Circle(goal, goal_radius, color="tab:green", alpha=0.5))
         ax.plot(episode.observations[:, 0], episode.observations[:, 1], lw=1.5)
         ax.set(xlim=(-0.5, 3.7), ylim=(-0.5, 3.7), aspect="equal",
-               title=f"episode {episode.env}: {'reached' if recipes.car_success(episode) else 'failed'}")
+               title=f"episode {episode.env}: {'reached' if bench.car_success(episode) else 'failed'}")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     print(f"picture saved to {path}")

@@ -3,9 +3,10 @@
 Run:  python examples/mpc_cartpole.py [--seeds 4]      (saves mpc_cartpole.png when matplotlib is installed)
 
 The environment is ``torchtraj/CartPoleSwingUp-v0`` (|F| ≤ 3 N; the episode ends if the cart leaves the rail
-|x| ≤ 2.4), one sub-environment per seed. The controller (torchtraj.bench.mpc.cartpole_problem) minimises
-x² + wrap(θ − π)² + 0.01 (ẋ² + θ̇² + F²) over a 2 s horizon (N = 40) plus x² + wrap(θ − π)² + 0.1 (ẋ² + θ̇²) at
-its end, with the force bound and |x| ≤ 2 as constraints (ALTRO, 3 iterations per control step, warm-started). An
+|x| ≤ 2.4), one sub-environment per seed. The controller's problem is the environment's own (``venv.problem()``,
+i.e. envs.cartpole.problem, on the step the environment takes): it minimises x² + wrap(θ − π)² + 0.01 (ẋ² + θ̇² +
+F²) over a 2 s horizon (N = 40) plus x² + wrap(θ − π)² + 0.1 (ẋ² + θ̇²) at its end, with the force bound and
+|x| ≤ 2 as constraints (ALTRO, 3 iterations per control step, warm-started). An
 episode succeeds when the cart never leaves the rail and the pole is within 0.1 rad of upright at every step of the
 last 2.5 s of the 10 s episode.
 """
@@ -18,8 +19,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import envs  # noqa: F401  (registers the torchtraj environments)
-from torchtraj.bench import mpc as recipes
+import envs  # registers the torchtraj environments; each builds its controller's problem
+from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
 
 
 def main(argv=None):
@@ -30,12 +31,12 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     venv = gym.make_vec("torchtraj/CartPoleSwingUp-v0", num_envs=args.seeds)
-    mpc = recipes.controller("cartpole", venv)
+    mpc = bench.controller("cartpole", venv)
     print(f"MPC: {mpc}")
-    run = recipes.run_episodes(venv, mpc, seed=args.seed)
+    run = bench.run_episodes(venv, mpc, seed=args.seed)
     wins = 0
     for episode in sorted(run.episodes, key=lambda e: e.env):
-        ok = recipes.cartpole_success(episode)
+        ok = bench.cartpole_success(episode)
         wins += ok
         print(f"seed {args.seed + episode.env}: return {episode.total:7.2f}  largest |x| "
               f"{np.abs(episode.observations[:, 0]).max():.2f}  success: {ok}")
@@ -56,7 +57,7 @@ def _plot(run, dt, rail, path):
     ax = fig.subplots(1, 2)
     for episode in sorted(run.episodes, key=lambda e: e.env):
         t = np.arange(len(episode.observations)) * dt
-        error = recipes.upright_error(torch.as_tensor(episode.observations[:, 1])).abs()
+        error = envs.upright_error(torch.as_tensor(episode.observations[:, 1])).abs()
         ax[0].plot(t, error, lw=1, label=f"episode {episode.env}")
         ax[1].plot(t, episode.observations[:, 0], lw=1)
     for limit in (-rail, rail):

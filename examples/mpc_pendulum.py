@@ -3,10 +3,11 @@
 Run:  python examples/mpc_pendulum.py [--seeds 4]      (saves mpc_pendulum.png when matplotlib is installed)
 
 The environment is ``torchtraj/Pendulum-v0`` (|τ| ≤ 3 < m g l, so the pendulum must be pumped up), as a vector
-environment of one sub-environment per seed. The controller (torchtraj.bench.mpc.pendulum_problem) minimises the
-environment's own cost, wrap(θ − π)² + 0.1 ω² + 0.001 τ², over a 1.5 s horizon (N = 30) with ALTRO, 3 iterations
-per control step, warm-started from the previous step's shifted solution. An episode succeeds when the pendulum is
-within 0.1 rad of upright at every step of its second half (5 s to 10 s).
+environment of one sub-environment per seed. The controller's problem is the environment's own (``venv.problem()``,
+i.e. envs.pendulum.problem): the step the environment takes, and its reward negated, wrap(θ − π)² + 0.1 ω² +
+0.001 τ², over a 1.5 s horizon (N = 30), solved with ALTRO, 3 iterations per control step, warm-started from the
+previous step's shifted solution. An episode succeeds when the pendulum is within 0.1 rad of upright at every step
+of its second half (5 s to 10 s).
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import envs  # noqa: F401  (registers the torchtraj environments)
-from torchtraj.bench import mpc as recipes
+import envs  # registers the torchtraj environments; each builds its controller's problem
+from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
 
 PLAN_STEPS = (0, 15, 30)  # control steps whose predicted trajectories are drawn
 
@@ -31,7 +32,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     venv = gym.make_vec("torchtraj/Pendulum-v0", num_envs=args.seeds)
-    mpc = recipes.controller("pendulum", venv)
+    mpc = bench.controller("pendulum", venv)
     print(f"MPC: {mpc}")
     plans = {}
 
@@ -39,10 +40,10 @@ def main(argv=None):
         if t - 1 in PLAN_STEPS:
             plans[t - 1] = mpc.X[0, :, 0].clone()
 
-    run = recipes.run_episodes(venv, mpc, seed=args.seed, on_step=keep_plan)
+    run = bench.run_episodes(venv, mpc, seed=args.seed, on_step=keep_plan)
     wins = 0
     for episode in sorted(run.episodes, key=lambda e: e.env):
-        ok = recipes.pendulum_success(episode)
+        ok = bench.pendulum_success(episode)
         wins += ok
         print(f"seed {args.seed + episode.env}: return {episode.total:8.2f}  success: {ok}")
     print(f"success in {wins} of {len(run.episodes)} episodes; {1e3 * np.median(run.step_seconds):.0f} ms per "
@@ -62,13 +63,13 @@ def _plot(run, plans, dt, path):
     ax = fig.subplots(1, 2)
     for episode in sorted(run.episodes, key=lambda e: e.env):
         t = np.arange(len(episode.observations)) * dt
-        error = recipes.upright_error(torch.as_tensor(episode.observations[:, 0])).abs()
+        error = envs.upright_error(torch.as_tensor(episode.observations[:, 0])).abs()
         ax[0].plot(t, error, lw=1, label=f"episode {episode.env}")
         ax[1].plot(t, episode.observations[:, 1], lw=1)
     for step, theta in plans.items():  # episode 0's predictions, 1.5 s ahead
         t = (step + np.arange(len(theta))) * dt
         label = "predicted (episode 0)" if step == 0 else None
-        ax[0].plot(t, recipes.upright_error(theta).abs(), "k--", lw=0.8, label=label)
+        ax[0].plot(t, envs.upright_error(theta).abs(), "k--", lw=0.8, label=label)
     ax[0].set(xlabel="time [s]", ylabel="|wrap(θ − π)| [rad]", title="angle from upright (π: hanging)")
     ax[0].legend(fontsize=7, loc="upper right")
     ax[1].set(xlabel="time [s]", ylabel="ω [rad/s]", title="angular velocity")
