@@ -15,7 +15,7 @@ the manner of Gymnasium's ``phys2d`` environments, around a frozen dataclass of 
 
     dynamics(x, u, p) -> x_next                      the step F the environment takes (per instance)
     reward(x, u, x_next, layout, params) -> r        the reward the environment pays
-    terminated(x_next, layout, params) -> bool       where the task ends episodes
+    terminated(x_next, layout, params) -> bool       where the task ends episodes (cart-pole, car)
     problem(params, horizon, ...) -> Problem         the MPC controller's problem, built on ``dynamics``
 
 The functions broadcast over leading batch dimensions, so one definition serves a controller (one instance, no
