@@ -114,7 +114,7 @@ def test_the_masked_crossover_of_cuda_graphs_gives_the_gathered_answers(monkeypa
     instance in the batch, the others reach KKT points to round-off, with the statuses, iteration counts and
     answers of the gathered crossover; with one start round, most instances iterate and cross over later,
     a few at a time."""
-    from torchtraj.solvers.ipm import solver as interior_point
+    from torchtraj.solvers.ipm import kernels as interior_point
 
     problem = double_integrator()
     x0 = torch.cat([_starts(), torch.tensor([[float("nan"), 0.0]], dtype=F64)])

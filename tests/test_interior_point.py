@@ -373,7 +373,7 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
     """Declared ``linear_quadratic``, the IPM takes the torch.func expansion once, at each instance's first stage,
     and its derivatives by products after that; its iterates, multipliers and implicit gradients are those of the
     plain IPM, which expands at every stage of every iterate."""
-    from torchtraj.solvers.ipm import solver as interior_point
+    from torchtraj.solvers.ipm import expansion as interior_point
 
     calls = []
 
@@ -466,7 +466,7 @@ def test_cuda_graphs_replay_the_eager_solve(case):
     from torchtraj.core.graphs import _GRAPHED, graphed
     from torchtraj.differentiation import implicit
     from torchtraj.solvers.ipm import crossover
-    from torchtraj.solvers.ipm.solver import direction
+    from torchtraj.solvers.ipm.newton import direction
 
     changes = dict(general={}, declared=dict(linear_quadratic=True),
                    bounds=dict(linear_quadratic=True, state_ineq=None))[case]

@@ -11,7 +11,8 @@ Each iteration, for every instance still running:
    ``u_k = U_k + α d_k + K_k (x_k − X_k)`` for every ``α ∈ {1, β, β², …}`` are simulated
    *together* (one batched rollout), and each instance takes the largest ``α`` whose ratio
    ``z = (J − J(α)) / (−ΔV(α))`` lies in ``[z_lo, z_hi]``. If none does, ``ρ`` is raised.
-4. ``ρ`` follows the schedule of Tassa et al. used by ALTRO: on success
+4. ``ρ`` follows the schedule of Tassa et al. used by ALTRO
+   (:func:`~torchtraj.globalization.regularization.rho_schedule`): on success
    ``δ ← min(δ/φ, 1/φ), ρ ← ρ δ`` (set to 0 below ``ρ_min``); on failure
    ``δ ← max(δ φ, φ), ρ ← max(ρ δ, ρ_min)``.
 
@@ -32,9 +33,11 @@ from torch import Tensor
 
 from ..core.batching import closed_loop_rollout
 from ..core.compiled import kernel
-from ..core.masks import first_true, where_rows
+from ..core.masks import where_rows
 from ..core.problem import Problem
 from ..core.status import Status
+from ..globalization.line_search import Accepted, backtrack
+from ..globalization.regularization import rho_schedule
 from ..kkt.model import cost_model, total_cost
 from ..riccati import factorize
 
@@ -81,18 +84,6 @@ class ILQROptions:
     verbose: bool = False
 
 
-def _update_regularization(rho, drho, success, opts: ILQROptions):
-    phi = opts.regularization_increase
-    # decrease on success
-    d_dec = torch.clamp(drho / phi, max=1.0 / phi)
-    r_dec = rho * d_dec
-    r_dec = torch.where(r_dec > opts.regularization_min, r_dec, torch.zeros_like(r_dec))
-    # increase on failure
-    d_inc = torch.clamp(drho * phi, min=phi)
-    r_inc = torch.clamp(rho * d_inc, min=opts.regularization_min)
-    return torch.where(success, r_dec, r_inc), torch.where(success, d_dec, d_inc)
-
-
 def _scaled_step(d: Tensor, U: Tensor) -> Tensor:
     """ALTRO's gradient measure ``mean_k max_i |d_ki| / (|u_ki| + 1)``: ``(B,)``."""
     return (d.abs() / (U.abs() + 1.0)).amax(-1).mean(-1)
@@ -111,17 +102,14 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
 
     The candidates ``α = β^j`` are simulated in rounds of ``opts.line_search_parallel`` step sizes,
     all instances and step sizes of a round in one batched rollout; a new round starts only if some
-    running instance has not yet found an acceptable step.
+    running instance has not yet found an acceptable step (:func:`~torchtraj.globalization.line_search.backtrack`).
     """
     B = U.shape[0]
     L = opts.line_search_steps
     per_round = opts.line_search_parallel or max(1, min(L, 8192 // max(B, 1)))
     all_alphas = opts.line_search_decrease ** torch.arange(L, dtype=X.dtype, device=X.device)
-    rows = torch.arange(B, device=X.device)
-    found = torch.zeros(B, dtype=torch.bool, device=X.device)
-    Xa, Ua, Ja, alpha = X, U, J, torch.zeros_like(J)
-    for start in range(0, L, per_round):
-        alphas = all_alphas[start:start + per_round]
+
+    def ratio_test(alphas):  # the step is accepted where the actual decrease is a fair share of the predicted one
         Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
         Jc = objective.value(Xc, Uc, params)  # (B, l)
         expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
@@ -129,14 +117,14 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
         accept = (torch.isfinite(Jc) & bounded & (expected > 0)
                   & (ratio > opts.line_search_lower) & (ratio < opts.line_search_upper))
-        idx = first_true(accept)  # first (largest) accepted step of the round
-        new = accept.any(1) & ~found
-        Xa, Ua = where_rows(new, Xc[rows, idx], Xa), where_rows(new, Uc[rows, idx], Ua)
-        Ja, alpha = torch.where(new, Jc[rows, idx], Ja), torch.where(new, alphas[idx], alpha)
-        found = found | new
-        if start + per_round < L and bool((found | ~active).all()):
-            break
-    return Xa, Ua, Ja, alpha, found
+        return accept, (Xc, Uc, Jc)
+
+    # no host synchronisation before the first round: a compiled iteration stays one graph while it takes one round
+    start = Accepted(found=torch.zeros(B, dtype=torch.bool, device=X.device), alpha=torch.zeros_like(J),
+                     values=(X, U, J))
+    step = backtrack(all_alphas, per_round, ratio_test, active, start)
+    Xa, Ua, Ja = step.values
+    return Xa, Ua, Ja, step.alpha, step.found
 
 
 class CostObjective:
@@ -207,7 +195,8 @@ def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts:
     dJ = J - Jn
     grad = _scaled_step(k, U)
     X, U, J = where_rows(take, Xn, X), where_rows(take, Un, U), torch.where(take, Jn, J)
-    rho_new, drho_new = _update_regularization(rho, drho, success | stationary, opts)
+    rho_new, drho_new = rho_schedule(rho, drho, success | stationary, opts.regularization_increase,
+                                     opts.regularization_min)
     rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)
     converged = active & ok & (stationary | (take & (dJ.abs() < cost_tolerance) & (grad < opts.gradient_tolerance)))
     blown = active & ~converged & (rho > opts.regularization_max)

@@ -1,0 +1,64 @@
+r"""One batched backtracking driver for every line search of the library.
+
+A backtracking line search tries the step sizes ``α_0 > α_1 > …`` (``α_max β^j``) and takes, per instance, the
+first one its acceptance test passes. On a batch the candidates are evaluated together: the step sizes are cut
+into rounds of ``per_round``, and one call of the caller's ``evaluate`` simulates every instance at every step
+size of a round (a batched rollout for iLQR, a batched evaluation of the multiple-shooting point for the IPM). A
+further round is evaluated only while an instance that is ``pending`` has found no acceptable step: that question
+is the one host synchronisation per round (``bool(...any())``); the full step is usually accepted in the first
+round. The acceptance test stays with the caller (iLQR's ratio of actual to expected decrease, ALTRO §II-A; the
+IPM's filter, Wächter & Biegler 2006 §2.3; ALTRO's projection's decrease of the violation, Algorithm 3), as do the
+values it keeps of the accepted candidate.
+
+A single round of all the step sizes (``per_round = L``) makes no host synchronisation at all: that is how a
+compiled kernel keeps one graph, and how ALTRO's projection evaluates its ``α ∈ {1, γ, γ², …}`` with
+``accept = v(α) < v``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from ..core.masks import first_true, where_rows
+
+
+@dataclass
+class Accepted:
+    """Per instance: whether a step was accepted, ``found (B,)``; its size, ``alpha (B,)``; and the caller's values
+    of the accepted candidate, ``values`` (a tuple of batch-first tensors). Given to :func:`backtrack` as its start,
+    the values an instance keeps where it accepts no step (and ``found`` the instances that need none)."""
+
+    found: Tensor
+    alpha: Tensor
+    values: tuple = ()
+
+
+def backtrack(steps: Tensor, per_round: int, evaluate: Callable[[Tensor], tuple], pending: Tensor, start: Accepted,
+              sync_first: bool = False) -> Accepted:
+    """The first accepted of the step sizes ``steps`` (``(L,)``, shared by the batch, or ``(B, L)``) per instance.
+
+    ``evaluate(alphas)`` takes a round's step sizes (``steps[..., j:j + per_round]``, ``(l,)`` or ``(B, l)``) and
+    returns ``(accept (B, l), values)``, ``values`` a tuple of ``(B, l, ...)`` per-candidate tensors matching
+    ``start.values``. A round is evaluated only while some instance of ``pending (B,)`` has found no step; before
+    the first round that is asked only with ``sync_first`` (a compiled caller that wants one graph leaves it off).
+    An instance already ``found`` at the start keeps its start; the others take their first accepted candidate of
+    the first round that has one (the largest step there). Returns the :class:`Accepted` steps."""
+    L = steps.shape[-1]
+    shared = steps.dim() == 1
+    rows = torch.arange(pending.shape[0], device=steps.device)
+    found, alpha, values = start.found, start.alpha, start.values
+    for first in range(0, L, per_round):
+        if (first > 0 or sync_first) and not bool((pending & ~found).any()):
+            break
+        alphas = steps[..., first:first + per_round].contiguous()  # a kernel sees the strides of a fresh tensor
+        accept, candidates = evaluate(alphas)
+        idx = first_true(accept)  # the first (largest) accepted step of the round
+        new = accept.any(1) & ~found
+        values = tuple(where_rows(new, c[rows, idx], v) for c, v in zip(candidates, values))
+        alpha = torch.where(new, alphas[idx] if shared else alphas[rows, idx], alpha)
+        found = found | new
+    return Accepted(found, alpha, values)

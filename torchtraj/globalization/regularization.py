@@ -1,0 +1,47 @@
+r"""Regularisation schedules: how much is added to a Hessian whose factorisation failed or whose step was refused.
+
+**ALTRO's ρ schedule** (Tassa, Erez & Todorov 2012, "improved regularization", as Altro.jl uses it for its
+backward pass, ALTRO §II-A eq. 13): ``ρ I`` is added to ``Q_uu`` and moves with a multiplicative speed ``δ`` and
+the factor ``φ > 1``:
+
+.. math::
+
+    \text{success: } δ ← \min(δ/φ,\ 1/φ),\; ρ ← ρ δ \ (0 \text{ below } ρ_{min}); \qquad
+    \text{failure: } δ ← \max(δ φ,\ φ),\; ρ ← \max(ρ δ,\ ρ_{min}).
+
+**IPOPT's inertia correction** (Wächter & Biegler 2006 §3.1, Algorithm IC; FATROP §III "Hessian regularization"):
+when the reduced Hessians are not positive definite, the primal regularisation ``δ_w`` of the next attempt is
+``δ_w^0`` where no earlier iterate needed one (``δ_w^{last} = 0``), else ``max(δ_w^{min}, κ_w^- δ_w^{last})``; each
+further attempt multiplies it by ``κ̄_w^+`` (no ``δ_w^{last}``) or ``κ_w^+``.
+
+Both act on the batch: ``(B,)`` tensors in and out, one element's schedule independent of the others'.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def rho_schedule(rho: Tensor, drho: Tensor, success: Tensor, increase: float, minimum: float) -> tuple:
+    """ALTRO's next ``(ρ, δ)`` (``(B,)`` each) after a ``success (B,)`` or a failure, with ``φ = increase`` and
+    ``ρ_min = minimum``."""
+    phi = increase
+    # decrease on success
+    d_dec = torch.clamp(drho / phi, max=1.0 / phi)
+    r_dec = rho * d_dec
+    r_dec = torch.where(r_dec > minimum, r_dec, torch.zeros_like(r_dec))
+    # increase on failure
+    d_inc = torch.clamp(drho * phi, min=phi)
+    r_inc = torch.clamp(rho * d_inc, min=minimum)
+    return torch.where(success, r_dec, r_inc), torch.where(success, d_dec, d_inc)
+
+
+def inertia_correction(delta: Tensor, last: Tensor, first: float, minimum: float, decrease: float,
+                       increase_first: float, increase: float) -> Tensor:
+    """IPOPT's ``δ_w`` ``(B,)`` of the attempt after a failed factorisation with ``delta (B,)``: ``last (B,)`` is the
+    last nonzero ``δ_w`` that gave a positive definite system (0: none yet); ``first`` ``δ_w^0``, ``minimum``
+    ``δ_w^{min}``, ``decrease`` ``κ_w^-``, ``increase_first`` ``κ̄_w^+``, ``increase`` ``κ_w^+``."""
+    start = torch.where(last == 0, torch.full_like(delta, first), torch.clamp(decrease * last, min=minimum))
+    grow = torch.where(last == 0, increase_first, increase) * delta
+    return torch.where(delta == 0, start, grow)

@@ -1,0 +1,26 @@
+"""How the interior-point method runs its per-iteration kernels: eager, compiled, or replayed from CUDA graphs.
+
+Every module of the IPM asks here, and only here, whether CUDA graphs are used (the crossover masks rows instead
+of gathering them, finished instances stay in the batch): one answer for the whole solve, and one place to force
+it (the tests force the masked crossover on a CPU by replacing :func:`graphs_used` in this module).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ...core.compiled import kernel
+from ...core.graphs import graphed, graphs_used
+from .options import IPOptions
+
+
+def uses_graphs(opts: IPOptions, device: torch.device) -> bool:
+    """Whether the solve replays CUDA graphs (:func:`~torchtraj.core.graphs.graphs_used`)."""
+    return graphs_used(opts, device)
+
+
+def kernel_of(fn, opts: IPOptions, device: torch.device):
+    """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (:func:`uses_graphs`), or itself."""
+    if uses_graphs(opts, device):
+        return graphed(fn)
+    return kernel(fn, opts.compile)

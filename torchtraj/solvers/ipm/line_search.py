@@ -1,0 +1,176 @@
+r"""The interior-point method's filter line search (Wächter & Biegler 2006 §2.3-2.4, FATROP §III).
+
+**Fraction to boundary**: ``τ = max(τ_min, 1 − μ)``; ``s`` and ``z`` keep a fraction ``1 − τ`` of their distance
+to zero: the largest primal step ``α_max`` and, for ``z``, its own step ``α_z``. After the step ``z`` is clipped to
+``[μ/(κ_Σ s), κ_Σ μ/s]``.
+
+**Filter line search** on the constraint violation ``θ = ‖c‖₁`` and the barrier objective
+``φ = J − μ Σ log s``, over the step sizes ``α_max β^j``: a trial point is acceptable to the
+:class:`~torchtraj.globalization.filter.Filter` and below ``θ_max``; under the switching condition
+
+.. math::  ∇φ^T Δ < 0 \quad\text{and}\quad α (−∇φ^T Δ)^{s_φ} > δ\, θ^{s_θ}
+
+with ``θ ≤ θ_min`` it is an f-type step and must meet the Armijo condition ``φ(α) ≤ φ + η_φ α ∇φ^T Δ``; otherwise
+it must decrease ``θ`` or ``φ`` sufficiently, ``θ(α) ≤ (1 − γ_θ) θ`` or ``φ(α) ≤ φ − γ_φ θ``, and the filter is
+augmented with ``((1 − γ_θ) θ, φ − γ_φ θ)`` after the step. The step sizes are evaluated in rounds of
+``line_search_parallel``, every instance and step size of a round in one batched evaluation (multiple shooting
+needs no rollout) by the shared driver :func:`~torchtraj.globalization.line_search.backtrack`; the full step is
+usually accepted in the first round. A step below round-off (IPOPT's tiny step) is taken whole, with no filter
+entry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ...core.batching import map_stage
+from ...core.compiled import matvec as _mv
+from ...core.constraints import Constraints
+from ...core.problem import Problem
+from ...globalization.filter import Filter
+from ...globalization.line_search import Accepted, backtrack
+from ...kkt.model import total_cost
+from .expansion import constraint_parts
+from .iterate import Iterate, Model
+from .kernels import kernel_of
+from .newton import Direction
+from .options import IPOptions
+
+
+def _max_step(value: Tensor, step: Tensor, tau: Tensor) -> Tensor:
+    """Largest ``α ≤ 1`` with ``value + α step ≥ (1 − τ) value`` (fraction to boundary), ``(B,)``."""
+    ratio = torch.where(step < 0, -tau.unsqueeze(-1) * value / torch.where(step < 0, step, -1.0), 1.0)
+    return torch.cat([ratio, ratio.new_ones(ratio.shape[0], 1)], -1).amin(-1)
+
+
+def _log_barrier(s: Tensor, sN: Tensor, knots: Tensor) -> Tensor:
+    """``Σ log s`` over the rows that apply: ``(B, *E)``."""
+    stage = torch.where(knots > 0, torch.log(s), 0.0).flatten(-2).sum(-1)
+    return stage + torch.log(sN).sum(-1)
+
+
+def _cost_directional(model: Model, it: Iterate, d: Direction) -> Tensor:
+    """``∇J · Δw`` from the Lagrangian gradient, without a further derivative: ``(B,)``."""
+    dw = torch.cat([d.dX[:, :-1], d.dU], -1)
+    stage = (model.Lz * dw).sum(-1) - (it.lam[:, 1:] * _mv(model.fz, dw)).sum(-1) \
+        - (it.nu * _mv(model.Hz, dw)).sum(-1) - (it.y * _mv(model.Gz, dw)).sum(-1)
+    dxN = d.dX[:, -1]
+    terminal = (model.LNx * dxN).sum(-1) - (it.nuN * _mv(model.HN, dxN)).sum(-1) - (it.yN * _mv(model.GN, dxN)).sum(-1)
+    return stage.sum(-1) + terminal
+
+
+def step_and_round_off(it: Iterate, d: Direction) -> tuple:
+    """``(|Δw|∞, 10 ε (1 + |w|∞))``, ``(B,)`` each, of the primal step ``Δw = (ΔX, ΔU)``: a step below the second
+    is at round-off (IPOPT's tiny step)."""
+    scale = 1.0 + torch.cat([it.X.flatten(1), it.U.flatten(1)], -1).abs().amax(-1)
+    size = torch.cat([d.dX.flatten(1), d.dU.flatten(1)], -1).abs().amax(-1)
+    return size, 10 * torch.finfo(it.X.dtype).eps * scale
+
+
+def fraction_to_boundary(it: Iterate, d: Direction, tau: Tensor) -> tuple:
+    """The largest primal and dual steps ``(B,)`` that keep ``s`` and ``z`` at least ``1 − τ`` of their distance to zero."""
+    a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
+    a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
+    return a_max, a_dual
+
+
+def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):
+    """At the current iterate, for the line search (``(B,)`` each): the largest primal and dual steps of the
+    fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``, the barrier objective ``φ`` and its slope ``∇φ · Δ``."""
+    a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
+    knots = model.knots
+    phi = model.J - mu * _log_barrier(it.s, it.sN, knots)
+    barrier_slope = torch.where(knots > 0, d.ds / it.s, 0.0).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
+    slope = _cost_directional(model, it, d) - mu * barrier_slope
+    return a_max, a_dual, phi, slope
+
+
+def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
+          phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, alphas: Tensor,
+          opts: IPOptions):
+    """The filter tests (module docstring) at the step sizes ``alphas (B, l)``, all evaluated at once, from the
+    current barrier objective ``phi`` and its slope ``slope`` (:func:`step_measures`).
+
+    Returns ``accept (B, l)`` and ``f_type (B, l)``: the step is an f-type step that met the Armijo condition
+    (no filter entry is added for those)."""
+    B, L = alphas.shape
+    knots = model.knots
+    a4 = alphas.reshape(B, L, 1, 1)
+    Xc = it.X.unsqueeze(1) + a4 * d.dX.unsqueeze(1)
+    Uc = it.U.unsqueeze(1) + a4 * d.dU.unsqueeze(1)
+    sc = it.s.unsqueeze(1) + a4 * d.ds.unsqueeze(1)
+    sNc = it.sN.unsqueeze(1) + alphas.unsqueeze(-1) * d.dsN.unsqueeze(1)
+    Jc = total_cost(problem, Xc, Uc, params)
+    defects = map_stage(problem.dynamics, Xc[..., :-1, :], Uc, params) - Xc[..., 1:, :]
+    rows = constraint_parts(cons, Xc, Uc, params, jacobians=False)
+    parts = (defects, rows.h, rows.hN, (rows.g + sc) * knots, rows.gN + sNc)
+    theta_c = torch.cat([p.reshape(B, L, -1).abs() for p in parts], -1).sum(-1)
+    phi_c = Jc - mu.unsqueeze(1) * _log_barrier(sc, sNc, knots)
+    theta, phi, slope = model.theta.unsqueeze(1), phi.unsqueeze(1), slope.unsqueeze(1)
+    switching = (slope < 0) & (alphas * (-slope).clamp_min(0) ** opts.switching_phi_power
+                               > opts.switching * theta ** opts.switching_theta_power)
+    f_type = switching & (theta <= theta_min.unsqueeze(1))
+    armijo = phi_c <= phi + opts.armijo * alphas * slope
+    decrease = (theta_c <= (1.0 - opts.filter_theta) * theta) | (phi_c <= phi - opts.filter_phi * theta)
+    finite = torch.isfinite(theta_c) & torch.isfinite(phi_c)
+    accept = finite & (theta_c <= theta_max.unsqueeze(1)) & filt.acceptable(theta_c, phi_c) \
+        & torch.where(f_type, armijo, decrease)
+    return accept, f_type & armijo
+
+
+def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor, knots: Tensor,
+            opts: IPOptions) -> Iterate:
+    """The iterate after primal step ``alpha (B,)`` and dual step ``a_dual (B,)``, with the multipliers ``z``
+    kept within ``[μ/(κ_Σ s), κ_Σ μ/s]``."""
+    B = alpha.shape[0]
+    a = alpha.reshape(B, 1, 1)
+    s = it.s + a * d.ds
+    sN = it.sN + alpha.unsqueeze(-1) * d.dsN
+    z = it.z + a_dual.reshape(B, 1, 1) * d.dz
+    zN = it.zN + a_dual.unsqueeze(-1) * d.dzN
+    kappa, m3, mN = opts.dual_safeguard, mu.reshape(B, 1, 1), mu.unsqueeze(-1)
+    z = torch.maximum(torch.minimum(z, kappa * m3 / s), m3 / (kappa * s)) * knots
+    zN = torch.maximum(torch.minimum(zN, kappa * mN / sN), mN / (kappa * sN))
+    return Iterate(X=it.X + a * d.dX, U=it.U + a * d.dU, s=s, sN=sN, z=z, zN=zN, y=it.y + a * d.dy,
+                   yN=it.yN + alpha.unsqueeze(-1) * d.dyN, lam=it.lam + a * d.dlam, nu=it.nu + a * d.dnu,
+                   nuN=it.nuN + alpha.unsqueeze(-1) * d.dnuN)
+
+
+@dataclass
+class Step:
+    """The outcome of a line search: the new iterate ``it``, the primal step size ``alpha (B,)``, whether one was
+    found ``(B,)``, and the filter after it."""
+
+    it: Iterate
+    alpha: Tensor
+    found: Tensor
+    filter: Filter
+
+
+def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
+                filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor, opts: IPOptions) -> Step:
+    """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation; a further
+    round only while a ``pending`` instance has found no acceptable step."""
+    L = opts.line_search_steps
+    a_max, a_dual, phi, slope = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
+    size, round_off = step_and_round_off(it, d)
+    tiny = size < round_off  # IPOPT's tiny step: taken whole, no filter entry
+    powers = opts.line_search_decrease ** torch.arange(L, dtype=it.X.dtype, device=it.X.device)
+    filter_test = kernel_of(trial, opts, it.X.device)
+
+    def acceptable(alphas):
+        accept, f_ok = filter_test(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min,
+                                   alphas, opts)
+        return accept, (f_ok,)
+
+    start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny,))
+    # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
+    steps = backtrack(a_max.unsqueeze(1) * powers, max(1, opts.line_search_parallel), acceptable, pending, start,
+                      sync_first=True)
+    found, alpha, (f_type,) = steps.found, steps.alpha, steps.values
+    filt = filt.add(found & ~f_type, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
+    new_it = kernel_of(advance, opts, it.X.device)(it, d, alpha, a_dual, mu, model.knots, opts)
+    return Step(new_it, alpha, found, filt)

@@ -1,0 +1,149 @@
+r"""The primal-dual Newton step of the barrier problem as an LQR problem (FATROP §II-B eqs. 6-9, §III).
+
+The barrier problem's primal-dual Newton step (FATROP eq. 6) with the inequality multipliers ``z`` (the multiplier
+``y`` of ``g + s = 0`` is the bound multiplier of ``s`` at stationarity in ``s``), after eliminating ``Δs`` and ``Δz``
+(eqs. 7-8), is the equality-constrained LQR problem (eq. 9)
+
+.. math::
+
+    H_k = ∇^2_{z_k z_k} \mathcal L + G_k^T Σ_k G_k + δ_w I,\quad
+    \begin{bmatrix} q_k \\ r_k \end{bmatrix} = ∇_{z_k} \mathcal L + G_k^T S_k^{-1} (μ e + Z_k g_k),\quad
+    Σ_k = S_k^{-1} Z_k,
+
+with the dynamics linearised around the (possibly defective) trajectory — the defects ``f(x_k, u_k) − x_{k+1}``
+are the affine terms ``c_k`` — and the equality rows ``h`` as stagewise constraints of the shared Riccati core
+(:mod:`torchtraj.riccati`). Because the linear terms are the *whole* Lagrangian gradient ``∇\mathcal L``
+(costates ``λ``, equality multipliers ``ν``, ``z``), the core's costates and constraint multipliers are the steps
+``Δλ``, ``Δν``. Then (eq. 8)
+
+.. math::  Δs = −(g + s) − G Δw, \qquad Δz = S^{-1} (μ e + Z g + Z G Δw).
+
+A complementarity target other than ``μ e`` row by row (Mehrotra's corrector, :mod:`~torchtraj.solvers.ipm.barrier`)
+changes the right-hand side alone.
+
+**Inertia correction** (FATROP §III "Hessian regularization"; Wächter & Biegler 2006 §3.1): the Riccati recursion
+reports whether every reduced Hessian is positive definite (``RiccatiFactor.ok``); if not, ``δ_w`` grows by
+IPOPT's rule (:func:`~torchtraj.globalization.regularization.inertia_correction`) and the batch is factorised
+again, instances that already succeeded keeping their factor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+
+from ...core.compiled import matvec as _mv
+from ...globalization.regularization import inertia_correction
+from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
+from .compaction import pick
+from .iterate import Iterate, Model
+from .options import IPOptions
+
+
+def _targets(mu: Tensor, target: Optional[tuple]):
+    """The complementarity targets ``(stage (B, N|1, mi|1), terminal (B, miN|1))``: ``μ`` on every row, or ``target``."""
+    return (mu.reshape(-1, 1, 1), mu.unsqueeze(-1)) if target is None else target
+
+
+def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, target: Optional[tuple] = None):
+    """The reduced primal-dual system (FATROP eq. 9) as LQR matrices (without ``δ_w``) and right-hand side
+    (:func:`newton_rhs`)."""
+    sigma = it.z / it.s  # rows off at a knot: z = 0
+    sigmaN = it.zN / it.sN
+    H = model.Lzz + model.Gz.transpose(-1, -2) @ (sigma.unsqueeze(-1) * model.Gz)
+    HN = model.LNxx + model.GN.transpose(-1, -2) @ (sigmaN.unsqueeze(-1) * model.GN)
+    me, meN = model.h.shape[-1], model.hN.shape[-1]
+    lqr = LQR.from_blocks(
+        model.fz, H, HN,
+        C=model.Hz[..., :nx] if me else None, D=model.Hz[..., nx:] if me else None,
+        mask=torch.ones_like(model.h) if me else None,
+        CN=model.HN if meN else None, maskN=torch.ones_like(model.hN) if meN else None,
+    )
+    return lqr, newton_rhs(model, it, mu, x0, nx, target)
+
+
+def newton_rhs(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, target: Optional[tuple] = None):
+    """The right-hand side of the reduced system for the complementarity ``S z = μ`` or, given, ``S z = target``
+    row by row (:func:`_targets`)."""
+    m, mN = _targets(mu, target)
+    barrier = (it.z - it.y + (m + it.z * model.g) / it.s) * model.knots  # zero on rows that are off
+    grad = model.Lz + _mv(model.Gz.transpose(-1, -2), barrier)
+    grad = torch.cat([grad[..., :nx] - it.lam[:, :-1], grad[..., nx:]], -1)
+    barrierN = it.zN - it.yN + (mN + it.zN * model.gN) / it.sN
+    gradN = model.LNx - it.lam[:, -1] + _mv(model.GN.transpose(-1, -2), barrierN)
+    me, meN = model.h.shape[-1], model.hN.shape[-1]
+    return LQRVectors(q=grad[..., :nx], r=grad[..., nx:], qN=gradN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
+                      e=model.h if me else None, eN=model.hN if meN else None)
+
+
+@dataclass
+class Direction:
+    """The Newton step of every primal-dual variable (each shaped as its :class:`Iterate` field), the feedback
+    gains ``K (B, N, nu, nx)`` of the factorised system and ``ok (B,)``: its reduced Hessians were positive definite
+    and the step is finite."""
+
+    dX: Tensor
+    dU: Tensor
+    ds: Tensor
+    dsN: Tensor
+    dz: Tensor
+    dzN: Tensor
+    dy: Tensor
+    dyN: Tensor
+    dlam: Tensor
+    dnu: Tensor
+    dnuN: Tensor
+    K: Tensor
+    ok: Tensor
+    factor: Optional[RiccatiFactor] = None  # kept when asked for (a corrector reuses it)
+
+
+def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterate, mu: Tensor,
+              target: Optional[tuple] = None, factor: Optional[RiccatiFactor] = None,
+              keep_factor: bool = False) -> Direction:
+    """Factorise the system regularised by ``δ_w I`` (``delta (B,)``; or take its ``factor``), solve it and recover
+    ``Δs``, ``Δz`` (FATROP eq. 8) for the complementarity ``μ`` or ``target`` (:func:`newton_rhs`)."""
+    factor = factorize(lqr, shift=delta) if factor is None else factor
+    sol = factor.solve(rhs, multipliers=True)
+    dX, dU = sol.dx, sol.du
+    dw = torch.cat([dX[:, :-1], dU], -1)
+    Gdw = _mv(model.Gz, dw)
+    GdwN = _mv(model.GN, dX[:, -1])
+    on = model.knots
+    m, mN = _targets(mu, target)
+    ds = (-(model.g + it.s) - Gdw) * on
+    dz = (m + it.z * model.g + it.z * Gdw) / it.s * on
+    dsN = -(model.gN + it.sN) - GdwN
+    dzN = (mN + it.zN * model.gN + it.zN * GdwN) / it.sN
+    dnu = sol.nu if sol.nu is not None else it.nu.new_zeros(it.nu.shape)
+    dnuN = sol.nuN if sol.nuN is not None else it.nuN.new_zeros(it.nuN.shape)
+    finite = all_finite([dX, dU, sol.costate])
+    # the full step takes the multipliers y of g + s = 0 to z + Δz (stationarity in s)
+    dy, dyN = (it.z + dz - it.y) * on, it.zN + dzN - it.yN
+    return Direction(dX=dX, dU=dU, ds=ds, dsN=dsN, dz=dz, dzN=dzN, dy=dy, dyN=dyN, dlam=sol.costate, dnu=dnu,
+                     dnuN=dnuN, K=factor.K, ok=factor.ok & finite, factor=factor if keep_factor else None)
+
+
+def regularized_direction(attempt: Callable[[Tensor], Direction], floor: Tensor, last: Tensor, running: Tensor,
+                          opts: IPOptions) -> tuple:
+    """The step of every ``running (B,)`` instance with the smallest ``δ_w`` (from ``floor (B,)``) whose system is
+    positive definite, by IPOPT's inertia correction (``last (B,)``: the last nonzero ``δ_w`` that was);
+    ``attempt(δ_w)`` factorises and solves the batch. An instance whose ``δ_w`` passes ``regularization_max`` or
+    whose attempts run out keeps its last, failed, direction. Returns ``(direction, δ_w (B,))``."""
+    delta = floor
+    d = attempt(delta)
+    pending = running & ~d.ok
+    for _ in range(opts.regularization_attempts):
+        if not bool(pending.any()):
+            break
+        larger = inertia_correction(delta, last, opts.regularization_first, opts.regularization_min,
+                                    opts.regularization_decrease, opts.regularization_increase_first,
+                                    opts.regularization_increase)
+        delta = torch.where(pending, larger, delta)
+        pending = pending & (delta <= opts.regularization_max)
+        d = pick(pending, attempt(delta), d)
+        pending = pending & ~d.ok
+    return d, delta
