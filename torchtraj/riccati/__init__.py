@@ -28,16 +28,16 @@ The recursion is split into :func:`factorize` (matrices only) and
 system of implicit differentiation, a second-order correction — costs one cheap sweep.
 Multipliers (costates ``λ``, constraint multipliers ``ν``) are recovered by a forward sweep.
 
-The files, in the order they build on each other:
+The files, in the order they build on each other (``torchtraj.riccati.<file>``):
 
-- :mod:`.lqr`: the problem's data (:class:`LQR`, :class:`LQRVectors`) and one solution (:class:`LQRSolution`);
-- :mod:`.linalg`: the small batched Cholesky factorisations and solves, padding, time-major stacking;
-- :mod:`.sanitize`: instances with non-finite entries swapped for a benign problem (:func:`all_finite`);
-- :mod:`.propagation`: the constraint back-propagation (SVD split, compression of the rows handed on, multipliers);
-- :mod:`.bounds`: rows declared simple bounds, which hold controls without the back-propagation;
-- :mod:`.factor`: :class:`RiccatiFactor` and its solve, forward and multiplier sweeps;
-- :mod:`.factorization`: :func:`factorize`, the backward sweep over the matrices, and :func:`solve_lqr`;
-- :mod:`.square_root`: ALTRO's square-root backward pass, giving the same :class:`RiccatiFactor`.
+- ``lqr``: the problem's data (:class:`LQR`, :class:`LQRVectors`) and one solution (:class:`LQRSolution`);
+- ``linalg``: the small batched Cholesky factorisations and solves, padding, time-major stacking;
+- ``sanitize``: instances with non-finite entries swapped for a benign problem (:func:`all_finite`);
+- ``propagation``: the constraint back-propagation (SVD split, compression of the rows handed on, multipliers);
+- ``bounds``: rows declared simple bounds, which hold controls without the back-propagation;
+- ``factor``: :class:`RiccatiFactor` and its solve, forward and multiplier sweeps;
+- ``factorization``: :func:`factorize`, the backward sweep over the matrices, and :func:`solve_lqr`;
+- ``square_root``: ALTRO's square-root backward pass, giving the same :class:`RiccatiFactor`.
 """
 
 from .factor import RiccatiFactor
