@@ -30,7 +30,7 @@ from ..core.problem import Problem
 from ..core.solution import Solution
 from ..core.status import Status
 from ..differentiation import implicit
-from ..solve import solve
+from ..solve import Method, solve
 from .grad_linear import FD_STEP, _timed
 
 
@@ -97,7 +97,7 @@ def resolved(run: ByInstance) -> Resolved:
     X, U = sol.X.detach(), sol.U.detach()
     batch = U.shape[0]
     params = {k: v.detach() for k, v in problem.batched_params(batch).items()}
-    masks = implicit.active_rows(problem, X, U, params, sol.method not in implicit.UNCONSTRAINED_METHODS,
+    masks = implicit.active_rows(problem, X, U, params, sol.method != Method.ILQR,
                                  multipliers={k: v.detach() for k, v in sol.multipliers.items()})
     parts = [m.reshape(batch, -1) > 0 for m in masks if m is not None]
     active = torch.cat(parts, -1) if parts else U.new_zeros(batch, 0, dtype=torch.bool)
@@ -196,7 +196,7 @@ def not_minimal(run: ByInstance) -> dict:
     active set but not local minima (releasing the row lowers the cost). Their gradients are still those
     of the solver's map where its re-solves stop at the same active set."""
     sol, problem = run.solution, run.problem
-    if sol.method in implicit.UNCONSTRAINED_METHODS:
+    if sol.method == Method.ILQR:  # its gradients hold no rows (tt.solve: constrained=False)
         return {}
     cons = Constraints(problem)
     if not (cons.mi or cons.miN):
