@@ -189,7 +189,7 @@ def test_masked_rows_and_non_finite_instances_are_isolated():
 @pytest.mark.parametrize("elementwise", [False, True])
 @pytest.mark.parametrize("n", [1, 2, 3, 4, 6])
 def test_small_cholesky_matches_lapack_and_flags_indefinite_matrices(n, elementwise, monkeypatch):
-    from torchtraj import riccati
+    from torchtraj.riccati import linalg as riccati
 
     if elementwise:  # the formulas torch.compile traces; eager runs LAPACK's
         monkeypatch.setattr(riccati, "_elementwise", lambda n: n <= riccati._SMALL)
@@ -235,7 +235,7 @@ def test_positive_definiteness_flag_with_indefinite_stage_hessians():
 
 
 def test_stacked_sanitisation_matches_the_blockwise_one():
-    from torchtraj.riccati import _sanitize, _sanitize_stacked
+    from torchtraj.riccati.sanitize import _sanitize, _sanitize_stacked
 
     lqr, _ = random_lqr(B=4, N=3, nx=3, nu=2, m=1, mN=1, seed=10)
     lqr.mask = lqr.mask > 0  # a boolean mask keeps its dtype

@@ -31,7 +31,10 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from . import LQR, RiccatiFactor, _mT, _sanitize
+from .factor import RiccatiFactor
+from .linalg import _mT
+from .lqr import LQR
+from .sanitize import _sanitize
 
 
 def psd_root(H: Tensor) -> Tensor:
