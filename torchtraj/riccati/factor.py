@@ -131,7 +131,7 @@ class RiccatiFactor:
         if self.fixed is not None:
             out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, dx, du, Qu)
         if lqr.propagated:
-            nus, nuN = _propagated_multipliers(self, dx, du, Qu)
+            nus, nuN = _propagated_multipliers(self.lqr, self.stage, self.terminal, self.Quu, self.Qux, dx, du, Qu)
         if self.exact:  # ∇V_k at δx_k: one product for all stages instead of a backward sweep
             out.costate = (self.P @ dx.unsqueeze(-1)).squeeze(-1) + out.p
             return

@@ -28,7 +28,6 @@ rows handed to stage k+1. The rows ``G_0`` have no earlier stage: the initial co
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
@@ -36,9 +35,6 @@ from torch import Tensor
 from ..core.compiled import matvec as _mv
 from .linalg import _cholesky, _cholesky_solve, _factored_solve, _mT, _pad_cols, _pad_rows, _sym
 from .lqr import LQR, LQRVectors
-
-if TYPE_CHECKING:
-    from .factor import RiccatiFactor
 
 
 def default_rank_tolerance(dtype: torch.dtype) -> float:
@@ -151,25 +147,27 @@ def _propagated_feedforward(con: _Constraint, G_after: Tensor, Vf: Tensor, chol:
     return k, _mv(_mT(con.U2), con.rest * t0) * con.gmask
 
 
-def _propagated_multipliers(factor: RiccatiFactor, dx: Tensor, du: Tensor, Qu: Tensor):
+def _propagated_multipliers(lqr: LQR, stage: list, terminal: _Constraint, Quu: Tensor, Qux: Tensor, dx: Tensor,
+                            du: Tensor, Qu: Tensor):
     """The forward multiplier sweep: the stage rows' ``ν_k (B, m)`` as a list over k, and ``ν_N (B, mN)``.
 
-    ``dx (B, N+1, nx)``, ``du (B, N, nu)`` the step, ``Qu (B, N, nu)`` the linear terms of the Q-functions."""
-    lqr = factor.lqr
+    ``stage`` and ``terminal`` are the factorisation's :class:`_Constraint` records, ``Quu (B, N, nu, nu)`` and
+    ``Qux (B, N, nu, nx)`` its Q-function blocks; ``dx (B, N+1, nx)``, ``du (B, N, nu)`` the step, ``Qu (B, N, nu)``
+    the linear terms of the Q-functions."""
     Bsz, N, nx = lqr.A.shape[0], lqr.A.shape[1], lqr.A.shape[-1]
     nus = [None] * N
     m = lqr.C.shape[2] if lqr.C is not None else 0
     eta = dx.new_zeros(Bsz, nx)  # multiplier of G_0 rows: absorbed by the initial condition
     for t in range(N):
-        con = factor.stage[t]
-        grad_u = _mv(factor.Quu[:, t], du[:, t]) + _mv(factor.Qux[:, t], dx[:, t]) + Qu[:, t]
+        con = stage[t]
+        grad_u = _mv(Quu[:, t], du[:, t]) + _mv(Qux[:, t], dx[:, t]) + Qu[:, t]
         fixed = -con.inv_s * _mv(_mT(con.V), grad_u)  # (B, nu)
         mt = con.U.shape[-1]
         nu_hat = _pad_rows(fixed.unsqueeze(-1), mt).squeeze(-1) + _mv(con.U2, eta * con.gmask)
         nu_tilde = _mv(con.U, nu_hat)
         nus[t] = nu_tilde[:, :m] * lqr.mask[:, t] if m else nu_tilde[:, :0]
         eta = nu_tilde[:, m:]
-    con = factor.terminal
+    con = terminal
     nuN = _mv(con.U2, eta * con.gmask)
     nuN = nuN * lqr.maskN if lqr.maskN is not None else nuN
     return nus, nuN
