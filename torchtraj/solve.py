@@ -1,79 +1,38 @@
 """``tt.solve``: one entry point for every method.
 
-It checks and broadcasts the user's inputs to the batch (``x0 (B, nx)``, ``U0 (B, N, nu)``,
-``X0 (B, N+1, nx)``, batched parameters), moves them to the problem's dtype and device,
-and hands them to the method's solver.
+It finds the method in the registry (:mod:`torchtraj.solvers`), checks the options against its options class and
+the arguments against its declarations (:mod:`torchtraj.solvers.base`), builds the batch once
+(:class:`~torchtraj.core.batch.Batch`: ``x0 (B, nx)``, ``U0 (B, N, nu)``, ``X0 (B, N+1, nx)``, batched parameters,
+in the problem's dtype and device) and hands it to the method's solver. A differentiable solve gets its gradients
+from the implicit layer at the solver's KKT point (of the constrained problem where the method handles the
+constraints, else of the unconstrained one).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import logging
 import warnings
 from typing import Optional, Union
 
-import torch
-from torch import Tensor
-
+from . import solvers
+from .core.batch import Batch
 from .core.graphs import graphs_used
 from .core.problem import Problem
 from .core.solution import Solution
 from .differentiation import implicit
-from .iterations.ilqr import ILQROptions
-from .solvers.altro.options import ALTROOptions
-from .solvers.altro.solver import solve_altro
-from .solvers.ilqr import solve_ilqr
-from .solvers.ipm.options import IPOptions
-from .solvers.ipm.solver import solve_interior_point
+from .solvers.base import Solver
 
-
-class Method(str, enum.Enum):
-    """Solver methods; strings are accepted too (``method="ilqr"``)."""
-
-    ILQR = "ilqr"
-    ALTRO = "altro"
-    AL_ILQR = "al-ilqr"
-    IPM = "ipm"
-
-
-OPTIONS = {Method.ILQR: ILQROptions, Method.ALTRO: ALTROOptions, Method.AL_ILQR: ALTROOptions, Method.IPM: IPOptions}
-
-
-def _batched(value, name: str, shape: tuple, problem: Problem) -> Optional[Tensor]:
-    """``value`` as a tensor of shape ``(B, *shape)`` (B = 1 when it had no batch dimension)."""
-    if value is None:
-        return None
-    t = torch.as_tensor(value, dtype=problem.dtype, device=problem.device)
-    if tuple(t.shape) == shape:
-        return t.unsqueeze(0)
-    if t.dim() == len(shape) + 1 and tuple(t.shape[1:]) == shape:
-        return t
-    raise ValueError(f"{name} must have shape {shape} or (B, *{shape}), got {tuple(t.shape)}")
-
-
-def _batch_size(named: dict) -> int:
-    sizes = {name: int(t.shape[0]) for name, t in named.items() if t is not None and t.shape[0] != 1}
-    if len(set(sizes.values())) > 1:
-        raise ValueError(f"batch sizes disagree: {sizes}")
-    return next(iter(sizes.values()), 1)
-
-
-def _options(method: Method, options):
-    cls = OPTIONS[method]
-    if options is None:
-        return cls()
-    if isinstance(options, dict):
-        return cls(**options)
-    if not isinstance(options, cls):
-        raise TypeError(f"options for method {method.value!r} must be {cls.__name__} or a dict, got {type(options).__name__}")
-    return options
+#: The registered methods as an enum, a convenience for ``method=`` (strings do as well); nothing branches on it.
+Method = enum.Enum("Method", {name.upper().replace("-", "_"): name for name in solvers.names()}, type=str,
+                   module=__name__)
+Method.__doc__ = "The registered methods (:func:`torchtraj.solvers.names`); strings do too (``method=\"ilqr\"``)."
 
 
 def solve(
     problem: Problem,
     x0=None,
-    method: Union[str, Method] = "ilqr",
+    method: Union[str, Method, Solver] = "ilqr",
     U0=None,
     X0=None,
     options=None,
@@ -85,14 +44,16 @@ def solve(
     Args:
         problem: the :class:`~torchtraj.Problem`.
         x0: initial states ``(nx,)`` or ``(B, nx)``; ``None`` uses ``problem.x0``.
-        method: a :class:`Method` or its name.
+        method: a registered method's name (:func:`torchtraj.solvers.names`), a :class:`Method`, or a
+            :class:`~torchtraj.solvers.base.Solver` object.
         U0: initial control guess ``(N, nu)`` or ``(B, N, nu)``; ``None`` uses ``problem.u_init``.
-        X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one; for
-            ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B).
+        X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one
+            (``takes_state_guess``); for ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B).
         options: the method's options dataclass (or a dict of its fields).
-        duals: warm start of the augmented-Lagrangian methods: ``{"multipliers": ..., "penalties": ...}``,
-            each a dict of per-block tensors laid out like :attr:`Solution.multipliers` (a previous
-            solution's, shifted by MPC for instance); missing blocks start at 0 and ``penalty_initial``.
+        duals: warm start of the methods that take one (``takes_duals``: the augmented-Lagrangian methods),
+            ``{"multipliers": ..., "penalties": ...}``, each a dict of per-block tensors laid out like
+            :attr:`Solution.multipliers` (a previous solution's, shifted by MPC for instance); missing blocks
+            start at 0 and ``penalty_initial``.
             With ``X0``, an optional ``"costate": (B, N+1, nx)`` (:attr:`Solution.costate`) starts the
             multipliers of the slack rows ``s_k = 0`` at ``−λ_{k+1}``, their value at a KKT point.
         gradients: how a differentiable solve (below) differentiates: ``"implicit"`` (exact: the
@@ -107,61 +68,49 @@ def solve(
         conditions, at the solution refined by Newton steps (:mod:`torchtraj.differentiation.implicit`; instances
         that did not converge get zero gradients and a warning).
     """
-    method = check_problem_and_method(problem, method)
+    solver = check_problem_and_method(problem, method)
     implicit.check_gradients_mode(gradients)
-    opts = _options(method, options)
-    N, nx, nu = problem.N, problem.nx, problem.nu
-    x0 = _batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)
-    U0 = _batched(problem.u_init if U0 is None else U0, "U0", (N, nu), problem)
-    X0 = _batched(X0, "X0", (N + 1, nx), problem)
-    pb = problem.param_batch_size()
-    B = _batch_size({"x0": x0, "U0": U0, "X0": X0, "params": torch.empty(pb)})
-    x0, U0 = x0.expand(B, nx), U0.expand(B, N, nu)
-    params = problem.batched_params(B)
+    opts = solver.options(options)
+    batch = Batch.build(problem, x0, U0, X0, duals)
     if getattr(opts, "verbose", False):
         _ensure_log_handler()
-    if duals is not None and method in (Method.ILQR, Method.IPM):
-        raise ValueError(f"method {method.value!r} takes no warm-started duals; duals is for 'altro' / 'al-ilqr'")
-    if not implicit.requires_gradients(x0, params):
-        return _dispatch(problem, method, opts, x0.contiguous(), U0.contiguous(), X0, params, B, duals)
+    _check_declarations(solver, problem, batch)
+    if not implicit.requires_gradients(batch.x0, batch.params):
+        return solver.solve(problem, batch.for_solver(), opts)
+    if not solver.kkt_point:
+        raise ValueError(f"method {solver.name!r} returns no KKT point to differentiate; solve without gradients "
+                         f"(torch.no_grad, or detached x0 and params) or use {_declaring('kkt_point')}")
     # a differentiable solve: the method runs on detached inputs, gradients come from its KKT point
-    detached = {k: v.detach() for k, v in params.items()}
-    solution = _dispatch(problem, method, opts, x0.detach().contiguous(), U0.detach().contiguous(),
-                         None if X0 is None else X0.detach(), detached, B, duals)
-    return implicit.attach_gradients(problem, x0, params, solution, gradients=gradients,
-                                     cuda_graphs=graphs_used(opts, x0.device), constrained=method is not Method.ILQR)
+    solution = solver.solve(problem, batch.for_solver(detach=True), opts)
+    return implicit.attach_gradients(problem, batch.x0, batch.params, solution, gradients=gradients,
+                                     cuda_graphs=graphs_used(opts, batch.x0.device),
+                                     constrained=solver.handles_constraints)
 
 
-def check_problem_and_method(problem, method: Union[str, Method]) -> Method:
-    """``method`` as a :class:`Method`, or a clear error for a non-Problem or an unknown method name."""
+def check_problem_and_method(problem, method: Union[str, Method, Solver]) -> Solver:
+    """The registered :class:`~torchtraj.solvers.base.Solver` of ``method``, or a clear error for a non-Problem
+    or an unknown method name."""
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
-    try:
-        return Method(method)
-    except ValueError:
-        raise ValueError(f"unknown method {method!r}; choose one of {[m.value for m in Method]}") from None
+    return solvers.get(method)
 
 
-def _dispatch(problem: Problem, method: Method, opts, x0: Tensor, U0: Tensor, X0: Optional[Tensor], params,
-              B: int, duals: Optional[dict] = None) -> Solution:
-    """Run the method's solver on the checked, batched inputs."""
-    if method in (Method.ALTRO, Method.AL_ILQR):
-        if method is Method.AL_ILQR:
-            opts = dataclasses.replace(opts, projection=False)
-        X0 = None if X0 is None else X0.expand(B, *X0.shape[1:]).contiguous()
-        return solve_altro(problem, x0, U0, params, opts, X0=X0, method=method.value, duals=duals)
-    if method is Method.IPM:
-        X0 = None if X0 is None else X0.expand(B, *X0.shape[1:]).contiguous()
-        return solve_interior_point(problem, x0, U0, params, opts, X0=X0, method=method.value)
-    if method is Method.ILQR:
-        if X0 is not None:
-            raise ValueError("method 'ilqr' simulates its states from x0 and cannot take X0; use a method that "
-                             "accepts an infeasible state guess")
-        if problem.has_constraints:
-            warnings.warn(f"method 'ilqr' ignores the constraints of problem {problem.name!r}; "
-                          "Solution.max_violation reports them", stacklevel=3)
-        return solve_ilqr(problem, x0, U0, params, opts)
-    raise AssertionError(method)  # pragma: no cover - every Method is handled above
+def _check_declarations(solver: Solver, problem: Problem, batch: Batch) -> None:
+    """Refuse the arguments the method does not declare it takes; warn where it ignores the constraints."""
+    if batch.duals is not None and not solver.takes_duals:
+        raise ValueError(f"method {solver.name!r} takes no warm-started duals; duals is for "
+                         f"{_declaring('takes_duals')}")
+    if batch.X0 is not None and not solver.takes_state_guess:
+        raise ValueError(f"method {solver.name!r} simulates its states from x0 and cannot take X0; use a method "
+                         f"that accepts a state guess: {_declaring('takes_state_guess')}")
+    if problem.has_constraints and not solver.handles_constraints:
+        warnings.warn(f"method {solver.name!r} ignores the constraints of problem {problem.name!r}; "
+                      "Solution.max_violation reports them", stacklevel=3)
+
+
+def _declaring(flag: str) -> str:
+    """The registered methods that declare ``flag``, for an error message."""
+    return " / ".join(repr(n) for n in solvers.names() if getattr(solvers.get(n), flag))
 
 
 def _ensure_log_handler() -> None:

@@ -18,8 +18,10 @@ from typing import Optional, TextIO
 
 import torch
 
-from .. import problems
-from ..solve import OPTIONS, Method, solve
+from .. import problems, solvers
+from ..solve import solve
+from ..solvers.altro.options import ALTROOptions
+from ..solvers.base import Solver
 from . import profile, table
 from .runs import (
     Row,
@@ -29,6 +31,7 @@ from .runs import (
     run_reference,
     run_torchtraj,
     skip_reason,
+    state_guess,
     with_compile,
 )
 
@@ -45,7 +48,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--problems", nargs="+", metavar="NAME", choices=problems.names(),
                    help=f"problems to run, from {problems.names()}; default: every problem the method can solve "
                         "(ilqr: those without constraints); the others are listed as skipped, with the reason")
-    p.add_argument("--method", default=Method.ILQR.value, choices=[m.value for m in Method], help="torchtraj method")
+    p.add_argument("--method", default="ilqr", choices=solvers.names(), help="torchtraj method")
     p.add_argument("--batch", nargs="+", type=int, default=[1, 64, 1024], metavar="B", help="batch sizes")
     p.add_argument("--seed", type=int, default=0, help="seed of sample_x0 for B > 1")
     p.add_argument("--dtype", choices=("float64", "float32"), default="float64")
@@ -94,13 +97,18 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error("--reference-instances and --warmup-iterations must be >= 1")
     if args.threads is not None and args.threads < 1:
         p.error(f"--threads must be >= 1, got {args.threads}")
-    if args.cuda_graphs and not (args.grad and args.method == Method.IPM.value and not args.compile):
+    if args.cuda_graphs and not (args.grad and _has_option(args.method, "cuda_graphs") and not args.compile):
         p.error("--cuda-graphs goes with --grad --method ipm, without --compile")
-    if args.barrier != "monotone" and not (args.grad and args.method == Method.IPM.value and not args.compile
-                                           and not args.cuda_graphs):
+    if args.barrier != "monotone" and not (args.grad and _has_option(args.method, "barrier_strategy")
+                                           and not args.compile and not args.cuda_graphs):
         p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch.cuda.is_available() is False")
+
+
+def _has_option(method: str, name: str) -> bool:
+    """Whether ``method``'s options class has the field ``name`` (the flags that set one go with those methods)."""
+    return name in {f.name for f in dataclasses.fields(solvers.get(method).options_class)}
 
 
 def _reference_available(args) -> tuple:
@@ -141,10 +149,10 @@ def _throughput(name: str, rows: list, largest: int) -> str:
             f"{ours.method} {'faster' if ratio < 1 else 'not faster'} per instance)")
 
 
-def _profile_line(problem, method: Method, batch: int, seed: int, options) -> str:
+def _profile_line(problem, method: Solver, batch: int, seed: int, options) -> str:
     """The batch of the throughput row solved again under cProfile: the share of each solver part."""
     x0 = batch_x0(problem.name, batch, seed)
-    X0 = problem.X_init if method is not Method.ILQR else None
+    X0 = state_guess(method, problem)
     seconds, parts = profile.split(lambda: solve(problem, x0, method, X0=X0, options=options))
     return f"  where the time goes ({problem.name}, B={batch}, profiled run of {seconds:.1f} s): {profile.format_split(parts)}"
 
@@ -170,25 +178,28 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if args.grad:
         from . import grad
         batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]
-        name = args.method if args.method != p.get_default("method") else Method.ALTRO.value
+        name = args.method if args.method != p.get_default("method") else "altro"
         pendulum = [b for b in batches if b <= 64] or batches[:1]  # ALTRO's pendulum solves take minutes at 256
+        defaults = solvers.get(name).options_class
         options = None
         if args.compile:
-            options = with_compile(OPTIONS[Method(name)]())
-        if args.cuda_graphs:
-            options = dataclasses.replace(OPTIONS[Method.IPM](), cuda_graphs=True)
+            options = with_compile(defaults())
+        if args.cuda_graphs:  # _check: the method's options have the field
+            options = defaults(cuda_graphs=True)
         lq_options = None
         if args.barrier != "monotone":
-            lq_options = dataclasses.replace(OPTIONS[Method.IPM](), barrier_strategy=args.barrier)
+            lq_options = defaults(barrier_strategy=args.barrier)
         rows = grad.run(batches, args.seed, name, say, dtype, device, pendulum, options=options,
                         with_mpc=not args.no_reference, gradients=args.gradients, lq_options=lq_options)
         return 1 if any(r.solver.startswith("torchtraj") and r.forward_s != r.forward_s for r in rows) else 0
-    method = Method(args.method)
+    method = solvers.get(args.method)
     options, applied = make_options(method, cost_tolerance=args.cost_tolerance,
                                     gradient_tolerance=args.gradient_tolerance, iterations=args.iterations)
     ignored = sorted({"cost_tolerance", "gradient_tolerance"} - set(applied))
-    augmented = method in (Method.ALTRO, Method.AL_ILQR)
-    if augmented:  # per-problem options of the problem set (problems.altro_options), not the CLI's
+    # the problem set has options of its own for the methods run by ALTROOptions (problems.altro_options): those,
+    # not the CLI's, and the time-penalised problems (ALTRO §III-C) after the rows
+    augmented = method.options_class is ALTROOptions
+    if augmented:
         ignored = []
     default_batches = args.batch == p.get_default("batch")
     with_reference, reference_note = _reference_available(args)
@@ -205,13 +216,13 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     settings = {k: getattr(options, k) for k in ("cost_tolerance", "gradient_tolerance", "iterations")
                 if hasattr(options, k)}
     head = {
-        "method": method.value, "options": type(options).__name__, "settings": settings,
+        "method": method.name, "options": type(options).__name__, "settings": settings,
         "dtype": args.dtype, "device": str(device), "threads": torch.get_num_threads(), "seed": args.seed,
         "batch": args.batch, "torch": torch.__version__, "python": platform.python_version(),
         "reference": reference_note, "reference_tolerance": args.reference_tolerance,
         "reference_instances": args.reference_instances, "skipped": dict(skipped),
     }
-    say(f"torchtraj bench: method {method.value}, {type(options).__name__}("
+    say(f"torchtraj bench: method {method.name}, {type(options).__name__}("
         + ", ".join(f"{k}={v:g}" for k, v in settings.items()) + ")"
         + (f"; {type(options).__name__} has no {', '.join(ignored)}, not applied" if ignored else ""))
     say(f"{args.dtype} on {device}, {torch.get_num_threads()} threads, torch {torch.__version__}, seed {args.seed}; "
@@ -231,9 +242,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         batches = args.batch
         if augmented and default_batches:  # every problem once, the throughput line on the pendulum batch
             batches = [1, THROUGHPUT_BATCH] if problem.name == "pendulum" else [1]
+        # for al-ilqr, its solve turns the projection off
         problem_options = problems.altro_options(problem.name) if augmented else options
-        if augmented and method is Method.AL_ILQR:
-            problem_options = dataclasses.replace(problem_options, projection=False)
         if args.compile:
             problem_options = with_compile(problem_options)
         for batch in batches:
@@ -260,7 +270,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if augmented and default_batches:
         from .time_penalized import report_time_penalized
         say()
-        for line in report_time_penalized(method, dtype, device):
+        for line in report_time_penalized(method.name, dtype, device):
             say(line)
     say(table.legend())
 

@@ -22,10 +22,11 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .. import problems
+from .. import problems, solvers
 from ..core.problem import Problem
 from ..core.status import Status
-from ..solve import OPTIONS, Method, solve
+from ..solve import solve
+from ..solvers.base import Solver
 
 
 @dataclass
@@ -59,19 +60,27 @@ class Row:
         return out
 
 
-def skip_reason(method: Method, problem: Problem) -> Optional[str]:
-    """Why ``method`` cannot solve ``problem`` (None if it can)."""
-    if method is Method.ILQR and problem.has_constraints:
-        return "ilqr ignores constraints, which these problems have"
+def skip_reason(method, problem: Problem) -> Optional[str]:
+    """Why ``method`` (a name or a :class:`~torchtraj.solvers.base.Solver`) cannot solve ``problem`` (None if it
+    can)."""
+    solver = solvers.get(method)
+    if not solver.handles_constraints and problem.has_constraints:
+        return f"{solver.name} ignores constraints, which these problems have"
     return None
 
 
-def make_options(method: Method, **values) -> tuple:
+def state_guess(solver: Solver, problem: Problem):
+    """The state guess of a row: the problem's own (``Problem.X_init``: ALTRO's infeasible start of car_escape)
+    for every method that takes one, else None."""
+    return problem.X_init if solver.takes_state_guess else None
+
+
+def make_options(method, **values) -> tuple:
     """The method's options dataclass with those of ``values`` that it has as fields (None values skipped).
 
     Returns ``(options, applied)``, ``applied`` the dict of the values actually set.
     """
-    cls = OPTIONS[method]
+    cls = solvers.get(method).options_class
     names = {f.name for f in dataclasses.fields(cls)}
     applied = {k: v for k, v in values.items() if v is not None and k in names}
     return cls(**applied), applied
@@ -99,15 +108,15 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def run_torchtraj(problem: Problem, method: Method, batch: int, seed: int, options,
+def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
                   warmup_iterations: int) -> Row:
     """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch. With compiled
     kernels (``ILQROptions.compile``), which specialise to the batch size, the warm-up is the whole batch."""
-    row = Row(problem.name, method.value, batch)
+    method = solvers.get(method)
+    row = Row(problem.name, method.name, batch)
     try:
         x0 = batch_x0(problem.name, batch, seed)
-        # ALTRO starts car_escape from its state guess (infeasible start); iLQR cannot take one
-        X0 = problem.X_init if method is not Method.ILQR else None
+        X0 = state_guess(method, problem)
         if hasattr(options, "iterations"):
             warm = dataclasses.replace(options, iterations=min(options.iterations, warmup_iterations))
         else:

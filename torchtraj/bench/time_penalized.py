@@ -6,7 +6,7 @@ import time
 
 from .. import models, problems
 from ..core.status import Status
-from ..solve import Method, solve
+from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.altro.projection import ProjectionOptions
 from ..time_penalty import time_penalized
@@ -30,8 +30,9 @@ def time_penalized_options(name: str):
     return problems.altro_options(name, projection_options=projection)
 
 
-def solve_time_penalized(name: str, method: Method = Method.ALTRO, dtype=None, device=None):
-    """``(transform, solution, seconds)`` of the time-penalised version of problem ``name``."""
+def solve_time_penalized(name: str, method="altro", dtype=None, device=None):
+    """``(transform, solution, seconds)`` of the time-penalised version of problem ``name``, solved by ``method``
+    (a name of a method run by :class:`~torchtraj.ALTROOptions`)."""
     kwargs = {} if dtype is None else {"dtype": dtype}
     problem = problems.get(name, device=device, **kwargs)
     tp = time_penalized(problem, models.get(problems.spec(name).model).dynamics, time_weight=TIME_WEIGHTS[name])
@@ -40,7 +41,7 @@ def solve_time_penalized(name: str, method: Method = Method.ALTRO, dtype=None, d
     return tp, sol, time.perf_counter() - start
 
 
-def report_time_penalized(method: Method, dtype, device) -> list:
+def report_time_penalized(method, dtype, device) -> list:
     """One line per problem: status, duration against the fixed horizon, cost, violation, iterations, time."""
     lines = []
     for name in TIME_WEIGHTS:

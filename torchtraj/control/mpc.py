@@ -17,19 +17,30 @@ bounds. The iterations are not run to convergence: the warm start carries the wo
     U^{\text{warm}} = (u_1, \dots, u_{N-1}, u_{N-1}), \qquad
     \lambda^{\text{warm}}_k = \lambda_{k+1}\ (k < N-1), \quad \lambda^{\text{warm}}_{N-1} = \lambda_{N-1},
 
-(controls and, for the augmented-Lagrangian methods, the multipliers of every stage block; terminal multipliers
-are kept), and the solver starts from the rollout of :math:`U^{\text{warm}}` from the measured state. The shifted
-states are not passed: none of the methods takes a state guess for a dynamically consistent start (ALTRO's ``X0``
-switches to its infeasible start, a different problem with slack controls and costs), and with
-the model the environment steps the rollout reproduces them up to the last knot. The penalties restart at
-``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by ``penalty_scaling`` at every
-step until they reach ``penalty_max`` and the problem becomes ill-conditioned.
+(the controls and the multipliers the method carries; terminal multipliers are kept), and the solver starts from
+the rollout of :math:`U^{\text{warm}}` from the measured state.
 
-With ``iterations`` set, ALTRO runs one inner AL-iLQR solve of at most ``iterations`` iLQR iterations per step
-(``iterations_inner = iterations``, ``iterations_outer = 1``) followed by one multiplier update (eq. 17, with
-``μ = penalty_initial``), so the multipliers improve by one update per control step: ALTRO makes it unless the
-instance met its tolerances, and the controller makes it for those (:meth:`MPC._updated`). An instance that spends its budget reports
-``Status.MAX_ITERATIONS``; its controls are still the best iterate and are applied.
+The controller never names a method: it asks the method's :class:`~torchtraj.solvers.base.Solver` object, from the
+registry, for
+
+- the options of a step (:meth:`~torchtraj.solvers.base.Solver.step_options`): the given options, or the method's
+  defaults for a control step, with the iteration budget and, with ``compile``, compiled kernels;
+- the arguments of a warm-started solve (:meth:`~torchtraj.solvers.base.Solver.warm_start`), from the shifted
+  controls and carried multipliers;
+- the multipliers to carry to the next step (:meth:`~torchtraj.solvers.base.Solver.carried_duals`), none for a
+  method that takes no warm-started duals.
+
+The shifted states are not passed: with the model the environment steps, the rollout of the shifted controls
+reproduces them up to the last knot, and ALTRO's ``X0`` would switch to its infeasible start, a different problem
+with slack controls and costs. The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's
+schedule would multiply them by ``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem
+becomes ill-conditioned.
+
+With ``iterations`` set, each step runs at most that many iterations; ALTRO runs one inner AL-iLQR solve of at
+most ``iterations`` iLQR iterations (``iterations_inner = iterations``, ``iterations_outer = 1``) and carries
+multipliers improved by one update (eq. 17, with ``μ = penalty_initial``, :mod:`torchtraj.solvers.altro`). An
+instance that spends its budget reports ``Status.MAX_ITERATIONS``; its controls are still the best iterate and are
+applied.
 
 Warm starts are per instance: :meth:`MPC.reset` with a ``(B,)`` mask drops those of the instances whose episode
 restarted (a vector environment's autoreset), by masks and ``torch.where``, with no loop over the batch. An instance
@@ -39,7 +50,6 @@ control instead (clamped) and starts cold at the next step; it never changes ano
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Callable, Mapping, Optional, Union
 
@@ -47,19 +57,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..core.compiled import kernel
-from ..core.constraints import Constraints, multiplier_blocks, stack_blocks
+from .. import solvers
+from ..core.constraints import Constraints
 from ..core.problem import Problem
 from ..core.solution import Solution
 from ..core.status import Status
-from ..iterations.ilqr import ILQROptions
 from ..solve import Method, check_problem_and_method, solve
-from ..solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
-from ..solvers.altro.options import ALTROOptions
 
-#: ALTRO's settings for MPC: no projection (the applied control is clamped to its bounds anyway, and the projection
-#: adds 12 % (median) to 26 % (mean) to a pendulum step at B = 1); the rest are ALTRO's defaults.
-DEFAULT_ALTRO = ALTROOptions(projection=False)
+#: ALTRO's (the default method's) control-step options when none are given: its ``step_defaults``, ALTRO without
+#: the projection (:data:`torchtraj.solvers.altro.MPC_OPTIONS`). Kept under this name for the callers that build on it.
+DEFAULT_ALTRO = solvers.get("altro").step_defaults()
 
 
 def _shift(t: Tensor) -> Tensor:
@@ -78,10 +85,13 @@ class MPC(torch.nn.Module):
     Args:
         problem: the template: dynamics, costs, constraints, horizon and parameters. Its ``x0`` is replaced at each
             call by the measured states; its ``u_init`` is the cold start.
-        method: ``"altro"``, ``"al-ilqr"`` or ``"ilqr"`` (``"ilqr"`` ignores constraints and warns at every call).
-        iterations: solver iterations per control step (ALTRO: ``iterations_inner`` with ``iterations_outer = 1``;
-            iLQR: ``iterations``). ``None`` uses ``options`` as given.
-        options: the method's options; default :data:`DEFAULT_ALTRO` for ALTRO, ``ILQROptions()`` for iLQR.
+        method: a registered method (:func:`torchtraj.solvers.names`; a method that ignores constraints, as
+            ``"ilqr"``, warns at every call on a constrained problem).
+        iterations: solver iterations per control step (the method's ``step_options``: ALTRO's
+            ``iterations_inner`` with ``iterations_outer = 1``, the others' ``iterations``). ``None`` uses
+            ``options`` as given.
+        options: the method's options; default its ``step_defaults`` (:data:`DEFAULT_ALTRO` for ALTRO, the options
+            class's defaults for the others).
         observation_to_state: maps observations ``(B, n_obs)`` (torch, in the problem's dtype) to states
             ``(B, nx)``; default identity.
         observation_to_params: maps observations to per-instance parameters ``{name: (B, ...)}`` (a car's observed
@@ -99,15 +109,15 @@ class MPC(torch.nn.Module):
     :attr:`U` ``(B, N, nu)`` the predicted trajectories, :attr:`status` ``(B,)``, :attr:`solve_seconds`.
     """
 
-    def __init__(self, problem: Problem, method: Union[str, Method] = "altro", iterations: Optional[int] = 3,
-                 options=None, observation_to_state: Optional[Callable] = None,
+    def __init__(self, problem: Problem, method: Union[str, Method, solvers.Solver] = "altro",
+                 iterations: Optional[int] = 3, options=None, observation_to_state: Optional[Callable] = None,
                  observation_to_params: Optional[Callable] = None, compile: bool = False):
         super().__init__()
-        method = check_problem_and_method(problem, method)
+        solver = check_problem_and_method(problem, method)
         if iterations is not None and (int(iterations) != iterations or iterations < 1):
             raise ValueError(f"iterations must be a positive int or None, got {iterations!r}")
-        self.problem, self.method = problem, method
-        self.options = _mpc_options(method, options, iterations, compile)
+        self.problem, self.solver, self.method = problem, solver, solver.name
+        self.options = solver.step_options(options, iterations, compile)
         self.observation_to_state = observation_to_state
         self.observation_to_params = observation_to_params
         self._template = problem
@@ -191,8 +201,7 @@ class MPC(torch.nn.Module):
         p = self.problem
         U0, duals = self.warm_start()
         start = time.perf_counter()
-        sol = solve(p, x, self.method, U0=U0, options=self.options,
-                    duals=duals if self.method is not Method.ILQR else None)
+        sol = solve(p, x, self.solver, options=self.options, **self.solver.warm_start(U0, duals))
         self.solve_seconds = time.perf_counter() - start
         failed = torch.isin(sol.status, self._failures) | ~torch.isfinite(sol.U).flatten(1).all(-1)
         usable = ~failed
@@ -202,28 +211,18 @@ class MPC(torch.nn.Module):
         u = torch.clamp(u, lower, upper)
         self.solution = sol
         self._U = _shift(torch.where(_rows(usable, sol.U), sol.U, U0))
-        self._multipliers = {k: _shift(v) if v.dim() == 3 else v for k, v in self._updated(sol).items()}
+        carried = {}
+        if self.solver.takes_duals:  # else none to carry, and no constraints to make for it
+            carried = self.solver.carried_duals(self._constraints_of(p), sol, self.options)
+        self._multipliers = {k: _shift(v) if v.dim() == 3 else v for k, v in carried.items()}
         self._warm = usable
         return u
 
-    def _updated(self, sol: Solution) -> dict:
-        """``sol.multipliers``, updated once by eq. (17) with ``μ = penalty_initial`` where ALTRO stopped without an
-        update (``CONVERGED``: met its tolerances). Else an over-estimated multiplier of a bound that is no longer
-        active stays frozen for good: held by it, a pendulum can come to rest 0.64 rad from upright at τ = 2.94
-        under a bound of 3, and every later step converges there again."""
-        if not sol.multipliers:
-            return {}
-        if self._constraints is None or self._constraints.problem is not self.problem:
-            self._constraints = Constraints(self.problem)
-        c, opts = self._constraints, self.options
-        lam, lamN = stack_blocks(c, sol.multipliers, 0.0, sol.X)
-        duals = Duals(lam, lamN, torch.full_like(lam, opts.penalty_initial), torch.full_like(lamN, opts.penalty_initial))
-        params = self.problem.batched_params(sol.batch_size)
-        update = kernel(AugmentedLagrangian.updated_duals, opts.ilqr.compile)
-        new = update(AugmentedLagrangian(c, duals), sol.X, sol.U, params, 1.0, opts.penalty_max, opts.dual_max)
-        updated = multiplier_blocks(c, new.stage, new.terminal)
-        done = sol.status == Status.CONVERGED
-        return {k: torch.where(_rows(done, v), updated[k], v) for k, v in sol.multipliers.items()}
+    def _constraints_of(self, problem: Problem) -> Constraints:
+        """The constraints of ``problem``, made once per problem (on the host) for the method's hooks."""
+        if self._constraints is None or self._constraints.problem is not problem:
+            self._constraints = Constraints(problem)
+        return self._constraints
 
     # ------------------------------------------------------------------ diagnostics
     @property
@@ -244,22 +243,4 @@ class MPC(torch.nn.Module):
     def extra_repr(self) -> str:
         its = getattr(self.options, "iterations_inner", getattr(self.options, "iterations", None))
         p = self.problem
-        return f"problem={p.name!r}, method={self.method.value!r}, horizon={p.N}, iterations={its}"
-
-
-def _mpc_options(method: Method, options, iterations: Optional[int], compile: bool = False):
-    """The solver options of one control step (module docstring)."""
-    if method is Method.ILQR:
-        opts = options if options is not None else ILQROptions()
-        if not isinstance(opts, ILQROptions):
-            raise TypeError(f"options for method 'ilqr' must be ILQROptions, got {type(opts).__name__}")
-        opts = dataclasses.replace(opts, compile=True) if compile else opts
-        return opts if iterations is None else dataclasses.replace(opts, iterations=int(iterations))
-    opts = options if options is not None else DEFAULT_ALTRO
-    if not isinstance(opts, ALTROOptions):
-        raise TypeError(f"options for method {method.value!r} must be ALTROOptions, got {type(opts).__name__}")
-    if compile:
-        opts = dataclasses.replace(opts, ilqr=dataclasses.replace(opts.ilqr, compile=True))
-    if iterations is None:
-        return opts
-    return dataclasses.replace(opts, iterations_inner=int(iterations), iterations_outer=1)
+        return f"problem={p.name!r}, method={self.method!r}, horizon={p.N}, iterations={its}"

@@ -3,7 +3,8 @@ r"""iLQR for batches of unconstrained problems (method ``"ilqr"``; ALTRO §II-A)
 The loop over iterations of :func:`torchtraj.iterations.ilqr.ilqr_step` (expansion, Riccati backward pass, batched
 line search on the closed-loop rollouts, regularisation schedule: that module's docstring) until every instance
 converged or failed, then the gains and costates at the solution. Constraints are ignored (reported in
-``Solution.max_violation``).
+``Solution.max_violation``): a converged solution is a KKT point of the unconstrained problem, which is what the
+implicit layer differentiates (``handles_constraints = False`` of :class:`ILQR`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from ..core.batch import Batch
 from ..core.batching import rollout
 from ..core.compiled import kernel
 from ..core.constraints import Constraints
@@ -22,6 +24,21 @@ from ..core.status import Status
 from ..iterations.ilqr import CostObjective, ILQROptions, ilqr_step, log_iteration, start_status
 from ..kkt.model import cost_model, total_cost
 from ..riccati import LQR, LQRVectors, factorize
+from .base import Solver
+
+
+class ILQR(Solver):
+    """Method ``"ilqr"``: :func:`solve_ilqr`. It simulates its states from ``x0`` (no state guess), carries no
+    duals and ignores the constraints."""
+
+    name = "ilqr"
+    options_class = ILQROptions
+    handles_constraints = False
+    takes_state_guess = False
+    takes_duals = False
+
+    def solve(self, problem: Problem, batch: Batch, options: ILQROptions) -> Solution:
+        return solve_ilqr(problem, batch.x0, batch.U0, batch.params, options)
 
 
 def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ILQROptions] = None) -> Solution:

@@ -1,0 +1,35 @@
+r"""The interior-point method (method ``"ipm"``) as a :class:`~torchtraj.solvers.base.Solver` object; the algorithm
+is :mod:`torchtraj.solvers.ipm.solver`.
+
+It handles the constraints and takes a state guess ``X0`` (multiple shooting starts from the defects
+``f(x_k, u_k) − x_{k+1}``). It takes no warm-started duals: its multipliers start from the barrier's initial
+values (``bound_push``, ``dual_initial``) at every solve. A control step with a budget of ``n`` iterations runs at
+most ``n`` interior-point iterations; it starts from the shifted controls alone, whose rollout from the measured
+state reproduces the shifted states up to the last knot when the model is the plant's.
+"""
+
+from __future__ import annotations
+
+from ...core.batch import Batch
+from ...core.problem import Problem
+from ...core.solution import Solution
+from ..base import Solver
+from .options import IPOptions
+from .solver import solve_interior_point
+
+
+class IPM(Solver):
+    """Method ``"ipm"``: :func:`~torchtraj.solvers.ipm.solver.solve_interior_point`."""
+
+    name = "ipm"
+    options_class = IPOptions
+    handles_constraints = True
+    takes_state_guess = True
+    takes_duals = False
+
+    def solve(self, problem: Problem, batch: Batch, options: IPOptions) -> Solution:
+        return solve_interior_point(problem, batch.x0, batch.U0, batch.params, options, X0=batch.X0,
+                                    method=self.name)
+
+
+__all__ = ["IPM"]

@@ -1,0 +1,89 @@
+r"""The checked, batched inputs of one solve: what every solver receives.
+
+``tt.solve`` builds one :class:`Batch` from the user's arguments. Every tensor argument may omit the batch
+dimension; the batch size B is the common leading dimension of ``x0``, ``U0``, ``X0`` and the batched parameters
+(1 if none has one), and every input is broadcast to it:
+
+.. math::
+
+    x_0 \in \mathbb{R}^{B \times n_x}, \quad U_0 \in \mathbb{R}^{B \times N \times n_u}, \quad
+    X_0 \in \mathbb{R}^{B \times (N+1) \times n_x}, \quad p = \{\text{name}: (B, \dots)\}.
+
+Tensors are moved to the problem's dtype and device, so that a solver never checks a shape or a dtype.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from .problem import Problem
+
+
+def batched(value, name: str, shape: tuple, problem: Problem) -> Optional[Tensor]:
+    """``value`` as a tensor of shape ``(B, *shape)`` (B = 1 when it had no batch dimension); ``None`` stays."""
+    if value is None:
+        return None
+    t = torch.as_tensor(value, dtype=problem.dtype, device=problem.device)
+    if tuple(t.shape) == shape:
+        return t.unsqueeze(0)
+    if t.dim() == len(shape) + 1 and tuple(t.shape[1:]) == shape:
+        return t
+    raise ValueError(f"{name} must have shape {shape} or (B, *{shape}), got {tuple(t.shape)}")
+
+
+def batch_size(named: dict) -> int:
+    """The common leading dimension of ``{name: (B or 1, ...)}`` (entries of 1 broadcast), or 1."""
+    sizes = {name: int(t.shape[0]) for name, t in named.items() if t is not None and t.shape[0] != 1}
+    if len(set(sizes.values())) > 1:
+        raise ValueError(f"batch sizes disagree: {sizes}")
+    return next(iter(sizes.values()), 1)
+
+
+@dataclass
+class Batch:
+    """One solve's inputs, broadcast to the batch (module docstring).
+
+    Attributes:
+        x0: initial states ``(B, nx)``.
+        U0: initial controls ``(B, N, nu)``.
+        X0: state guess ``(B, N+1, nx)``, or ``None``.
+        params: the problem's parameters batched to B (:meth:`~torchtraj.Problem.batched_params`).
+        duals: a warm start of the multipliers (``tt.solve``'s ``duals``), or ``None``.
+        B: the batch size.
+    """
+
+    x0: Tensor
+    U0: Tensor
+    X0: Optional[Tensor]
+    params: dict
+    duals: Optional[dict]
+    B: int
+
+    @classmethod
+    def build(cls, problem: Problem, x0=None, U0=None, X0=None, duals: Optional[dict] = None) -> "Batch":
+        """Check and broadcast the user's inputs; ``x0`` and ``U0`` default to ``problem.x0`` and ``problem.u_init``."""
+        N, nx, nu = problem.N, problem.nx, problem.nu
+        x0 = batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)
+        U0 = batched(problem.u_init if U0 is None else U0, "U0", (N, nu), problem)
+        X0 = batched(X0, "X0", (N + 1, nx), problem)
+        B = batch_size({"x0": x0, "U0": U0, "X0": X0, "params": torch.empty(problem.param_batch_size())})
+        x0, U0 = x0.expand(B, nx), U0.expand(B, N, nu)
+        X0 = None if X0 is None else X0.expand(B, N + 1, nx)
+        return cls(x0=x0, U0=U0, X0=X0, params=problem.batched_params(B), duals=duals, B=B)
+
+    def for_solver(self, detach: bool = False) -> "Batch":
+        """The inputs as a solver takes them: contiguous (the broadcast views made whole) and, with ``detach``, cut
+        from the caller's graph (a differentiable solve takes its gradients at the solution's KKT point, not
+        through the iterations)."""
+        def own(t: Optional[Tensor]) -> Optional[Tensor]:
+            if t is None:
+                return None
+            return (t.detach() if detach else t).contiguous()
+
+        params = {k: v.detach() for k, v in self.params.items()} if detach else self.params
+        return dataclasses.replace(self, x0=own(self.x0), U0=own(self.U0), X0=own(self.X0), params=params)

@@ -1,0 +1,107 @@
+r"""What a solver is to the rest of the library: a :class:`Solver` object that declares its abilities and solves.
+
+Every method solves the same problem, for each instance i of a batch,
+
+.. math::
+
+    \min_{X, U}\ \sum_{k<N} \ell(x_k, u_k, p^i) + \ell_N(x_N, p^i) \quad\text{s.t.}\quad
+    x_{k+1} = f(x_k, u_k, p^i),\ x_0 = x_0^i,\ g(x_k, u_k, p^i) \le 0,\ h(x_k, u_k, p^i) = 0, \dots
+
+(a method that does not handle constraints drops the last ones and reports their violation). ``tt.solve``,
+:class:`~torchtraj.MPC` and the benchmarks never branch on a method's name: they read its declarations
+
+- ``handles_constraints``: whether the solution is meant to satisfy the constraints. Its KKT conditions are those
+  of the constrained problem, else of the unconstrained one (the implicit layer's ``constrained`` flag);
+- ``takes_state_guess``: whether ``X0 (B, N+1, nx)`` is accepted (a multiple-shooting start, or ALTRO's
+  infeasible start);
+- ``takes_duals``: whether a warm start of the multipliers (``tt.solve``'s ``duals``) is accepted;
+- ``kkt_point``: whether a converged solution is a KKT point the implicit layer
+  (:mod:`torchtraj.differentiation.implicit`) can refine and differentiate;
+
+and call its methods: :meth:`Solver.solve` on a checked :class:`~torchtraj.core.batch.Batch`, and the hooks of a
+control step (:meth:`Solver.step_options`, :meth:`Solver.warm_start`, :meth:`Solver.carried_duals`). The
+registry of :mod:`torchtraj.solvers` holds one object per method.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import ClassVar, Optional
+
+from torch import Tensor
+
+from ..core.batch import Batch
+from ..core.constraints import Constraints
+from ..core.problem import Problem
+from ..core.solution import Solution
+
+
+class Solver(abc.ABC):
+    """A trajectory-optimisation method: its declarations (module docstring) and its hooks.
+
+    A subclass sets the class attributes and implements :meth:`solve`. The defaults of the control-step hooks
+    suit a method whose options dataclass has ``iterations`` and ``compile`` fields and which carries no duals.
+    """
+
+    #: The method's name (``tt.solve(..., method=name)``, ``Solution.method``).
+    name: ClassVar[str]
+    #: The options dataclass; ``options_class()`` are the defaults.
+    options_class: ClassVar[type]
+    handles_constraints: ClassVar[bool]
+    takes_state_guess: ClassVar[bool]
+    takes_duals: ClassVar[bool]
+    kkt_point: ClassVar[bool] = True
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"
+
+    # ------------------------------------------------------------------ options
+    def default_options(self):
+        """The options of a solve that names none."""
+        return self.options_class()
+
+    def options(self, options):
+        """``options`` as an :attr:`options_class` instance: ``None`` gives :meth:`default_options`, a dict its
+        fields; anything else is a ``TypeError``."""
+        cls = self.options_class
+        if options is None:
+            return self.default_options()
+        if isinstance(options, dict):
+            return cls(**options)
+        if not isinstance(options, cls):
+            raise TypeError(f"options for method {self.name!r} must be {cls.__name__} or a dict, "
+                            f"got {type(options).__name__}")
+        return options
+
+    # ------------------------------------------------------------------ solving
+    @abc.abstractmethod
+    def solve(self, problem: Problem, batch: Batch, options) -> Solution:
+        """Solve the ``batch`` of instances of ``problem`` with ``options`` (an :attr:`options_class` instance).
+
+        ``batch`` is checked and contiguous; its ``X0`` is ``None`` unless :attr:`takes_state_guess`, its
+        ``duals`` unless :attr:`takes_duals`."""
+
+    # ------------------------------------------------------------------ one control step (torchtraj.control.mpc)
+    def step_defaults(self):
+        """The options of a control step whose controller names none."""
+        return self.default_options()
+
+    def step_options(self, options, iterations: Optional[int], compile: bool = False):
+        """The options of one control step: ``options`` (default :meth:`step_defaults`) with a budget of
+        ``iterations`` iterations (``None``: as given) and, with ``compile``, compiled kernels."""
+        opts = self.options(self.step_defaults() if options is None else options)
+        if compile:
+            opts = dataclasses.replace(opts, compile=True)
+        return opts if iterations is None else dataclasses.replace(opts, iterations=int(iterations))
+
+    def warm_start(self, U0: Tensor, duals: Optional[dict]) -> dict:
+        """``tt.solve``'s keyword arguments that start a control step from the shifted controls ``U0 (B, N, nu)``
+        and the shifted carried duals ``{"multipliers": ...}`` (``None`` when none are carried)."""
+        return {"U0": U0, "duals": duals if self.takes_duals else None}
+
+    def carried_duals(self, constraints: Constraints, solution: Solution, options) -> dict:
+        """The multipliers, per block as in :attr:`Solution.multipliers`, that the next control step starts from
+        (before the shift); ``{}``: none. Asked only of a method that :attr:`takes_duals`. ``constraints`` are
+        those of ``solution``'s problem, kept by the caller from one step to the next."""
+        return dict(solution.multipliers)
