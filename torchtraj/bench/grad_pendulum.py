@@ -24,13 +24,13 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from .. import problems
+from .. import problems, solvers
 from ..core.constraints import Constraints
 from ..core.problem import Problem
 from ..core.solution import Solution
 from ..core.status import Status
 from ..differentiation import implicit
-from ..solve import Method, solve
+from ..solve import solve
 from .grad_linear import FD_STEP, _timed
 
 
@@ -97,7 +97,7 @@ def resolved(run: ByInstance) -> Resolved:
     X, U = sol.X.detach(), sol.U.detach()
     batch = U.shape[0]
     params = {k: v.detach() for k, v in problem.batched_params(batch).items()}
-    masks = implicit.active_rows(problem, X, U, params, sol.method != Method.ILQR,
+    masks = implicit.active_rows(problem, X, U, params, solvers.get(sol.method).handles_constraints,
                                  multipliers={k: v.detach() for k, v in sol.multipliers.items()})
     parts = [m.reshape(batch, -1) > 0 for m in masks if m is not None]
     active = torch.cat(parts, -1) if parts else U.new_zeros(batch, 0, dtype=torch.bool)
@@ -196,7 +196,7 @@ def not_minimal(run: ByInstance) -> dict:
     active set but not local minima (releasing the row lowers the cost). Their gradients are still those
     of the solver's map where its re-solves stop at the same active set."""
     sol, problem = run.solution, run.problem
-    if sol.method == Method.ILQR:  # its gradients hold no rows (tt.solve: constrained=False)
+    if not solvers.get(sol.method).handles_constraints:  # its gradients hold no rows (tt.solve: constrained=False)
         return {}
     cons = Constraints(problem)
     if not (cons.mi or cons.miN):
