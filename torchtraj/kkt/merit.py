@@ -6,9 +6,10 @@ r"""The largest violation of a trajectory, as every method reports it (``Solutio
         \max_k \|h(z_k)\|_∞,\ \max_k \|\max(g(z_k), 0)\|_∞,\ \|h_N\|_∞,\ \|\max(g_N, 0)\|_∞ \Big)
 
 The dynamics are constraints of the trajectory like any other (a multiple-shooting iterate, ALTRO's infeasible
-start and its projection move the states apart from the rollout), so their defects count. ALTRO's iterates and
-the interior-point method's keep ``x_0 = x̄_0`` by construction; the implicit layer's refined points may not, so it
-passes ``x̄_0``.
+start and its projection move the states apart from the rollout), so their defects count. ALTRO's states start at
+``x̄_0`` by construction (rolled out from it, and projected with a zero initial defect), so it leaves the initial
+defect out; the implicit layer's refined points are Newton steps on it, so it passes ``x̄_0``. The interior-point
+method reads the same measure off its expansion (``Model.violation``), values it has already evaluated.
 """
 
 from __future__ import annotations
