@@ -24,7 +24,8 @@ Jacobian at 30 points: 12.3 ms against 2.2 ms; a stage-cost Hessian: ``jacfwd(ja
 
 from __future__ import annotations
 
-from typing import Callable, Mapping
+from dataclasses import dataclass
+from typing import Callable, Iterator, Mapping
 
 import torch
 from torch import Tensor
@@ -145,14 +146,32 @@ def linearize_dynamics(dynamics: Callable, X: Tensor, U: Tensor, params: Params)
     return f, fz[..., :nx], fz[..., nx:]
 
 
-def quadratize_cost(stage_cost: Callable, terminal_cost: Callable, X: Tensor, U: Tensor, params: Params):
-    """Second-order expansion of the costs.
+@dataclass
+class Expansion:
+    """Second-order expansion of a scalar stage function and its terminal one (a cost or a Lagrangian):
+    ``value (B, N)``, ``gradient (B, N, nz)``, ``hessian (B, N, nz, nz)`` over ``z = (x, u)``, and
+    ``terminal_value (B,)``, ``terminal_gradient (B, nx)``, ``terminal_hessian (B, nx, nx)``.
 
-    Returns ``(l (B, N), l_z (B, N, nz), l_zz (B, N, nz, nz), l_N (B,), l_Nx (B, nx), l_Nxx (B, nx, nx))``.
-    """
-    l, lz, lzz = stage_hessian(stage_cost, X, U, params)
-    lN, lNx, lNxx = terminal_hessian(terminal_cost, X[:, -1], params)
-    return l, lz, lzz, lN, lNx, lNxx
+    It unpacks in that order, as the positional tuple it replaces did (``l, lz, lzz, lN, lNx, lNxx = ...``),
+    so that callers written for the tuple keep working; new code reads the fields by name."""
+
+    value: Tensor
+    gradient: Tensor
+    hessian: Tensor
+    terminal_value: Tensor
+    terminal_gradient: Tensor
+    terminal_hessian: Tensor
+
+    def __iter__(self) -> Iterator[Tensor]:
+        return iter((self.value, self.gradient, self.hessian, self.terminal_value, self.terminal_gradient,
+                     self.terminal_hessian))
+
+
+def quadratize_cost(stage_cost: Callable, terminal_cost: Callable, X: Tensor, U: Tensor, params: Params) -> Expansion:
+    """Second-order expansion of the costs ``l(x_k, u_k)`` and ``l_N(x_N)`` at every stage of ``(X, U)``."""
+    stage = stage_hessian(stage_cost, X, U, params)
+    terminal = terminal_hessian(terminal_cost, X[:, -1], params)
+    return Expansion(*stage, *terminal)
 
 
 def lagrangian_hessian(
@@ -238,11 +257,11 @@ def problem_lagrangian_hessian(problem, constraints, X, U, params, costate, nu=N
     return lagrangian_hessian(stage, terminal, X, U, params, stage_w, terminal_w)
 
 
-def problem_lagrangian_expansion(problem, constraints, X, U, params, costate, nu=None, mu=None, nuN=None, muN=None):
+def problem_lagrangian_expansion(problem, constraints, X, U, params, costate, nu=None, mu=None, nuN=None,
+                                 muN=None) -> Expansion:
     """Values, gradients and Hessians of the Lagrangians of :func:`problem_lagrangian_hessian` (the
-    ``-λ_kᵀ x_k`` terms of the dynamics rows are left to the caller).
-
-    Returns ``(L (B, N), L_z (B, N, nz), L_zz (B, N, nz, nz), L_N (B,), L_Nx (B, nx), L_Nxx (B, nx, nx))``.
+    ``-λ_kᵀ x_k`` terms of the dynamics rows are left to the caller): ``L (B, N)``, ``L_z (B, N, nz)``,
+    ``L_zz (B, N, nz, nz)``, ``L_N (B,)``, ``L_Nx (B, nx)``, ``L_Nxx (B, nx, nx)`` as an :class:`Expansion`.
     """
     nx = X.shape[-1]
     stage, terminal = _problem_lagrangians(problem, constraints, nx)
@@ -260,4 +279,4 @@ def problem_lagrangian_expansion(problem, constraints, X, U, params, costate, nu
 
     L, Lz, Lzz = map_state(stage_vgh, torch.cat([Z, stage_w], -1), params)
     LN, LNx, LNxx = map_state(terminal_vgh, torch.cat([X[:, -1], terminal_w], -1), params)
-    return L, Lz, Lzz, LN, LNx, LNxx
+    return Expansion(L, Lz, Lzz, LN, LNx, LNxx)

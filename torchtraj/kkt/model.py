@@ -26,9 +26,11 @@ def cost_model(problem: Problem, X: Tensor, U: Tensor, params):
     """The LQR model of ``problem``'s objective around ``(X, U)``: matrices and gradient right-hand sides."""
     nx = X.shape[-1]
     _, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
-    _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
-    lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx)
+    cost = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
+    lzz, lz = cost.hessian, cost.gradient
+    lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=cost.terminal_hessian)
     rhs = LQRVectors(
-        q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=torch.zeros_like(X[:, 1:]), x0=torch.zeros_like(X[:, 0])
+        q=lz[..., :nx], r=lz[..., nx:], qN=cost.terminal_gradient, c=torch.zeros_like(X[:, 1:]),
+        x0=torch.zeros_like(X[:, 0])
     )
     return lqr, rhs

@@ -18,9 +18,10 @@ new right-hand sides while the convergence rate ``r = log v⁺ / log v`` stays a
 Each step is a line search on ``v = ‖d‖_∞`` (Algorithm 3): ``α ∈ {1, γ, γ², …}``, all candidates
 evaluated in one batched call, the largest ``α`` with ``v(α) < v`` taken.
 
-An inequality row is active when it is violated or nearly so (``g > −active_tolerance``) or its
-multiplier is positive. The multipliers of the projected point are then the least-squares
-solution of stationarity, ``∇ℓ + Dᵀ ν = 0``, from one more solve with the same factorisation.
+The LQR is the held-rows KKT system of :mod:`torchtraj.kkt.newton` with the cost Hessian and no gradient. An
+inequality row is held when it is violated or nearly so (``g > −active_tolerance``) or its multiplier is positive
+(:func:`torchtraj.kkt.activity.by_value_or_multiplier`). The multipliers of the projected point are then the
+least-squares solution of stationarity, ``∇ℓ + Dᵀ ν = 0``, from one more solve with the cost gradient.
 """
 
 from __future__ import annotations
@@ -32,8 +33,10 @@ import torch
 from torch import Tensor
 
 from ...core.batching import map_stage
-from ...core.derivatives import linearize_dynamics, quadratize_cost, stage_jacobian, terminal_jacobian
-from ...riccati import LQR, LQRVectors, factorize
+from ...core.derivatives import quadratize_cost, stage_jacobian, terminal_jacobian
+from ...kkt import activity
+from ...kkt.newton import held_lqr, newton_rhs, newton_step
+from ...riccati import factorize
 from .augmented_lagrangian import AugmentedLagrangian
 
 
@@ -102,17 +105,21 @@ def _active_rows(al: AugmentedLagrangian, X, U, params, opts: ProjectionOptions)
     d = al.duals
     c = al.stage_values(X, U, params)
     cN = al.terminal_values(X, params)
-    stage = (~al.is_ineq | (c > -opts.active_tolerance) | (d.stage > 0)) & (al.knot_mask > 0)
-    terminal = ~al.is_ineqN | (cN > -opts.active_tolerance) | (d.terminal > 0)
+    # equality rows are always held; an inequality row by ALTRO's rule
+    stage = (~al.is_ineq | activity.by_value_or_multiplier(c, d.stage, opts.active_tolerance)) & (al.knot_mask > 0)
+    terminal = ~al.is_ineqN | activity.by_value_or_multiplier(cN, d.terminal, opts.active_tolerance)
     return stage.to(X.dtype), terminal.to(X.dtype)
 
 
-def _linearize(al: AugmentedLagrangian, params, X, U, stage_active, terminal_active, reg, rank_tolerance):
+def _held_lqr(al: AugmentedLagrangian, params, X, U, stage_active, terminal_active):
+    """The held-rows KKT system's matrices at ``(X, U)`` with the cost Hessian (the projection's metric ``H``),
+    and the cost gradient ``(B, N, nz)``, ``(B, nx)`` for the multiplier solve."""
     problem = al.problem
     nx = X.shape[-1]
-    _, A, Bm = linearize_dynamics(problem.dynamics, X, U, params)
-    _, lz, lzz, _, lNx, lNxx = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
+    _, fz = stage_jacobian(problem.dynamics, X, U, params)
+    cost = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
     B, N = U.shape[0], U.shape[1]
+    # a block of zero rows is kept as one: the Riccati core's constrained sweep, as the projection always took
     if al.m:
         _, Cz = stage_jacobian(al.stage_fn, X, U, params)
     else:
@@ -121,9 +128,9 @@ def _linearize(al: AugmentedLagrangian, params, X, U, stage_active, terminal_act
         _, CN = terminal_jacobian(al.terminal_fn, X[:, -1], params)
     else:
         CN = X.new_zeros(B, 0, nx)
-    lqr = LQR(A=A, B=Bm, Q=lzz[..., :nx, :nx], R=lzz[..., nx:, nx:], S=lzz[..., nx:, :nx], QN=lNxx,
-              C=Cz[..., :nx], D=Cz[..., nx:], mask=stage_active, CN=CN, maskN=terminal_active)
-    return factorize(lqr, reg, rank_tolerance=rank_tolerance), lz, lNx
+    lqr = held_lqr(fz, cost.hessian, cost.terminal_hessian, rows=Cz, mask=stage_active, rowsN=CN,
+                   maskN=terminal_active, lower_only=True)
+    return lqr, cost.gradient, cost.terminal_gradient
 
 
 def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, mask: Tensor,
@@ -131,6 +138,7 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
     """Project the instances in ``mask (B,)`` of ``(X, U)``; the others are returned unchanged."""
     problem = al.problem
     B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    nz = nx + U.shape[-1]
     reg = X.new_full((B,), opts.regularization)
     eps = torch.finfo(X.dtype).eps
     rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
@@ -143,14 +151,14 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
         pending = mask & (v > opts.tolerance)
         if not bool(pending.any()):
             break
-        factor, _, _ = _linearize(al, params, X, U, stage_active, terminal_active, reg, rank_tol)
+        lqr, _, _ = _held_lqr(al, params, X, U, stage_active, terminal_active)
+        factor = factorize(lqr, reg, rank_tolerance=rank_tol)
         stepping = pending & factor.ok
         for _ in range(opts.inner_iterations):
             if not bool(stepping.any()):
                 break
-            rhs = LQRVectors(q=X.new_zeros(B, N, nx), r=torch.zeros_like(U), qN=X.new_zeros(B, nx), c=defect,
-                             x0=init, e=c, eN=cN)
-            step = factor.solve(rhs)
+            # the least-H-norm step onto the linearised rows: no gradient, the violations as offsets
+            step = factor.solve(newton_rhs(X.new_zeros(B, N, nz), X.new_zeros(B, nx), defect, init, c, cN))
             Xc = X.unsqueeze(1) + alphas.reshape(1, -1, 1, 1) * step.dx.unsqueeze(1)
             Uc = U.unsqueeze(1) + alphas.reshape(1, -1, 1, 1) * step.du.unsqueeze(1)
             dc, ic, cc, cNc, vc = _residuals(al, problem.dynamics, params, x0, Xc, Uc, stage_active, terminal_active)
@@ -170,10 +178,12 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
     _, _, _, _, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
     duals, factor = None, None
     for _ in range(opts.multiplier_passes):
-        factor, lz, lNx = _linearize(al, params, X, U, stage_active, terminal_active, reg, rank_tol)
-        duals = factor.solve(LQRVectors(q=lz[..., :nx], r=lz[..., nx:], qN=lNx, c=X.new_zeros(B, N, nx),
-                                        x0=X.new_zeros(B, nx), e=torch.zeros_like(stage_active),
-                                        eN=torch.zeros_like(terminal_active)), multipliers=True)
+        lqr, lz, lNx = _held_lqr(al, params, X, U, stage_active, terminal_active)
+        # stationarity ∇ℓ + Dᵀν = 0 at the projected point: the cost gradient and no offsets
+        rhs = newton_rhs(lz, lNx, X.new_zeros(B, N, nx), X.new_zeros(B, nx), torch.zeros_like(stage_active),
+                         torch.zeros_like(terminal_active))
+        solved = newton_step(lqr, rhs, reg, rank_tol)
+        factor, duals = solved.factor, solved.step
         # Dependent active rows (a car parked in a corner of its box) leave the multipliers non-unique
         # and the least-squares ones may be negative; such rows are released and the others take over.
         wrong = al.is_ineq & (duals.nu * stage_active < 0)

@@ -10,13 +10,13 @@ from typing import Optional, Union
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage
 from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks, stack_blocks
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
 from ...iterations.ilqr import ilqr_step, log_iteration, start_status
+from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
 from ...riccati import factorize
 from ...riccati.square_root import factorize_sqrt
@@ -124,10 +124,9 @@ def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTRO
 
 
 def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):
-    """Objective ``(B,)`` and largest violation ``(B,)`` of constraints and dynamics (defects) at ``(X, U)``."""
-    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
-    violation = torch.maximum(constraints.max_violation(X, U, params), defect)
-    return total_cost(problem, X, U, params), violation
+    """Objective ``(B,)`` and largest violation ``(B,)`` of constraints and dynamics (defects) at ``(X, U)``
+    (:func:`~torchtraj.kkt.merit.largest_violation`; ALTRO's states start at ``x0``, rolled out from it)."""
+    return total_cost(problem, X, U, params), largest_violation(problem, X, U, params, constraints=constraints)
 
 
 def _largest_penalty(duals: Duals) -> Tensor:

@@ -39,13 +39,18 @@ from torch import Tensor
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
 from ...core.derivatives import multiplier_terms
-from ...riccati import LQR, LQRVectors, factorize
+from ...kkt import activity
+from ...kkt.newton import held_lqr as _held_lqr
+from ...kkt.newton import newton_rhs, newton_step
+from ...riccati import LQR, LQRVectors
 from .iterate import Iterate, Model
 
 
 def proposed_active_set(it: Iterate, knots: Tensor) -> tuple:
-    """``(stage (B, N, mi), terminal (B, miN))``: 1 on the inequality rows whose multiplier exceeds their slack."""
-    return ((it.z > it.s) & (knots > 0)).to(it.s.dtype), (it.zN > it.sN).to(it.s.dtype)
+    """``(stage (B, N, mi), terminal (B, miN))``: 1 on the inequality rows whose multiplier exceeds their slack
+    (:func:`torchtraj.kkt.activity.multiplier_exceeds_slack`)."""
+    return ((activity.multiplier_exceeds_slack(it.z, it.s) & (knots > 0)).to(it.s.dtype),
+            activity.multiplier_exceeds_slack(it.zN, it.sN).to(it.s.dtype))
 
 
 def first_active_set(it: Iterate, knots: Tensor, start: bool) -> tuple:
@@ -56,32 +61,30 @@ def first_active_set(it: Iterate, knots: Tensor, start: bool) -> tuple:
 
 
 def held_lqr(model: Model, cons: Constraints, active: Tensor, activeN: Tensor) -> LQR:
-    """The LQR matrices of the KKT system with the equality rows and the rows of ``active`` held: the Lagrangian
-    Hessian (the cost's, the problem being linear-quadratic), the dynamics' Jacobians, the rows ``[h; g]``
-    (``[h_N; g_N]`` at the end), and the control bounds held by the core itself where they are the only rows."""
-    nx = model.fz.shape[-2]
+    """The LQR matrices of the KKT system (:func:`torchtraj.kkt.newton.held_lqr`) with the equality rows and the rows
+    of ``active`` held: the Lagrangian Hessian (the cost's, the problem being linear-quadratic), the dynamics'
+    Jacobians, the rows ``[h; g]`` (``[h_N; g_N]`` at the end), and the control bounds held by the core itself where
+    they are the only rows."""
     rows = torch.cat([model.Hz, model.Gz], -2)
     rowsN = torch.cat([model.HN, model.GN], -2)
     stage, terminal = {}, {}
     if rows.shape[-2]:
-        mask = torch.cat([torch.ones_like(model.h), active], -1)
-        stage = dict(C=rows[..., :nx], D=rows[..., nx:], mask=mask, bounds=cons.bound_rows())
+        stage = dict(rows=rows, mask=torch.cat([torch.ones_like(model.h), active], -1), bounds=cons.bound_rows())
     if rowsN.shape[-2]:
-        terminal = dict(CN=rowsN, maskN=torch.cat([torch.ones_like(model.hN), activeN], -1))
-    return LQR.from_blocks(model.fz, model.Lzz, model.LNxx, **stage, **terminal)
+        terminal = dict(rowsN=rowsN, maskN=torch.cat([torch.ones_like(model.hN), activeN], -1))
+    return _held_lqr(model.fz, model.Lzz, model.LNxx, **stage, **terminal)
 
 
 def held_rhs(model: Model, it: Iterate, x0: Tensor) -> LQRVectors:
-    """The right-hand side whose solve gives the new point and the multipliers themselves (not their steps): the
-    cost gradient (the Lagrangian's, less the multipliers' terms), the defects and the rows' values."""
-    nx = it.X.shape[-1]
+    """The right-hand side (:func:`torchtraj.kkt.newton.newton_rhs`) whose solve gives the new point and the
+    multipliers themselves (not their steps): the cost gradient (the Lagrangian's, less the multipliers' terms), the
+    defects and the rows' values."""
     stage, terminal = multiplier_terms(model.fz, model.Hz, model.Gz, model.HN, model.GN, it.lam[:, 1:], it.nu, it.y,
                                        it.nuN, it.yN)
-    cost, costN = model.Lz - stage, model.LNx - terminal
     e = torch.cat([model.h, model.g], -1)
     eN = torch.cat([model.hN, model.gN], -1)
-    return LQRVectors(q=cost[..., :nx], r=cost[..., nx:], qN=costN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
-                      e=e if e.shape[-1] else None, eN=eN if eN.shape[-1] else None)
+    return newton_rhs(model.Lz - stage, model.LNx - terminal, model.f - it.X[:, 1:], x0 - it.X[:, 0],
+                      e if e.shape[-1] else None, eN if eN.shape[-1] else None)
 
 
 @dataclass
@@ -100,8 +103,8 @@ def candidate(model: Model, cons: Constraints, it: Iterate, x0: Tensor,
     """One Newton step onto the KKT point of the rows ``active`` (default :func:`proposed_active_set`) held."""
     knots = model.knots
     active, activeN = proposed_active_set(it, knots) if active is None else active
-    factor = factorize(held_lqr(model, cons, active, activeN))
-    sol = factor.solve(held_rhs(model, it, x0), multipliers=True)
+    solved = newton_step(held_lqr(model, cons, active, activeN), held_rhs(model, it, x0))
+    factor, sol = solved.factor, solved.step
     me, meN = model.h.shape[-1], model.hN.shape[-1]
     rows = sol.nu if sol.nu is not None else it.s.new_zeros(*it.s.shape[:2], me + it.s.shape[-1])
     rowsN = sol.nuN if sol.nuN is not None else it.sN.new_zeros(it.sN.shape[0], meN + it.sN.shape[-1])
@@ -118,12 +121,12 @@ def candidate(model: Model, cons: Constraints, it: Iterate, x0: Tensor,
 
 
 def next_active_set(c: Candidate, active: tuple, knots: Tensor) -> tuple:
-    """The primal-dual active-set update of a candidate (Hintermüller, Ito & Kunisch 2002): a held row stays where
-    its multiplier is positive, a free one joins where the candidate violates it, ``y + g > 0`` (held rows have
-    ``g = 0``, free ones ``y = 0``)."""
+    """The primal-dual active-set update of a candidate (Hintermüller, Ito & Kunisch 2002,
+    :func:`torchtraj.kkt.activity.primal_dual_update`): a held row stays where its multiplier is positive, a free
+    one joins where the candidate violates it, ``y + g > 0`` (held rows have ``g = 0``, free ones ``y = 0``)."""
     p = c.point
-    stage = torch.where(active[0] > 0, (p.y > 0).to(p.y.dtype), (p.s == 0).to(p.y.dtype) * (knots > 0))
-    terminal = torch.where(active[1] > 0, (p.yN > 0).to(p.y.dtype), (p.sN == 0).to(p.y.dtype))
+    stage = activity.primal_dual_update(active[0], p.y, p.s, knots > 0).to(p.y.dtype)
+    terminal = activity.primal_dual_update(active[1], p.yN, p.sN).to(p.y.dtype)
     return stage, terminal
 
 

@@ -1,0 +1,36 @@
+r"""The largest violation of a trajectory, as every method reports it (``Solution.max_violation``).
+
+.. math::
+
+    v(X, U) = \max\Big( \max_k \|f(x_k, u_k) - x_{k+1}\|_∞,\ \|\bar x_0 - x_0\|_∞,\
+        \max_k \|h(z_k)\|_∞,\ \max_k \|\max(g(z_k), 0)\|_∞,\ \|h_N\|_∞,\ \|\max(g_N, 0)\|_∞ \Big)
+
+The dynamics are constraints of the trajectory like any other (a multiple-shooting iterate, ALTRO's infeasible
+start and its projection move the states apart from the rollout), so their defects count. ALTRO's states start at
+``x̄_0`` by construction (rolled out from it, and projected with a zero initial defect), so it leaves the initial
+defect out; the implicit layer's refined points are Newton steps on it, so it passes ``x̄_0``. The interior-point
+method reads the same measure off its expansion (``Model.violation``), values it has already evaluated.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from ..core.batching import map_stage
+from ..core.constraints import Constraints
+from ..core.problem import Problem
+
+
+def largest_violation(problem: Problem, X: Tensor, U: Tensor, params, x0: Optional[Tensor] = None,
+                      constraints: Optional[Constraints] = None) -> Tensor:
+    """``v (B,)`` at ``X (B, N+1, nx)``, ``U (B, N, nu)``; the initial defect counts where ``x0 (B, nx)`` is given.
+
+    ``constraints``: the problem's (:class:`~torchtraj.core.constraints.Constraints`), made here if not given."""
+    constraints = Constraints(problem) if constraints is None else constraints
+    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
+    if x0 is not None:
+        defect = torch.maximum(defect, (x0 - X[:, 0]).abs().amax(-1))
+    return torch.maximum(defect, constraints.max_violation(X, U, params))
