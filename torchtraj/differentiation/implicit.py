@@ -22,11 +22,7 @@ from .kkt_system import (
 from .layer import GRADIENT_MODES, ImplicitSolution, attach_gradients, check_gradients_mode, requires_gradients
 from .refine import Refined, _newton_step, default_stationarity_tolerance, refine  # noqa: F401
 
-#: Methods that ignore the constraints, whose solutions are KKT points of the unconstrained problem
-#: (``tt.solve`` passes ``constrained=`` to :func:`attach_gradients` itself; the gradient benchmark reads this).
-UNCONSTRAINED_METHODS = frozenset({"ilqr"})
-
 __all__ = ["GRADIENT_MODES", "ImplicitSolution", "KKTSystem", "Multipliers", "Refined", "Rows",
-           "UNCONSTRAINED_METHODS", "active_rows", "attach_gradients", "backward_solve", "check_gradients_mode",
+           "active_rows", "attach_gradients", "backward_solve", "check_gradients_mode",
            "default_active_tolerance", "default_stationarity_tolerance", "dependent_rows", "kkt_system",
            "parameter_gradients", "refine", "requires_gradients", "rows_at"]

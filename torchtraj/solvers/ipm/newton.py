@@ -37,6 +37,7 @@ from torch import Tensor
 
 from ...core.compiled import matvec as _mv
 from ...globalization.regularization import inertia_correction
+from ...kkt import newton as kkt_newton
 from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
 from .compaction import pick
 from .iterate import Iterate, Model
@@ -56,12 +57,8 @@ def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, targe
     H = model.Lzz + model.Gz.transpose(-1, -2) @ (sigma.unsqueeze(-1) * model.Gz)
     HN = model.LNxx + model.GN.transpose(-1, -2) @ (sigmaN.unsqueeze(-1) * model.GN)
     me, meN = model.h.shape[-1], model.hN.shape[-1]
-    lqr = LQR.from_blocks(
-        model.fz, H, HN,
-        C=model.Hz[..., :nx] if me else None, D=model.Hz[..., nx:] if me else None,
-        mask=torch.ones_like(model.h) if me else None,
-        CN=model.HN if meN else None, maskN=torch.ones_like(model.hN) if meN else None,
-    )
+    # the equality rows alone are held: the inequalities are in the barrier-augmented Hessian
+    lqr = kkt_newton.held_lqr(model.fz, H, HN, rows=model.Hz if me else None, rowsN=model.HN if meN else None)
     return lqr, newton_rhs(model, it, mu, x0, nx, target)
 
 
@@ -75,8 +72,8 @@ def newton_rhs(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, targe
     barrierN = it.zN - it.yN + (mN + it.zN * model.gN) / it.sN
     gradN = model.LNx - it.lam[:, -1] + _mv(model.GN.transpose(-1, -2), barrierN)
     me, meN = model.h.shape[-1], model.hN.shape[-1]
-    return LQRVectors(q=grad[..., :nx], r=grad[..., nx:], qN=gradN, c=model.f - it.X[:, 1:], x0=x0 - it.X[:, 0],
-                      e=model.h if me else None, eN=model.hN if meN else None)
+    return kkt_newton.newton_rhs(grad, gradN, model.f - it.X[:, 1:], x0 - it.X[:, 0], model.h if me else None,
+                                 model.hN if meN else None)
 
 
 @dataclass
