@@ -15,12 +15,11 @@ import pytest
 import torch
 from kkt import kkt_residuals
 
-import envs  # noqa: F401  (registers the torchtraj/ environments)
+import envs
 
 import torchtraj as tt
 import torchtraj.kkt
 from torchtraj import problems, solvers
-from torchtraj.bench import mpc as bench
 from torchtraj.core.constraints import Constraints, stack_blocks
 from torchtraj.core.derivatives import stage_jacobian
 
@@ -219,12 +218,12 @@ def test_mpc_swings_the_pendulum_up(method):
     """3 iterations per control step, as tests/test_mpc.py; seed 1 (ALTRO upright from step 46 there, the IPM from
     step 41; AL-iLQR as ALTRO, which MPC runs without its projection anyway)."""
     env = envs.PendulumEnv(max_episode_steps=70)
-    policy = tt.MPC(bench.pendulum_problem(env), method, 3)
+    policy = tt.MPC(env.problem(), method, 3)
     obs, _ = env.reset(seed=1)
     angles = [obs[0]]
     for _ in range(70):
         obs, *_ = env.step(policy(obs))
         angles.append(obs[0])
-    error = bench.upright_error(torch.as_tensor(angles)).abs()
+    error = envs.upright_error(torch.as_tensor(angles)).abs()
     # as tests/test_mpc.py: from hanging to within 0.1 rad of upright over the last 0.75 s (16 steps)
     assert error[0] > 3.0 and (error[-16:] <= 0.1).all(), (method, error[-16:])

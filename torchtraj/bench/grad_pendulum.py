@@ -198,7 +198,7 @@ def not_minimal(run: ByInstance) -> dict:
     sol, problem = run.solution, run.problem
     if not solvers.get(sol.method).handles_constraints:  # its gradients hold no rows (tt.solve: constrained=False)
         return {}
-    cons = Constraints(problem)
+    cons = Constraints.of(problem)
     if not (cons.mi or cons.miN):
         return {}
     X, U = sol.X.detach(), sol.U.detach()

@@ -124,7 +124,6 @@ class MPC(torch.nn.Module):
         bad = (Status.NON_FINITE, Status.DIVERGED, Status.INFEASIBLE_START)
         self._failures = torch.tensor([int(b) for b in bad], device=problem.device)
         self._params: dict = {}
-        self._constraints: Optional[Constraints] = None
         self.solution: Optional[Solution] = None
         self.solve_seconds = float("nan")
         self._clear(0)
@@ -213,16 +212,10 @@ class MPC(torch.nn.Module):
         self._U = _shift(torch.where(_rows(usable, sol.U), sol.U, U0))
         carried = {}
         if self.solver.takes_duals:  # else none to carry, and no constraints to make for it
-            carried = self.solver.carried_duals(self._constraints_of(p), sol, self.options)
+            carried = self.solver.carried_duals(Constraints.of(p), sol, self.options)
         self._multipliers = {k: _shift(v) if v.dim() == 3 else v for k, v in carried.items()}
         self._warm = usable
         return u
-
-    def _constraints_of(self, problem: Problem) -> Constraints:
-        """The constraints of ``problem``, made once per problem (on the host) for the method's hooks."""
-        if self._constraints is None or self._constraints.problem is not problem:
-            self._constraints = Constraints(problem)
-        return self._constraints
 
     # ------------------------------------------------------------------ diagnostics
     @property

@@ -67,6 +67,15 @@ class Constraints:
 
     graph_rebuilt_from = ("problem", "ignored")
 
+    @classmethod
+    def of(cls, problem: Problem, ignored: bool = False) -> "Constraints":
+        """The layout of ``problem``'s constraints, made once per problem object and kept on it: every solver, the
+        implicit layer and MPC share it instead of reading the bounds again (a host synchronisation each)."""
+        cache = problem.__dict__.setdefault("_constraints", {})
+        if ignored not in cache:
+            cache[ignored] = cls(problem, ignored)
+        return cache[ignored]
+
     def __init__(self, problem: Problem, ignored: bool = False):
         self.problem = problem
         self.ignored = ignored

@@ -244,14 +244,19 @@ class Problem:
             out = call(name, fn, *args)
             if out.shape != ():
                 raise ValueError(f"Problem.{name} must return a scalar (shape ()), got {tuple(out.shape)}")
+        sizes = {}
         for name in ("stage_eq", "stage_ineq", "state_ineq", "terminal_eq", "terminal_ineq"):
             fn = getattr(self, name)
+            sizes[name] = 0
             if fn is None:
                 continue
             args = (x, u, p) if name.startswith("stage") else (x, p)
             out = call(name, fn, *args)
             if out.dim() != 1:
                 raise ValueError(f"Problem.{name} must return a vector (m,), got shape {tuple(out.shape)}")
+            sizes[name] = int(out.shape[0])
+        # read once, here: the solvers' constraint layout (Constraints) never calls the user's functions for it again
+        object.__setattr__(self, "_constraint_sizes", sizes)
         if self.linear_quadratic:
             self._check_linear_quadratic(x, u, p)
 
@@ -295,14 +300,5 @@ class Problem:
                                  f"changes by {gap:.3g} between two probe points")
 
     def constraint_sizes(self) -> dict:
-        """Number of rows of each constraint function (0 when absent)."""
-        x, u, p = self.x0, self.u_init[0], self.instance_params()
-        sizes = {}
-        for name in ("stage_eq", "stage_ineq", "state_ineq", "terminal_eq", "terminal_ineq"):
-            fn = getattr(self, name)
-            if fn is None:
-                sizes[name] = 0
-            else:
-                args = (x, u, p) if name.startswith("stage") else (x, p)
-                sizes[name] = int(fn(*args).shape[0])
-        return sizes
+        """Number of rows of each constraint function (0 when absent), as the probe call found them."""
+        return dict(self._constraint_sizes)

@@ -77,7 +77,7 @@ def default_active_tolerance(dtype: torch.dtype) -> float:
 
 def constraints_of(problem: Problem, constrained: bool) -> Constraints:
     """The problem's constraints, none where the method ignores them (so do its KKT conditions)."""
-    return Constraints(problem, ignored=not constrained)
+    return Constraints.of(problem, ignored=not constrained)
 
 
 def graphed_where_capturable(fn, cuda_graphs: bool, cons: Constraints):

@@ -29,7 +29,7 @@ def largest_violation(problem: Problem, X: Tensor, U: Tensor, params, x0: Option
     """``v (B,)`` at ``X (B, N+1, nx)``, ``U (B, N, nu)``; the initial defect counts where ``x0 (B, nx)`` is given.
 
     ``constraints``: the problem's (:class:`~torchtraj.core.constraints.Constraints`), made here if not given."""
-    constraints = Constraints(problem) if constraints is None else constraints
+    constraints = Constraints.of(problem) if constraints is None else constraints
     defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
     if x0 is not None:
         defect = torch.maximum(defect, (x0 - X[:, 0]).abs().amax(-1))

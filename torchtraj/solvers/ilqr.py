@@ -38,17 +38,16 @@ class ILQR(Solver):
     takes_duals = False
 
     def solve(self, problem: Problem, batch: Batch, options: ILQROptions) -> Solution:
-        return solve_ilqr(problem, batch.x0, batch.U0, batch.params, options)
+        return solve_ilqr(problem, batch, options)
 
 
-def solve_ilqr(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ILQROptions] = None) -> Solution:
-    """Solve ``problem`` from ``x0 (B, nx)`` and controls ``U0 (B, N, nu)`` by iLQR; constraints are ignored.
-
-    ``params`` are the problem's parameters expanded to the batch (``Problem.batched_params``).
-    """
+def solve_ilqr(problem: Problem, batch: Batch, options: Optional[ILQROptions] = None) -> Solution:
+    """Solve the ``batch`` of instances of ``problem`` by iLQR, from ``x0 (B, nx)`` and controls ``U0 (B, N, nu)``
+    with the parameters batched to B; constraints are ignored."""
     opts = options or ILQROptions()
+    x0, U0, params = batch.x0, batch.U0, batch.params
     B = x0.shape[0]
-    constraints = Constraints(problem)
+    constraints = Constraints.of(problem)
     objective = CostObjective(problem)
     X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
     U = U0

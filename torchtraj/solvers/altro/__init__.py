@@ -47,8 +47,7 @@ class ALTRO(Solver):
     takes_duals = True
 
     def solve(self, problem: Problem, batch: Batch, options: ALTROOptions) -> Solution:
-        return solve_altro(problem, batch.x0, batch.U0, batch.params, options, X0=batch.X0, method=self.name,
-                           duals=batch.duals)
+        return solve_altro(problem, batch, options, method=self.name)
 
     def step_defaults(self) -> ALTROOptions:
         return MPC_OPTIONS

@@ -68,14 +68,13 @@ def solve_infeasible(problem: Problem, x0: Tensor, U0: Tensor, X0: Tensor, param
     constraints; the slack rows start at ``penalty_initial`` and at zero, or, given ``warm["costate"]``, at
     ``ν_k = −λ_{k+1}``: stationarity in ``s_k`` of ``½ R_s |s_k|² + λ_{k+1}ᵀ(f + s_k − x_{k+1}) + ν_kᵀ s_k`` at
     ``s = 0``."""
-
-    nx, nu = problem.nx, problem.nu
+    nu = problem.nu
     X0 = torch.cat([x0.unsqueeze(1), X0[:, 1:]], 1)
     slack = X0[:, 1:] - map_stage(problem.dynamics, X0[:, :-1], U0, params)  # (31)
     augmented = slack_problem(problem, opts.slack_cost)
     Ua = torch.cat([U0, slack], -1)
     X = rollout(augmented.dynamics, x0, Ua, params)
-    constraints = Constraints(problem)
+    constraints = Constraints.of(problem)
     own = initial_duals(constraints, opts, x0, warm)
     # the slack rows s = 0 come last among the stage equalities (slack_problem), after the problem's own rows
     zeros = slack.new_zeros(slack.shape)

@@ -34,6 +34,7 @@ from torch import Tensor
 
 from ...core.batching import map_stage
 from ...core.derivatives import quadratize_cost, stage_jacobian, terminal_jacobian
+from ...globalization.line_search import Accepted, backtrack
 from ...kkt import activity
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import factorize
@@ -143,7 +144,6 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
     eps = torch.finfo(X.dtype).eps
     rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
     alphas = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
-    rows = torch.arange(B, device=X.device)
     v = X.new_full((B,), float("inf"))
     for _ in range(opts.iterations):
         stage_active, terminal_active = _active_rows(al, X, U, params, opts)
@@ -159,17 +159,20 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
                 break
             # the least-H-norm step onto the linearised rows: no gradient, the violations as offsets
             step = factor.solve(newton_rhs(X.new_zeros(B, N, nz), X.new_zeros(B, nx), defect, init, c, cN))
-            Xc = X.unsqueeze(1) + alphas.reshape(1, -1, 1, 1) * step.dx.unsqueeze(1)
-            Uc = U.unsqueeze(1) + alphas.reshape(1, -1, 1, 1) * step.du.unsqueeze(1)
-            dc, ic, cc, cNc, vc = _residuals(al, problem.dynamics, params, x0, Xc, Uc, stage_active, terminal_active)
-            accept = torch.isfinite(vc) & (vc < v.unsqueeze(1))
-            idx = torch.argmax(accept.to(torch.int8), dim=1)  # the largest step that reduces v
-            take = stepping & accept.any(1)
-            v_new = torch.where(take, vc[rows, idx], v)
-            t3, t2 = take.reshape(B, 1, 1), take.reshape(B, 1)
-            X, U = torch.where(t3, Xc[rows, idx], X), torch.where(t3, Uc[rows, idx], U)
-            defect, c = torch.where(t3, dc[rows, idx], defect), torch.where(t3, cc[rows, idx], c)
-            init, cN = torch.where(t2, ic[rows, idx], init), torch.where(t2, cNc[rows, idx], cN)
+
+            def decrease(alphas, X=X, U=U, v=v, step=step):
+                """Algorithm 3's test, ``v(α) < v``, at every step size at once, and the candidates' values."""
+                a = alphas.reshape(1, -1, 1, 1)
+                Xc, Uc = X.unsqueeze(1) + a * step.dx.unsqueeze(1), U.unsqueeze(1) + a * step.du.unsqueeze(1)
+                dc, ic, cc, cNc, vc = _residuals(al, problem.dynamics, params, x0, Xc, Uc, stage_active,
+                                                 terminal_active)
+                return torch.isfinite(vc) & (vc < v.unsqueeze(1)), (Xc, Uc, dc, ic, cc, cNc, vc)
+
+            # the largest step that reduces v, all step sizes in one round; the instances not stepping keep theirs
+            start = Accepted(found=~stepping, alpha=torch.zeros_like(v), values=(X, U, defect, init, c, cN, v))
+            accepted = backtrack(alphas, alphas.numel(), decrease, stepping, start)
+            take = stepping & accepted.found
+            X, U, defect, init, c, cN, v_new = accepted.values
             rate = torch.log(v_new) / torch.log(v)
             v = v_new
             # reuse the factorisation only while convergence stays fast (Algorithm 2, line 8)

@@ -25,6 +25,7 @@ from typing import Optional
 
 from torch import Tensor
 
+from ...core.batch import Batch
 from ...core.batching import rollout
 from ...core.compiled import kernel
 from ...core.problem import Problem
@@ -34,12 +35,13 @@ from .options import ALTROOptions
 from .stages import al_stage, finish
 
 
-def solve_altro(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[ALTROOptions] = None,
-                X0: Optional[Tensor] = None, method: str = "altro", duals: Optional[dict] = None) -> Solution:
-    """Solve ``problem`` from ``x0 (B, nx)``, ``U0 (B, N, nu)`` (and, for an infeasible start, states
-    ``X0 (B, N+1, nx)``) by ALTRO. ``params`` are the batched parameters; ``duals`` an optional warm
+def solve_altro(problem: Problem, batch: Batch, options: Optional[ALTROOptions] = None,
+                method: str = "altro") -> Solution:
+    """Solve the ``batch`` of instances of ``problem`` by ALTRO: from ``x0 (B, nx)``, ``U0 (B, N, nu)`` (and, for an
+    infeasible start, states ``X0 (B, N+1, nx)``), with the parameters batched to B and ``duals`` an optional warm
     start of the multipliers and penalties (see :func:`torchtraj.solve`)."""
     opts = options or ALTROOptions()
+    x0, U0, X0, params, duals = batch.x0, batch.U0, batch.X0, batch.params, batch.duals
     if X0 is not None:
         return solve_infeasible(problem, x0, U0, X0, params, opts, method, duals)
     X = kernel(rollout, opts.ilqr.compile)(problem.dynamics, x0, U0, params)

@@ -65,7 +65,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     or already stacked; ``None`` starts from zero multipliers and ``penalty_initial``."""
     B = x0.shape[0]
     inner = opts.ilqr
-    constraints = Constraints(problem)
+    constraints = Constraints.of(problem)
     duals = warm if isinstance(warm, Duals) else initial_duals(constraints, opts, x0, warm)
     al = AugmentedLagrangian(constraints, duals, opts.square_root)
     backward = factorize_sqrt if opts.square_root else factorize

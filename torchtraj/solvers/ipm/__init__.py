@@ -28,8 +28,7 @@ class IPM(Solver):
     takes_duals = False
 
     def solve(self, problem: Problem, batch: Batch, options: IPOptions) -> Solution:
-        return solve_interior_point(problem, batch.x0, batch.U0, batch.params, options, X0=batch.X0,
-                                    method=self.name)
+        return solve_interior_point(problem, batch, options, method=self.name)
 
 
 __all__ = ["IPM"]

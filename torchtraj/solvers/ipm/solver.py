@@ -32,8 +32,8 @@ import logging
 from typing import Optional
 
 import torch
-from torch import Tensor
 
+from ...core.batch import Batch
 from ...core.batching import param_rows, rollout
 from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks
@@ -54,13 +54,15 @@ from .options import IPOptions
 logger = logging.getLogger("torchtraj")
 
 
-def solve_interior_point(problem: Problem, x0: Tensor, U0: Tensor, params, options: Optional[IPOptions] = None,
-                         X0: Optional[Tensor] = None, method: str = "ipm") -> Solution:
-    """Solve ``problem`` from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and, optionally, states ``X0 (B, N+1, nx)``
-    (any guess: multiple shooting starts from defects; without it the controls are rolled out)."""
+def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOptions] = None,
+                         method: str = "ipm") -> Solution:
+    """Solve the ``batch`` of instances of ``problem``: from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
+    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting starts from defects; without it the
+    controls are rolled out), with the parameters batched to B."""
     opts = options or IPOptions()
+    x0, U0, X0, params = batch.x0, batch.U0, batch.X0, batch.params
     B, N, nx = x0.shape[0], problem.N, problem.nx
-    cons = Constraints(problem)
+    cons = Constraints.of(problem)
     tol = opts.tolerance_for(x0.dtype)
     if X0 is None:
         X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
