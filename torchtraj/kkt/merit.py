@@ -9,7 +9,7 @@ The dynamics are constraints of the trajectory like any other (a multiple-shooti
 start and its projection move the states apart from the rollout), so their defects count. ALTRO's states start at
 ``x̄_0`` by construction (rolled out from it, and projected with a zero initial defect), so it leaves the initial
 defect out; the implicit layer's refined points are Newton steps on it, so it passes ``x̄_0``. The interior-point
-method reads the same measure off its expansion (``Model.violation``), values it has already evaluated.
+method takes the same measure, :func:`violation_of`, of the values its expansion has already evaluated.
 """
 
 from __future__ import annotations
@@ -24,13 +24,26 @@ from ..core.constraints import Constraints
 from ..core.problem import Problem
 
 
+def violation_of(defects: Tensor, h: Tensor, g: Tensor, hN: Tensor, gN: Tensor,
+                 initial: Optional[Tensor] = None) -> Tensor:
+    """``v (B,)`` of evaluated values: defects ``(B, N, nx)``, equalities ``h (B, N, me)``, ``hN (B, meN)``,
+    inequalities ``g (B, N, mi)``, ``gN (B, miN)`` (rows off at a knot hold a value ``≤ 0``), and the initial
+    defect ``initial (B, nx)`` where it counts."""
+    B = defects.shape[0]
+    parts = [defects.new_zeros(B, 1), defects.abs().flatten(1), h.abs().flatten(1), g.clamp_min(0).flatten(1),
+             hN.abs().flatten(1), gN.clamp_min(0).flatten(1)]
+    if initial is not None:
+        parts.append(initial.abs())
+    return torch.cat(parts, -1).amax(-1)
+
+
 def largest_violation(problem: Problem, X: Tensor, U: Tensor, params, x0: Optional[Tensor] = None,
                       constraints: Optional[Constraints] = None) -> Tensor:
     """``v (B,)`` at ``X (B, N+1, nx)``, ``U (B, N, nu)``; the initial defect counts where ``x0 (B, nx)`` is given.
 
     ``constraints``: the problem's (:class:`~torchtraj.core.constraints.Constraints`), made here if not given."""
     constraints = Constraints.of(problem) if constraints is None else constraints
-    defect = (map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]).abs().flatten(1).amax(-1)
-    if x0 is not None:
-        defect = torch.maximum(defect, (x0 - X[:, 0]).abs().amax(-1))
-    return torch.maximum(defect, constraints.max_violation(X, U, params))
+    defects = map_stage(problem.dynamics, X[:, :-1], U, params) - X[:, 1:]
+    values = constraints.evaluate(X, U, params)
+    return violation_of(defects, values.eq, values.ineq, values.eqN, values.ineqN,
+                        None if x0 is None else x0 - X[:, 0])

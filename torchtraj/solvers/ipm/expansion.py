@@ -46,6 +46,7 @@ from ...core.derivatives import (
     terminal_jacobian,
 )
 from ...core.problem import Problem
+from ...kkt.merit import violation_of
 from ...kkt.model import total_cost
 from ...riccati import all_finite
 from .iterate import Iterate, Model
@@ -191,7 +192,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     knots = cons.ineq_knot_mask
     residuals = flat_abs(defects, r.h, r.hN, (r.g + it.s) * knots, r.gN + it.sN)
     theta, primal_error = residuals.sum(-1), residuals.amax(-1)
-    violation = flat_abs(defects, r.h, r.hN, r.g.clamp_min(0), r.gN.clamp_min(0)).amax(-1)
+    violation = violation_of(defects, r.h, r.g, r.hN, r.gN)
     # Lagrangian gradient: x_k also appears in the dynamics row of stage k-1 (−λ_k); x_0 is fixed
     grad_x = e.Lz[:, 1:, :nx] - it.lam[:, 1:-1]
     grad_N = e.LNx - it.lam[:, -1]
