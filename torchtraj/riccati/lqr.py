@@ -1,22 +1,9 @@
 r"""The data of a batched LQR problem: its matrices, its right-hand sides and the solution of one right-hand side.
 
-For each of B instances (every tensor batch-first), the time-varying LQR problem
-
-.. math::
-
-    \min_{\delta x, \delta u}\; \sum_{k=0}^{N-1} \tfrac12 \delta x_k^T Q_k \delta x_k
-        + \delta u_k^T S_k \delta x_k + \tfrac12 \delta u_k^T R_k \delta u_k
-        + q_k^T \delta x_k + r_k^T \delta u_k
-        \;+\; \tfrac12 \delta x_N^T Q_N \delta x_N + q_N^T \delta x_N
-
-    \text{s.t.}\quad \delta x_{k+1} = A_k \delta x_k + B_k \delta u_k + c_k,
-    \quad \delta x_0 = \bar x_0,
-    \quad C_k \delta x_k + D_k \delta u_k + e_k = 0,
-    \quad C_N \delta x_N + e_N = 0
-
-is split into the matrices (:class:`LQR`), which one factorisation reads, and the vectors (:class:`LQRVectors`),
-of which each solve takes one set: the adjoint system of implicit differentiation or a second-order correction
-reuses the factorisation. The constraint rows may be switched off per instance by a mask, or declared simple
+The time-varying LQR problem of the package docstring (:mod:`torchtraj.riccati`), for each of B instances (every
+tensor batch-first), is split into the matrices (:class:`LQR`), which one factorisation reads, and the vectors
+(:class:`LQRVectors`), of which each solve takes one set: the adjoint system of implicit differentiation or a
+second-order correction reuses the factorisation. The constraint rows may be switched off per instance by a mask, or declared simple
 bounds on the controls (:mod:`torchtraj.riccati.bounds`).
 """
 
