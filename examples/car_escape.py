@@ -1,4 +1,4 @@
-"""ALTRO's infeasible start (papers/altro.md §III-B) on the car-escape problem.
+"""ALTRO's infeasible start (Howell et al. 2019 §III-B) on the car-escape problem.
 
 The car must leave one walled room for the next. The plain rollout of the initial controls from x0 stays
 in the first room (the usual start of iLQR-type solvers; AL-iLQR from it, measured with 5 outer iterations,

@@ -29,7 +29,7 @@ START = {"mass": 1.6, "length": 0.35, "damping": 0.25}
 
 
 def swing_up(N: int = 25, dt: float = 0.08) -> tt.Problem:
-    """Swing-up to θ = π with unit-scale weights (a well-conditioned version of PROBLEMS.md's)."""
+    """Swing-up to θ = π with unit-scale weights (a well-conditioned version of the problem set's)."""
     model = tt.models.get("pendulum")
     goal = torch.tensor([torch.pi, 0.0], dtype=torch.float64)
 

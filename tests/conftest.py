@@ -1,4 +1,4 @@
-"""Shared fixtures: reference optima copied from PROBLEMS.md's IPOPT / FATROP runs (tests/data)."""
+"""Shared fixtures: reference optima copied from the problem set's IPOPT / FATROP runs (tests/data)."""
 
 import json
 from pathlib import Path

@@ -8,7 +8,7 @@ import torchtraj as tt
 
 FAST = ["double_integrator", "pendulum", "parallel_park"]
 SLOW = ["cartpole", "car_3obs", "quadrotor2d", "car_escape"]
-#: Problems where ALTRO, from PROBLEMS.md's guess, finds another local optimum than IPOPT; each is checked to
+#: Problems where ALTRO, from the problem set's guess, finds another local optimum than IPOPT; each is checked to
 #: be a KKT point and confirmed by IPOPT warm-started there. car_3obs: ALTRO (9.43375) passes the three circles
 #: below the diagonal, IPOPT (12.04034) above it. car_escape (0.3316056 against 0.3316544): the same route, but
 #: with the walls constrained at the knots only, other knots touch a wall circle (ALTRO: knots 31-32 on the

@@ -30,7 +30,7 @@ def test_pendulum_unconstrained_from_ipopt_optimum_stays_there(reference):
 
 
 def test_pendulum_unconstrained_from_problem_guess_reaches_a_better_local_optimum(reference):
-    """From PROBLEMS.md's guess (u = 0.1) iLQR finds a local optimum of cost 0.0137813, below IPOPT's
+    """From the problem set's guess (u = 0.1) iLQR finds a local optimum of cost 0.0137813, below IPOPT's
     0.0435288 from the same guess: a different local minimum of this non-convex problem. We check it is
     one: converged, lower cost, and the gradient of the cost with respect to every control vanishes."""
     prob = tt.problems.get("pendulum_unconstrained")

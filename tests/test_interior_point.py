@@ -1,6 +1,6 @@
 """The interior-point method (``method="ipm"``) against independent references.
 
-* IPOPT / FATROP optima of the problem set (tests/data, PROBLEMS.md) and IPOPT solves of sampled
+* IPOPT / FATROP optima of the problem set (tests/data) and IPOPT solves of sampled
   instances (``torchtraj.bench.reference``, CasADi);
 * first-order optimality of the returned point, checked by autograd of the Lagrangian built here from
   the problem's functions and the solution's costates and multipliers;
@@ -339,7 +339,7 @@ def test_duals_are_refused():
 
 @pytest.mark.slow
 def test_obstacles_without_restoration_end_with_a_status():
-    """car_3obs from PROBLEMS.md's guess: the method has no restoration phase and (today) does not
+    """car_3obs from the problem set's guess: the method has no restoration phase and (today) does not
     converge; it must still return a per-instance, non-RUNNING status, and a finite point if converged."""
     problem = tt.problems.get("car_3obs")
     sol = tt.solve(problem, method="ipm")
@@ -355,7 +355,7 @@ def test_obstacles_without_restoration_end_with_a_status():
 @pytest.mark.slow
 def test_obstacles_from_a_state_guess_around_them(reference):
     """car_3obs from a state guess that goes around the circles (up the y axis, then across; dynamically
-    inconsistent, controls at PROBLEMS.md's guess): no restoration is needed and the IPM reaches the
+    inconsistent, controls at the problem set's guess): no restoration is needed and the IPM reaches the
     optimum IPOPT and FATROP find, a KKT point."""
     problem = tt.problems.get("car_3obs")
     s = torch.linspace(0, 2, problem.N + 1, dtype=F64)[:, None]

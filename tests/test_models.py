@@ -1,4 +1,4 @@
-"""The torch models against their independent CasADi twins and PROBLEMS.md's formulas; torch.func use."""
+"""The torch models against their independent CasADi twins and the problem set's formulas; torch.func use."""
 
 import math
 
@@ -77,7 +77,7 @@ def test_pendulum_is_problems_md_formula():
 
 
 def test_cartpole_satisfies_problems_md_manipulator_equation():
-    """H q̈ = −(C q̇ + G − [F, 0]) with PROBLEMS.md's matrices, checked row by row."""
+    """H q̈ = −(C q̇ + G − [F, 0]) with the problem set's matrices, checked row by row."""
     model = models.cartpole()
     mc, mp, l, g = 1.0, 0.2, 0.5, 9.81
     X, U = points("cartpole", 50)

@@ -1,4 +1,4 @@
-"""The benchmark problems against PROBLEMS.md and the IPOPT optima it reports (tests/data)."""
+"""The benchmark problems against the problem set and the IPOPT optima it reports (tests/data)."""
 
 import math
 
@@ -14,7 +14,7 @@ ALL = [
     "pendulum_unconstrained", "cartpole_unconstrained",
 ]
 
-# PROBLEMS.md, copied here independently of the package:
+# The problem set's numbers, copied here independently of the package:
 # (finite control-bound entries, finite state-bound entries, circles, goal constraint)
 CONSTRAINTS = {
     "double_integrator": (2, 2, 0, True),
@@ -27,7 +27,7 @@ CONSTRAINTS = {
     "pendulum_unconstrained": (0, 0, 0, False),
     "cartpole_unconstrained": (0, 0, 0, False),
 }
-# Constraint kinds active at the IPOPT optimum: these bounds cannot be looser than PROBLEMS.md's.
+# Constraint kinds active at the IPOPT optimum: these bounds cannot be looser than the problem set's.
 ACTIVE = {
     "double_integrator": {"u", "x"},
     "pendulum": {"u"},

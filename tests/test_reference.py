@@ -1,4 +1,4 @@
-"""The CasADi references reproduce PROBLEMS.md's IPOPT / FATROP optima (tests/data)."""
+"""The CasADi references reproduce the problem set's IPOPT / FATROP optima (tests/data)."""
 
 import numpy as np
 import pytest
@@ -30,7 +30,7 @@ def test_reproduces_reference(reference, name, solver):
 def test_resolve_with_new_x0(reference):
     """One solver, re-solved per instance (x0 is an NLP parameter): the first pendulum batch instances.
 
-    The batch reference started from the states held at x0 (not the rollout of PROBLEMS.md's rule),
+    The batch reference started from the states held at x0 (not the rollout of the problem set's rule),
     and reproduces its iteration counts with that guess."""
     batch = reference["pendulum_batch_seed0_ipopt"]
     solver = ReferenceSolver("pendulum", "ipopt")

@@ -29,7 +29,7 @@ CONSTRAINED = [m for m in METHODS if solvers.get(m).handles_constraints]
 
 
 def small(name: str, dtype=F64) -> tt.Problem:
-    """The contract's problems, short enough for every method: the double integrator as in PROBLEMS.md (N = 20,
+    """The contract's problems, short enough for every method: the double integrator as in the problem set (N = 20,
     linear-quadratic, control and state bounds, a terminal goal), and the pendulum over N = 10 from hanging towards
     upright without its terminal goal (nonlinear; the torque bound is active at the start), constrained or not."""
     if name == "double_integrator":

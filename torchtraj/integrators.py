@@ -2,7 +2,7 @@
 
 Given continuous dynamics ``xdot = f(x, u, p)`` and a step ``dt``, each combinator
 returns ``step(x, u, p) -> x_next`` with the control held constant over the step
-(zero-order hold), as in PROBLEMS.md:
+(zero-order hold), as in the problem set:
 
 * explicit Euler:  x+ = x + dt f(x, u)
 * classic RK4:     k1 = f(x, u), k2 = f(x + dt/2 k1, u), k3 = f(x + dt/2 k2, u),

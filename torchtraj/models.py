@@ -1,4 +1,4 @@
-"""Continuous-time models of the benchmark set (PROBLEMS.md), written in torch ops only.
+"""Continuous-time models of the benchmark problem set, written in torch ops only.
 
 A :class:`Model` carries per-instance continuous dynamics ``xdot = f(x, u, p)``
 (``x: (nx,)``, ``u: (nu,)``, ``p`` a dict of 0-dim tensors) and its default physical
@@ -93,7 +93,7 @@ def _pendulum(x: Tensor, u: Tensor, p: Params) -> Tensor:
 def pendulum(mass: float = 1.0, length: float = 0.5, damping: float = 0.1, gravity: float = 9.81) -> Model:
     """A point mass ``mass`` at distance ``length`` with viscous joint ``damping``; θ = 0 hangs down.
 
-    The defaults give PROBLEMS.md's ``[ω, τ/0.25 − 9.81 sinθ/0.5 − 0.1 ω/0.25]``.
+    The defaults give the problem set's ``[ω, τ/0.25 − 9.81 sinθ/0.5 − 0.1 ω/0.25]``.
     """
     params = _params(mass=mass, length=length, damping=damping, gravity=gravity)
     return Model("pendulum", 2, 1, _pendulum, params, ("theta", "omega"), ("tau",))
@@ -113,7 +113,7 @@ def _cartpole(x: Tensor, u: Tensor, p: Params) -> Tensor:
 def cartpole(cart_mass: float = 1.0, pole_mass: float = 0.2, pole_length: float = 0.5, gravity: float = 9.81) -> Model:
     """A cart on a rail with a pole of point mass ``pole_mass`` at ``pole_length``; θ = 0 hangs down.
 
-    ``x = [x, θ, ẋ, θ̇]``, ``u = [F]`` (horizontal force on the cart); PROBLEMS.md's manipulator
+    ``x = [x, θ, ẋ, θ̇]``, ``u = [F]`` (horizontal force on the cart); the problem set's manipulator
     equations solved in closed form (module docstring).
     """
     params = _params(cart_mass=cart_mass, pole_mass=pole_mass, pole_length=pole_length, gravity=gravity)
@@ -148,7 +148,7 @@ def _quadrotor2d(x: Tensor, u: Tensor, p: Params) -> Tensor:
 
 
 def quadrotor2d(mass: float = 1.0, arm_length: float = 0.3, gravity: float = 9.81) -> Model:
-    """A planar quadrotor with two rotor thrusts; ``J = 0.2 m ℓ²`` (PROBLEMS.md).
+    """A planar quadrotor with two rotor thrusts; ``J = 0.2 m ℓ²``.
 
     ``x = [x, y, θ, ẋ, ẏ, θ̇]``, ``u = [u1, u2]``; thrusts act along the body axis tilted by θ
     from vertical, with moment arm ``ℓ/2``.

@@ -1,4 +1,4 @@
-"""The benchmark problem set of PROBLEMS.md (ALTRO, HM-iLQR and FATROP papers), every number once.
+"""The benchmark problem set (the standard problems of the ALTRO, HM-iLQR and FATROP papers), every number once.
 
 Each problem is, with ``dt = tf / N`` and ``F = rk4(f, dt)`` of a model in :mod:`torchtraj.models`::
 
@@ -9,7 +9,7 @@ Each problem is, with ``dt = tf / N`` and ``F = rk4(f, dt)`` of a model in :mod:
                 r_i² − (x_k[0] − cx_i)² − (x_k[1] − cy_i)² <= 0   k = 1..N-1  (circles)
                 x_N = x_g                                         (where goal_constraint)
 
-Q and R are stored as used (PROBLEMS.md's "·dt" already applied). ``pendulum_unconstrained`` and
+Q and R are stored as used (the problem set's "·dt" already applied). ``pendulum_unconstrained`` and
 ``cartpole_unconstrained`` are ``pendulum`` / ``cartpole`` without control bounds and goal constraint.
 
 * :func:`spec` gives the numbers as a :class:`ProblemSpec` (numpy, for independent references such as
@@ -17,7 +17,7 @@ Q and R are stored as used (PROBLEMS.md's "·dt" already applied). ``pendulum_un
 * :func:`get` builds a :class:`torchtraj.Problem` whose ``params`` hold the model's physical parameters
   and ``goal`` (nx,), ``Q`` (nx, nx), ``R`` (nu, nu), ``Qf`` (nx, nx) and, with circles,
   ``obstacles`` (n, 3) rows ``(cx, cy, r)``, so gradients can flow to all of them;
-* :func:`sample_x0` draws PROBLEMS.md's batches ``x0 + U(−1, 1) * spread``.
+* :func:`sample_x0` draws the problem set's batches ``x0 + U(−1, 1) * spread``.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ class ProblemSpec:
         model: name of the model in :mod:`torchtraj.models` (default physical parameters).
         N: number of intervals; ``tf``: horizon length in seconds (``dt = tf / N``).
         x0, goal: ``(nx,)`` initial and goal state.
-        Q, R, Qf: ``(nx, nx)``, ``(nu, nu)``, ``(nx, nx)`` cost weights as used (Q, R include PROBLEMS.md's dt).
+        Q, R, Qf: ``(nx, nx)``, ``(nu, nu)``, ``(nx, nx)`` cost weights as used (Q, R include the problem set's dt).
         u_lower, u_upper: ``(nu,)`` control bounds (±inf where unbounded).
         x_lower, x_upper: ``(nx,)`` state bounds on knots 1..N-1 (±inf where unbounded).
         circles: ``(n, 3)`` circle obstacles ``(cx, cy, r)`` on knots 1..N-1 (n may be 0).
@@ -112,7 +112,7 @@ class ProblemSpec:
 
 def _spec(name, model, N, tf, x0, goal, Q, R, Qf, u_bound=None, u_init=0.0, x_bound=None, circles=(),
           goal_constraint=True, X_init=None, spread=None, altro=None) -> ProblemSpec:
-    """PROBLEMS.md's row: ``Q``, ``R`` are per unit time (multiplied by dt here, as its "·dt");
+    """The problem set's row: ``Q``, ``R`` are per unit time (multiplied by dt here, as its "·dt");
     ``u_bound`` / ``x_bound`` are ``(lower, upper)`` pairs; scalars broadcast."""
     nx, nu, dt = len(x0), models.get(model).nu, tf / N
     inf = np.full(nu, np.inf)
@@ -196,7 +196,7 @@ _SPECS = _build_specs()
 
 
 def names() -> list[str]:
-    """Names of all benchmark problems, in PROBLEMS.md's order, then the two unconstrained twins."""
+    """Names of all benchmark problems, in the problem set's order, then the two unconstrained twins."""
     return list(_SPECS)
 
 
@@ -264,7 +264,7 @@ def get(name: str, dtype: torch.dtype = torch.float64, device=None) -> Problem:
     )
 
 
-#: The references are solved to a tolerance of 1e-8 (PROBLEMS.md). ALTRO's own defaults stop an inner
+#: The references are solved to a tolerance of 1e-8 (the references' own setting). ALTRO's own defaults stop an inner
 #: solve once the cost changes by less than 1e-4 and the scaled control step is below 10 — on the pendulum
 #: that leaves the cost 30 % above the optimum — so the problem set asks for reference accuracy.
 REFERENCE_ACCURACY = {"cost_tolerance": 1e-8, "cost_tolerance_intermediate": 1e-6, "gradient_tolerance": 1e-3}
@@ -284,7 +284,7 @@ def altro_options(name: str, **changes):
 
 
 def sample_x0(name: str, count: int, seed: int) -> Tensor:
-    """``(count, nx)`` float64 initial states ``x0 + U(−1, 1) * spread`` (PROBLEMS.md, bit for bit).
+    """``(count, nx)`` float64 initial states ``x0 + U(−1, 1) * spread`` (the problem set's rule, bit for bit).
 
     The draw is ``numpy.random.default_rng(seed).uniform(-1, 1, (count, nx))``. The unconstrained twins
     use the spread of ``pendulum`` / ``cartpole``; ``car_escape`` has no spread (its initial state is
@@ -292,7 +292,7 @@ def sample_x0(name: str, count: int, seed: int) -> Tensor:
     """
     s = spec(name)
     if s.spread is None:
-        raise ValueError(f"problem {name!r} has no batch spread in PROBLEMS.md; sample_x0 is undefined for it")
+        raise ValueError(f"problem {name!r} has no batch spread in the problem set; sample_x0 is undefined for it")
     if not isinstance(count, int) or count < 1:
         raise ValueError(f"count must be a positive int, got {count!r}")
     draw = np.random.default_rng(seed).uniform(-1.0, 1.0, (count, s.nx))

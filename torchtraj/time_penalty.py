@@ -1,4 +1,4 @@
-r"""Time-penalised problems (papers/altro.md §III-C, eqs. 33-34).
+r"""Time-penalised problems (Howell et al. 2019 §III-C, eqs. 33-34).
 
 The step length becomes a decision: ``τ_k = √Δt_k`` is an extra control (its square keeps
 ``Δt_k ≥ 0`` without a constraint), the state carries the previous step's ``δ_k = τ_{k-1}``, and

@@ -2,7 +2,7 @@
 
 Each function ``f(x, u, p) -> xdot`` takes CasADi column vectors (SX or MX) ``x (nx, 1)``,
 ``u (nu, 1)`` and the same parameter dict as the torch model, with plain floats. The equations
-are transcribed independently from PROBLEMS.md (cart-pole, acrobot: by solving the 2×2 mass
+are transcribed independently from the problem set (cart-pole, acrobot: by solving the 2×2 mass
 matrix with ``casadi.solve`` instead of the closed form), so agreement with the torch models
 is a real check. CasADi is imported lazily: see :func:`import_casadi`.
 """

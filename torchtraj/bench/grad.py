@@ -5,7 +5,7 @@ Two problems, each on the same instances for every solver in the same run:
 * ``linear_box`` (:mod:`~torchtraj.bench.grad_linear`): the protocol of the differentiable-MPC literature
   (Amos et al. 2018, §5.1), a random stable linear system with box-constrained controls, horizon 30,
   batches 16 / 64 / 256, run by torchtraj and by mpc.pytorch (the optional extra ``mpc``);
-* the pendulum of PROBLEMS.md with an active state constraint ``|ω| ≤ ω_max``
+* the pendulum of the benchmark problem set with an active state constraint ``|ω| ≤ ω_max``
   (:mod:`~torchtraj.bench.grad_pendulum`), which mpc.pytorch cannot express, its gradients checked
   instance by instance.
 

@@ -1,6 +1,6 @@
 """The constrained pendulum's rows of the gradient benchmark, checked against central differences instance by instance.
 
-The nonlinear pendulum of PROBLEMS.md with a state constraint ``|ω| ≤ ω_max`` on knots 1..N-1 (active),
+The nonlinear pendulum of the benchmark problem set with a state constraint ``|ω| ≤ ω_max`` on knots 1..N-1 (active),
 which mpc.pytorch cannot express: gradients with respect to ``x0`` and the model's mass, length and
 damping. Its loss is a sum over instances, and its check is made instance by instance
 (:func:`fd_by_instance`): the swing-up has many local solutions, and a cold re-solve at
@@ -35,7 +35,7 @@ from .grad_linear import FD_STEP, _timed
 
 
 def constrained_pendulum(dtype=torch.float64, device="cpu", omega_max: float = 5.0) -> Problem:
-    """PROBLEMS.md's pendulum with ``|τ| ≤ 3`` and its terminal cost, without the goal equality, and with
+    """The problem set's pendulum with ``|τ| ≤ 3`` and its terminal cost, without the goal equality, and with
     ``|ω| ≤ omega_max`` on knots 1..N-1 (the unconstrained swing-up reaches ``|ω| ≈ 5.5``)."""
     p = problems.get("pendulum", dtype=dtype, device=device)
     lower = torch.tensor([-float("inf"), -omega_max], dtype=dtype, device=device)

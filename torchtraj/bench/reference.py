@@ -167,7 +167,7 @@ class ReferenceSolver:
         return self._warm_solver
 
     def initial_guess(self, x0: np.ndarray, U0: Optional[np.ndarray] = None, X0: Optional[np.ndarray] = None):
-        """PROBLEMS.md's guess: ``u_init`` held constant, states rolled out from ``x0``, unless the spec
+        """The problem set's guess: ``u_init`` held constant, states rolled out from ``x0``, unless the spec
         (car_escape) or the caller gives states. Returns ``X0 (N+1, nx)``, ``U0 (N, nu)``."""
         s = self.spec
         U0 = np.broadcast_to(s.u_init, (s.N, s.nu)) if U0 is None else np.asarray(U0, dtype=float)

@@ -10,7 +10,7 @@ functions (no batch dimension; the library vmaps them over batch and time)::
                 u_lower <= u_k <= u_upper,                  k = 0..N-1
                 h_N(x_N, p) = 0,  g_N(x_N, p) <= 0                      (terminal)
 
-State-only path constraints start at knot 1 because x_0 is fixed (PROBLEMS.md);
+State-only path constraints start at knot 1 because x_0 is fixed;
 put a state constraint on x_N in the terminal functions.
 
 ``p`` is a dict of tensors. Each entry has a per-instance shape (``param_shapes``,

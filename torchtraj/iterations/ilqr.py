@@ -1,4 +1,4 @@
-r"""iLQR for batches of unconstrained problems (ALTRO §II-A, papers/altro.md).
+r"""iLQR for batches of unconstrained problems (ALTRO §II-A, Howell et al. 2019).
 
 Each iteration, for every instance still running:
 

@@ -11,7 +11,7 @@ convert them to the masks' floating type.
 rule                                          used by
 ============================================  =====================================================================
 :func:`by_value`                              the implicit layer without a solver's multipliers
-:func:`by_value_or_multiplier`                ALTRO's projection (papers/altro.md §III-D)
+:func:`by_value_or_multiplier`                ALTRO's projection (Howell et al. 2019 §III-D)
 :func:`by_multiplier_against_slack`           the implicit layer with a solver's multipliers
 :func:`multiplier_exceeds_slack`              the IPM crossover's proposed set
 :func:`primal_dual_update`                    the IPM crossover's next set (Hintermüller, Ito & Kunisch 2002)
@@ -43,7 +43,7 @@ def by_value(g: Tensor, tol: float) -> Tensor:
 def by_value_or_multiplier(g: Tensor, dual: Tensor, tol: float) -> Tensor:
     """Rows violated or nearly so, ``g > −tol``, or with a positive multiplier, ``dual > 0``.
 
-    ALTRO's projection (papers/altro.md §III-D): its augmented-Lagrangian multipliers are zero on the rows the
+    ALTRO's projection (Howell et al. 2019 §III-D): its augmented-Lagrangian multipliers are zero on the rows the
     iterations left inactive (eq. 17 clamps them), so a positive one marks a row that pushed back, however far
     the coarse solution still is from its bound."""
     return (g > -tol) | (dual > 0)

@@ -27,7 +27,7 @@ whatever its set. With the cost gradient as linear term and zero offsets (:func:
 KKT point is zero and the dual part is the multipliers; with a loss's cotangents it is the adjoint of implicit
 differentiation (:mod:`torchtraj.differentiation.adjoint`).
 
-Used by ALTRO's projection (papers/altro.md §III-D, the objective's Hessian, feasibility steps), the implicit layer
+Used by ALTRO's projection (Howell et al. 2019 §III-D, the objective's Hessian, feasibility steps), the implicit layer
 (:mod:`torchtraj.differentiation`, refinement and the adjoint), the IPM's crossover
 (:mod:`torchtraj.solvers.ipm.crossover`) and the IPM's reduced primal-dual system (FATROP eq. 9, barrier-augmented
 Hessian, equality rows only).

@@ -18,7 +18,7 @@ with cross terms ``S``, affine dynamics terms ``c`` (multiple-shooting defects) 
 equality constraints whose rows may be switched off per instance by a mask.
 
 Equality constraints are handled by the generalised Riccati recursion with constraint
-back-propagation (Horizon eILQR, papers/horizon-eilqr.md §II-B/C; FATROP, papers/fatrop.md,
+back-propagation (Horizon eILQR, Laurenzi et al. §II-B/C; FATROP, Vanroye et al. 2023,
 its reference [30]); rows declared simple bounds on the controls hold them without it.
 The value function ``V_k(δx) = ½ δxᵀ P_k δx + p_kᵀ δx`` follows by substitution
 (ALTRO eqs. 14-15), and the costate obeys ``λ_k = P_k δx_k + p_k + G_kᵀ η_k`` (Horizon eq. 5a).

@@ -15,7 +15,7 @@ feedforward comes from the rows (:mod:`~torchtraj.riccati.propagation`, :mod:`~t
 forward sweep rolls the step out, ``δu_k = K_k δx_k + k_k``, ``δx_{k+1} = A_k δx_k + B_k δu_k + c_k``.
 
 Multipliers, when asked for: the constraint rows' ``ν`` by a forward sweep, then the costates backward from the
-x-stationarity of the Lagrangian (Horizon eILQR, papers/horizon-eilqr.md eq. 5a),
+x-stationarity of the Lagrangian (Horizon eILQR, Laurenzi et al. eq. 5a),
 
 .. math::  \lambda_N = Q_N \delta x_N + q_N + C_N^T \nu_N,\quad
            \lambda_k = Q_k \delta x_k + S_k^T \delta u_k + q_k + A_k^T \lambda_{k+1} + C_k^T \nu_k,

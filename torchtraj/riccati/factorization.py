@@ -2,7 +2,7 @@ r"""The matrix part of the Riccati recursion: one backward sweep that any number
 
 With the stage blocks stacked over ``z = (δx, δu)``, ``W_k = [A_k B_k]`` and ``H_k = [[Q_k, S_kᵀ], [S_k, R_k]]``,
 each stage forms the Q-function's Hessian by one congruence and the value function's by another
-(ALTRO, papers/altro.md eqs. 14-15):
+(ALTRO, Howell et al. 2019 eqs. 14-15):
 
 .. math::
 

@@ -1,7 +1,7 @@
 r"""Constraint back-propagation: the equality rows of the generalised Riccati recursion.
 
 Equality constraints are handled by the generalised Riccati recursion with constraint back-propagation (Horizon
-eILQR, papers/horizon-eilqr.md §II-B/C; FATROP, papers/fatrop.md, its reference [30]). At stage k the stage rows
+eILQR, Laurenzi et al. §II-B/C; FATROP, Vanroye et al. 2023, its reference [30]). At stage k the stage rows
 and the rows propagated from stage k+1,
 
 .. math::  M_x \delta x + M_u \delta u + m = 0,\quad

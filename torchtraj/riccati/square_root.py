@@ -1,4 +1,4 @@
-r"""ALTRO's square-root backward pass (papers/altro.md §III-A, eqs. 19-29).
+r"""ALTRO's square-root backward pass (Howell et al. 2019 §III-A, eqs. 19-29).
 
 Instead of the value-function Hessians ``P_k`` the recursion carries upper-triangular factors
 ``S_k`` with ``P_k = S_kᵀ S_k``; every sum of squares is formed by a QR factorisation of stacked rows

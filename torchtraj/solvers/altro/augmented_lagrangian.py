@@ -1,4 +1,4 @@
-r"""The augmented Lagrangian of ALTRO (papers/altro.md §II-A, eqs. 2-3, 5-12, 17-18).
+r"""The augmented Lagrangian of ALTRO (Howell et al. 2019 §II-A, eqs. 2-3, 5-12, 17-18).
 
 With the stage constraints stacked as ``c_k = (g_k, h_k)`` (inequalities first, then equalities)
 and the terminal ones as ``c_N``, the objective the inner iLQR minimises is

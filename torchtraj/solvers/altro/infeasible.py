@@ -1,4 +1,4 @@
-r"""Infeasible state initialisation (papers/altro.md §III-B, eqs. 30-32).
+r"""Infeasible state initialisation (Howell et al. 2019 §III-B, eqs. 30-32).
 
 Given a state guess ``X̃`` that the dynamics do not reproduce, slack controls ``s_k ∈ R^{nx}`` make
 the system fully actuated,

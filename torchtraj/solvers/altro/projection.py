@@ -1,4 +1,4 @@
-r"""ALTRO's active-set projection (papers/altro.md §III-D, Algorithms 2-3), in sequential form.
+r"""ALTRO's active-set projection (Howell et al. 2019 §III-D, Algorithms 2-3), in sequential form.
 
 The coarse AL-iLQR solution ``Y = (X, U)`` is projected onto the manifold of the active constraints
 ``d(Y) = 0`` — the dynamics ``f(x_k, u_k) − x_{k+1}``, the initial condition, every equality and the

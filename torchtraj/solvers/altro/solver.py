@@ -1,4 +1,4 @@
-r"""ALTRO for batches of constrained problems (papers/altro.md, Algorithm 4).
+r"""ALTRO for batches of constrained problems (Howell et al. 2019, Algorithm 4).
 
 1. **AL-iLQR** (§II-A, Algorithm 1): iLQR on the augmented Lagrangian
    (:mod:`torchtraj.solvers.altro.augmented_lagrangian`) for fixed multipliers ``λ`` and penalties ``μ``; when an

@@ -1,7 +1,7 @@
 r"""Active-set crossover: the interior-point method's last iterations replaced by one exact solve.
 
 ALTRO solves to a coarse tolerance and then, "once the active inequality constraints are known", switches to an
-active-set Newton projection for a precise answer (papers/altro.md §III-D). For a problem whose dynamics and
+active-set Newton projection for a precise answer (Howell et al. 2019 §III-D). For a problem whose dynamics and
 constraints are affine in ``w = (X, U)`` and whose costs are quadratic (``Problem.linear_quadratic``) that switch
 is exact: with a set ``A`` of inequality rows held as equalities, the KKT conditions
 

@@ -1,4 +1,4 @@
-r"""A primal-dual interior-point method on multiple shooting, batched (FATROP, papers/fatrop.md): the loop.
+r"""A primal-dual interior-point method on multiple shooting, batched (FATROP, Vanroye et al. 2023): the loop.
 
 FATROP (§II-B, §III) is IPOPT's algorithm applied to the multiple-shooting problem, with the reduced primal-dual
 system solved by a Riccati recursion generalised to stagewise equality constraints. The inequality rows
