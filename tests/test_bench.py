@@ -181,7 +181,8 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
     assert (solved["calls"], solved["iterations"]) == (ops.total, int(sol.iterations.max()))
     (row,) = rows_of(text, "double_integrator")
     assert row == ["double_integrator", "al-ilqr", "20", str(solved["iterations"]), str(ops.total),
-                   f"{solved['calls_per_iteration']:.0f}"]
+                   f"{solved['calls_per_iteration']:.0f}", "converged"]
+    assert solved["status"] == "converged" and tt.Status(int(sol.status[0])) == tt.Status.CONVERGED
 
     sweep = data["horizons"]
     assert sweep["problem"] == "double_integrator" and sweep["iterations"] == 2

@@ -28,7 +28,7 @@ The report
 ----------
 For each method (every registered one, unless ``--method``) on each problem (``pendulum``, ``cartpole``,
 ``car_3obs``, unless ``--problems``): one solve at B = 1 from the problem's own ``x0`` with the method's default
-options, its operator calls, ``Solution.iterations`` and calls per iteration. A method that ignores constraints is
+options, its operator calls, ``Solution.iterations``, calls per iteration and status. A method that ignores constraints is
 skipped on a constrained problem, with the reason (:func:`~torchtraj.bench.runs.skip_reason`).
 
 Then the horizon sweep on the first problem (``pendulum`` by default): the same problem at N = 25, 50, 100, 200
@@ -57,6 +57,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from .. import problems as problem_set
 from .. import solvers
 from ..core.problem import Problem
+from ..core.status import Status
 from ..solve import solve
 from .runs import skip_reason, state_guess
 
@@ -104,6 +105,8 @@ class Count:
     iteration_cap: Optional[int] = None
     calls: Optional[int] = None
     iterations: Optional[int] = None
+    #: ``Status`` name of the solve (B = 1): the calls of a solve that stopped short are those of its iterations.
+    status: Optional[str] = None
     top_ops: dict = dataclasses.field(default_factory=dict)
     error: Optional[str] = None
 
@@ -126,6 +129,7 @@ def count_solve(problem: Problem, method, options=None, iteration_cap: Optional[
         with OperatorCounter() as ops:
             sol = solve(problem, None, solver, X0=state_guess(solver, problem), options=options)
         row.calls, row.iterations = ops.total, int(sol.iterations.max())
+        row.status = ", ".join(Status.describe(sol.status))
         row.top_ops = dict(ops.by_name.most_common(TOP_OPS))
     except Exception as exc:  # one failing solve must not stop the report
         row.error = f"{type(exc).__name__}: {exc}"
@@ -168,7 +172,7 @@ def _num(value: Optional[float], fmt: str) -> str:
 
 
 SOLVE_COLUMNS = (("problem", 22, False), ("method", 7, False), ("N", 4, True), ("iters", 6, True),
-                 ("calls/solve", 12, True), ("calls/iter", 11, True))
+                 ("calls/solve", 12, True), ("calls/iter", 11, True), ("status", 0, False))
 _WIDTHS, _RIGHT = [w for _, w, _ in SOLVE_COLUMNS], [r for _, _, r in SOLVE_COLUMNS]
 
 
@@ -181,7 +185,8 @@ def format_count(row: Count) -> str:
     lead = [row.problem, row.method, str(row.horizon)]
     if row.error:
         return _line(lead, _WIDTHS, _RIGHT) + "  ERROR " + row.error.splitlines()[0]
-    return _line(lead + [str(row.iterations), str(row.calls), _num(row.calls_per_iteration, ".0f")], _WIDTHS, _RIGHT)
+    cells = [str(row.iterations), str(row.calls), _num(row.calls_per_iteration, ".0f"), row.status]
+    return _line(lead + cells, _WIDTHS, _RIGHT)
 
 
 def format_sweep(method: str, rows: Sequence[Count], fitted: Optional[float], horizons: Sequence[int]) -> str:
