@@ -5,6 +5,7 @@ import io
 import json
 
 import pytest
+import torch
 
 import torchtraj as tt
 from torchtraj import problems
@@ -115,3 +116,111 @@ def test_mehrotra_rows_of_the_gradient_benchmark():
                           lq_options=tt.IPOptions(barrier_strategy="mehrotra"))
     ours = next(r for r in rows if r.solver == "torchtraj/ipm+mehrotra")
     assert ours.converged == "4/4" and ours.grad_vs_fd < 1e-6, lines
+
+
+# ---------------------------------------------------------------------------------------------- --ops
+def test_operator_counter_counts_each_call_the_dispatcher_sees():
+    from torchtraj.bench.ops import OperatorCounter
+
+    a, b = torch.ones(3, 3), torch.ones(3, 3)
+    with OperatorCounter() as ops:
+        c = a + b
+        torch.mm(c, b)
+        torch.matmul(a, b)  # composite: reaches the dispatcher as one aten.mm
+        torch.matmul(torch.ones(2, 3, 3), b)  # folded into one mm: view, mm, _unsafe_view (+ ones: aten.ones)
+    a * b  # outside the block
+    assert ops.by_name == {"aten.add.Tensor": 1, "aten.mm.default": 3, "aten.ones.default": 1,
+                           "aten.view.default": 1, "aten._unsafe_view.default": 1}
+    assert ops.total == 7
+
+
+def test_operator_counter_counts_inside_torch_func_transforms():
+    from torchtraj.bench.ops import OperatorCounter
+
+    x = torch.randn(5, 3)
+    with OperatorCounter() as ops:
+        torch.func.vmap(lambda r: r.sin() * 2)(x)
+    # one call per batched operator, not one per batch element (which would be 10)
+    assert ops.by_name == {"aten.sin.default": 1, "aten.mul.Tensor": 1}
+    with OperatorCounter() as ops:
+        torch.func.vmap(torch.func.jacrev(lambda r: r.sin().sum()))(x)
+    # the forward, and the vector-Jacobian product's cos(r) * v: jacrev's backward is counted too
+    assert ops.by_name["aten.sin.default"] == 1 and ops.by_name["aten.cos.default"] == 1
+    assert ops.by_name["aten.mul.Tensor"] == 1
+
+
+def test_slope_is_the_least_squares_fit():
+    import numpy as np
+
+    from torchtraj.bench.ops import slope
+
+    horizons = [25, 50, 100, 200]
+    assert slope(horizons, [1000 + 300 * n for n in horizons]) == pytest.approx(300)
+    noisy = [7000.0, 14500.0, 30800.0, 59000.0]
+    assert slope(horizons, noisy) == pytest.approx(np.polyfit(horizons, noisy, 1)[0], rel=1e-12)
+    assert slope([50], [7000.0]) is None and slope([50, 50], [1.0, 2.0]) is None
+
+
+def test_ops_report_counts_the_solves_it_prints(tmp_path):
+    from torchtraj.bench.ops import OperatorCounter
+
+    path = tmp_path / "ops.json"
+    code, text = run(["--ops", "--method", "al-ilqr", "--problems", "double_integrator", "--ops-horizons", "5", "10",
+                      "--ops-iterations", "2", "--json", str(path)])
+    assert code == 0, text
+    data = json.loads(path.read_text())
+    (solved,) = data["solves"]
+    assert (solved["problem"], solved["method"], solved["horizon"], solved["iteration_cap"]) == (
+        "double_integrator", "al-ilqr", 20, None)
+    assert solved["calls_per_iteration"] == pytest.approx(solved["calls"] / solved["iterations"])
+
+    # the same solve counted here: the report must give exactly its calls and iterations
+    problem = problems.get("double_integrator")
+    with OperatorCounter() as ops:
+        sol = tt.solve(problem, method="al-ilqr")
+    assert (solved["calls"], solved["iterations"]) == (ops.total, int(sol.iterations.max()))
+    (row,) = rows_of(text, "double_integrator")
+    assert row == ["double_integrator", "al-ilqr", "20", str(solved["iterations"]), str(ops.total),
+                   f"{solved['calls_per_iteration']:.0f}", "converged"]
+    assert solved["status"] == "converged" and tt.Status(int(sol.status[0])) == tt.Status.CONVERGED
+
+    sweep = data["horizons"]
+    assert sweep["problem"] == "double_integrator" and sweep["iterations"] == 2
+    five, ten = sweep["rows"]
+    assert (five["horizon"], ten["horizon"]) == (5, 10)
+    assert all(r["iteration_cap"] == 2 and 1 <= r["iterations"] <= 2 for r in (five, ten))
+    assert ten["calls_per_iteration"] > five["calls_per_iteration"]  # the stages cost calls
+    expected = (ten["calls_per_iteration"] - five["calls_per_iteration"]) / 5
+    assert sweep["slopes"] == {"al-ilqr": pytest.approx(expected)}
+    line = next(line for line in text.splitlines() if line.startswith("al-ilqr "))
+    assert line.split() == ["al-ilqr", f"{five['calls_per_iteration']:.0f}", f"{ten['calls_per_iteration']:.0f}",
+                            f"{expected:.1f}"]
+    assert "first 2 iterations" in text
+    assert data["header"]["torch"] == torch.__version__
+
+
+def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeypatch):
+    from torchtraj import solvers
+    from torchtraj.bench import ops as bench_ops
+
+    path = tmp_path / "ops.json"
+    code, text = run(["--ops", "--method", "ilqr", "--problems", "double_integrator", "--ops-horizons", "5",
+                      "--json", str(path)])
+    assert code == 0, text
+    assert "skipped (ilqr ignores constraints, which these problems have): ilqr on double_integrator" in text
+    data = json.loads(path.read_text())
+    assert data["solves"] == [] and data["horizons"]["rows"] == []
+    assert data["skipped"] == [{"problem": "double_integrator", "method": "ilqr",
+                                "reason": "ilqr ignores constraints, which these problems have"}]
+
+    seen = []
+    empty = {"solves": [], "horizons": {"rows": []}}
+    monkeypatch.setattr(bench_ops, "run", lambda *args: seen.append(args[:4]) or empty)
+    assert run(["--ops"])[0] == 0
+    assert run(["--ops", "--method", "ilqr", "--ops-horizons", "5", "7", "--ops-iterations", "3"])[0] == 0
+    assert seen == [(solvers.names(), ["pendulum", "cartpole", "car_3obs"], [25, 50, 100, 200], 5),
+                    (["ilqr"], ["pendulum", "cartpole", "car_3obs"], [5, 7], 3)]
+    parser = bench_main.parser()
+    for args in (["--ops", "--grad"], ["--ops", "--ops-horizons", "0"], ["--ops", "--ops-iterations", "0"]):
+        with pytest.raises(SystemExit):
+            bench_main._check(parser, parser.parse_args(args))

@@ -22,7 +22,7 @@ from .. import problems, solvers
 from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.base import Solver
-from . import profile, table
+from . import ops, profile, table
 from .runs import (
     Row,
     batch_x0,
@@ -87,6 +87,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--mpc", action="store_true",
                    help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
                         "own: python -m torchtraj.bench --mpc --help)")
+    p.add_argument("--ops", action="store_true",
+                   help="report eager torch operator calls per solve and per iteration instead (torchtraj.bench.ops: "
+                        "B = 1, each method's default options, so the tolerance and --iterations flags do not apply; "
+                        "then a horizon sweep on the first problem); --method then defaults to every registered "
+                        "method and --problems to pendulum cartpole car_3obs")
+    p.add_argument("--ops-horizons", nargs="+", type=int, metavar="N", default=list(ops.DEFAULT_HORIZONS),
+                   help="with --ops: the horizons of the sweep")
+    p.add_argument("--ops-iterations", type=int, metavar="K", default=ops.SWEEP_ITERATIONS,
+                   help="with --ops: iterations counted per solve of the horizon sweep")
     return p
 
 
@@ -102,6 +111,10 @@ def _check(p: argparse.ArgumentParser, args) -> None:
     if args.barrier != "monotone" and not (args.grad and _has_option(args.method, "barrier_strategy")
                                            and not args.compile and not args.cuda_graphs):
         p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
+    if args.ops and (args.grad or args.compile or args.profile):
+        p.error("--ops goes without --grad, --compile and --profile")
+    if any(n < 1 for n in args.ops_horizons) or args.ops_iterations < 1:
+        p.error(f"--ops-horizons and --ops-iterations must be >= 1, got {args.ops_horizons}, {args.ops_iterations}")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch.cuda.is_available() is False")
 
@@ -175,6 +188,15 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     dtype, device = getattr(torch, args.dtype), torch.device(args.device)
+    if args.ops:
+        p.set_defaults(method=None)  # tells an explicit --method (even the timing rows' default, ilqr) from none
+        chosen = p.parse_args(argv).method
+        report = ops.run([chosen] if chosen else solvers.names(), args.problems or list(ops.DEFAULT_PROBLEMS),
+                         args.ops_horizons, args.ops_iterations, say, dtype, device)
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(report, f, indent=1)
+        return 1 if ops.failed(report) else 0
     if args.grad:
         from . import grad
         batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]

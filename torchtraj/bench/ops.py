@@ -1,0 +1,278 @@
+r"""``python -m torchtraj.bench --ops``: eager torch operator calls per solve and per solver iteration.
+
+The project's performance currency is the number of operator calls an iteration makes: it does not depend on the
+machine or on its load, unlike a timing, and the solvers spend most of their time dispatching many tiny calls
+(Python loops over stages), so fewer calls is faster.
+
+What is counted
+---------------
+:class:`OperatorCounter` is a :class:`~torch.utils._python_dispatch.TorchDispatchMode`; inside its ``with`` block
+every call that reaches the dispatcher's Python mode key counts once::
+
+    with OperatorCounter() as ops:
+        tt.solve(problem)
+    ops.total, ops.by_name.most_common(5)
+
+- ATen operators, after the decomposition of the composite ones (``torch.matmul`` of two matrices counts as one
+  ``aten.mm``, of a stack of matrices by a matrix as ``aten.view``, ``aten.mm``, ``aten._unsafe_view``): views,
+  in-place updates, copies, factories (``torch.zeros``), ``Tensor.item()`` (``aten._local_scalar_dense``) and
+  autograd's backward calls all count;
+- inside ``torch.func`` transforms, the calls left after the transforms' rules have run: an operator under
+  ``vmap`` counts once per batched call, however large the batch, and ``jacrev`` counts the calls of its forward
+  and of its vector-Jacobian products (all of them batched under an enclosing ``vmap``);
+- not counted: Python work between the calls, and anything that runs inside a kernel. Solves are counted eager:
+  a kernel compiled by ``torch.compile`` (``compile=True`` options, off by default) would be traced under the
+  mode instead.
+
+The report
+----------
+For each method (every registered one, unless ``--method``) on each problem (``pendulum``, ``cartpole``,
+``car_3obs``, unless ``--problems``): one solve at B = 1 from the problem's own ``x0`` with the method's default
+options, its operator calls, ``Solution.iterations``, calls per iteration and status. A method that ignores constraints is
+skipped on a constrained problem, with the reason (:func:`~torchtraj.bench.runs.skip_reason`).
+
+Then the horizon sweep on the first problem (``pendulum`` by default): the same problem at N = 25, 50, 100, 200
+(``--ops-horizons``; the dynamics' time step kept, the control guess resampled, :func:`with_horizon`), each
+solve capped at the first ``--ops-iterations`` iterations (the method's
+:meth:`~torchtraj.solvers.base.Solver.step_options`: a full solve at N = 200 under the counter takes minutes), its
+calls per iteration, and the least-squares slope of calls per iteration over N (:func:`slope`): the calls each
+added stage costs an iteration. A capped solve's calls per iteration include the solve's setup (and ALTRO's
+projection stage) spread over those few iterations, so they read higher than a full solve's.
+
+A solve under the counter runs about four times slower than without it (the mode's Python call per operator).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import datetime
+import platform
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from .. import problems as problem_set
+from .. import solvers
+from ..core.problem import Problem
+from ..core.status import Status
+from ..solve import solve
+from .runs import skip_reason, state_guess
+
+DEFAULT_PROBLEMS = ("pendulum", "cartpole", "car_3obs")
+DEFAULT_HORIZONS = (25, 50, 100, 200)
+#: Iterations counted per solve of the horizon sweep.
+SWEEP_ITERATIONS = 5
+#: Operators listed per solve in the JSON report (``top_ops``).
+TOP_OPS = 10
+
+
+class OperatorCounter(TorchDispatchMode):
+    """Counts the operator calls made inside its ``with`` block (module docstring: what is counted).
+
+    Attributes:
+        total: number of calls.
+        by_name: ``collections.Counter`` of calls per operator overload name (``"aten.add.Tensor"``).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        # keyed by the OpOverload itself: naming it on every call would cost more than the call
+        self._calls: dict = {}
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self._calls[func] = self._calls.get(func, 0) + 1
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def total(self) -> int:
+        return sum(self._calls.values())
+
+    @property
+    def by_name(self) -> collections.Counter:
+        return collections.Counter({str(func): n for func, n in self._calls.items()})
+
+
+@dataclass
+class Count:
+    """The operator calls of one counted solve; ``iteration_cap`` None for a full solve with default options."""
+
+    problem: str
+    method: str
+    horizon: int
+    iteration_cap: Optional[int] = None
+    calls: Optional[int] = None
+    iterations: Optional[int] = None
+    #: ``Status`` name of the solve (B = 1): the calls of a solve that stopped short are those of its iterations.
+    status: Optional[str] = None
+    top_ops: dict = dataclasses.field(default_factory=dict)
+    error: Optional[str] = None
+
+    @property
+    def calls_per_iteration(self) -> Optional[float]:
+        if self.calls is None or not self.iterations:
+            return None
+        return self.calls / self.iterations
+
+    def to_json(self) -> dict:
+        return {**dataclasses.asdict(self), "calls_per_iteration": self.calls_per_iteration}
+
+
+def count_solve(problem: Problem, method, options=None, iteration_cap: Optional[int] = None) -> Count:
+    """Count the calls of ``tt.solve(problem, method=method, options=options)`` at B = 1 (the problem's x0 and
+    state guess, :func:`~torchtraj.bench.runs.state_guess`). Never raises: an exception is kept in ``error``."""
+    solver = solvers.get(method)
+    row = Count(problem.name, solver.name, problem.horizon, iteration_cap)
+    try:
+        with OperatorCounter() as ops:
+            sol = solve(problem, None, solver, X0=state_guess(solver, problem), options=options)
+        row.calls, row.iterations = ops.total, int(sol.iterations.max())
+        row.status = ", ".join(Status.describe(sol.status))
+        row.top_ops = dict(ops.by_name.most_common(TOP_OPS))
+    except Exception as exc:  # one failing solve must not stop the report
+        row.error = f"{type(exc).__name__}: {exc}"
+    return row
+
+
+def with_horizon(problem: Problem, horizon: int) -> Problem:
+    """``problem`` with ``horizon`` intervals: the same functions (so the same time step), the control guess
+    ``(N, nu)`` and any state guess ``(N+1, nx)`` resampled to the new length (nearest knot: a constant guess stays
+    the same constant)."""
+    def resample(guess: Optional[torch.Tensor], length: int) -> Optional[torch.Tensor]:
+        if guess is None:
+            return None
+        index = torch.linspace(0, guess.shape[0] - 1, length).round().long()
+        return guess[index]
+
+    return problem.replace(horizon=horizon, u_init=resample(problem.u_init, horizon),
+                           X_init=resample(problem.X_init, horizon + 1))
+
+
+def slope(horizons: Sequence[float], values: Sequence[float]) -> Optional[float]:
+    """Least-squares slope of ``values`` over ``horizons`` (None with fewer than two distinct horizons)."""
+    n = len(horizons)
+    if n != len(values):
+        raise ValueError(f"slope: {n} horizons but {len(values)} values")
+    mean_n, mean_v = sum(horizons) / max(n, 1), sum(values) / max(n, 1)
+    spread = sum((h - mean_n) ** 2 for h in horizons)
+    if n < 2 or spread == 0:
+        return None
+    return sum((h - mean_n) * (v - mean_v) for h, v in zip(horizons, values)) / spread
+
+
+# ---------------------------------------------------------------------------------------------- text
+def _line(cells, widths, right) -> str:
+    return "  ".join(c.rjust(w) if r else c.ljust(w) for c, w, r in zip(cells, widths, right)).rstrip()
+
+
+def _num(value: Optional[float], fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+SOLVE_COLUMNS = (("problem", 22, False), ("method", 7, False), ("N", 4, True), ("iters", 6, True),
+                 ("calls/solve", 12, True), ("calls/iter", 11, True), ("status", 0, False))
+_WIDTHS, _RIGHT = [w for _, w, _ in SOLVE_COLUMNS], [r for _, _, r in SOLVE_COLUMNS]
+
+
+def _solve_header() -> str:
+    titles = _line([t for t, _, _ in SOLVE_COLUMNS], _WIDTHS, _RIGHT)
+    return titles + "\n" + "-" * len(titles)
+
+
+def format_count(row: Count) -> str:
+    lead = [row.problem, row.method, str(row.horizon)]
+    if row.error:
+        return _line(lead, _WIDTHS, _RIGHT) + "  ERROR " + row.error.splitlines()[0]
+    cells = [str(row.iterations), str(row.calls), _num(row.calls_per_iteration, ".0f"), row.status]
+    return _line(lead + cells, _WIDTHS, _RIGHT)
+
+
+def format_sweep(method: str, rows: Sequence[Count], fitted: Optional[float], horizons: Sequence[int]) -> str:
+    """One line of the horizon table: calls per iteration at each horizon, then the slope."""
+    by_n = {r.horizon: r for r in rows}
+    cells = [method]
+    for n in horizons:
+        r = by_n.get(n)
+        cells.append("ERROR" if r is None or r.error else _num(r.calls_per_iteration, ".0f"))
+    cells.append(_num(fitted, ".1f"))
+    return _line(cells, _sweep_widths(horizons), [False] + [True] * (len(horizons) + 1))
+
+
+def _sweep_widths(horizons: Sequence[int]) -> list:
+    return [7] + [max(8, len(f"N={n}")) for n in horizons] + [11]
+
+
+def _sweep_header(horizons: Sequence[int]) -> str:
+    titles = _line(["method"] + [f"N={n}" for n in horizons] + ["calls/stage"], _sweep_widths(horizons),
+                   [False] + [True] * (len(horizons) + 1))
+    return titles + "\n" + "-" * len(titles)
+
+
+# ---------------------------------------------------------------------------------------------- report
+def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], iterations: int,
+        say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None) -> dict:
+    """Count, print the two tables as their rows come (``say``) and return the report as JSON-able data:
+    ``header``, ``skipped`` (``[{problem, method, reason}]``), ``solves`` (:meth:`Count.to_json` each) and
+    ``horizons`` (``problem``, ``iterations`` cap, ``rows``, ``slopes`` per method)."""
+    header = {
+        "methods": list(methods), "problems": list(names), "horizons": list(horizons), "sweep_iterations": iterations,
+        "dtype": str(dtype).replace("torch.", ""), "device": str(torch.device(device or "cpu")),
+        "torch": torch.__version__, "python": platform.python_version(), "date": datetime.date.today().isoformat(),
+    }
+    built = {name: problem_set.get(name, dtype=dtype, device=device) for name in names}
+    skipped = [{"problem": name, "method": solvers.get(m).name, "reason": skip_reason(m, problem)}
+               for name, problem in built.items() for m in methods if skip_reason(m, problem)]
+    say(f"torchtraj bench --ops: eager torch operator calls (torchtraj.bench.ops.OperatorCounter) at B = 1, "
+        f"{header['dtype']} on {header['device']}, torch {torch.__version__}, {header['date']}")
+    for reason in dict.fromkeys(s["reason"] for s in skipped):
+        which = [s for s in skipped if s["reason"] == reason]
+        say(f"skipped ({reason}): " + "; ".join(
+            f"{m} on " + ", ".join(s["problem"] for s in which if s["method"] == m)
+            for m in dict.fromkeys(s["method"] for s in which)))
+    say()
+    say("full solves from the problem's x0, each method's default options")
+    say(_solve_header())
+    solves = []
+    for name in names:
+        for m in methods:
+            if not skip_reason(m, built[name]):
+                # a problem of its own per solve: a solve's one-time setup on a problem is always counted
+                row = count_solve(problem_set.get(name, dtype=dtype, device=device), m)
+                say(format_count(row))
+                solves.append(row)
+
+    sweep_name = names[0]
+    say()
+    say(f"horizon sweep on {sweep_name} (the same time step, the control guess resampled): calls per iteration "
+        f"over the first {iterations} iterations of each solve (the method's step_options), so its setup is "
+        f"spread over those; calls/stage: the least-squares slope over N")
+    say(_sweep_header(horizons))
+    sweep, slopes = [], {}
+    for m in methods:
+        if skip_reason(m, built[sweep_name]):
+            continue
+        solver = solvers.get(m)
+        options = solver.step_options(solver.default_options(), iterations)
+        rows = [count_solve(with_horizon(problem_set.get(sweep_name, dtype=dtype, device=device), n), solver,
+                            options, iteration_cap=iterations) for n in horizons]
+        good = [r for r in rows if r.calls_per_iteration is not None]
+        fitted = None if len(good) < len(rows) else slope([r.horizon for r in good],
+                                                          [r.calls_per_iteration for r in good])
+        slopes[solver.name] = fitted
+        say(format_sweep(solver.name, rows, fitted, horizons))
+        for r in rows:
+            if r.error:
+                say(f"  {solver.name} N={r.horizon}: ERROR {r.error.splitlines()[0]}")
+        sweep += rows
+    return {
+        "header": header, "skipped": skipped, "solves": [r.to_json() for r in solves],
+        "horizons": {"problem": sweep_name, "iterations": iterations, "rows": [r.to_json() for r in sweep],
+                     "slopes": slopes},
+    }
+
+
+def failed(report: dict) -> bool:
+    """Whether some counted solve of ``report`` (:func:`run`) raised."""
+    return any(r["error"] for r in report["solves"] + report["horizons"]["rows"])
