@@ -58,7 +58,7 @@ def test_compiled_mpc_steps_match_eager():
 
 
 def test_compiled_float32_altro_matches_eager_and_isolates_a_failing_instance():
-    # float32 batches shorter than a vector register once met an inductor miscompile of argmax (ilqr._first_true)
+    # float32 batches shorter than a vector register once met an inductor miscompile of argmax (core.masks.first_true)
     problem = tt.problems.get("pendulum", dtype=torch.float32).replace(
         horizon=8, u_init=torch.zeros(1, dtype=torch.float32), terminal_eq=None)
     x0 = tt.problems.sample_x0("pendulum", 3, seed=1).float()

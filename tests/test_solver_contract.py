@@ -16,7 +16,6 @@ import torch
 from kkt import kkt_residuals
 
 import envs
-
 import torchtraj as tt
 import torchtraj.kkt
 from torchtraj import problems, solvers

@@ -59,6 +59,7 @@ from torch import Tensor
 
 from .. import solvers
 from ..core.constraints import Constraints
+from ..core.masks import where_rows
 from ..core.problem import Problem
 from ..core.solution import Solution
 from ..core.status import Status
@@ -72,11 +73,6 @@ DEFAULT_ALTRO = solvers.get("altro").step_defaults()
 def _shift(t: Tensor) -> Tensor:
     """``(B, N, ...)`` moved one step earlier along N, the last entry repeated."""
     return torch.cat([t[:, 1:], t[:, -1:]], 1)
-
-
-def _rows(mask: Tensor, t: Tensor) -> Tensor:
-    """``mask (B,)`` shaped to broadcast against ``t (B, ...)``."""
-    return mask.reshape(-1, *([1] * (t.dim() - 1)))
 
 
 class MPC(torch.nn.Module):
@@ -155,10 +151,10 @@ class MPC(torch.nn.Module):
         """The next solve's initial controls ``(B, N, nu)`` and multipliers: shifted where warm, cold elsewhere."""
         p = self.problem
         cold = p.u_init.expand_as(self._U)
-        U0 = torch.where(_rows(self._warm, self._U), self._U, cold)
+        U0 = where_rows(self._warm, self._U, cold)
         if not self._multipliers:
             return U0, None
-        mult = {k: torch.where(_rows(self._warm, v), v, torch.zeros_like(v)) for k, v in self._multipliers.items()}
+        mult = {k: where_rows(self._warm, v, torch.zeros_like(v)) for k, v in self._multipliers.items()}
         return U0, {"multipliers": mult}
 
     # ------------------------------------------------------------------ the policy
@@ -204,12 +200,12 @@ class MPC(torch.nn.Module):
         self.solve_seconds = time.perf_counter() - start
         failed = torch.isin(sol.status, self._failures) | ~torch.isfinite(sol.U).flatten(1).all(-1)
         usable = ~failed
-        u = torch.where(_rows(usable, U0[:, 0]), sol.U[:, 0], U0[:, 0])
+        u = where_rows(usable, sol.U[:, 0], U0[:, 0])
         lower = p.u_lower if p.u_lower is not None else torch.full_like(u[0], -torch.inf)
         upper = p.u_upper if p.u_upper is not None else torch.full_like(u[0], torch.inf)
         u = torch.clamp(u, lower, upper)
         self.solution = sol
-        self._U = _shift(torch.where(_rows(usable, sol.U), sol.U, U0))
+        self._U = _shift(where_rows(usable, sol.U, U0))
         carried = {}
         if self.solver.takes_duals:  # else none to carry, and no constraints to make for it
             carried = self.solver.carried_duals(Constraints.of(p), sol, self.options)

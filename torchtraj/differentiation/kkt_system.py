@@ -64,6 +64,7 @@ from ..core.derivatives import (
     terminal_jacobian,
 )
 from ..core.graphs import graphed
+from ..core.masks import where_rows
 from ..core.problem import Problem
 from ..kkt import activity
 from ..kkt.newton import held_lqr, newton_rhs, without_offsets
@@ -97,7 +98,7 @@ class Multipliers:
 
     def where(self, mask: Tensor, other: "Multipliers") -> "Multipliers":
         def pick(a, b):
-            return None if a is None else torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+            return None if a is None else where_rows(mask, a, b)
 
         return Multipliers(pick(self.costate, other.costate), pick(self.nu, other.nu), pick(self.nuN, other.nuN))
 

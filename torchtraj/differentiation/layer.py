@@ -54,6 +54,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from ..core.masks import where_rows
 from ..core.problem import Problem
 from ..core.solution import Solution
 from ..core.status import Status
@@ -148,7 +149,7 @@ class ImplicitSolution(torch.autograd.Function):
                               "zero", RuntimeWarning, stacklevel=2)
 
         def masked(g):
-            return torch.where(keep.reshape(B, *([1] * (g.dim() - 1))), g, torch.zeros_like(g))
+            return where_rows(keep, g, torch.zeros_like(g))
 
         grads = [masked(p_bar[n]) if ctx.needs_input_grad[4 + i] else None for i, n in enumerate(spec.names)]
         x0_grad = masked(x0_bar) if ctx.needs_input_grad[3] else None

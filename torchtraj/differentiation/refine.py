@@ -39,6 +39,7 @@ from torch import Tensor
 
 from ..core.batching import map_stage, map_state
 from ..core.constraints import Constraints
+from ..core.masks import where_rows
 from ..core.problem import Problem
 from ..kkt import activity
 from .kkt_system import KKTSystem, Multipliers, active_rows, constraints_of, graphed_where_capturable, kkt_system
@@ -116,9 +117,6 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
     taken = torch.zeros(B, dtype=torch.long, device=X.device)
     eps = float(torch.finfo(X.dtype).eps)
 
-    def expand(t, like):
-        return t.reshape(B, *([1] * (like.dim() - 1)))
-
     multipliers = None
     active = active_rows(problem, X, U, params, constrained, active_tolerance, solver_multipliers)
     joined = torch.zeros(B, dtype=torch.long, device=X.device)  # rounds in which an instance's set grew
@@ -134,13 +132,13 @@ def refine(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, steps: in
         if cons.mi or cons.miN:
             more, violated = _violated_rows(cons, Xn, Un, params, (kkt.lqr.mask, kkt.lqr.maskN))
             grew = violated & candidate & (joined < steps)
-            active = tuple(None if m is None else torch.where(expand(grew, m), a, m)
+            active = tuple(None if m is None else where_rows(grew, a, m)
                            for m, a in zip((kkt.lqr.mask, kkt.lqr.maskN), more))
             joined = joined + grew.long()
         take = candidate & ~violated
         if steps == 0:
             take = torch.zeros_like(take)
-        X, U = torch.where(expand(take, X), Xn, X), torch.where(expand(take, U), Un, U)
+        X, U = where_rows(take, Xn, X), where_rows(take, Un, U)
         multipliers = Multipliers(s.costate, s.nu, s.nuN).where(take, kkt.multipliers)
         previous = torch.where(take, size, previous)
         taken = taken + take.long()
