@@ -166,7 +166,7 @@ def _backward_pass(objective, backward, X: Tensor, U: Tensor, params, rho: Tenso
     terms ``dV1``, ``dV2`` and the factorisation's ``ok``."""
     lqr, rhs = objective.expand(X, U, params)
     factor = backward(lqr, rho)
-    step = factor.solve(rhs)
+    step = factor.solve(rhs, forward=False)
     return factor.K, step.k, step.dV1, step.dV2, factor.ok
 
 

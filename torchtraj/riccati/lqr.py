@@ -111,8 +111,8 @@ class LQRSolution:
     initial condition), stage multipliers ``nu (B, N, m)`` and terminal multipliers ``nuN (B, mN)``.
     """
 
-    dx: Tensor
-    du: Tensor
+    dx: Optional[Tensor]  # None: not asked for (RiccatiFactor.solve(forward=False))
+    du: Optional[Tensor]
     k: Tensor
     p: Tensor
     dV1: Tensor
