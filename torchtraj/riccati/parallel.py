@@ -49,6 +49,7 @@ Differences from the sequential sweep (:func:`~torchtraj.riccati.factorize`):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Optional
 
 import torch
@@ -91,96 +92,118 @@ def choose_sweep(lqr: LQR, sweep: str) -> str:
     return "parallel" if N >= 32 and Bsz * depth <= 8 * N else "sequential"
 
 
+def _time_major(x: Tensor) -> Tensor:
+    """``x (B, N, n)`` as a time-major column stack ``(N·B, n, 1)``."""
+    return x.transpose(0, 1).reshape(-1, x.shape[-1], 1)
+
+
+def _batch_first(x: Tensor, B: int) -> Tensor:
+    """``x (N·B, …)`` time-major as a batch-first ``(B, N, …)`` view; a column stack loses its last dimension."""
+    if x.shape[-1] == 1 and x.dim() == 3:
+        x = x.squeeze(-1)
+    return x.unflatten(0, (-1, B)).transpose(0, 1)
+
+
 @dataclass
 class ParallelRiccatiFactor(RiccatiFactor):
     """A :class:`RiccatiFactor` from :func:`factorize_parallel`; its :meth:`solve` runs the two affine scans.
 
-    ``closed_loop (B, N, nx, nx)``: ``A_k + B_k K_k``. ``Quu``, ``Qux`` are the unregularised Q-function blocks
-    and ``chol`` the Cholesky factor of the reduced, regularised ``F (Q_uu + ρI) F + I − F``, as the sequential
-    sweep's."""
+    ``Quu``, ``Qux`` are the unregularised Q-function blocks and ``chol`` the Cholesky factor of the reduced,
+    regularised ``F (Q_uu + ρI) F + I − F``, as the sequential sweep's; ``time_major`` holds the same tensors (and
+    ``W = [A B]``, ``H = [[Q, Sᵀ], [S, R]]``, the closed loop ``Φ = A + B K``) stored time-major and flattened,
+    ``(N·B, …)``, the layout of the scans."""
 
-    closed_loop: Optional[Tensor] = None
+    time_major: Optional[dict] = None
 
     def solve(self, rhs: LQRVectors, multipliers: bool = False) -> LQRSolution:
         """Solve the LQR problem for ``rhs``: the gradients ``p`` by a reverse affine scan, the feedforward of all
-        stages at once, the step by a forward affine scan."""
-        lqr, K, Phi = self.lqr, self.K, self.closed_loop
-        P_next = self.P[:, 1:]
+        stages at once, the step by a forward affine scan (module docstring)."""
+        tm, lqr = self.time_major, self.lqr
+        B, nx = lqr.B.shape[0], lqr.A.shape[-1]
+        K, Phi, Quu, W = tm["K"], tm["Phi"], tm["Quu"], tm["W"]
+        A, Bu = W[..., :nx], W[..., nx:]
+        P_next = tm["P"][B:]
+        c, q, r = _time_major(rhs.c), _time_major(rhs.q), _time_major(rhs.r)
+        qN = rhs.qN.unsqueeze(-1)
+        Pc = _mm(P_next, c)
         held = _held_values(self.fixed, lqr, rhs)
-        c, q, r = rhs.c, rhs.q, rhs.r
         if held is not None:  # the held controls' values moved into the stage's vectors
-            c_held = c + _mv(lqr.B, held)
-            q_held = q + _mv(_mT(lqr.S), held)
-            r_held = r + _mv(lqr.R, held)
+            H, held, free = tm["H"], _time_major(held), tm["free"]
+            Pc_held = torch.baddbmm(Pc, _mm(P_next, Bu), held)
+            q_held = torch.baddbmm(q, _mT(H[..., nx:, :nx]), held)
+            r_held = torch.baddbmm(r, H[..., nx:, nx:], held)
         else:
-            c_held, q_held, r_held = c, q, r
-        g = q_held + _mv(_mT(K), r_held) + _mv(_mT(Phi), _mv(P_next, c_held))
-        p_head = affine_scan(_mT(Phi), g, rhs.qN, reverse=True)
-        p = torch.cat([p_head, rhs.qN.unsqueeze(1)], 1)
-        Qu = r + _mv(_mT(lqr.B), _mv(P_next, c) + p[:, 1:])
+            Pc_held, q_held, r_held = Pc, q, r
+        g = torch.baddbmm(torch.baddbmm(q_held, _mT(K), r_held), _mT(Phi), Pc_held)
+        p = torch.cat([affine_scan(_mT(Phi), g, qN, reverse=True), qN])
+        Qu = torch.baddbmm(r, _mT(Bu), Pc + p[B:])
         if held is not None:
-            grad = (Qu + _mv(self.Quu, held)) * (1.0 - self.fixed)
-            k = held - _cholesky_solve(grad.unsqueeze(-1), self.chol).squeeze(-1)
+            k = held - _cholesky_solve(torch.baddbmm(Qu, Quu, held) * free, tm["chol"])
         else:
-            k = -_cholesky_solve(Qu.unsqueeze(-1), self.chol).squeeze(-1)
-        dV1 = (k * Qu).sum((1, 2))
-        dV2 = 0.5 * (k * _mv(self.Quu, k)).sum((1, 2))
-        x_tail = affine_scan(Phi, _mv(lqr.B, k) + c, rhs.x0)
-        dx = torch.cat([rhs.x0.unsqueeze(1), x_tail], 1)
-        du = _mv(K, dx[:, :-1]) + k
-        out = LQRSolution(dx=dx, du=du, k=k, p=p, dV1=dV1, dV2=dV2)
+            k = -_cholesky_solve(Qu, tm["chol"])
+        Quuk = _mm(Quu, k)
+        dV1 = (k * Qu).unflatten(0, (-1, B)).sum((0, 2, 3))
+        dV2 = 0.5 * (k * Quuk).unflatten(0, (-1, B)).sum((0, 2, 3))
+        x0 = rhs.x0.unsqueeze(-1)
+        dx = torch.cat([x0, affine_scan(Phi, torch.baddbmm(c, Bu, k), x0)])
+        du = torch.baddbmm(k, K, dx[:-B])
+        out = LQRSolution(dx=_batch_first(dx, B), du=_batch_first(du, B), k=_batch_first(k, B),
+                          p=_batch_first(p, B), dV1=dV1, dV2=dV2)
         if multipliers:
-            self._parallel_multipliers(rhs, out, Qu)
+            self._parallel_multipliers(rhs, out, dx, du, p, Qu)
         return out
 
-    def _parallel_multipliers(self, rhs: LQRVectors, out: LQRSolution, Qu: Tensor) -> None:
+    def _parallel_multipliers(self, rhs: LQRVectors, out: LQRSolution, dx: Tensor, du: Tensor, p: Tensor,
+                              Qu: Tensor) -> None:
         """The held rows' ``ν`` (all stages at once) and the costates: ``λ_k = P_k δx_k + p_k`` where the gains
         are exact, else the reverse scan of ``λ_k = A_k^T λ_{k+1} + Q_k δx_k + S_k^T δu_k + q_k``."""
-        lqr, dx, du = self.lqr, out.dx, out.du
+        tm, lqr = self.time_major, self.lqr
+        B, nx = lqr.B.shape[0], lqr.A.shape[-1]
         if self.fixed is not None:
-            out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, dx, du, Qu)
+            out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, out.dx, out.du, _batch_first(Qu, B))
         if self.exact:
-            out.costate = _mv(self.P, dx) + out.p
+            out.costate = _batch_first(torch.baddbmm(p, tm["P"], dx), B)
             return
-        last = _mv(lqr.QN, dx[:, -1]) + rhs.qN
-        g = _mv(lqr.Q, dx[:, :-1]) + _mv(_mT(lqr.S), du) + rhs.q
-        head = affine_scan(_mT(lqr.A), g, last, reverse=True)
-        out.costate = torch.cat([head, last.unsqueeze(1)], 1)
+        W, H = tm["W"], tm["H"]
+        last = torch.baddbmm(rhs.qN.unsqueeze(-1), lqr.QN, dx[-B:])
+        g = torch.baddbmm(torch.baddbmm(_time_major(rhs.q), H[..., :nx, :nx], dx[:-B]), H[..., :nx, nx:], du)
+        lam = torch.cat([affine_scan(_mT(W[..., :nx]), g, last, reverse=True), last])
+        out.costate = _batch_first(lam, B)
 
 
-def _stage_elements(lqr: LQR, rho: Optional[Tensor], held: Optional[Tensor]):
-    """The stages' ``(A_e, C_e, J_e)`` (each ``(B, N, nx, nx)``) with the held controls eliminated, and the
-    ``info (B, N)`` of the Cholesky factorisation of the reduced ``R̃`` (0 where positive definite)."""
-    nx = lqr.A.shape[-1]
-    R, S, Bu = lqr.R, lqr.S, lqr.B
+def _stage_elements(W: Tensor, H: Tensor, rho: Optional[Tensor], held: Optional[Tensor]) -> tuple:
+    """The stages' elements ``[A_e, C_e, J_e] (N·B, 3, nx, nx)`` with the held controls eliminated, from the
+    time-major blocks ``W (N·B, nx, nx+nu)``, ``H (N·B, nx+nu, nx+nu)``, and the ``info (N·B,)`` of the Cholesky
+    factorisation of the reduced ``R̃`` (0 where positive definite)."""
+    nx = W.shape[-2]
+    R, S, Bu = H[..., nx:, nx:], H[..., nx:, :nx], W[..., nx:]
     if rho is not None:
         R = R + rho
     if held is not None:
         free = 1.0 - held
-        R = R * free.unsqueeze(-1) * free.unsqueeze(-2) + torch.diag_embed(held)
-        S = S * free.unsqueeze(-1)
-        Bu = Bu * free.unsqueeze(-2)
+        R = R * free * _mT(free) + torch.diag_embed(held.squeeze(-1))
+        S, Bu = S * free, Bu * _mT(free)
     L, info = _cholesky(R)
     Y = _cholesky_solve(torch.cat([S, _mT(Bu)], -1), L)  # R̃⁻¹ [S̃, B̃ᵀ]
-    A = lqr.A - _mm(Bu, Y[..., :nx])
-    C = _sym(_mm(Bu, Y[..., nx:]))
-    J = _sym(lqr.Q - _mm(_mT(S), Y[..., :nx]))
-    return A, C, J, info
+    YS = Y[..., :nx]
+    A = torch.baddbmm(W[..., :nx], Bu, YS, alpha=-1.0)
+    C = _mm(Bu, Y[..., nx:])
+    J = torch.baddbmm(H[..., :nx, :nx], _mT(S), YS, alpha=-1.0)
+    return torch.stack([A, C, J], 1), info
 
 
-def _join(earlier, later):
-    """The matrix part ``(A, C, J)`` of ``earlier ⊗ later`` (module docstring), for all pairs of a level."""
-    A1, C1, J1 = earlier
-    A2, C2, J2 = later
+def _join(eye: Tensor, earlier: tuple, later: tuple) -> tuple:
+    """``earlier ⊗ later`` of elements ``[A, C, J]`` (module docstring), for all pairs of a level."""
+    A1, C1, J1 = earlier[0].unbind(1)
+    A2, C2, J2 = later[0].unbind(1)
     nx = A1.shape[-1]
-    eye = torch.eye(nx, dtype=A1.dtype, device=A1.device)
     # (I + C1 J2)⁻¹ [A1, C1] in one solve; (I + J2 C1)⁻¹ = (I + C1 J2)⁻ᵀ gives J's factor from the same one
-    T = torch.linalg.solve_ex(eye + _mm(C1, J2), torch.cat([A1, C1], -1))[0]
-    TA, TC = T[..., :nx], T[..., nx:]
+    T = torch.linalg.solve_ex(torch.baddbmm(eye, C1, J2), torch.cat([A1, C1], -1))[0]
+    TA = T[..., :nx]
     A12 = _mm(A2, TA)
-    C12 = _sym(_mm(_mm(A2, TC), _mT(A2))) + C2
-    J12 = _sym(_mm(_mT(TA), _mm(J2, A1))) + J1
-    return A12, C12, J12
+    C12 = torch.baddbmm(C2, _mm(A2, T[..., nx:]), _mT(A2))
+    J12 = torch.baddbmm(J1, _mT(TA), _mm(J2, A1))
+    return (torch.stack([A12, C12, J12], 1),)
 
 
 def factorize_parallel(lqr: LQR, regularization: Optional[Tensor] = None,
@@ -190,33 +213,38 @@ def factorize_parallel(lqr: LQR, regularization: Optional[Tensor] = None,
     proximal term on the controls here (module docstring)."""
     if lqr.propagated:
         raise ValueError("the parallel Riccati sweep takes no back-propagated constraint rows")
-    exact = regularization is None
-    lqr, finite, W, Hs = _sanitize_stacked(lqr, shift)
-    Bsz, N, nx, nu = lqr.B.shape
-    dtype = lqr.A.dtype
-    held = _held_controls(lqr, dtype) if lqr.bounds is not None else None
-    rho = None
+    lqr, finite, W, H = _sanitize_stacked(lqr, shift)
+    B, N, nx, nu = lqr.B.shape
+    W, H = W.flatten(0, 1), H.flatten(0, 1)  # time-major (N·B, …): the stacked blocks are stored so
+    dtype, device = W.dtype, W.device
+    held = free = rho = None
+    if lqr.bounds is not None:
+        held = _held_controls(lqr, dtype)
+        held_tm = _time_major(held)
+        free = 1.0 - held_tm
     if regularization is not None:
-        rho = regularization.reshape(Bsz, 1, 1, 1) * torch.eye(nu, dtype=dtype, device=lqr.A.device)
-    A, C, J, info_R = _stage_elements(lqr, rho, held)
-    zero = lqr.QN.new_zeros(Bsz, 1, nx, nx)
-    elements = (torch.cat([A, zero], 1), torch.cat([C, zero], 1), torch.cat([J, lqr.QN.unsqueeze(1)], 1))
-    _, _, P = associative_scan(elements, _join, reverse=True)
-    # every stage's Q-function from P_{k+1} in one batched congruence, as the sequential sweep's H + Wᵀ P W
-    Wb, Hb = W.transpose(0, 1), Hs.transpose(0, 1)
-    H = Hb + _mm(_mT(Wb), _mm(P[:, 1:], Wb))
-    Quu, Qux = _sym(H[..., nx:, nx:]), H[..., nx:, :nx]
+        rho = regularization.repeat(N).reshape(-1, 1, 1) * torch.eye(nu, dtype=dtype, device=device)
+    elements, info_R = _stage_elements(W, H, rho, held_tm if held is not None else None)
+    terminal = torch.cat([lqr.QN.new_zeros(B, 2, nx, nx), lqr.QN.unsqueeze(1)], 1)
+    eye = torch.eye(nx, dtype=dtype, device=device)
+    (scanned,) = associative_scan((torch.cat([elements, terminal]),), partial(_join, eye), B, reverse=True)
+    P = _sym(scanned[:, 2])
+    # every stage's Q-function from P_{k+1} in one batched congruence, the sequential sweep's H + Wᵀ P W
+    Hq = torch.baddbmm(H, _mT(W), _mm(P[B:], W))
+    Quu, Qux = _sym(Hq[..., nx:, nx:]), Hq[..., nx:, :nx]
     Hu = Quu if rho is None else Quu + rho
-    if held is not None:
-        free = 1.0 - held
-        Hu = Hu * free.unsqueeze(-1) * free.unsqueeze(-2) + torch.diag_embed(held)
-        Qux_free = Qux * free.unsqueeze(-1)
+    if held is not None:  # the held controls out of the free ones' system (bounds._held_gain)
+        Hu = Hu * free * _mT(free) + torch.diag_embed(held_tm.squeeze(-1))
+        Qux_free = Qux * free
     else:
         Qux_free = Qux
     L, info = _cholesky(Hu)
     K = -_factored_solve(Hu, L, info, Qux_free)
-    ok = finite & (info == 0).all(1) & (info_R == 0).all(1) & all_finite([P])
+    ok = finite & ((info + info_R) == 0).reshape(N, B).all(0) & all_finite([P.reshape(N + 1, B, -1).transpose(0, 1)])
+    tm = {"K": K, "P": P, "Quu": Quu, "chol": L, "W": W, "H": H, "free": free,
+          "Phi": torch.baddbmm(W[..., :nx], W[..., nx:], K)}
     return ParallelRiccatiFactor(
-        lqr=lqr, K=K, P=P, ok=ok, Quu=Quu, Qux=Qux, chol=L, free=None, stage=None, terminal=None, exact=exact,
-        fixed=held, closed_loop=lqr.A + _mm(lqr.B, K),
+        lqr=lqr, K=_batch_first(K, B), P=_batch_first(P, B), ok=ok, Quu=_batch_first(Quu, B),
+        Qux=_batch_first(Qux, B), chol=_batch_first(L, B), free=None, stage=None, terminal=None,
+        exact=regularization is None, fixed=held, time_major=tm,
     )

@@ -1,7 +1,7 @@
 r"""Batched associative scans over the time dimension: O(log N) sequential depth.
 
-For an associative operator ``⊗`` and elements ``e_0, …, e_{N−1}`` (each a tuple of tensors shaped
-``(B, N, …)``), the inclusive scan gives every prefix ``e_0 ⊗ … ⊗ e_k`` and the reverse scan every suffix
+For an associative operator ``⊗`` and elements ``e_0, …, e_{N−1}`` (each a tuple of tensors, one block of B
+instances), the inclusive scan gives every prefix ``e_0 ⊗ … ⊗ e_k`` and the reverse scan every suffix
 ``e_k ⊗ … ⊗ e_{N−1}``. Both are computed by recursive doubling (Hillis & Steele 1986, the form used by Särkkä and
 García-Fernández, "Temporal parallelization of Bayesian smoothers", IEEE TAC 2021, and their LQ-control sequel):
 after the level of span ``d`` each element holds the product of the ``2d`` elements ending (prefix) or starting
@@ -30,23 +30,23 @@ from ..core.compiled import matmul as _mm
 Elements = Tuple[Tensor, ...]
 
 
-def associative_scan(elements: Elements, combine: Callable[[Elements, Elements], Elements],
+def associative_scan(elements: Elements, combine: Callable[[Elements, Elements], Elements], stride: int,
                      reverse: bool = False) -> Elements:
     """Every prefix (``reverse``: every suffix) of ``elements`` under ``combine``.
 
-    ``elements``: tensors shaped ``(B, N, …)``, element ``k`` the slices ``[:, k]``. ``combine(earlier, later)``
-    returns ``earlier ⊗ later`` for batched pieces shaped ``(B, n, …)`` and must be associative. Returns the
-    tensors of the scanned elements, shaped as ``elements``."""
-    N = elements[0].shape[1]
+    ``elements``: tensors stored time-major and flattened, ``(N · stride, …)``, element ``k`` the rows
+    ``[k · stride, (k+1) · stride)`` (``stride`` the batch size): the pairs of a level are then two contiguous
+    blocks of rows, and ``combine(earlier, later)``, which returns ``earlier ⊗ later`` for pieces shaped like
+    ``elements``, sees batches of plain matrices (one ``bmm`` a product). Returns the scanned elements."""
+    N = elements[0].shape[0] // stride
     span = 1
     while span < N:
-        earlier = tuple(e[:, :-span] for e in elements)
-        later = tuple(e[:, span:] for e in elements)
-        pairs = combine(earlier, later)
+        rows = span * stride
+        pairs = combine(tuple(e[:-rows] for e in elements), tuple(e[rows:] for e in elements))
         if reverse:  # the last ``span`` suffixes are complete already
-            elements = tuple(torch.cat([p, e[:, -span:]], 1) for p, e in zip(pairs, elements))
+            elements = tuple(torch.cat([p, e[-rows:]]) for p, e in zip(pairs, elements))
         else:  # the first ``span`` prefixes are complete already
-            elements = tuple(torch.cat([e[:, :span], p], 1) for p, e in zip(pairs, elements))
+            elements = tuple(torch.cat([e[:rows], p]) for p, e in zip(pairs, elements))
         span *= 2
     return elements
 
@@ -56,23 +56,18 @@ def _compose_forward(earlier: Elements, later: Elements) -> Elements:
 
 
 def _compose_backward(earlier: Elements, later: Elements) -> Elements:
-    return (_mm(earlier[0], later[0]),)  # the later map acts first: p_k depends on p_{k+1}
-
-
-def augmented(M: Tensor, v: Tensor) -> Tensor:
-    """``[[M, v], [0, 1]] (…, n+1, n+1)`` for ``M (…, n, n)`` and ``v (…, n)``."""
-    top = torch.cat([M, v.unsqueeze(-1)], -1)
-    bottom = torch.nn.functional.pad(torch.ones_like(v[..., :1]), (M.shape[-1], 0)).unsqueeze(-2)
-    return torch.cat([top, bottom], -2)
+    return (_mm(earlier[0], later[0]),)  # the later map acts first: x_k depends on x_{k+1}
 
 
 def affine_scan(M: Tensor, v: Tensor, start: Tensor, reverse: bool = False) -> Tensor:
-    """The affine recursion's values from ``start (B, n)``, ``M (B, N, n, n)``, ``v (B, N, n)``.
+    """The affine recursion's values from ``start (B, n, 1)``, with ``M (N·B, n, n)`` and ``v (N·B, n, 1)``
+    time-major (:func:`associative_scan`).
 
-    Forward: ``x_0 = start``, ``x_{k+1} = M_k x_k + v_k``, returns ``x_1 … x_N (B, N, n)``.
-    Reverse: ``x_N = start``, ``x_k = M_k x_{k+1} + v_k``, returns ``x_0 … x_{N−1} (B, N, n)``."""
-    n = M.shape[-1]
-    maps = augmented(M, v)
-    (composed,) = associative_scan((maps,), _compose_backward if reverse else _compose_forward, reverse)
-    # the composed map's last row is [0, 1]: apply its first n rows to [start; 1]
-    return _mm(composed[..., :n, :n], start.unsqueeze(1).unsqueeze(-1)).squeeze(-1) + composed[..., :n, n]
+    Forward: ``x_0 = start``, ``x_{k+1} = M_k x_k + v_k``, returns ``x_1 … x_N`` as ``(N·B, n, 1)``.
+    Reverse: ``x_N = start``, ``x_k = M_k x_{k+1} + v_k``, returns ``x_0 … x_{N−1}`` as ``(N·B, n, 1)``."""
+    stride, n = start.shape[0], M.shape[-1]
+    pad = torch.nn.functional.pad
+    maps = torch.cat([pad(M, (0, 0, 0, 1)), pad(v, (0, 0, 0, 1), value=1.0)], -1)  # [[M, v], [0, 1]]
+    (composed,) = associative_scan((maps,), _compose_backward if reverse else _compose_forward, stride, reverse)
+    # the composed map's first n rows applied to [start; 1]
+    return _mm(composed[:, :n], pad(start, (0, 0, 0, 1), value=1.0).repeat(M.shape[0] // stride, 1, 1))
