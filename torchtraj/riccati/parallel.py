@@ -67,13 +67,22 @@ from .sanitize import _sanitize_stacked, all_finite
 SWEEPS = ("sequential", "parallel", "auto")
 
 
+#: ``"auto"`` on CPU takes the parallel sweep while ``B · ⌈log₂(N+1)⌉ · (nx+nu)² ≤`` this (:func:`choose_sweep`).
+AUTO_CPU_WORK = 5500
+#: ... and from this horizon on (every device).
+AUTO_MIN_HORIZON = 8
+
+
 def choose_sweep(lqr: LQR, sweep: str) -> str:
     """``"sequential"`` or ``"parallel"``: the sweep that :func:`~torchtraj.riccati.factorize` runs for ``sweep``.
 
-    ``"auto"`` takes the parallel sweep where it applies (no back-propagated rows) and where it was measured to
-    win: on a CUDA device from ``N ≥ 16``; on CPU where the horizon is long against the batch,
-    ``N ≥ 32`` and ``B · log₂ N ≤ 8 N`` (both sweeps timed on one core, ``nx = 4``, ``nu = 2``: the parallel sweep
-    saves the sequential one's per-stage dispatch, but does ``log₂ N`` times its arithmetic)."""
+    ``"auto"`` takes the parallel sweep where it applies (no back-propagated rows) and from ``N ≥ 8``: on CPU
+    while ``B · ⌈log₂(N+1)⌉ · (nx+nu)² ≤ 5500``. The parallel sweep saves the sequential one's per-stage calls
+    but does about ``⌈log₂(N+1)⌉`` times its arithmetic, in batched solves of ``nx × nx`` systems; factorise and
+    solve were timed on one CPU core for ``nx, nu = 4, 2`` and ``2, 1``, ``B`` from 1 to 256 and ``N`` from 8 to
+    400, and the bound separates the two within the timings' noise (the crossover ``B`` at a given ``N`` falls
+    like ``1/(nx+nu)²``). On other devices, where every call is a kernel launch, the rule is the horizon alone:
+    a default reasoned from the calls, not a measurement."""
     if sweep not in SWEEPS:
         raise ValueError(f"sweep must be one of {', '.join(SWEEPS)}, not {sweep!r}")
     if sweep == "sequential":
@@ -85,11 +94,13 @@ def choose_sweep(lqr: LQR, sweep: str) -> str:
         return "sequential"
     if sweep == "parallel":
         return sweep
-    Bsz, N = lqr.B.shape[0], lqr.B.shape[1]
-    if lqr.B.device.type == "cuda":
-        return "parallel" if N >= 16 else "sequential"
-    depth = max(N - 1, 1).bit_length()
-    return "parallel" if N >= 32 and Bsz * depth <= 8 * N else "sequential"
+    B, N, nx, nu = lqr.B.shape
+    if N < AUTO_MIN_HORIZON:
+        return "sequential"
+    if lqr.B.device.type != "cpu":
+        return "parallel"
+    work = B * N.bit_length() * (nx + nu) ** 2  # N.bit_length() = ⌈log₂(N+1)⌉, the levels of the scan
+    return "parallel" if work <= AUTO_CPU_WORK else "sequential"
 
 
 def _time_major(x: Tensor) -> Tensor:
