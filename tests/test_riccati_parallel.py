@@ -66,6 +66,29 @@ def test_held_bounds_match_the_sequential_held_bounds_solve(N):
     assert torch.allclose(b.du * parallel.fixed, held_values, rtol=0, atol=1e-12)
 
 
+def test_held_bounds_with_a_proximal_term_match_a_dense_kkt_solve():
+    """With ``ρ`` and held controls: the dense KKT solution of the problem with ``R + ρI`` and the active rows as
+    equalities (``ρ`` on a held control only shifts its row's multiplier)."""
+    lqr, rhs = with_bounds(*random_lqr(B=2, N=6, nx=3, nu=2, seed=30), seed=31)
+    rho = torch.tensor([0.4, 1.5], dtype=torch.float64)
+    sol = factorize(lqr, rho, sweep="parallel").solve(rhs, multipliers=True)
+    shifted = dataclasses.replace(lqr, R=lqr.R + rho.reshape(2, 1, 1, 1) * torch.eye(2, dtype=torch.float64),
+                                  bounds=None)
+    for b in range(2):
+        X, U, lam, _, _ = dense_kkt(shifted, rhs, b)
+        assert relative(sol.dx[b], X) < 1e-12 and relative(sol.du[b], U) < 1e-12
+        assert relative(sol.costate[b], lam) < 1e-12
+
+
+def test_a_hessian_shift_gives_the_sequential_factorisation():
+    lqr, rhs = random_lqr(B=3, N=9, nx=3, nu=2, seed=32)
+    shift = torch.tensor([0.0, 0.2, 3.0], dtype=torch.float64)
+    a = factorize(lqr, shift=shift).solve(rhs, multipliers=True)
+    b = factorize(lqr, shift=shift, sweep="parallel").solve(rhs, multipliers=True)
+    for name in FIELDS:
+        assert relative(getattr(b, name), getattr(a, name)) < 1e-10, name
+
+
 def test_parallel_matches_a_dense_kkt_solve():
     """A tiny instance by one dense KKT solve: step and costates; with ``ρ`` the parallel sweep's step is the
     dense solution of the problem with ``R + ρI`` (its proximal regularisation)."""
@@ -109,7 +132,7 @@ def test_a_non_finite_instance_leaves_the_others_unchanged():
 
 def test_indefinite_stage_hessians_are_flagged():
     """Where a stage's Hessian is negative definite both sweeps flag the instance, and only it."""
-    lqr, rhs = random_lqr(B=3, N=6, nx=3, nu=2, seed=7)
+    lqr, _ = random_lqr(B=3, N=6, nx=3, nu=2, seed=7)
     R = lqr.R.clone()
     R[2, 3] = -5.0 * torch.eye(2, dtype=torch.float64)
     lqr = dataclasses.replace(lqr, R=R)
@@ -134,7 +157,7 @@ def test_operator_calls_grow_like_log_n():
 
 
 def test_sweep_option():
-    lqr, rhs = random_lqr(B=2, N=6, nx=3, nu=2, m=1, seed=9)
+    lqr, _ = random_lqr(B=2, N=6, nx=3, nu=2, m=1, seed=9)
     with pytest.raises(ValueError, match="back-propagated"):
         factorize(lqr, sweep="parallel")
     with pytest.raises(ValueError, match="sweep must be one of"):

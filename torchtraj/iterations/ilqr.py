@@ -199,9 +199,9 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
     """One iteration (expansion, backward pass, line search, regularisation update) on the instances in ``active``.
 
     ``backward(lqr, rho)`` returns a :class:`~torchtraj.riccati.RiccatiFactor`; the default is
-    :func:`~torchtraj.riccati.factorize` with ``opts.sweep`` (:func:`riccati_backward`). ``cost_tolerance`` (a float or ``(B,)``) overrides
-    ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged. With ``opts.compile`` the
-    iteration is one compiled kernel (one graph while the line search takes a single round).
+    :func:`~torchtraj.riccati.factorize` with ``opts.sweep`` (:func:`riccati_backward`). ``cost_tolerance`` (a float
+    or ``(B,)``) overrides ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged. With
+    ``opts.compile`` the iteration is one compiled kernel (one graph while the line search takes a single round).
     """
     cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
     iteration = kernel(_iteration, opts.compile)

@@ -1,8 +1,8 @@
 r"""The parallel-in-time Riccati sweep: the LQR's backward and forward passes as associative scans, O(log N) deep.
 
 Following Särkkä & García-Fernández, "Temporal parallelization of dynamic programming and linear quadratic
-control" (IEEE TAC 2023, arXiv 2104.03186, §IV), the cost of going from ``x`` at stage ``i`` to ``y`` at stage
-``j`` optimally, the conditional value function, is kept in the form
+control" (IEEE TAC 2023, arXiv 2104.03186; its section on parallel linear quadratic tracking), the cost of going
+from ``x`` at stage ``i`` to ``y`` at stage ``j`` optimally, the conditional value function, is kept in the form
 
 .. math::  V_{i\to j}(x, y) = \tfrac12 x^T J x - \eta^T x
            + \max_\lambda \big[\lambda^T (y - A x - b) - \tfrac12 \lambda^T C \lambda\big] + \text{const},
@@ -15,7 +15,7 @@ r)``,
            J_e = Q - S^T R^{-1} S,\quad \eta_e = S^T R^{-1} r - q,
 
 and the terminal cost is the element ``(0, 0, 0, −q_N, Q_N)``. Minimising over the middle point joins two
-elements, earlier ``1`` and later ``2`` (the paper's Lemma 8):
+elements, earlier ``1`` and later ``2`` (the paper's associative operator of the LQ elements):
 
 .. math::  A_{12} &= A_2 (I + C_1 J_2)^{-1} A_1, &\quad C_{12} &= A_2 (I + C_1 J_2)^{-1} C_1 A_2^T + C_2,\\
            J_{12} &= A_1^T (I + J_2 C_1)^{-1} J_2 A_1 + J_1, &\quad
@@ -28,7 +28,7 @@ gains then follow for all stages in one batched call, ``K_k = −Q_{uu}^{-1} Q_{
 A right-hand side's value-function gradients obey the affine recursion (the exact minimiser makes
 ``Q_uu k_k + Q_u = 0``) ``p_k = (A_k + B_k K_k)^T (P_{k+1} c_k + p_{k+1}) + q_k + K_k^T r_k``, ``p_N = q_N``, and
 the step the closed-loop one ``δx_{k+1} = (A_k + B_k K_k) δx_k + B_k k_k + c_k``: both are scans of affine maps
-(the paper's §V). Only the vector part ``b, η`` of the elements therefore never needs scanning.
+(the paper's parallel forward pass). The vector part ``b, η`` of the elements therefore never needs scanning.
 
 Held bounds (:mod:`~torchtraj.riccati.bounds`): with ``F`` the free controls and ``h`` the held ones' values,
 ``u = F v + h`` turns the stage into one with ``R̃ = F R F + I − F``, ``S̃ = F S``, ``B̃ = B F``, ``r̃ = F (r + R h)``,
@@ -56,7 +56,6 @@ import torch
 from torch import Tensor
 
 from ..core.compiled import matmul as _mm
-from ..core.compiled import matvec as _mv
 from .bounds import _bound_multipliers, _held_controls, _held_values
 from .factor import RiccatiFactor
 from .linalg import _cholesky, _cholesky_solve, _factored_solve, _mT, _sym
@@ -132,7 +131,7 @@ class ParallelRiccatiFactor(RiccatiFactor):
         tm, lqr = self.time_major, self.lqr
         B, nx = lqr.B.shape[0], lqr.A.shape[-1]
         K, Phi, Quu, W = tm["K"], tm["Phi"], tm["Quu"], tm["W"]
-        A, Bu = W[..., :nx], W[..., nx:]
+        Bu = W[..., nx:]
         P_next = tm["P"][B:]
         c, q, r = _time_major(rhs.c), _time_major(rhs.q), _time_major(rhs.r)
         qN = rhs.qN.unsqueeze(-1)

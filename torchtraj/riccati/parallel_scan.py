@@ -2,10 +2,9 @@ r"""Batched associative scans over the time dimension: O(log N) sequential depth
 
 For an associative operator ``⊗`` and elements ``e_0, …, e_{N−1}`` (each a tuple of tensors, one block of B
 instances), the inclusive scan gives every prefix ``e_0 ⊗ … ⊗ e_k`` and the reverse scan every suffix
-``e_k ⊗ … ⊗ e_{N−1}``. Both are computed by recursive doubling (Hillis & Steele 1986, the form used by Särkkä and
-García-Fernández, "Temporal parallelization of Bayesian smoothers", IEEE TAC 2021, and their LQ-control sequel):
-after the level of span ``d`` each element holds the product of the ``2d`` elements ending (prefix) or starting
-(suffix) at it,
+``e_k ⊗ … ⊗ e_{N−1}``. Both are computed by recursive doubling (Hillis & Steele, "Data parallel algorithms",
+CACM 1986): after the level of span ``d`` each element holds the product of the ``2d`` elements ending (prefix)
+or starting (suffix) at it,
 
 .. math::  s^{(2d)}_k = s^{(d)}_{k-d} \otimes s^{(d)}_k \quad (k \ge d), \qquad
            s^{(2d)}_k = s^{(d)}_k \otimes s^{(d)}_{k+d} \quad (k < N - d,\ \text{reverse}),
