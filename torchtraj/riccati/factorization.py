@@ -30,13 +30,14 @@ from .bounds import _held_controls
 from .factor import RiccatiFactor
 from .linalg import _mm_stacked, _mT, _sym, _time_major
 from .lqr import LQR, LQRSolution, LQRVectors
+from .parallel import choose_sweep, factorize_parallel
 from .propagation import _propagate_stage, _stage_rows, _terminal_constraint, default_rank_tolerance
 from .sanitize import _sanitize_stacked
 from .sweep import factorize_stages, finish_single
 
 
 def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance: Optional[float] = None,
-              shift: Optional[Tensor] = None) -> RiccatiFactor:
+              shift: Optional[Tensor] = None, sweep: str = "sequential") -> RiccatiFactor:
     """Backward Riccati sweep over the matrices of ``lqr``.
 
     Args:
@@ -47,7 +48,12 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
             :func:`default_rank_tolerance`.
         shift: ``δ (B,)`` added to the whole Hessian, every ``Q``, ``R`` and ``QN`` (IPOPT's inertia
             correction ``δ_w I``): the factorised problem, and the returned ``lqr``, are the shifted one.
+        sweep: ``"sequential"`` (this backward sweep), ``"parallel"`` (the associative-scan sweep of
+            :mod:`~torchtraj.riccati.parallel`, O(log N) deep; no back-propagated rows) or ``"auto"``
+            (:func:`~torchtraj.riccati.parallel.choose_sweep`).
     """
+    if sweep != "sequential" and choose_sweep(lqr, sweep) == "parallel":
+        return factorize_parallel(lqr, regularization, shift)
     exact = regularization is None and not lqr.propagated
     lqr, finite, W, Hs = _sanitize_stacked(lqr, shift)
     Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
@@ -111,6 +117,6 @@ def _factorize_propagated(lqr: LQR, finite: Tensor, W: Tensor, Hs: Tensor, regul
 
 
 def solve_lqr(lqr: LQR, rhs: LQRVectors, regularization: Optional[Tensor] = None,
-              multipliers: bool = False) -> LQRSolution:
+              multipliers: bool = False, sweep: str = "sequential") -> LQRSolution:
     """Factorise and solve in one call (see :func:`factorize` and :meth:`RiccatiFactor.solve`)."""
-    return factorize(lqr, regularization).solve(rhs, multipliers=multipliers)
+    return factorize(lqr, regularization, sweep=sweep).solve(rhs, multipliers=multipliers)
