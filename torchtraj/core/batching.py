@@ -16,7 +16,6 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
-
 Params = Mapping[str, Tensor]
 
 

@@ -84,8 +84,8 @@ class ILQROptions:
     verbose: bool = False
     #: The Riccati sweep of the backward pass (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
     #: ``"parallel"`` (the associative-scan sweep of :mod:`torchtraj.riccati.parallel`, O(log N) deep; there ``ρ``
-    #: is a proximal term on the controls) or ``"auto"``. Read by method ``"ilqr"``; ALTRO's inner iLQR does not
-    #: read it yet.
+    #: is a proximal term on the controls) or ``"auto"``. Read by method ``"ilqr"`` and by ALTRO's inner iLQR
+    #: (not with ``ALTROOptions.square_root``); ALTRO's projection keeps the sequential sweep of its rows.
     sweep: str = "sequential"
 
 

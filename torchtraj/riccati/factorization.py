@@ -56,7 +56,7 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         return factorize_parallel(lqr, regularization, shift)
     exact = regularization is None and not lqr.propagated
     lqr, finite, W, Hs = _sanitize_stacked(lqr, shift)
-    Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
+    Bsz, nu = lqr.B.shape[0], lqr.B.shape[-1]
     dtype = lqr.A.dtype
     tol = default_rank_tolerance(dtype) if rank_tolerance is None else rank_tolerance
     if regularization is None:

@@ -125,9 +125,10 @@ class ParallelRiccatiFactor(RiccatiFactor):
 
     time_major: Optional[dict] = None
 
-    def solve(self, rhs: LQRVectors, multipliers: bool = False) -> LQRSolution:
+    def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True) -> LQRSolution:
         """Solve the LQR problem for ``rhs``: the gradients ``p`` by a reverse affine scan, the feedforward of all
-        stages at once, the step by a forward affine scan (module docstring)."""
+        stages at once, the step by a forward affine scan (module docstring; the step is computed whatever
+        ``forward``, its scan being O(log N) deep)."""
         tm, lqr = self.time_major, self.lqr
         B, nx = lqr.B.shape[0], lqr.A.shape[-1]
         K, Phi, Quu, W = tm["K"], tm["Phi"], tm["Quu"], tm["W"]
