@@ -36,7 +36,8 @@ from ..core.compiled import matvec as _mv
 from .bounds import _bound_multipliers, _held_values
 from .linalg import _mT
 from .lqr import LQR, LQRSolution, LQRVectors
-from .propagation import _Constraint, _propagated_feedforward, _propagated_multipliers, _terminal_rhs
+from .propagation import _Constraint
+from .rows import multipliers_rows, solve_rows
 from .sweep import costate_stages, expected_change, forward_stages, solve_stages
 
 
@@ -65,6 +66,8 @@ class RiccatiFactor:
     fixed: Optional[Tensor] = None
     #: ``(B, N, nx, nx+nu)``: the stage blocks ``[A_k B_k]`` of ``lqr`` (``None``: stacked when solving)
     W: Optional[Tensor] = None
+    #: the stacked matrices of the sweep with back-propagated rows (:func:`~torchtraj.riccati.rows.factorize_rows`)
+    rows: Optional[dict] = None
 
     def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True) -> LQRSolution:
         """Solve the LQR problem for the right-hand side ``rhs`` (one backward and one forward sweep).
@@ -74,7 +77,7 @@ class RiccatiFactor:
         lqr = self.lqr
         W = self.W if self.W is not None else torch.cat([lqr.A, lqr.B], -1)
         if lqr.propagated:
-            k, p, Qu = self._propagated_sweep(rhs)
+            k, p, Qu = solve_rows(lqr, self.rows, self.terminal, W, self.P, self.K, self.Quu, self.Qux, rhs)
         else:
             held = _held_values(self.fixed, lqr, rhs)
             k, p, Qu = solve_stages(W, self.P, self.K, self.Quu, self.Qux, self.chol, rhs.q, rhs.r, rhs.qN, rhs.c,
@@ -87,29 +90,6 @@ class RiccatiFactor:
         return out
 
     # ------------------------------------------------------------------ helpers
-    def _propagated_sweep(self, rhs: LQRVectors):
-        """The vector sweep with back-propagated rows: ``(k (B, N, nu), p (B, N+1, nx), Q_u (B, N, nu))``."""
-        lqr = self.lqr
-        Bsz, N = lqr.B.shape[0], lqr.B.shape[1]
-        p_next = rhs.qN
-        ks, ps, Qus = [None] * N, [None] * (N + 1), [None] * N
-        ps[N] = p_next
-        g_next = _terminal_rhs(self.terminal, lqr, rhs)
-        for t in range(N - 1, -1, -1):
-            A, Bu, P_next = lqr.A[:, t], lqr.B[:, t], self.P[:, t + 1]
-            c = rhs.c[:, t]
-            v = _mv(P_next, c) + p_next
-            Qx = rhs.q[:, t] + _mv(_mT(A), v)
-            Qu = rhs.r[:, t] + _mv(_mT(Bu), v)
-            Quu, Qux, K = self.Quu[:, t], self.Qux[:, t], self.K[:, t]
-            e = rhs.e[:, t] * lqr.mask[:, t] if rhs.e is not None else Qu.new_zeros(Bsz, 0)
-            G_after = self.stage[t + 1].G if t + 1 < N else self.terminal.G
-            k, g_next = _propagated_feedforward(self.stage[t], G_after, self.free[:, t], self.chol[:, t], Quu, Qu,
-                                                e, c, g_next)
-            p_next = Qx + _mv(_mT(K), _mv(Quu, k) + Qu) + _mv(_mT(Qux), k)
-            ks[t], ps[t], Qus[t] = k, p_next, Qu
-        return torch.stack(ks, 1), torch.stack(ps, 1), torch.stack(Qus, 1)
-
     def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qu: Tensor) -> None:
         """Recover ν (forward, from the u-stationarity of each stage) and λ (backward)."""
         lqr = self.lqr
@@ -120,7 +100,7 @@ class RiccatiFactor:
         if self.fixed is not None:
             out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, dx, du, Qu)
         if lqr.propagated:
-            nus, nuN = _propagated_multipliers(self.lqr, self.stage, self.terminal, self.Quu, self.Qux, dx, du, Qu)
+            nus, nuN = multipliers_rows(lqr, self.rows, self.terminal, self.Quu, self.Qux, dx, du, Qu)
         if self.exact:  # ∇V_k at δx_k: one product for all stages instead of a backward sweep
             out.costate = (self.P @ dx.unsqueeze(-1)).squeeze(-1) + out.p
             return
@@ -130,9 +110,9 @@ class RiccatiFactor:
         # the x-stationarity's terms that do not depend on the recursion, for all stages at once
         local = _mv(lqr.Q, dx[:, :-1]) + _mv(_mT(lqr.S), du) + rhs.q
         if lqr.C is not None and lqr.propagated:
-            local = local + _mv(_mT(lqr.C * lqr.mask.unsqueeze(-1)), torch.stack(nus, 1))
+            local = local + _mv(_mT(lqr.C * lqr.mask.unsqueeze(-1)), nus)
         out.costate = costate_stages(lqr.A, local, lam)
         if lqr.propagated and lqr.C is not None:
-            out.nu = torch.stack(nus, 1)
+            out.nu = nus
         if lqr.CN is not None:
             out.nuN = nuN

@@ -25,13 +25,13 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ..core.compiled import matmul as _mm
 from .bounds import _held_controls
 from .factor import RiccatiFactor
-from .linalg import _mm_stacked, _mT, _sym, _time_major
+from .linalg import _time_major
 from .lqr import LQR, LQRSolution, LQRVectors
 from .parallel import choose_sweep, factorize_parallel
-from .propagation import _propagate_stage, _stage_rows, _terminal_constraint, default_rank_tolerance
+from .propagation import _stage_rows, _terminal_constraint, default_rank_tolerance
+from .rows import factorize_rows
 from .sanitize import _sanitize_stacked
 from .sweep import factorize_stages, finish_single
 
@@ -76,44 +76,12 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
 
 def _factorize_propagated(lqr: LQR, finite: Tensor, W: Tensor, Hs: Tensor, regularization: Tensor,
                           tol: float) -> RiccatiFactor:
-    """The matrix sweep with back-propagated rows (:mod:`~torchtraj.riccati.propagation`)."""
-    Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
-    dtype = lqr.A.dtype
-    eye_u = torch.eye(nu, dtype=dtype, device=lqr.A.device)
-    eye_x = torch.eye(nx, dtype=dtype, device=lqr.A.device).expand(Bsz, nx, nx)
-    rho = regularization.reshape(Bsz, 1, 1) * eye_u
-    P = lqr.QN
-    Ps, Ks, Quus, Quxs, chols = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N
-    frees, stage, infos = [None] * N, [None] * N, [None] * N
-    Ps[N] = P
+    """The matrix sweep with back-propagated rows (:mod:`~torchtraj.riccati.rows`)."""
     terminal = _terminal_constraint(lqr, tol)
-    G_next = terminal.G
-    CD = _stage_rows(lqr)
-    for t in range(N - 1, -1, -1):
-        Wt = W[t]
-        H = Hs[t] + _mm(_mT(Wt), _mm(P, Wt))
-        Quu, Qux = _sym(H[..., nx:, nx:]), H[..., nx:, :nx]
-        K, L, info, stage[t], frees[t] = _propagate_stage(CD[:, t], G_next, Wt, Quu, Qux, rho, tol)
-        G_next = stage[t].G
-        infos[t] = info
-        E = torch.cat([eye_x, K], -2)
-        P = _sym(_mm_stacked(_mT(E), _mm_stacked(H, E)))
-        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t] = P, K, Quu, Qux, L
-    return RiccatiFactor(
-        lqr=lqr,
-        K=_time_major(Ks),
-        P=_time_major(Ps),
-        ok=finite & (torch.stack(infos, 1) == 0).all(1),
-        Quu=_time_major(Quus),
-        Qux=_time_major(Quxs),
-        chol=_time_major(chols),
-        free=_time_major(frees),
-        stage=stage,
-        terminal=terminal,
-        exact=False,
-        fixed=None,
-        W=W.transpose(0, 1),
-    )
+    P, K, Quu, Qux, chol, ok, stage, sweep = factorize_rows(W, Hs, lqr.QN, _stage_rows(lqr), terminal.G,
+                                                            regularization, tol)
+    return RiccatiFactor(lqr=lqr, K=K, P=P, ok=finite & ok, Quu=Quu, Qux=Qux, chol=chol, free=sweep["Vf"],
+                         stage=stage, terminal=terminal, exact=False, fixed=None, W=W.transpose(0, 1), rows=sweep)
 
 
 def solve_lqr(lqr: LQR, rhs: LQRVectors, regularization: Optional[Tensor] = None,
