@@ -69,28 +69,34 @@ class RiccatiFactor:
     #: the stacked matrices of the sweep with back-propagated rows (:func:`~torchtraj.riccati.rows.factorize_rows`)
     rows: Optional[dict] = None
 
-    def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True) -> LQRSolution:
+    def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True,
+              initial_multiplier: Optional[Tensor] = None) -> LQRSolution:
         """Solve the LQR problem for the right-hand side ``rhs`` (one backward and one forward sweep).
 
         ``forward=False`` skips the forward sweep (``dx``, ``du`` are ``None``): a caller that rolls out the
-        nonlinear dynamics with the gains and feedforward, as iLQR's line search, has no use for it."""
+        nonlinear dynamics with the gains and feedforward, as iLQR's line search, has no use for it.
+        ``initial_multiplier``: ``η_0 (B, nx)``, the multipliers of the rows ``G_0 δx_0 + g_0 = 0`` left at the
+        initial state (:attr:`LQRSolution.g0`). With ``δx_0`` fixed any value solves the KKT conditions and the
+        default is zero; where ``δx_0`` is optimised (Horizon eILQR §II-D) it is the one its stage-0 system gives."""
         lqr = self.lqr
         W = self.W if self.W is not None else torch.cat([lqr.A, lqr.B], -1)
+        g0 = None
         if lqr.propagated:
-            k, p, Qu = solve_rows(lqr, self.rows, self.terminal, W, self.P, self.K, self.Quu, self.Qux, rhs)
+            k, p, Qu, g0 = solve_rows(lqr, self.rows, self.terminal, W, self.P, self.K, self.Quu, self.Qux, rhs)
         else:
             held = _held_values(self.fixed, lqr, rhs)
             k, p, Qu = solve_stages(W, self.P, self.K, self.Quu, self.Qux, self.chol, rhs.q, rhs.r, rhs.qN, rhs.c,
                                     self.fixed, held)
         dV1, dV2 = expected_change(k, Qu, self.Quu)
         dx, du = forward_stages(W, self.K, k, rhs.c, rhs.x0) if forward or multipliers else (None, None)
-        out = LQRSolution(dx=dx, du=du, k=k, p=p, dV1=dV1, dV2=dV2)
+        out = LQRSolution(dx=dx, du=du, k=k, p=p, dV1=dV1, dV2=dV2, g0=g0)
         if multipliers:
-            self._multipliers(rhs, out, Qu)
+            self._multipliers(rhs, out, Qu, initial_multiplier)
         return out
 
     # ------------------------------------------------------------------ helpers
-    def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qu: Tensor) -> None:
+    def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qu: Tensor,
+                     initial_multiplier: Optional[Tensor] = None) -> None:
         """Recover ν (forward, from the u-stationarity of each stage) and λ (backward)."""
         lqr = self.lqr
         N = lqr.A.shape[1]
@@ -100,7 +106,8 @@ class RiccatiFactor:
         if self.fixed is not None:
             out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, dx, du, Qu)
         if lqr.propagated:
-            nus, nuN = multipliers_rows(lqr, self.rows, self.terminal, self.Quu, self.Qux, dx, du, Qu)
+            nus, nuN = multipliers_rows(lqr, self.rows, self.terminal, self.Quu, self.Qux, dx, du, Qu,
+                                        initial_multiplier)
         if self.exact:  # ∇V_k at δx_k: one product for all stages instead of a backward sweep
             out.costate = (self.P @ dx.unsqueeze(-1)).squeeze(-1) + out.p
             return

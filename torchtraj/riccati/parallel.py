@@ -125,10 +125,12 @@ class ParallelRiccatiFactor(RiccatiFactor):
 
     time_major: Optional[dict] = None
 
-    def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True) -> LQRSolution:
+    def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True,
+              initial_multiplier: Optional[Tensor] = None) -> LQRSolution:
         """Solve the LQR problem for ``rhs``: the gradients ``p`` by a reverse affine scan, the feedforward of all
         stages at once, the step by a forward affine scan (module docstring; the step is computed whatever
-        ``forward``, its scan being O(log N) deep)."""
+        ``forward``, its scan being O(log N) deep; without back-propagated rows no rows are left at the initial
+        state, and ``initial_multiplier`` has nothing to apply to)."""
         tm, lqr = self.time_major, self.lqr
         B, nx = lqr.B.shape[0], lqr.A.shape[-1]
         K, Phi, Quu, W = tm["K"], tm["Phi"], tm["Quu"], tm["W"]

@@ -21,6 +21,8 @@ The multipliers' forward sweep reads the u-stationarity residuals of all stages,
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from torch import Tensor
 
@@ -118,7 +120,8 @@ def factorize_rows(W: Tensor, Hs: Tensor, QN: Tensor, rows: Tensor, G_last: Tens
 
 def solve_rows(lqr: LQR, sweep: dict, terminal: _Constraint, W: Tensor, P: Tensor, K: Tensor, Quu: Tensor,
                Qux: Tensor, rhs: LQRVectors):
-    """The vector sweep with back-propagated rows: ``(k (B, N, nu), p (B, N+1, nx), Q_u (B, N, nu))``.
+    """The vector sweep with back-propagated rows: ``(k (B, N, nu), p (B, N+1, nx), Q_u (B, N, nu), g_0 (B, nx))``,
+    ``g_0`` the right-hand side of the rows left at the initial state.
 
     ``sweep`` and ``terminal`` from :func:`factorize_rows` and the terminal rows' compression, ``W``, ``P``,
     ``K``, ``Quu``, ``Qux`` the factorisation's (batch-first), ``rhs`` the right-hand side."""
@@ -150,16 +153,18 @@ def solve_rows(lqr: LQR, sweep: dict, terminal: _Constraint, W: Tensor, P: Tenso
         g = matmul(Y[t], rotated)
         p = addmatmul(matmul(ET[t], Qz), Ms[t], k)
         ps[t], ks[t], Qus[t] = p, k, Qu
-    return torch.stack(ks, 1).squeeze(-1), torch.stack(ps, 1).squeeze(-1), torch.stack(Qus, 1).squeeze(-1)
+    return (torch.stack(ks, 1).squeeze(-1), torch.stack(ps, 1).squeeze(-1), torch.stack(Qus, 1).squeeze(-1),
+            g.squeeze(-1))
 
 
 def multipliers_rows(lqr: LQR, sweep: dict, terminal: _Constraint, Quu: Tensor, Qux: Tensor, dx: Tensor,
-                     du: Tensor, Qu: Tensor):
+                     du: Tensor, Qu: Tensor, initial_multiplier: Optional[Tensor] = None):
     """The forward multiplier sweep: the stage rows' ``ν (B, N, m)`` and the terminal rows' ``ν_N (B, mN)``.
 
     On the fixing directions the rotated rows' multipliers are ``−Σ⁺ Vᵀ`` of the stage's u-stationarity residual
     (all stages at once), on the others the multipliers ``η`` of the rows handed on (module docstring of
-    :mod:`~torchtraj.riccati.propagation`)."""
+    :mod:`~torchtraj.riccati.propagation`). ``initial_multiplier (B, nx)``: the multipliers ``η_0`` of the rows
+    ``G_0`` (default zero: a fixed initial state absorbs them)."""
     Bsz, N, nx = dx.shape[0], du.shape[1], dx.shape[-1]
     mt, fix = sweep["U"].shape[-1], sweep["fix"]
     m = mt - nx
@@ -168,7 +173,8 @@ def multipliers_rows(lqr: LQR, sweep: dict, terminal: _Constraint, Quu: Tensor, 
     if mt > fix:
         fixing = torch.cat([fixing, fixing.new_zeros(Bsz, N, mt - fix, 1)], -2)
     fixings, Us, U2s = fixing.unbind(1), sweep["U"].unbind(1), sweep["U2kept"].unbind(1)
-    eta = dx.new_zeros(Bsz, nx, 1)  # multiplier of G_0 rows: absorbed by the initial condition
+    # multiplier of G_0 rows: absorbed by the initial condition unless the initial state is optimised
+    eta = dx.new_zeros(Bsz, nx, 1) if initial_multiplier is None else initial_multiplier.unsqueeze(-1)
     rotated = [None] * N
     for t in range(N):
         rotated[t] = matmul(Us[t], addmatmul(fixings[t], U2s[t], eta))
