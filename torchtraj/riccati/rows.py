@@ -179,6 +179,7 @@ def multipliers_rows(lqr: LQR, sweep: dict, terminal: _Constraint, Quu: Tensor, 
     for t in range(N):
         rotated[t] = matmul(Us[t], addmatmul(fixings[t], U2s[t], eta))
         eta = rotated[t][:, m:]
-    nus = torch.stack(rotated, 1)[:, :, :m, 0] * lqr.mask if m else None
+    nus = torch.stack(rotated, 1)[:, :, :m, 0]
+    nus = nus * lqr.mask if lqr.mask is not None else nus
     nuN = matmul(terminal.U2 * terminal.gmask.unsqueeze(-2), eta).squeeze(-1)
     return nus, nuN * lqr.maskN if lqr.maskN is not None else nuN
