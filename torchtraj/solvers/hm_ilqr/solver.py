@@ -1,0 +1,195 @@
+r"""HM-iLQR (method ``"hm-ilqr"``; Tang, Chu, Jin & Au, Algorithm 4) for batches, each instance in its own stage.
+
+Every instance runs the paper's two stages on the multiple-shooting M-iLQR iteration
+(:mod:`~torchtraj.solvers.hm_ilqr.shooting`):
+
+1. **AL stage** (Algorithm 2): one M-iLQR iteration on ``J_1`` (:mod:`~torchtraj.solvers.hm_ilqr.objective`) with
+   plain line search, then the multiplier and penalty updates (15-16); it hands over once the violation of the
+   constraints and of the defects is below ``c_min^al`` (or after ``al_iterations``);
+2. **RLB stage** (Algorithm 3): M-iLQR iterations on ``J_2`` with CRLS (:mod:`~torchtraj.solvers.hm_ilqr.crls`),
+   ``ψ, δ`` follow (18a-b) after a step whose predicted decrease was below ``κ ψ`` (the barrier problem of that
+   ``ψ`` nearly solved);
+3. **done** when an RLB iteration changes the objective by less than ``ε_v`` (or the model predicts no decrease),
+   the violation of the constraints and the defects is at most ``c_min^rlb`` and ``ψ`` has reached ``ψ_min``.
+
+The stage of each instance is a mask; no instance waits on another, and the only host synchronisations are the
+batch-wide "anything still running" test of each iteration and those of the line search and CRLS rounds. The start
+is a state guess ``X0`` (any, dynamically inconsistent: its knots at the segment starts are the nodes), else the
+problem's ``X_init``, else the paper's linear interpolation from ``x_0`` to the goal where the problem's parameters
+name one (``params["goal"]``, as the problem set's do), else the rollout of ``U0``.
+
+The solution carries the multipliers of every block: the AL estimates ``P'`` on the equality rows and the barrier's
+implied multipliers ``B' = ψ / (−g)`` (log branch) on the inequality rows, the costates of the expanded objective
+and the gains of the last backward pass; a converged solve is a KKT point of the problem up to ``ψ_min``, which the
+implicit layer refines (``kkt_point``).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import Tensor
+
+from ...core.batch import Batch
+from ...core.batching import map_stage
+from ...core.constraints import Constraints, multiplier_blocks
+from ...core.masks import where_rows
+from ...core.problem import Problem
+from ...core.solution import History, Solution
+from ...core.status import Status
+from ...kkt.model import total_cost
+from ...riccati import factorize
+from .augmented_lagrangian import increased_penalty, updated_multipliers
+from .barrier import updated_barrier
+from .crls import iterate, regularized
+from .objective import HybridObjective, StageParameters
+from .options import HMILQROptions
+from .shooting import Segments, defects, rollout_segments
+
+logger = logging.getLogger("torchtraj")
+AL, RLB = 0, 1
+
+
+def initial_states(problem: Problem, batch: Batch) -> Tensor:
+    """The state guess ``(B, N+1, nx)`` or ``None`` (module docstring)."""
+    if batch.X0 is not None:
+        return batch.X0
+    if problem.X_init is not None:
+        return problem.X_init.expand(batch.B, *problem.X_init.shape)
+    goal = batch.params.get("goal")
+    if goal is not None and goal.shape[-1:] == (problem.nx,) and goal.dim() == 2:
+        s = torch.linspace(0, 1, problem.N + 1, dtype=problem.dtype, device=problem.device).reshape(1, -1, 1)
+        return batch.x0.unsqueeze(1) + s * (goal - batch.x0).unsqueeze(1)
+    return None
+
+
+def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method: str = "hm-ilqr") -> Solution:
+    """Solve the ``batch`` of instances of ``problem`` by HM-iLQR (module docstring)."""
+    opts = options
+    x0, params, B = batch.x0, batch.params, batch.B
+    constraints = Constraints.of(problem)
+    segments = Segments.of(problem.N, opts.segments, x0.device)
+    guess = initial_states(problem, batch)
+    nodes = (x0.unsqueeze(1).expand(B, segments.M, problem.nx).clone() if guess is None
+             else guess[:, segments.starts].clone())
+    nodes[:, 0] = x0
+    X, U, gaps = rollout_segments(problem.dynamics, params, nodes, batch.U0, segments)  # Algorithm 1, lines 2-8
+    like = x0
+    c = constraints
+    stage_params = StageParameters(
+        rlb=torch.zeros(B, dtype=torch.bool, device=x0.device),
+        lam=like.new_zeros(B, problem.N, c.mi), lamN=like.new_zeros(B, c.miN),
+        mu=like.new_full((B,), opts.penalty_initial), psi=like.new_full((B,), opts.barrier_initial),
+        delta=like.new_full((B,), opts.relaxation_initial))
+    objective = HybridObjective(constraints, stage_params)
+    J = objective.value(X, U, params)
+    D = gaps + objective.equality_residual(X, U, params)
+    status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
+    finite_start = torch.isfinite(J) & torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(D)
+    status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
+    status = torch.where((status == Status.RUNNING) & ~finite_start, int(Status.INFEASIBLE_START), status)
+    mu_V = like.new_full((B,), opts.regularization_initial)
+    iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
+    al_iterations = torch.zeros_like(iterations)
+    last_violation = constraints.max_violation(X, U, params)
+    rows = []
+    for it in range(opts.iterations):
+        active = status == Status.RUNNING
+        if not bool(active.any()):  # the iteration's host synchronisation
+            break
+        s = objective.params
+        lqr, rhs, f = objective.expand(X, U, params)
+        rhs.c = defects(f, X, segments)
+        crls = s.rlb & opts.crls
+        start_mu_V = torch.where(crls, torch.full_like(mu_V, opts.regularization_initial), mu_V)
+        t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, start_mu_V, active, crls, opts)
+        dJ = J - t.J
+        X, U, J, D = t.X, t.U, t.J, t.D
+        iterations = iterations + active.long()
+        # regularisation: CRLS keeps what it reached; plain LS follows its schedule
+        plain = torch.where(t.took | t.stationary, (mu_V / opts.regularization_increase).clamp_min(
+            opts.regularization_initial), (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max))
+        mu_V = torch.where(active, torch.where(crls, t.mu_V, plain), mu_V)
+        rows_violation = constraints.max_violation(X, U, params)
+        violation = torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments))
+        moved = t.took | t.stationary
+        # the exit test of an RLB instance, before its parameters move (its multipliers are those of this ψ)
+        done = (active & s.rlb & moved & (violation <= opts.constraint_tolerance)
+                & (s.psi <= opts.barrier_min * (1 + 1e-9))
+                & (t.stationary | (dJ.abs() < opts.cost_tolerance)))
+        failed = active & t.failed & (crls | (mu_V >= opts.regularization_max))
+        # AL stage: multipliers and penalty after every iteration (eqs. 15-16); RLB stage: ψ, δ (18) and the
+        # equality rows' AL terms after every accepted step
+        update_al = active & ~s.rlb
+        # Algorithm 3's "if update": ψ, δ move once the barrier problem of this ψ is nearly solved
+        update_rlb = active & s.rlb & moved & ~done & (t.decrease <= opts.barrier_update * s.psi)
+        # eq. (16)'s penalty increase where the violation of the rows did not shrink enough
+        grow = rows_violation > opts.penalty_trigger * last_violation
+        new = _updated(objective, X, U, params, s, update_al, update_rlb, grow, opts)
+        last_violation = torch.where(update_al | update_rlb, rows_violation, last_violation)
+        al_iterations = al_iterations + update_al.long()
+        handover = update_al & ((violation <= opts.constraint_tolerance_al) | (al_iterations >= opts.al_iterations))
+        new.rlb = s.rlb | handover
+        objective = HybridObjective(constraints, new)
+        J = torch.where(active, objective.value(X, U, params), J)  # the objective of the new parameters
+        status = torch.where(done, int(Status.CONVERGED), status)
+        status = torch.where(failed & ~done, int(Status.MAX_REGULARIZATION), status)
+        rows.append({
+            "cost": total_cost(problem, X, U, params), "max_violation": violation, "step_size": t.alpha,
+            "regularization": mu_V, "stage": s.rlb.long(), "defect_norm": D.sqrt(), "barrier": s.psi,
+            "relaxation": s.delta, "penalty": s.mu,
+        })
+        if opts.verbose:
+            logger.info("hm-ilqr %4d  cost %.10g  violation %.2e  rlb %d  running %d", it,
+                        float(rows[-1]["cost"].max()), float(violation.max()), int(s.rlb.sum()), int(active.sum()))
+    status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
+    return _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method)
+
+
+def _max_defect(X, U, problem, params, segments) -> Tensor:
+    """Largest defect ``|d_k|_∞`` ``(B,)`` at the nodes."""
+    k = segments.starts[1:] - 1
+    if k.numel() == 0:
+        return X.new_zeros(X.shape[0])
+    f = map_stage(problem.dynamics, X[:, k], U[:, k], params)
+    return (f - X[:, k + 1]).abs().flatten(1).amax(-1)
+
+
+def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb, grow, opts) -> StageParameters:
+    """The stage parameters after an iteration: eq. (15) and, where ``grow``, (16) where ``update_al``; (18) where
+    ``update_rlb``."""
+    lam, lamN = s.lam, s.lamN
+    if objective.mi:
+        cand = updated_multipliers(objective.stage_ineq(X, U, params), lam, s.mu.reshape(-1, 1, 1), opts.dual_max)
+        lam = torch.where(update_al.reshape(-1, 1, 1), cand, lam)
+    if objective.miN:
+        cand = updated_multipliers(objective.terminal_ineq(X, params), lamN, s.mu.reshape(-1, 1), opts.dual_max)
+        lamN = torch.where(update_al.reshape(-1, 1), cand, lamN)
+    mu = torch.where(update_al & grow, increased_penalty(s.mu, opts.penalty_scaling, opts.penalty_max), s.mu)
+    psi, delta = updated_barrier(s.psi, s.delta, opts)
+    return StageParameters(rlb=s.rlb, lam=lam, lamN=lamN, mu=mu, psi=torch.where(update_rlb, psi, s.psi),
+                           delta=torch.where(update_rlb, delta, s.delta))
+
+
+def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method):
+    """Gains, costates and multipliers at the final point (one more expansion and LQR solve), and the
+    :class:`Solution`."""
+    lqr, rhs, f = objective.expand(X, U, params)
+    rhs.c = defects(f, X, segments)
+    factor = factorize(regularized(lqr, torch.zeros_like(mu_V)))
+    # the costates and the equality rows' multipliers of the LQR step at the final point (the Lagrangian's
+    # stationarity, Horizon eq. 5a; the inequality rows' P' are inside q)
+    step = factor.solve(rhs, multipliers=True)
+    ineq, ineqN = objective.multipliers(X, U, params)
+    B = X.shape[0]
+    eq = step.nu if constraints.me else X.new_zeros(B, problem.N, 0)
+    eqN = step.nuN if constraints.meN else X.new_zeros(B, 0)
+    violation = torch.maximum(constraints.max_violation(X, U, params), _max_defect(X, U, problem, params, segments))
+    s = objective.params
+    return Solution(
+        X=X, U=U, K=factor.K, cost=total_cost(problem, X, U, params), max_violation=violation, status=status,
+        iterations=iterations, history=History.from_rows(rows), costate=step.costate,
+        multipliers=multiplier_blocks(constraints, torch.cat([ineq, eq], -1), torch.cat([ineqN, eqN], -1)),
+        penalties={name: s.mu for name, rows_ in constraints.split_ineq(ineq).items()}, method=method,
+    )
