@@ -25,7 +25,7 @@ class HMILQROptions:
     #: ``c_min^al``: the AL stage hands over to the RLB stage below this violation (Algorithm 2).
     constraint_tolerance_al: float = 1e-2
     #: The AL stage hands over after this many iterations even above ``c_min^al`` (the relaxed barrier accepts
-    #: an infeasible start).
+    #: an infeasible start); 0 starts in the RLB stage (a control step's default, whose warm start is near).
     al_iterations: int = 15
     #: ``M``: shooting segments (``M = N``: full multiple shooting, ``M = 1``: single shooting). Capped at N.
     segments: int = 10
@@ -75,7 +75,7 @@ class HMILQROptions:
     #: the model would otherwise predict no decrease (module :mod:`~torchtraj.solvers.hm_ilqr.shooting`).
     defect_weight: float = 1.0
     #: Converged (no step needed) when the predicted decrease is below this.
-    expected_decrease_tolerance: float = 1e-12
+    expected_decrease_tolerance: float = 1e-16
     #: Divergence limits on the objective and on |x|.
     max_cost: float = 1e8
     max_state: float = 1e8

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from ...core.batch import Batch
-from ...core.batching import map_stage
+from ...core.batching import map_stage, rollout
 from ...core.constraints import Constraints, multiplier_blocks
 from ...core.masks import where_rows
 from ...core.problem import Problem
@@ -71,14 +71,15 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     constraints = Constraints.of(problem)
     segments = Segments.of(problem.N, opts.segments, x0.device)
     guess = initial_states(problem, batch)
-    nodes = (x0.unsqueeze(1).expand(B, segments.M, problem.nx).clone() if guess is None
-             else guess[:, segments.starts].clone())
+    if guess is None:  # the rollout of U0: no defects to close
+        guess = rollout(problem.dynamics, x0, batch.U0, params)
+    nodes = guess[:, segments.starts].clone()
     nodes[:, 0] = x0
     X, U, gaps = rollout_segments(problem.dynamics, params, nodes, batch.U0, segments)  # Algorithm 1, lines 2-8
     like = x0
     c = constraints
     stage_params = StageParameters(
-        rlb=torch.zeros(B, dtype=torch.bool, device=x0.device),
+        rlb=torch.full((B,), opts.al_iterations == 0, dtype=torch.bool, device=x0.device),
         lam=like.new_zeros(B, problem.N, c.mi), lamN=like.new_zeros(B, c.miN),
         mu=like.new_full((B,), opts.penalty_initial), psi=like.new_full((B,), opts.barrier_initial),
         delta=like.new_full((B,), opts.relaxation_initial))
@@ -178,9 +179,11 @@ def _solution(problem, objective, constraints, segments, X, U, params, status, i
     lqr, rhs, f = objective.expand(X, U, params)
     rhs.c = defects(f, X, segments)
     factor = factorize(regularized(lqr, torch.zeros_like(mu_V)))
-    # the costates and the equality rows' multipliers of the LQR step at the final point (the Lagrangian's
-    # stationarity, Horizon eq. 5a; the inequality rows' P' are inside q)
+    # the equality rows' multipliers ν of the LQR step at the final point; the costates from the Lagrangian's
+    # stationarity in the states, λ_N = q_N + C_Nᵀ ν_N, λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k (q holds the inequality
+    # rows' P'), which at a converged point is the Riccati costate without its step terms
     step = factor.solve(rhs, multipliers=True)
+    costate = _adjoint(lqr, rhs, step.nu if constraints.me else None, step.nuN if constraints.meN else None)
     ineq, ineqN = objective.multipliers(X, U, params)
     B = X.shape[0]
     eq = step.nu if constraints.me else X.new_zeros(B, problem.N, 0)
@@ -189,7 +192,22 @@ def _solution(problem, objective, constraints, segments, X, U, params, status, i
     s = objective.params
     return Solution(
         X=X, U=U, K=factor.K, cost=total_cost(problem, X, U, params), max_violation=violation, status=status,
-        iterations=iterations, history=History.from_rows(rows), costate=step.costate,
+        iterations=iterations, history=History.from_rows(rows), costate=costate,
         multipliers=multiplier_blocks(constraints, torch.cat([ineq, eq], -1), torch.cat([ineqN, eqN], -1)),
         penalties={name: s.mu for name, rows_ in constraints.split_ineq(ineq).items()}, method=method,
     )
+
+
+def _adjoint(lqr, rhs, nu, nuN) -> Tensor:
+    """``λ (B, N+1, nx)``: ``λ_N = q_N + C_Nᵀ ν_N``, ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k``."""
+    def tmv(M, v):
+        return (M.transpose(-1, -2) @ v.unsqueeze(-1)).squeeze(-1)
+
+    lam = rhs.qN if nuN is None else rhs.qN + tmv(lqr.CN, nuN)
+    lams = [lam]
+    for k in range(lqr.A.shape[1] - 1, -1, -1):
+        lam = rhs.q[:, k] + tmv(lqr.A[:, k], lam)
+        if nu is not None:
+            lam = lam + tmv(lqr.C[:, k], nu[:, k])
+        lams.append(lam)
+    return torch.stack(lams[::-1], 1)
