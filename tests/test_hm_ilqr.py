@@ -1,0 +1,126 @@
+"""HM-iLQR (method "hm-ilqr"): its pieces against independent formulas, its optima against IPOPT's.
+
+The references: IPOPT's optima of the problem set (tests/data/reference.json) and of the paper's second resolutions
+(tests/data/hm_ilqr_reference.json, IPOPT through CasADi on ``problems.at_horizon``, tol 1e-8), central finite
+differences, a dense Riccati step, and plain rollouts. The paper's comparisons are ``-m slow``.
+"""
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj import problems
+from torchtraj.core.batching import map_stage, rollout
+from torchtraj.riccati import LQR, factorize
+from torchtraj.solvers.hm_ilqr.barrier import relaxed_log_barrier
+from torchtraj.solvers.hm_ilqr.crls import regularized
+from torchtraj.solvers.hm_ilqr.shooting import Segments, rollout_segments
+
+F64 = torch.float64
+DATA = Path(__file__).parent / "data"
+
+
+def paper_reference() -> dict:
+    with open(DATA / "hm_ilqr_reference.json") as f:
+        return json.load(f)
+
+
+# ---------------------------------------------------------------------------------------------- the pieces
+def test_relaxed_log_barrier_is_twice_differentiable_and_the_log_where_feasible():
+    psi, delta = torch.tensor(0.3, dtype=F64), torch.tensor(0.05, dtype=F64)
+    g = torch.linspace(-0.3, 0.2, 501, dtype=F64)
+    value, d1, d2 = relaxed_log_barrier(g, psi, delta)
+    log = -g >= delta
+    torch.testing.assert_close(value[log], -psi * torch.log(-g[log]))
+    h = 1e-5
+    smooth = (g + delta).abs() > 2 * h  # the third derivative jumps at the junction: no central difference there
+    for fn, derivative in ((lambda x: relaxed_log_barrier(x, psi, delta)[0], d1),
+                           (lambda x: relaxed_log_barrier(x, psi, delta)[1], d2)):
+        central = (fn(g + h) - fn(g - h)) / (2 * h)
+        torch.testing.assert_close(central[smooth], derivative[smooth], rtol=1e-6, atol=1e-6)
+    # across the junction -g = δ the value, slope and curvature agree (the extension of Hauser & Saccon)
+    at = torch.tensor([-delta - 1e-12, -delta + 1e-12], dtype=F64)
+    v, s1, s2 = relaxed_log_barrier(at, psi, delta)
+    assert float((v[0] - v[1]).abs()) < 1e-10 and float((s1[0] - s1[1]).abs()) < 1e-8
+    assert float((s2[0] - s2[1]).abs()) < 1e-6 * float(s2[0])
+    assert (d1 > 0).all() and bool(torch.isfinite(value).all())  # defined at infeasible points too
+
+
+@pytest.mark.parametrize("segments", [1, 7, 50])
+def test_segments_roll_out_from_their_nodes_and_report_the_defects(segments):
+    prob = problems.get("pendulum")
+    params = prob.batched_params(2)
+    gen = torch.Generator().manual_seed(0)
+    U = torch.randn(2, prob.N, 1, generator=gen, dtype=F64)
+    X_guess = torch.randn(2, prob.N + 1, 2, generator=gen, dtype=F64)
+    seg = Segments.of(prob.N, segments)
+    nodes = X_guess[:, seg.starts].clone()
+    nodes[:, 0] = prob.x0
+    X, Uout, D = rollout_segments(prob.dynamics, params, nodes, U, seg)
+    assert torch.equal(Uout, U)
+    # independently: each segment a plain rollout from its node; the defects f(x_k, u_k) − x_{k+1} at the nodes
+    for i, k in enumerate(seg.starts.tolist()):
+        end = min(k + seg.L, prob.N)
+        seg_X = rollout(prob.dynamics, nodes[:, i], U[:, k:end], params)
+        torch.testing.assert_close(X[:, k:end + 1][:, :-1], seg_X[:, :-1])
+    f = map_stage(prob.dynamics, X[:, :-1], U, params)
+    gap = f - X[:, 1:]
+    inside = torch.ones(prob.N, dtype=torch.bool)
+    inside[seg.starts[1:] - 1] = False
+    assert float(gap[:, inside].abs().max()) < 1e-12
+    torch.testing.assert_close(D, (gap[:, ~inside] ** 2).sum((1, 2)))
+    if segments == 1:
+        torch.testing.assert_close(X, rollout(prob.dynamics, prob.x0.expand(2, 2), U, params))
+
+
+def test_state_value_regularisation_gives_the_gains_of_eq_21():
+    gen = torch.Generator().manual_seed(1)
+    B, N, nx, nu = 2, 3, 3, 2
+
+    def rnd(*shape):
+        return torch.randn(*shape, generator=gen, dtype=F64)
+
+    def spd(n):
+        M = rnd(B, N, n, n)
+        return M @ M.transpose(-1, -2) + n * torch.eye(n, dtype=F64)
+
+    A, Bm = rnd(B, N, nx, nx), rnd(B, N, nx, nu)
+    H = spd(nx + nu)
+    QN = spd(nx)[:, 0]
+    lqr = LQR(A=A, B=Bm, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=QN)
+    mu = torch.tensor([0.0, 3.0], dtype=F64)
+    K = factorize(regularized(lqr, mu)).K
+    # eq. (21) at the last stage: Q̃_uu = ℓ_uu + f_uᵀ (V_xx + μ I) f_u, Q̃_ux = ℓ_ux + f_uᵀ (V_xx + μ I) f_x, V_xx = Q_N
+    V = QN + mu.reshape(-1, 1, 1) * torch.eye(nx, dtype=F64)
+    a, b = A[:, -1], Bm[:, -1]
+    Quu = lqr.R[:, -1] + b.transpose(-1, -2) @ V @ b
+    Qux = lqr.S[:, -1] + b.transpose(-1, -2) @ V @ a
+    torch.testing.assert_close(K[:, -1], -torch.linalg.solve(Quu, Qux))
+
+
+def test_problem_at_another_horizon_keeps_tf_and_rescales_the_weights():
+    s, t = problems.spec("car_3obs"), problems.at_horizon("car_3obs", 200)
+    assert t.N == 200 and t.tf == s.tf and math.isclose(t.dt, s.dt / 2)
+    torch.testing.assert_close(torch.tensor(t.Q.copy()), torch.tensor(s.Q.copy()) / 2)
+    assert problems.get(t).N == 200
+
+
+# ---------------------------------------------------------------------------------------------- optima
+@pytest.mark.parametrize("name", ["double_integrator", "pendulum"])
+def test_reaches_ipopts_optimum_from_the_interpolated_guess(reference, name):
+    """From the paper's start (nodes on the line from x0 to the goal, M = 10), float64: violation and defects
+    ≤ 1e-7, the cost within 1e-5 of IPOPT's, both stages run, and the gains are those of the final point."""
+    prob = problems.get(name)
+    sol = tt.solve(prob, method="hm-ilqr", options=tt.HMILQROptions(iterations=150, cost_tolerance=1e-8))
+    assert sol.status.item() == tt.Status.CONVERGED, sol.status
+    assert float(sol.max_violation) <= 1e-7
+    expected = reference[name]["ipopt"]["cost"]
+    assert abs(float(sol.cost) - expected) / expected < 1e-5, (float(sol.cost), expected)
+    stages = sol.history.extra["stage"][0]
+    assert stages[0] == 0 and stages[-1] == 1  # the AL stage, then the relaxed barrier
+    assert sol.K.shape == (1, prob.N, prob.nu, prob.nx) and bool(torch.isfinite(sol.K).all())
+    assert float(sol.history.extra["barrier"][0, -1]) <= tt.HMILQROptions().barrier_min * (1 + 1e-9)
