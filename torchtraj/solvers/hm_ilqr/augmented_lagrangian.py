@@ -12,8 +12,8 @@ which is the paper's ``λᵀh + μ/2 ‖h‖²``, ``h = max(0, g)`` (eq. 13), wh
 the band ``−λ/μ < g < 0``, where it keeps the multiplier's pull. It is the term whose minimiser makes eq. (15),
 ``λ ← max(0, λ + μ g)``, the first-order multiplier estimate, and it is differentiable. Its Gauss-Newton expansion
 with the linearised rows gives eq. (14): ``Q_z += g_zᵀ P'``, ``Q_zz += g_zᵀ P'' g_z``. An equality row ``h = 0`` has
-``λ h + μ/2 h²`` in the ALTRO form; HM-iLQR holds those rows in the Riccati core instead
-(:mod:`~torchtraj.solvers.hm_ilqr.objective`), so this stage penalises the inequalities. After every iteration (one inner M-iLQR
+``λ h + μ/2 h²`` (ALTRO's form, ``λ ← λ + μ h``) in this stage; the RLB stage holds those rows in the Riccati core
+instead (:mod:`~torchtraj.solvers.hm_ilqr.objective`). After every iteration (one inner M-iLQR
 iteration per update, as the issue asks) the penalty grows, ``μ ← min(φ μ, μ_max)`` (eq. 16).
 """
 
@@ -28,6 +28,12 @@ def al_inequality(g: Tensor, lam: Tensor, mu: Tensor) -> tuple:
     t = (lam + mu * g).clamp_min(0)
     value = (t * t - lam * lam) / (2 * mu)
     return value, t, torch.where(lam + mu * g > 0, mu, torch.zeros_like(t))
+
+
+def al_equality(h: Tensor, lam: Tensor, mu: Tensor) -> tuple:
+    """Value, first and second derivative of ``λ h + μ/2 h²`` (all broadcast together)."""
+    d1 = lam + mu * h
+    return lam * h + 0.5 * mu * h * h, d1, mu * torch.ones_like(h)
 
 
 def updated_multipliers(g: Tensor, lam: Tensor, mu: Tensor, dual_max: float) -> Tensor:

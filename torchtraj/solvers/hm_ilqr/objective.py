@@ -13,12 +13,14 @@ where ``P`` is the AL term of :mod:`~torchtraj.solvers.hm_ilqr.augmented_lagrang
 the Gauss-Newton terms ``g_zᵀ P'`` and ``g_zᵀ diag(P'') g_z`` to the cost expansion (eq. 14); ``P'`` is also the
 rows' multiplier.
 
-**Equality rows** (the goal ``x_N = x_g``, stage equalities) are held, in both stages, as the Riccati core's
-stagewise equalities ``C_k δx_k + D_k δu_k + h_k = 0`` (constraint back-propagation): a barrier cannot hold them, and
-as AL terms they would need the penalty to grow without bound, the ill-conditioning the RLB stage is there to avoid.
-Held, the linear model meets them exactly, like the defects, and they enter the line search's merit as the defects
-do: ``Σ hᵀh`` beside ``Σ dᵀd``, predicted to shrink to ``(1 − α)²`` of itself (:mod:`~torchtraj.solvers.hm_ilqr.
-shooting`). Their multipliers are the core's ``ν``.
+**Equality rows** (the goal ``x_N = x_g``, stage equalities) are AL terms ``λ h + μ/2 h²`` in the AL stage (the
+ALTRO form; a goal held exactly from a far start makes the first linearised steps enormous: on the cart-pole from
+rest the line search then takes steps of 1e-3) and, in the RLB stage, the Riccati core's stagewise equalities
+``C_k δx_k + D_k δu_k + h_k = 0`` (constraint back-propagation, switched per instance by the rows' mask): a barrier
+cannot hold them, and as AL terms they would need the penalty to grow without bound, the ill-conditioning the RLB
+stage is there to avoid. Held, the linear model meets them exactly, like the defects, and they enter the line
+search's merit as the defects do: ``Σ hᵀh`` beside ``Σ dᵀd``, predicted to shrink to ``(1 − α)²`` of itself
+(:mod:`~torchtraj.solvers.hm_ilqr.shooting`). Their multipliers are then the core's ``ν``.
 """
 
 from __future__ import annotations
@@ -33,18 +35,21 @@ from ...core.constraints import Constraints
 from ...core.derivatives import linearize_dynamics, quadratize_cost, stage_jacobian, terminal_jacobian
 from ...kkt.model import total_cost
 from ...riccati import LQR, LQRVectors
-from .augmented_lagrangian import al_inequality
+from .augmented_lagrangian import al_equality, al_inequality
 from .barrier import relaxed_log_barrier
 
 
 @dataclass
 class StageParameters:
-    """Per instance: ``rlb (B,)`` whether in the RLB stage; AL multipliers ``lam (B, N, mi)``, ``lamN (B, miN)``
-    and penalty ``mu (B,)``; barrier weight ``psi (B,)`` and relaxation ``delta (B,)``."""
+    """Per instance: ``rlb (B,)`` whether in the RLB stage; AL multipliers of the inequality rows ``lam (B, N, mi)``,
+    ``lamN (B, miN)`` and of the equality rows ``lamE (B, N, me)``, ``lamEN (B, meN)``, penalty ``mu (B,)``; barrier
+    weight ``psi (B,)`` and relaxation ``delta (B,)``."""
 
     rlb: Tensor
     lam: Tensor
     lamN: Tensor
+    lamE: Tensor
+    lamEN: Tensor
     mu: Tensor
     psi: Tensor
     delta: Tensor
@@ -79,7 +84,20 @@ class HybridObjective:
             out = [v * mask for v in out]
         return out[0].sum(-1), out[1], out[2]
 
+    def equality_penalty(self, h: Tensor, lam: Tensor) -> tuple:
+        """Value (summed over rows), ``P'``, ``P''`` of the AL terms of equality rows ``h (B, *E, ..., m)``; zero for
+        an instance in the RLB stage (its rows are held by the Riccati core)."""
+        al = _lift(~self.params.rlb, h).to(h.dtype)
+        value, d1, d2 = al_equality(h, _lift(lam, h), _lift(self.params.mu, h))
+        return (value * al).sum(-1), d1 * al, d2 * al
+
     # ------------------------------------------------------------------ values
+    def stage_eq(self, X: Tensor, U: Tensor, params) -> Tensor:
+        return map_stage(self.constraints.stage_eq, X[..., :-1, :], U, params)
+
+    def terminal_eq(self, X: Tensor, params) -> Tensor:
+        return map_state(self.constraints.terminal_eq, X[..., -1, :], params)
+
     def stage_ineq(self, X: Tensor, U: Tensor, params) -> Tensor:
         """``g_k`` ``(B, *E, N, mi)``; rows that do not apply are 0."""
         return map_stage(self.constraints.stage_ineq, X[..., :-1, :], U, params) * self.knot_mask
@@ -94,18 +112,22 @@ class HybridObjective:
             J = J + self.penalty(self.stage_ineq(X, U, params), self.params.lam, self.knot_mask)[0].sum(-1)
         if self.miN:
             J = J + self.penalty(self.terminal_ineq(X, params), self.params.lamN)[0]
+        if self.me:
+            J = J + self.equality_penalty(self.stage_eq(X, U, params), self.params.lamE)[0].sum(-1)
+        if self.meN:
+            J = J + self.equality_penalty(self.terminal_eq(X, params), self.params.lamEN)[0]
         return J
 
     def equality_residual(self, X: Tensor, U: Tensor, params) -> Tensor:
-        """``Σ hᵀh`` over the stage and terminal equality rows, ``(B, *E)``."""
+        """``Σ hᵀh`` over the equality rows held by the Riccati core (an instance in the RLB stage), ``(B, *E)``."""
         r = X.new_zeros(X.shape[:-2])
         if self.me:
-            h = map_stage(self.constraints.stage_eq, X[..., :-1, :], U, params)
+            h = self.stage_eq(X, U, params)
             r = r + (h * h).sum((-1, -2))
         if self.meN:
-            hN = map_state(self.constraints.terminal_eq, X[..., -1, :], params)
+            hN = self.terminal_eq(X, params)
             r = r + (hN * hN).sum(-1)
-        return r
+        return r * _lift(self.params.rlb, r).to(r.dtype)
 
     def multipliers(self, X: Tensor, U: Tensor, params) -> tuple:
         """``P'`` of every inequality row, ``(B, N, mi)`` and ``(B, miN)``: the AL multipliers' estimates and the
@@ -120,7 +142,7 @@ class HybridObjective:
 
     # ------------------------------------------------------------------ the LQR model
     def expand(self, X: Tensor, U: Tensor, params):
-        """The LQR model of ``J_[·]`` around ``(X, U)`` (eqs. 5, 10, 14) with the equality rows held, and the
+        """The LQR model of ``J_[·]`` around ``(X, U)`` (eqs. 5, 10, 14), the equality rows by stage, and the
         dynamics ``f(x_k, u_k) (B, N, nx)``; the defects ``c`` of the right-hand side are left to the caller."""
         nx = X.shape[-1]
         f, A, Bm = linearize_dynamics(self.problem.dynamics, X, U, params)
@@ -140,12 +162,19 @@ class HybridObjective:
             HN = HN + CN.transpose(-1, -2) @ (d2.unsqueeze(-1) * CN)
             gN = gN + (CN.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
         e = eN = None
-        if self.me:
+        held = self.params.rlb.to(X.dtype)
+        if self.me:  # AL terms (AL stage) or held rows (RLB stage), per instance
             e, Hz = stage_jacobian(self.constraints.stage_eq, X, U, params)
-            rows.update(C=Hz[..., :nx], D=Hz[..., nx:], mask=torch.ones_like(e))
+            _, d1, d2 = self.equality_penalty(e, self.params.lamE)
+            H = H + Hz.transpose(-1, -2) @ (d2.unsqueeze(-1) * Hz)
+            g = g + (Hz.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+            rows.update(C=Hz[..., :nx], D=Hz[..., nx:], mask=torch.ones_like(e) * held.reshape(-1, 1, 1))
         if self.meN:
             eN, HNx = terminal_jacobian(self.constraints.terminal_eq, X[:, -1], params)
-            rows.update(CN=HNx, maskN=torch.ones_like(eN))
+            _, d1, d2 = self.equality_penalty(eN, self.params.lamEN)
+            HN = HN + HNx.transpose(-1, -2) @ (d2.unsqueeze(-1) * HNx)
+            gN = gN + (HNx.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+            rows.update(CN=HNx, maskN=torch.ones_like(eN) * held.reshape(-1, 1))
         if self.meN and not self.me:  # the core reads stage rows whenever it holds terminal ones: none here
             B, N = U.shape[:2]
             rows.update(C=X.new_zeros(B, N, 0, nx), D=X.new_zeros(B, N, 0, U.shape[-1]), mask=X.new_zeros(B, N, 0))

@@ -81,6 +81,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     stage_params = StageParameters(
         rlb=torch.full((B,), opts.al_iterations == 0, dtype=torch.bool, device=x0.device),
         lam=like.new_zeros(B, problem.N, c.mi), lamN=like.new_zeros(B, c.miN),
+        lamE=like.new_zeros(B, problem.N, c.me), lamEN=like.new_zeros(B, c.meN),
         mu=like.new_full((B,), opts.penalty_initial), psi=like.new_full((B,), opts.barrier_initial),
         delta=like.new_full((B,), opts.relaxation_initial))
     objective = HybridObjective(constraints, stage_params)
@@ -122,18 +123,24 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         failed = active & t.failed & (crls | (mu_V >= opts.regularization_max))
         # AL stage: multipliers and penalty after every iteration (eqs. 15-16); RLB stage: ψ, δ (18) and the
         # equality rows' AL terms after every accepted step
-        update_al = active & ~s.rlb
+        # Algorithm 2's "if update": the multipliers move once the inner M-iLQR has nearly converged on J_1 (a
+        # relative change of J_1 below al_update_tolerance; inf: after every iteration)
+        inner_done = moved & (t.stationary | (dJ.abs() <= opts.al_update_tolerance * (1 + J.abs())))
+        update_al = active & ~s.rlb & inner_done
         # Algorithm 3's "if update": ψ, δ move once the barrier problem of this ψ is nearly solved
         update_rlb = active & s.rlb & moved & ~done & (t.decrease <= opts.barrier_update * s.psi)
         # eq. (16)'s penalty increase where the violation of the rows did not shrink enough
         grow = rows_violation > opts.penalty_trigger * last_violation
         new = _updated(objective, X, U, params, s, update_al, update_rlb, grow, opts)
         last_violation = torch.where(update_al | update_rlb, rows_violation, last_violation)
-        al_iterations = al_iterations + update_al.long()
-        handover = update_al & ((violation <= opts.constraint_tolerance_al) | (al_iterations >= opts.al_iterations))
+        al_iterations = al_iterations + (active & ~s.rlb).long()
+        handover = active & ~s.rlb & ((update_al & (violation <= opts.constraint_tolerance_al))
+                                      | (al_iterations >= opts.al_iterations))
         new.rlb = s.rlb | handover
+        held_before = objective.equality_residual(X, U, params)
         objective = HybridObjective(constraints, new)
         J = torch.where(active, objective.value(X, U, params), J)  # the objective of the new parameters
+        D = D - held_before + objective.equality_residual(X, U, params)  # handed over: the goal joins the defects
         status = torch.where(done, int(Status.CONVERGED), status)
         status = torch.where(failed & ~done, int(Status.MAX_REGULARIZATION), status)
         rows.append({
@@ -167,10 +174,17 @@ def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb,
     if objective.miN:
         cand = updated_multipliers(objective.terminal_ineq(X, params), lamN, s.mu.reshape(-1, 1), opts.dual_max)
         lamN = torch.where(update_al.reshape(-1, 1), cand, lamN)
+    lamE, lamEN = s.lamE, s.lamEN
+    if objective.me:  # the equality rows' AL multipliers, λ ← λ + μ h
+        lamE = torch.where(update_al.reshape(-1, 1, 1), s.lamE + s.mu.reshape(-1, 1, 1) * objective.stage_eq(
+            X, U, params), s.lamE).clamp(-opts.dual_max, opts.dual_max)
+    if objective.meN:
+        lamEN = torch.where(update_al.reshape(-1, 1), s.lamEN + s.mu.reshape(-1, 1) * objective.terminal_eq(
+            X, params), s.lamEN).clamp(-opts.dual_max, opts.dual_max)
     mu = torch.where(update_al & grow, increased_penalty(s.mu, opts.penalty_scaling, opts.penalty_max), s.mu)
     psi, delta = updated_barrier(s.psi, s.delta, opts)
-    return StageParameters(rlb=s.rlb, lam=lam, lamN=lamN, mu=mu, psi=torch.where(update_rlb, psi, s.psi),
-                           delta=torch.where(update_rlb, delta, s.delta))
+    return StageParameters(rlb=s.rlb, lam=lam, lamN=lamN, lamE=lamE, lamEN=lamEN, mu=mu,
+                           psi=torch.where(update_rlb, psi, s.psi), delta=torch.where(update_rlb, delta, s.delta))
 
 
 def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method):
@@ -183,23 +197,34 @@ def _solution(problem, objective, constraints, segments, X, U, params, status, i
     # stationarity in the states, λ_N = q_N + C_Nᵀ ν_N, λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k (q holds the inequality
     # rows' P'), which at a converged point is the Riccati costate without its step terms
     step = factor.solve(rhs, multipliers=True)
-    costate = _adjoint(lqr, rhs, step.nu if constraints.me else None, step.nuN if constraints.meN else None)
     ineq, ineqN = objective.multipliers(X, U, params)
     B = X.shape[0]
-    eq = step.nu if constraints.me else X.new_zeros(B, problem.N, 0)
-    eqN = step.nuN if constraints.meN else X.new_zeros(B, 0)
-    violation = torch.maximum(constraints.max_violation(X, U, params), _max_defect(X, U, problem, params, segments))
+    # the equality rows: the core's ν where they are held (RLB stage), the AL estimate λ + μ h elsewhere
     s = objective.params
+    eq, eqN = X.new_zeros(B, problem.N, 0), X.new_zeros(B, 0)
+    if constraints.me:
+        eq = torch.where(s.rlb.reshape(-1, 1, 1), step.nu, s.lamE + s.mu.reshape(-1, 1, 1) * objective.stage_eq(
+            X, U, params))
+    if constraints.meN:
+        eqN = torch.where(s.rlb.reshape(-1, 1), step.nuN, s.lamEN + s.mu.reshape(-1, 1) * objective.terminal_eq(
+            X, params))
+    violation = torch.maximum(constraints.max_violation(X, U, params), _max_defect(X, U, problem, params, segments))
     return Solution(
         X=X, U=U, K=factor.K, cost=total_cost(problem, X, U, params), max_violation=violation, status=status,
-        iterations=iterations, history=History.from_rows(rows), costate=costate,
+        iterations=iterations, history=History.from_rows(rows),
+        costate=_adjoint(lqr, rhs, eq if constraints.me else None, eqN if constraints.meN else None, s.rlb),
         multipliers=multiplier_blocks(constraints, torch.cat([ineq, eq], -1), torch.cat([ineqN, eqN], -1)),
         penalties={name: s.mu for name, rows_ in constraints.split_ineq(ineq).items()}, method=method,
     )
 
 
-def _adjoint(lqr, rhs, nu, nuN) -> Tensor:
-    """``λ (B, N+1, nx)``: ``λ_N = q_N + C_Nᵀ ν_N``, ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k``."""
+def _adjoint(lqr, rhs, nu, nuN, held) -> Tensor:
+    """``λ (B, N+1, nx)``: ``λ_N = q_N + C_Nᵀ ν_N``, ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k``, the ``ν`` terms where
+    the rows are ``held (B,)`` (elsewhere their AL terms are inside ``q``)."""
+    if nu is not None:
+        nu = nu * held.reshape(-1, 1, 1).to(nu.dtype)
+    if nuN is not None:
+        nuN = nuN * held.reshape(-1, 1).to(nuN.dtype)
     def tmv(M, v):
         return (M.transpose(-1, -2) @ v.unsqueeze(-1)).squeeze(-1)
 
