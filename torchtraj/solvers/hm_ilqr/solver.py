@@ -3,9 +3,11 @@ r"""HM-iLQR (method ``"hm-ilqr"``; Tang, Chu, Jin & Au, Algorithm 4) for batches
 Every instance runs the paper's two stages on the multiple-shooting M-iLQR iteration
 (:mod:`~torchtraj.solvers.hm_ilqr.shooting`):
 
-1. **AL stage** (Algorithm 2): one M-iLQR iteration on ``J_1`` (:mod:`~torchtraj.solvers.hm_ilqr.objective`) with
-   plain line search, then the multiplier and penalty updates (15-16); it hands over once the violation of the
-   constraints and of the defects is below ``c_min^al`` (or after ``al_iterations``);
+1. **AL stage** (Algorithm 2): M-iLQR iterations on ``J_1`` (:mod:`~torchtraj.solvers.hm_ilqr.objective`) with
+   plain line search; the multiplier update (15) after an iteration that changed ``J_1`` by less than
+   ``al_update_tolerance`` (the "if update"), with the penalty update (16) where the violation did not halve; it
+   hands over once the violation of the constraints and of the defects is below ``c_min^al`` (or after
+   ``al_iterations``);
 2. **RLB stage** (Algorithm 3): M-iLQR iterations on ``J_2`` with CRLS (:mod:`~torchtraj.solvers.hm_ilqr.crls`),
    ``ψ, δ`` follow (18a-b) after a step whose predicted decrease was below ``κ ψ`` (the barrier problem of that
    ``ψ`` nearly solved);
@@ -18,9 +20,10 @@ is a state guess ``X0`` (any, dynamically inconsistent: its knots at the segment
 problem's ``X_init``, else the paper's linear interpolation from ``x_0`` to the goal where the problem's parameters
 name one (``params["goal"]``, as the problem set's do), else the rollout of ``U0``.
 
-The solution carries the multipliers of every block: the AL estimates ``P'`` on the equality rows and the barrier's
-implied multipliers ``B' = ψ / (−g)`` (log branch) on the inequality rows, the costates of the expanded objective
-and the gains of the last backward pass; a converged solve is a KKT point of the problem up to ``ψ_min``, which the
+The solution carries the multipliers of every block: on the inequality rows the barrier's implied multipliers
+``B' = ψ / (−g)`` (log branch; the AL estimates ``max(0, λ + μ g)`` for an instance still in the AL stage), on the
+equality rows the Riccati core's ``ν`` (RLB stage) or ``λ + μ h`` (AL stage), the costates of the expanded
+objective and the gains of a backward pass at the final point; a converged solve is a KKT point of the problem up to ``ψ_min``, which the
 implicit layer refines (``kkt_point``).
 """
 
