@@ -175,14 +175,15 @@ def _at_ipopts_optimum_or_a_confirmed_one(prob, sol, expected: float, N: int, na
 
 
 PAPER = [  # (problem, N, M, zero controls): the paper's Tables II-IV at this problem set's numbers
-    pytest.param("cartpole", 50, 20, False, marks=pytest.mark.xfail(strict=True, reason="see the README's HM-iLQR "
-                                                                   "section: the AL stage stalls on the cart-pole")),
-    pytest.param("cartpole", 100, 20, False, marks=pytest.mark.xfail(strict=True, reason="as N = 50")),
     ("car_3obs", 100, 10, True),
     ("car_3obs", 200, 10, True),
     ("quadrotor2d", 200, 30, False),
     ("quadrotor2d", 300, 30, False),
 ]
+
+#: The cart-pole's options: multipliers moved only once J_1 changes by less than 1e-4 (1e-3, the default, moves them
+#: too early here) and a longer AL stage.
+CARTPOLE = dict(segments=20, al_update_tolerance=1e-4, al_iterations=150, iterations=300)
 
 
 @pytest.mark.slow
@@ -196,6 +197,22 @@ def test_the_papers_comparisons(reference, name, N, M, zero_controls):
     assert sol.status.item() == tt.Status.CONVERGED, sol.status
     assert float(sol.max_violation) <= 1e-7
     _at_ipopts_optimum_or_a_confirmed_one(prob, sol, _ipopt_cost(reference, name, N), N, name)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("N", [50, pytest.param(100, marks=pytest.mark.xfail(strict=True, reason=(
+    "measured: MAX_ITERATIONS after 300 iterations, violation 1.25e-2, cost 1.478 (the RLB stage stalls); from the "
+    "interpolated guess the AL stage stalls with control bounds violated by about 1.5")))])
+def test_the_papers_cartpole(reference, N):
+    """The cart-pole at M = 20 from the rollout of the problem's control guess at the nodes (from the line between
+    x0 and the goal the AL stage stalls, see the README): N = 50 converges (measured: 82 iterations, 1.518129223
+    against IPOPT's 1.518129237), N = 100 does not."""
+    prob = _problem("cartpole", N)
+    X0 = rollout(prob.dynamics, prob.x0.unsqueeze(0), prob.u_init.expand(1, N, prob.nu), prob.batched_params(1))
+    sol = tt.solve(prob, method="hm-ilqr", X0=X0, options=tt.HMILQROptions(**CARTPOLE))
+    assert sol.status.item() == tt.Status.CONVERGED, sol.status
+    assert float(sol.max_violation) <= 1e-7
+    _at_ipopts_optimum_or_a_confirmed_one(prob, sol, _ipopt_cost(reference, "cartpole", N), N, "cartpole")
 
 
 @pytest.mark.slow
