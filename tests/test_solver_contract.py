@@ -47,6 +47,8 @@ def tight(method: str, name: str):
         return problems.altro_options(name)
     if solver.options_class is tt.ILQROptions:
         return tt.ILQROptions(cost_tolerance=1e-14, gradient_tolerance=1e-9)
+    if solver.options_class is tt.HMILQROptions:  # the paper's ε_v = 1e-3 stops short of a KKT point to 1e-5
+        return tt.HMILQROptions(cost_tolerance=1e-12, iterations=300)
     return solver.default_options()
 
 

@@ -227,12 +227,13 @@ def _at_goal(x: Tensor, p) -> Tensor:
     return x - p["goal"]
 
 
-def get(name: str, dtype: torch.dtype = torch.float64, device=None) -> Problem:
-    """Problem ``name`` as a :class:`torchtraj.Problem` in ``dtype`` on ``device``.
+def get(name, dtype: torch.dtype = torch.float64, device=None) -> Problem:
+    """Problem ``name`` (or a :class:`ProblemSpec`, e.g. of :func:`at_horizon`) as a :class:`torchtraj.Problem` in
+    ``dtype`` on ``device``.
 
     Bounds that are infinite everywhere are left out (``None``); state bounds apply on knots 1..N-1.
     """
-    s = spec(name)
+    s = name if isinstance(name, ProblemSpec) else spec(name)
     model = models.get(s.model)
 
     def tensor(a) -> Tensor:
@@ -281,6 +282,19 @@ def altro_options(name: str, **changes):
     inner_names = set(ILQROptions.__dataclass_fields__) - {"cost_tolerance", "verbose"}
     inner = {k: fields.pop(k) for k in list(fields) if k in inner_names}
     return ALTROOptions(ilqr=ILQROptions(**inner), **fields)
+
+
+def at_horizon(name: str, N: int) -> ProblemSpec:
+    """Problem ``name`` over the same ``tf`` with ``N`` intervals: ``dt = tf / N``, the weights' "·dt" redone,
+    ``X_init`` resampled at the new knots (the HM-iLQR paper's comparisons at two resolutions). Pass it to
+    :func:`get` or to :class:`~torchtraj.bench.reference.ReferenceSolver`."""
+    s = spec(name)
+    ratio = (s.tf / N) / s.dt
+    X_init = None
+    if s.X_init is not None:
+        old, new = np.linspace(0.0, 1.0, s.N + 1), np.linspace(0.0, 1.0, N + 1)
+        X_init = np.stack([np.interp(new, old, s.X_init[:, i]) for i in range(s.nx)], 1)
+    return dataclasses.replace(s, name=f"{name}_N{N}", N=N, Q=s.Q * ratio, R=s.R * ratio, X_init=X_init)
 
 
 def sample_x0(name: str, count: int, seed: int) -> Tensor:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from .altro import ALILQR, ALTRO
 from .base import Solver
+from .hm_ilqr import HMILQR
 from .ilqr import ILQR
 from .ipm import IPM
 
@@ -46,5 +47,6 @@ register(ILQR())
 register(ALTRO())
 register(ALILQR())
 register(IPM())
+register(HMILQR())
 
-__all__ = ["ALILQR", "ALTRO", "ILQR", "IPM", "Solver", "get", "names", "register"]
+__all__ = ["ALILQR", "ALTRO", "HMILQR", "ILQR", "IPM", "Solver", "get", "names", "register"]

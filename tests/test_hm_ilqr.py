@@ -1,0 +1,246 @@
+"""HM-iLQR (method "hm-ilqr"): its pieces against independent formulas, its optima against IPOPT's.
+
+The references: IPOPT's optima of the problem set (tests/data/reference.json) and of the paper's second resolutions
+(tests/data/hm_ilqr_reference.json, IPOPT through CasADi on ``problems.at_horizon``, tol 1e-8), central finite
+differences, a dense Riccati step, and plain rollouts. The paper's comparisons are ``-m slow``.
+"""
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj import problems
+from torchtraj.core.batching import map_stage, rollout
+from torchtraj.riccati import LQR, factorize
+from torchtraj.solvers.hm_ilqr.barrier import relaxed_log_barrier
+from torchtraj.solvers.hm_ilqr.crls import regularized
+from torchtraj.solvers.hm_ilqr.shooting import Segments, rollout_segments
+
+F64 = torch.float64
+DATA = Path(__file__).parent / "data"
+
+
+def paper_reference() -> dict:
+    with open(DATA / "hm_ilqr_reference.json") as f:
+        return json.load(f)
+
+
+# ---------------------------------------------------------------------------------------------- the pieces
+def test_relaxed_log_barrier_is_twice_differentiable_and_the_log_where_feasible():
+    psi, delta = torch.tensor(0.3, dtype=F64), torch.tensor(0.05, dtype=F64)
+    g = torch.linspace(-0.3, 0.2, 501, dtype=F64)
+    value, d1, d2 = relaxed_log_barrier(g, psi, delta)
+    log = -g >= delta
+    torch.testing.assert_close(value[log], -psi * torch.log(-g[log]))
+    h = 1e-5
+    smooth = (g + delta).abs() > 2 * h  # the third derivative jumps at the junction: no central difference there
+    for fn, derivative in ((lambda x: relaxed_log_barrier(x, psi, delta)[0], d1),
+                           (lambda x: relaxed_log_barrier(x, psi, delta)[1], d2)):
+        central = (fn(g + h) - fn(g - h)) / (2 * h)
+        torch.testing.assert_close(central[smooth], derivative[smooth], rtol=1e-6, atol=1e-6)
+    # across the junction -g = δ the value, slope and curvature agree (the extension of Hauser & Saccon)
+    at = torch.tensor([-delta - 1e-12, -delta + 1e-12], dtype=F64)
+    v, s1, s2 = relaxed_log_barrier(at, psi, delta)
+    assert float((v[0] - v[1]).abs()) < 1e-10 and float((s1[0] - s1[1]).abs()) < 1e-8
+    assert float((s2[0] - s2[1]).abs()) < 1e-6 * float(s2[0])
+    assert (d1 > 0).all() and bool(torch.isfinite(value).all())  # defined at infeasible points too
+
+
+@pytest.mark.parametrize("segments", [1, 7, 50])
+def test_segments_roll_out_from_their_nodes_and_report_the_defects(segments):
+    prob = problems.get("pendulum")
+    params = prob.batched_params(2)
+    gen = torch.Generator().manual_seed(0)
+    U = torch.randn(2, prob.N, 1, generator=gen, dtype=F64)
+    X_guess = torch.randn(2, prob.N + 1, 2, generator=gen, dtype=F64)
+    seg = Segments.of(prob.N, segments)
+    nodes = X_guess[:, seg.starts].clone()
+    nodes[:, 0] = prob.x0
+    X, Uout, D = rollout_segments(prob.dynamics, params, nodes, U, seg)
+    assert torch.equal(Uout, U)
+    # independently: each segment a plain rollout from its node; the defects f(x_k, u_k) − x_{k+1} at the nodes
+    for i, k in enumerate(seg.starts.tolist()):
+        end = min(k + seg.L, prob.N)
+        seg_X = rollout(prob.dynamics, nodes[:, i], U[:, k:end], params)
+        torch.testing.assert_close(X[:, k:end + 1][:, :-1], seg_X[:, :-1])
+    f = map_stage(prob.dynamics, X[:, :-1], U, params)
+    gap = f - X[:, 1:]
+    inside = torch.ones(prob.N, dtype=torch.bool)
+    inside[seg.starts[1:] - 1] = False
+    assert float(gap[:, inside].abs().max()) < 1e-12
+    torch.testing.assert_close(D, (gap[:, ~inside] ** 2).sum((1, 2)))
+    if segments == 1:
+        torch.testing.assert_close(X, rollout(prob.dynamics, prob.x0.expand(2, 2), U, params))
+
+
+def test_state_value_regularisation_gives_the_gains_of_eq_21():
+    gen = torch.Generator().manual_seed(1)
+    B, N, nx, nu = 2, 3, 3, 2
+
+    def rnd(*shape):
+        return torch.randn(*shape, generator=gen, dtype=F64)
+
+    def spd(n):
+        M = rnd(B, N, n, n)
+        return M @ M.transpose(-1, -2) + n * torch.eye(n, dtype=F64)
+
+    A, Bm = rnd(B, N, nx, nx), rnd(B, N, nx, nu)
+    H = spd(nx + nu)
+    QN = spd(nx)[:, 0]
+    lqr = LQR(A=A, B=Bm, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=QN)
+    mu = torch.tensor([0.0, 3.0], dtype=F64)
+    K = factorize(regularized(lqr, mu)).K
+    # eq. (21) at the last stage: Q̃_uu = ℓ_uu + f_uᵀ (V_xx + μ I) f_u, Q̃_ux = ℓ_ux + f_uᵀ (V_xx + μ I) f_x, V_xx = Q_N
+    V = QN + mu.reshape(-1, 1, 1) * torch.eye(nx, dtype=F64)
+    a, b = A[:, -1], Bm[:, -1]
+    Quu = lqr.R[:, -1] + b.transpose(-1, -2) @ V @ b
+    Qux = lqr.S[:, -1] + b.transpose(-1, -2) @ V @ a
+    torch.testing.assert_close(K[:, -1], -torch.linalg.solve(Quu, Qux))
+
+
+def test_problem_at_another_horizon_keeps_tf_and_rescales_the_weights():
+    s, t = problems.spec("car_3obs"), problems.at_horizon("car_3obs", 200)
+    assert t.N == 200 and t.tf == s.tf and math.isclose(t.dt, s.dt / 2)
+    torch.testing.assert_close(torch.tensor(t.Q.copy()), torch.tensor(s.Q.copy()) / 2)
+    assert problems.get(t).N == 200
+
+
+# ---------------------------------------------------------------------------------------------- optima
+@pytest.mark.parametrize("name", ["double_integrator", "pendulum"])
+def test_reaches_ipopts_optimum_from_the_interpolated_guess(reference, name):
+    """From the paper's start (nodes on the line from x0 to the goal, M = 10), float64: violation and defects
+    ≤ 1e-7, the cost within 1e-5 of IPOPT's, both stages run, and the gains are those of the final point."""
+    prob = problems.get(name)
+    sol = tt.solve(prob, method="hm-ilqr", options=tt.HMILQROptions(iterations=150, cost_tolerance=1e-8))
+    assert sol.status.item() == tt.Status.CONVERGED, sol.status
+    assert float(sol.max_violation) <= 1e-7
+    expected = reference[name]["ipopt"]["cost"]
+    assert abs(float(sol.cost) - expected) / expected < 1e-5, (float(sol.cost), expected)
+    stages = sol.history.extra["stage"][0]
+    assert stages[0] == 0 and stages[-1] == 1  # the AL stage, then the relaxed barrier
+    assert sol.K.shape == (1, prob.N, prob.nu, prob.nx) and bool(torch.isfinite(sol.K).all())
+    assert float(sol.history.extra["barrier"][0, -1]) <= tt.HMILQROptions().barrier_min * (1 + 1e-9)
+
+
+
+def test_a_converged_solve_is_differentiable_through_the_implicit_layer():
+    """The contract's pendulum (N = 10) from x0 = (2.5, 0): nine controls on their bound, the last one free (from
+    (0.1, −0.2) the last one is weakly active and the solution has a kink: central differences differ from every
+    method's implicit gradient there). d(Σ x_N)/dx0 along a direction against the central difference of two
+    re-solves."""
+    prob = problems.get("pendulum").replace(horizon=10, u_init=torch.zeros(1, dtype=F64), terminal_eq=None)
+    opts = tt.HMILQROptions(cost_tolerance=1e-12, iterations=300)
+    x0 = torch.tensor([2.5, 0.0], dtype=F64, requires_grad=True)
+    sol = tt.solve(prob, x0, method="hm-ilqr", options=opts)
+    assert sol.status.item() == tt.Status.CONVERGED
+    (grad,) = torch.autograd.grad(sol.X[:, -1].sum(), x0)
+    direction, h = torch.tensor([0.6, 0.8], dtype=F64), 1e-5
+    with torch.no_grad():
+        plus = tt.solve(prob, x0 + h * direction, method="hm-ilqr", options=opts).X[:, -1].sum()
+        minus = tt.solve(prob, x0 - h * direction, method="hm-ilqr", options=opts).X[:, -1].sum()
+    central = float((plus - minus) / (2 * h))
+    assert abs(float(grad @ direction)) > 0.1  # not vacuous
+    assert abs(float(grad @ direction) - central) <= 1e-5 * max(1.0, abs(central)), (float(grad @ direction), central)
+
+
+# ---------------------------------------------------------------------------------------------- the paper's comparisons
+def _problem(name: str, N: int) -> tt.Problem:
+    return problems.get(name if problems.spec(name).N == N else problems.at_horizon(name, N))
+
+
+def _ipopt_cost(reference, name: str, N: int) -> float:
+    if problems.spec(name).N == N:
+        return reference[name]["ipopt"]["cost"]
+    return paper_reference()[f"{name}_N{N}"]["ipopt"]["cost"]
+
+
+def _at_ipopts_optimum_or_a_confirmed_one(prob, sol, expected: float, N: int, name: str) -> str:
+    """Within 1e-3 of IPOPT's optimum, or at another local optimum that IPOPT, warm-started at the solution (small
+    initial barrier, no bound push), keeps to 1e-6: which of the two, as a string."""
+    cost = float(sol.cost)
+    if abs(cost - expected) / expected < 1e-3:
+        return "ipopt's optimum"
+    pytest.importorskip("casadi")
+    from torchtraj.bench.reference import ReferenceSolver
+
+    spec = problems.spec(name) if problems.spec(name).N == N else problems.at_horizon(name, N)
+    warm = ReferenceSolver(spec, "ipopt").solve(X0=sol.X[0].numpy(), U0=sol.U[0].numpy(), warm_start=True)
+    assert warm.ok, warm.status
+    assert abs(warm.cost - cost) / cost < 1e-6, (warm.cost, cost, expected)
+    return "another local optimum, confirmed by IPOPT warm-started there"
+
+
+PAPER = [  # (problem, N, M, zero controls): the paper's Tables II-IV at this problem set's numbers
+    ("car_3obs", 100, 10, True),
+    ("car_3obs", 200, 10, True),
+    ("quadrotor2d", 200, 30, False),
+    ("quadrotor2d", 300, 30, False),
+]
+
+#: The cart-pole's options: multipliers moved only once J_1 changes by less than 1e-4 (1e-3, the default, moves them
+#: too early here) and a longer AL stage.
+CARTPOLE = dict(segments=20, al_update_tolerance=1e-4, al_iterations=150, iterations=300)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name,N,M,zero_controls", PAPER)
+def test_the_papers_comparisons(reference, name, N, M, zero_controls):
+    """The paper's starts: the nodes on the line from x0 to the goal (dynamically inconsistent), zero controls for
+    the car, the problem set's hover controls for the quadrotor; default options but M and 200 iterations."""
+    prob = _problem(name, N)
+    U0 = torch.zeros(N, prob.nu, dtype=F64) if zero_controls else None
+    sol = tt.solve(prob, method="hm-ilqr", U0=U0, options=tt.HMILQROptions(segments=M, iterations=200))
+    assert sol.status.item() == tt.Status.CONVERGED, sol.status
+    assert float(sol.max_violation) <= 1e-7
+    _at_ipopts_optimum_or_a_confirmed_one(prob, sol, _ipopt_cost(reference, name, N), N, name)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("N", [50, pytest.param(100, marks=pytest.mark.xfail(strict=True, reason=(
+    "measured: MAX_ITERATIONS after 300 iterations, violation 1.25e-2, cost 1.478 (the RLB stage stalls); from the "
+    "interpolated guess the AL stage stalls with control bounds violated by about 1.5")))])
+def test_the_papers_cartpole(reference, N):
+    """The cart-pole at M = 20 from the rollout of the problem's control guess at the nodes (from the line between
+    x0 and the goal the AL stage stalls, see the README): N = 50 converges (measured: 82 iterations, 1.518129223
+    against IPOPT's 1.518129237), N = 100 does not."""
+    prob = _problem("cartpole", N)
+    X0 = rollout(prob.dynamics, prob.x0.unsqueeze(0), prob.u_init.expand(1, N, prob.nu), prob.batched_params(1))
+    sol = tt.solve(prob, method="hm-ilqr", X0=X0, options=tt.HMILQROptions(**CARTPOLE))
+    assert sol.status.item() == tt.Status.CONVERGED, sol.status
+    assert float(sol.max_violation) <= 1e-7
+    _at_ipopts_optimum_or_a_confirmed_one(prob, sol, _ipopt_cost(reference, "cartpole", N), N, "cartpole")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["parallel_park", pytest.param("car_escape", marks=pytest.mark.xfail(
+    reason="measured: MAX_ITERATIONS at 200 iterations with violation 0.250, cost 0.544 (60 of them in the AL "
+           "stage)"))])
+def test_every_other_problem_solves(reference, name):
+    """car_escape from its waypoint guess (Problem.X_init) as it is: no slack controls, multiple shooting takes the
+    infeasible guess directly."""
+    prob = problems.get(name)
+    sol = tt.solve(prob, method="hm-ilqr", options=tt.HMILQROptions(iterations=200))
+    assert sol.status.item() == tt.Status.CONVERGED, sol.status
+    assert float(sol.max_violation) <= 1e-7
+    _at_ipopts_optimum_or_a_confirmed_one(prob, sol, reference[name]["ipopt"]["cost"], prob.N, name)
+
+
+@pytest.mark.slow
+def test_what_crls_buys_on_the_constrained_cartpole():
+    """The paper's Fig. 5: RLB with plain line search against RLB with CRLS, same start (cartpole, N = 100, M = 20,
+    the interpolated guess), 150 iterations. What was measured here: neither eliminates the violations (the AL
+    stage already stalls on this problem, so the RLB stage starts from control bounds violated by about 1.5); plain
+    LS ends at violation 1.57 and cost 3.036, CRLS at 1.24 and 2.842. The test asserts that: both stop at
+    MAX_ITERATIONS with violations above 1, and CRLS ends lower in both violation and cost."""
+    prob = problems.get("cartpole")
+    ends = {}
+    for crls in (False, True):
+        sol = tt.solve(prob, method="hm-ilqr", options=tt.HMILQROptions(segments=20, iterations=150, crls=crls))
+        ends[crls] = (int(sol.status), float(sol.max_violation), float(sol.cost))
+    for crls, (status, violation, _) in ends.items():
+        assert status == tt.Status.MAX_ITERATIONS and violation > 1.0, (crls, ends)
+    assert ends[True][1] < ends[False][1] and ends[True][2] < ends[False][2], ends

@@ -1,0 +1,123 @@
+r"""One M-iLQR iteration with its globalisation: plain line search, or CRLS (§III-C, Algorithm 5).
+
+**Regularisation** (eq. 21). ``μ_V I`` is added to the next state's value Hessian where the gains are formed,
+``Q̃_uu = ℓ_uu + f_uᵀ (V_xx + μ_V I) f_u``, ``Q̃_ux = ℓ_ux + f_uᵀ (V_xx + μ_V I) f_x``. The shared Riccati core
+(:func:`~torchtraj.riccati.factorize`) takes it as the stage term ``μ_V W_kᵀ W_k`` with ``W_k = [A_k B_k]``, i.e.
+``μ_V/2 ‖A_k δx_k + B_k δu_k‖²``, a proximal term on the change of the next state: its ``Q_uu`` and ``Q_ux`` are
+exactly eq. (21a-b), and the value function it propagates is that of the regularised model (its ``Q_xx`` also gains
+``μ_V A_kᵀ A_k``), which keeps every stage's Hessian positive semidefinite. A larger ``μ_V`` gives the feedback
+term more weight and the step in the states less: the lagged effect the paper exploits.
+
+**Plain LS** (the AL stage, and the RLB stage with ``crls=False``): one backward pass and one backtracking line
+search ``α ∈ {1, γ, γ², …}`` (eq. 20); a failure raises ``μ_V ← min(σ μ_V, μ_V^max)`` for the next iteration and the
+iteration takes no step, a success lowers it, ``μ_V ← max(μ_V / σ, μ_V^0)``.
+
+**CRLS** (the RLB stage): each iteration starts from ``μ_V^0``; where the backward pass fails (a reduced Hessian
+not positive definite) or the line search finds no step down to ``α_min``, the iteration returns to the backward
+pass with ``μ_V ← min(σ μ_V, μ_V^max)`` (eq. 22) instead of ending, until a step is accepted or ``μ_V^max`` is
+reached. The expansion is not repeated: only the factorisation and the line search. On a batch each instance
+leaves the loop on its own (masks); a further round runs while any instance is still searching.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ...core.masks import where_rows
+from ...globalization.line_search import Accepted, backtrack
+from ...riccati import factorize
+from .shooting import expected_change, merit_weight, model_change, rollout_segments
+
+
+@dataclass
+class Trial:
+    """The outcome of an iteration (all ``(B, ...)``): the accepted point ``X``, ``U``, its objective ``J``, its
+    infeasibility ``D = Σ dᵀd + Σ hᵀh`` (defects and equality rows); ``took`` a step; ``stationary`` (the model predicts no decrease); ``failed`` (no step and no
+    regularisation left); the step size ``alpha``, the final ``mu_V`` and the gains ``K``."""
+
+    X: Tensor
+    U: Tensor
+    J: Tensor
+    D: Tensor
+    took: Tensor
+    stationary: Tensor
+    failed: Tensor
+    alpha: Tensor
+    mu_V: Tensor
+    K: Tensor
+    decrease: Tensor  # the model's predicted decrease of the merit at α = 1 (B,)
+
+
+def regularized(lqr, mu_V: Tensor):
+    """The LQR with ``μ_V W_kᵀ W_k`` added to every stage (eq. 21, module docstring); its rows kept."""
+    A, Bm = lqr.A, lqr.B
+    m = mu_V.reshape(-1, 1, 1, 1)
+    At, Bt = A.transpose(-1, -2), Bm.transpose(-1, -2)
+    return dataclasses.replace(lqr, Q=lqr.Q + m * (At @ A), R=lqr.R + m * (Bt @ Bm), S=lqr.S + m * (Bt @ A),
+                               W=None, H=None)
+
+
+def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, mu_V, active, retry, opts) -> Trial:
+    """One iteration on the instances of ``active (B,)`` from the expansion ``(lqr, rhs)`` at ``(X, U)``; those of
+    ``retry (B,)`` use CRLS (their ``mu_V`` is the start ``μ_V^0``), the others plain LS."""
+    B = X.shape[0]
+    steps = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
+    rounds = 1 + max(0, math.ceil(math.log(opts.regularization_max / opts.regularization_initial)
+                                  / math.log(opts.regularization_increase)))
+    zero = torch.zeros(B, dtype=torch.bool, device=X.device)
+    accepted = Accepted(found=zero, alpha=torch.zeros_like(J), values=(X, U, J, D))
+    stationary, searched = zero, zero
+    decrease = torch.zeros_like(J)
+    K = lqr.A.new_zeros(B, *lqr.B.shape[1:2], lqr.B.shape[-1], lqr.A.shape[-1])
+    starts = segments.starts
+    per_round = max(1, min(len(steps), 8192 // max(B, 1)))  # step sizes simulated together, as iLQR's search
+    for r in range(rounds):
+        pending = active & ~accepted.found & ~stationary & (retry | ~searched)
+        if not bool(pending.any()):  # the round's host synchronisation
+            break
+        factor = factorize(regularized(lqr, mu_V))
+        sol = factor.solve(rhs)
+        dV1, dV2 = model_change(lqr, rhs, sol.dx, sol.du)
+        weight = merit_weight(dV1, dV2, D, opts.defect_weight)
+        merit = J + weight * D
+        ok = factor.ok & torch.isfinite(dV1) & torch.isfinite(dV2)
+        full = -expected_change(steps[:1], dV1, dV2, D, weight)[:, 0]
+        decrease = torch.where(pending, full, decrease)
+        still = ok & (full < opts.expected_decrease_tolerance)
+        stationary = stationary | (pending & still)
+        search = pending & ok & ~still
+        K = where_rows(pending, factor.K, K)
+
+        def ratio_test(alphas, sol=sol, factor=factor, dV1=dV1, dV2=dV2, weight=weight, merit=merit):
+            a = alphas.reshape(1, -1, 1, 1)
+            nodes = X[:, starts].unsqueeze(1) + a * sol.dx[:, starts].unsqueeze(1)
+            nodes[:, :, 0] = X[:, 0].unsqueeze(1)
+            ff = a * sol.k.unsqueeze(1)
+            Xc, Uc, Dc = rollout_segments(problem.dynamics, params, nodes, U, segments, X, factor.K, ff)
+            Dc = Dc + objective.equality_residual(Xc, Uc, params)
+            Jc = objective.value(Xc, Uc, params)
+            expected = expected_change(alphas, dV1, dV2, D, weight)
+            ratio = (Jc + weight.unsqueeze(1) * Dc - merit.unsqueeze(1)) / expected
+            bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
+            accept = (torch.isfinite(Jc) & torch.isfinite(Dc) & bounded & (expected < 0)
+                      & (ratio > opts.line_search_lower) & (ratio < opts.line_search_upper))
+            return accept, (Xc, Uc, Jc, Dc)
+
+        start = Accepted(found=accepted.found | ~search, alpha=accepted.alpha, values=accepted.values)
+        step = backtrack(steps, per_round, ratio_test, search, start)
+        new = step.found & search
+        accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, step.alpha, accepted.alpha),
+                            values=tuple(where_rows(new, a, b) for a, b in zip(step.values, accepted.values)))
+        searched = searched | pending
+        grow = pending & ~new & retry & (mu_V < opts.regularization_max)
+        mu_V = torch.where(grow, (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max), mu_V)
+        retry = retry & grow | retry & ~pending
+    Xa, Ua, Ja, Da = accepted.values
+    took = active & accepted.found
+    failed = active & ~took & ~stationary
+    return Trial(Xa, Ua, Ja, Da, took, active & stationary, failed, accepted.alpha, mu_V, K, decrease)

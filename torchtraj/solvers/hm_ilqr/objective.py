@@ -1,0 +1,188 @@
+r"""The objective HM-iLQR's inner M-iLQR iteration minimises, per instance in its stage, and its LQR model.
+
+With the stage inequality rows ``g_k`` and the terminal ones ``g_N`` (:class:`~torchtraj.core.constraints.
+Constraints`),
+
+.. math::
+
+    J_{[\cdot]}(X, U) = J(X, U) + \sum_{k \le N} \sum_i P_{k,i}(g_{k,i}),
+
+where ``P`` is the AL term of :mod:`~torchtraj.solvers.hm_ilqr.augmented_lagrangian` for an instance in the AL stage
+(``J_1``, eq. 13) and the relaxed log barrier of :mod:`~torchtraj.solvers.hm_ilqr.barrier` for one in the RLB stage
+(``J_2``, eq. 17). Rows that do not apply at a knot (state rows at ``k = 0``) contribute nothing. The LQR model adds
+the Gauss-Newton terms ``g_zᵀ P'`` and ``g_zᵀ diag(P'') g_z`` to the cost expansion (eq. 14); ``P'`` is also the
+rows' multiplier.
+
+**Equality rows** (the goal ``x_N = x_g``, stage equalities) are AL terms ``λ h + μ/2 h²`` in the AL stage (the
+ALTRO form; a goal held exactly from a far start makes the first linearised steps enormous: on the cart-pole from
+rest the line search then takes steps of 1e-3) and, in the RLB stage, the Riccati core's stagewise equalities
+``C_k δx_k + D_k δu_k + h_k = 0`` (constraint back-propagation, switched per instance by the rows' mask): a barrier
+cannot hold them, and as AL terms they would need the penalty to grow without bound, the ill-conditioning the RLB
+stage is there to avoid. Held, the linear model meets them exactly, like the defects, and they enter the line
+search's merit as the defects do: ``Σ hᵀh`` beside ``Σ dᵀd``, predicted to shrink to ``(1 − α)²`` of itself
+(:mod:`~torchtraj.solvers.hm_ilqr.shooting`). Their multipliers are then the core's ``ν``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ...core.batching import map_stage, map_state
+from ...core.constraints import Constraints
+from ...core.derivatives import linearize_dynamics, quadratize_cost, stage_jacobian, terminal_jacobian
+from ...kkt.model import total_cost
+from ...riccati import LQR, LQRVectors
+from .augmented_lagrangian import al_equality, al_inequality
+from .barrier import relaxed_log_barrier
+
+
+@dataclass
+class StageParameters:
+    """Per instance: ``rlb (B,)`` whether in the RLB stage; AL multipliers of the inequality rows ``lam (B, N, mi)``,
+    ``lamN (B, miN)`` and of the equality rows ``lamE (B, N, me)``, ``lamEN (B, meN)``, penalty ``mu (B,)``; barrier
+    weight ``psi (B,)`` and relaxation ``delta (B,)``."""
+
+    rlb: Tensor
+    lam: Tensor
+    lamN: Tensor
+    lamE: Tensor
+    lamEN: Tensor
+    mu: Tensor
+    psi: Tensor
+    delta: Tensor
+
+
+def _lift(t: Tensor, like: Tensor) -> Tensor:
+    """``t (B, ...)`` with singleton dimensions after B, to broadcast against ``like (B, *E, ...)``: a per-row
+    tensor keeps its trailing dimensions, a per-instance ``(B,)`` one broadcasts over all of ``like``'s."""
+    return t.reshape(t.shape[0], *([1] * (like.dim() - t.dim())), *t.shape[1:])
+
+
+class HybridObjective:
+    """``J_1`` / ``J_2`` of the module docstring for fixed stage parameters: value, equality residual, LQR model."""
+
+    def __init__(self, constraints: Constraints, params: StageParameters):
+        self.constraints = c = constraints
+        self.problem = constraints.problem
+        self.params = params
+        #: ``(N, mi)``: 1 where a stage inequality row applies.
+        self.knot_mask = c.ineq_knot_mask
+        self.mi, self.miN, self.me, self.meN = c.mi, c.miN, c.me, c.meN
+
+    # ------------------------------------------------------------------ the penalty of the inequality rows
+    def penalty(self, g: Tensor, lam: Tensor, mask=None) -> tuple:
+        """Value (summed over rows), ``P'`` and ``P''`` of rows ``g (B, *E, ..., m)`` with multipliers
+        ``lam (B, ..., m)``, each instance in its stage."""
+        s = self.params
+        lam = _lift(lam, g)
+        mu, psi, delta, rlb = (_lift(v, g) for v in (s.mu, s.psi, s.delta, s.rlb))
+        out = [torch.where(rlb, b, a) for a, b in zip(al_inequality(g, lam, mu), relaxed_log_barrier(g, psi, delta))]
+        if mask is not None:
+            out = [v * mask for v in out]
+        return out[0].sum(-1), out[1], out[2]
+
+    def equality_penalty(self, h: Tensor, lam: Tensor) -> tuple:
+        """Value (summed over rows), ``P'``, ``P''`` of the AL terms of equality rows ``h (B, *E, ..., m)``; zero for
+        an instance in the RLB stage (its rows are held by the Riccati core)."""
+        al = _lift(~self.params.rlb, h).to(h.dtype)
+        value, d1, d2 = al_equality(h, _lift(lam, h), _lift(self.params.mu, h))
+        return (value * al).sum(-1), d1 * al, d2 * al
+
+    # ------------------------------------------------------------------ values
+    def stage_eq(self, X: Tensor, U: Tensor, params) -> Tensor:
+        return map_stage(self.constraints.stage_eq, X[..., :-1, :], U, params)
+
+    def terminal_eq(self, X: Tensor, params) -> Tensor:
+        return map_state(self.constraints.terminal_eq, X[..., -1, :], params)
+
+    def stage_ineq(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """``g_k`` ``(B, *E, N, mi)``; rows that do not apply are 0."""
+        return map_stage(self.constraints.stage_ineq, X[..., :-1, :], U, params) * self.knot_mask
+
+    def terminal_ineq(self, X: Tensor, params) -> Tensor:
+        return map_state(self.constraints.terminal_ineq, X[..., -1, :], params)
+
+    def value(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """``J_[·]`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``."""
+        J = total_cost(self.problem, X, U, params)
+        if self.mi:
+            J = J + self.penalty(self.stage_ineq(X, U, params), self.params.lam, self.knot_mask)[0].sum(-1)
+        if self.miN:
+            J = J + self.penalty(self.terminal_ineq(X, params), self.params.lamN)[0]
+        if self.me:
+            J = J + self.equality_penalty(self.stage_eq(X, U, params), self.params.lamE)[0].sum(-1)
+        if self.meN:
+            J = J + self.equality_penalty(self.terminal_eq(X, params), self.params.lamEN)[0]
+        return J
+
+    def equality_residual(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """``Σ hᵀh`` over the equality rows held by the Riccati core (an instance in the RLB stage), ``(B, *E)``."""
+        r = X.new_zeros(X.shape[:-2])
+        if self.me:
+            h = self.stage_eq(X, U, params)
+            r = r + (h * h).sum((-1, -2))
+        if self.meN:
+            hN = self.terminal_eq(X, params)
+            r = r + (hN * hN).sum(-1)
+        return r * _lift(self.params.rlb, r).to(r.dtype)
+
+    def multipliers(self, X: Tensor, U: Tensor, params) -> tuple:
+        """``P'`` of every inequality row, ``(B, N, mi)`` and ``(B, miN)``: the AL multipliers' estimates and the
+        barrier's implied multipliers."""
+        stage = X.new_zeros(X.shape[0], U.shape[1], self.mi)
+        terminal = X.new_zeros(X.shape[0], self.miN)
+        if self.mi:
+            stage = self.penalty(self.stage_ineq(X, U, params), self.params.lam, self.knot_mask)[1]
+        if self.miN:
+            terminal = self.penalty(self.terminal_ineq(X, params), self.params.lamN)[1]
+        return stage, terminal
+
+    # ------------------------------------------------------------------ the LQR model
+    def expand(self, X: Tensor, U: Tensor, params):
+        """The LQR model of ``J_[·]`` around ``(X, U)`` (eqs. 5, 10, 14), the equality rows by stage, and the
+        dynamics ``f(x_k, u_k) (B, N, nx)``; the defects ``c`` of the right-hand side are left to the caller."""
+        nx = X.shape[-1]
+        f, A, Bm = linearize_dynamics(self.problem.dynamics, X, U, params)
+        cost = quadratize_cost(self.problem.stage_cost, self.problem.terminal_cost, X, U, params)
+        H, g = cost.hessian, cost.gradient
+        HN, gN = cost.terminal_hessian, cost.terminal_gradient
+        rows = {}
+        if self.mi:
+            c, Cz = stage_jacobian(self.constraints.stage_ineq, X, U, params)
+            c, Cz = c * self.knot_mask, Cz * self.knot_mask.unsqueeze(-1)
+            _, d1, d2 = self.penalty(c, self.params.lam, self.knot_mask)
+            H = H + Cz.transpose(-1, -2) @ (d2.unsqueeze(-1) * Cz)
+            g = g + (Cz.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+        if self.miN:
+            cN, CN = terminal_jacobian(self.constraints.terminal_ineq, X[:, -1], params)
+            _, d1, d2 = self.penalty(cN, self.params.lamN)
+            HN = HN + CN.transpose(-1, -2) @ (d2.unsqueeze(-1) * CN)
+            gN = gN + (CN.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+        e = eN = None
+        held = self.params.rlb.to(X.dtype)
+        if self.me:  # AL terms (AL stage) or held rows (RLB stage), per instance
+            e, Hz = stage_jacobian(self.constraints.stage_eq, X, U, params)
+            _, d1, d2 = self.equality_penalty(e, self.params.lamE)
+            H = H + Hz.transpose(-1, -2) @ (d2.unsqueeze(-1) * Hz)
+            g = g + (Hz.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+            rows.update(C=Hz[..., :nx], D=Hz[..., nx:], mask=torch.ones_like(e) * held.reshape(-1, 1, 1))
+        if self.meN:
+            eN, HNx = terminal_jacobian(self.constraints.terminal_eq, X[:, -1], params)
+            _, d1, d2 = self.equality_penalty(eN, self.params.lamEN)
+            HN = HN + HNx.transpose(-1, -2) @ (d2.unsqueeze(-1) * HNx)
+            gN = gN + (HNx.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+            rows.update(CN=HNx, maskN=torch.ones_like(eN) * held.reshape(-1, 1))
+        if self.meN and not self.me:  # the core reads stage rows whenever it holds terminal ones: none here
+            B, N = U.shape[:2]
+            rows.update(C=X.new_zeros(B, N, 0, nx), D=X.new_zeros(B, N, 0, U.shape[-1]), mask=X.new_zeros(B, N, 0))
+            e = X.new_zeros(B, N, 0)
+        if self.me and not self.meN:
+            rows.update(CN=X.new_zeros(X.shape[0], 0, nx), maskN=X.new_zeros(X.shape[0], 0))
+            eN = X.new_zeros(X.shape[0], 0)
+        lqr = LQR(A=A, B=Bm, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=HN, **rows)
+        rhs = LQRVectors(q=g[..., :nx], r=g[..., nx:], qN=gN, c=torch.zeros_like(X[:, 1:]),
+                         x0=torch.zeros_like(X[:, 0]), e=e, eN=eN)
+        return lqr, rhs, f

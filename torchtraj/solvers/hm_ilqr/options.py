@@ -1,0 +1,90 @@
+r"""Options of HM-iLQR (method ``"hm-ilqr"``; Tang, Chu, Jin & Au, "Inequality Constrained Trajectory Optimization
+with A Hybrid Multiple-shooting iLQR").
+
+The paper fixes the exit criteria (§IV-C): ``ε_v = 1e-3`` on the objective reduction, ``c_min^rlb = 1e-7`` on the
+constraint violation and ``MaxIter = 100``. It leaves the other constants open; the defaults below were chosen on
+the problem set (``tests/test_hm_ilqr.py`` and the benchmark rows of the README), see each field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class HMILQROptions:
+    """Options of :func:`~torchtraj.solvers.hm_ilqr.solver.solve_hm_ilqr` (module docstring)."""
+
+    #: ``MaxIter``: iterations of both stages together (paper §IV-C).
+    iterations: int = 100
+    #: ``ε_v``: an RLB iteration ends the solve once it changes the objective by less than this (paper §IV-C) and
+    #: the other exit tests hold.
+    cost_tolerance: float = 1e-3
+    #: ``c_min^rlb``: the largest constraint violation and defect of a converged solve (paper §IV-C).
+    constraint_tolerance: float = 1e-7
+    #: ``c_min^al``: the AL stage hands over to the RLB stage below this violation (Algorithm 2).
+    constraint_tolerance_al: float = 1e-2
+    #: The AL stage hands over after this many iterations even above ``c_min^al`` (the relaxed barrier accepts
+    #: an infeasible start); 0 starts in the RLB stage (a control step's default, whose warm start is near).
+    al_iterations: int = 60
+    #: The "if update" of Algorithm 2: the multipliers (15) and the penalty (16) move after an iteration that changed
+    #: ``J_1`` by less than this, relative to ``1 + |J_1|`` (the inner M-iLQR nearly converged). ``inf`` updates after
+    #: every iteration (one inner iteration per update): on the cart-pole the multipliers then run away (violation
+    #: 8e2 after 34 iterations from the interpolated guess, measured).
+    al_update_tolerance: float = 1e-3
+    #: ``M``: shooting segments (``M = N``: full multiple shooting, ``M = 1``: single shooting). Capped at N.
+    segments: int = 10
+    #: ``μ_0``: initial AL penalty.
+    penalty_initial: float = 1.0
+    #: ``φ``: the penalty scaling of eq. (16), applied after every iteration (one inner iteration per update).
+    penalty_scaling: float = 10.0
+    #: The "if update" of Algorithm 2 for the penalty: eq. (16) is applied after an iteration whose violation of the
+    #: penalised rows is above this fraction of the previous one's (the multipliers are updated every iteration).
+    penalty_trigger: float = 0.5
+    #: Largest AL penalty (the AL stage's ill-conditioning is what the RLB stage avoids).
+    penalty_max: float = 1e3
+    #: Multipliers are clipped to ``±dual_max``.
+    dual_max: float = 1e8
+    #: ``ψ_0``: barrier weight at the start of the RLB stage.
+    barrier_initial: float = 1e-2
+    #: ``ω_1``: barrier decrease of eq. (18a).
+    barrier_decrease: float = 0.2
+    #: ``κ``: the "if update" of Algorithm 3: ψ and δ move after an accepted step whose predicted decrease of the
+    #: merit was below ``κ ψ`` (the barrier problem of that ψ nearly solved; IPOPT's rule in the iLQR model's terms).
+    barrier_update: float = 1.0
+    #: ``ψ_min``: the barrier weight stops decreasing here; a converged solve has reached it (the complementarity
+    #: of its log-branch rows is ``ψ``).
+    barrier_min: float = 1e-8
+    #: ``δ_0``: relaxation at the start of the RLB stage.
+    relaxation_initial: float = 1e-2
+    #: ``ω_2``: relaxation decrease of eq. (18b).
+    relaxation_decrease: float = 0.1
+    #: ``δ_min`` of eq. (18b).
+    relaxation_min: float = 1e-12
+    #: ``μ_V^0``: state-value regularisation at the start of each CRLS iteration (eq. 21).
+    regularization_initial: float = 1e-6
+    #: ``σ``: CRLS's regularisation increase, eq. (22).
+    regularization_increase: float = 10.0
+    #: ``μ_V^max``.
+    regularization_max: float = 1e8
+    #: Use CRLS (Algorithm 5) in the RLB stage; ``False``: a failed line search ends the iteration (plain LS).
+    crls: bool = True
+    #: ``γ``: line-search step decrease, eq. (20).
+    line_search_decrease: float = 0.5
+    #: Step sizes tried, ``α ∈ {1, γ, …, γ^(steps−1)}`` (``α_min`` is the last).
+    line_search_steps: int = 12
+    #: Accepted interval of the ratio of actual to expected change (§III-C-1).
+    line_search_lower: float = 1e-4
+    line_search_upper: float = 10.0
+    #: ``w``: weight of the defect term ``w Σ dᵀd`` of the expected change (§III-C-1); raised per iteration where
+    #: the model would otherwise predict no decrease (module :mod:`~torchtraj.solvers.hm_ilqr.shooting`).
+    defect_weight: float = 1.0
+    #: Converged (no step needed) when the predicted decrease is below this.
+    expected_decrease_tolerance: float = 1e-16
+    #: Divergence limits on the objective and on |x|.
+    max_cost: float = 1e8
+    max_state: float = 1e8
+    #: Accepted for the control-step interface; HM-iLQR has no compiled kernels.
+    compile: bool = False
+    #: Log one line per iteration through the ``torchtraj`` logger.
+    verbose: bool = False

@@ -1,0 +1,241 @@
+r"""HM-iLQR (method ``"hm-ilqr"``; Tang, Chu, Jin & Au, Algorithm 4) for batches, each instance in its own stage.
+
+Every instance runs the paper's two stages on the multiple-shooting M-iLQR iteration
+(:mod:`~torchtraj.solvers.hm_ilqr.shooting`):
+
+1. **AL stage** (Algorithm 2): M-iLQR iterations on ``J_1`` (:mod:`~torchtraj.solvers.hm_ilqr.objective`) with
+   plain line search; the multiplier update (15) after an iteration that changed ``J_1`` by less than
+   ``al_update_tolerance`` (the "if update"), with the penalty update (16) where the violation did not halve; it
+   hands over once the violation of the constraints and of the defects is below ``c_min^al`` (or after
+   ``al_iterations``);
+2. **RLB stage** (Algorithm 3): M-iLQR iterations on ``J_2`` with CRLS (:mod:`~torchtraj.solvers.hm_ilqr.crls`),
+   ``ψ, δ`` follow (18a-b) after a step whose predicted decrease was below ``κ ψ`` (the barrier problem of that
+   ``ψ`` nearly solved);
+3. **done** when an RLB iteration changes the objective by less than ``ε_v`` (or the model predicts no decrease),
+   the violation of the constraints and the defects is at most ``c_min^rlb`` and ``ψ`` has reached ``ψ_min``.
+
+The stage of each instance is a mask; no instance waits on another, and the only host synchronisations are the
+batch-wide "anything still running" test of each iteration and those of the line search and CRLS rounds. The start
+is a state guess ``X0`` (any, dynamically inconsistent: its knots at the segment starts are the nodes), else the
+problem's ``X_init``, else the paper's linear interpolation from ``x_0`` to the goal where the problem's parameters
+name one (``params["goal"]``, as the problem set's do), else the rollout of ``U0``.
+
+The solution carries the multipliers of every block: on the inequality rows the barrier's implied multipliers
+``B' = ψ / (−g)`` (log branch; the AL estimates ``max(0, λ + μ g)`` for an instance still in the AL stage), on the
+equality rows the Riccati core's ``ν`` (RLB stage) or ``λ + μ h`` (AL stage), the costates of the expanded
+objective and the gains of a backward pass at the final point; a converged solve is a KKT point of the problem up to ``ψ_min``, which the
+implicit layer refines (``kkt_point``).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from torch import Tensor
+
+from ...core.batch import Batch
+from ...core.batching import map_stage, rollout
+from ...core.constraints import Constraints, multiplier_blocks
+from ...core.masks import where_rows
+from ...core.problem import Problem
+from ...core.solution import History, Solution
+from ...core.status import Status
+from ...kkt.model import total_cost
+from ...riccati import factorize
+from .augmented_lagrangian import increased_penalty, updated_multipliers
+from .barrier import updated_barrier
+from .crls import iterate, regularized
+from .objective import HybridObjective, StageParameters
+from .options import HMILQROptions
+from .shooting import Segments, defects, rollout_segments
+
+logger = logging.getLogger("torchtraj")
+AL, RLB = 0, 1
+
+
+def initial_states(problem: Problem, batch: Batch) -> Tensor:
+    """The state guess ``(B, N+1, nx)`` or ``None`` (module docstring)."""
+    if batch.X0 is not None:
+        return batch.X0
+    if problem.X_init is not None:
+        return problem.X_init.expand(batch.B, *problem.X_init.shape)
+    goal = batch.params.get("goal")
+    if goal is not None and goal.shape[-1:] == (problem.nx,) and goal.dim() == 2:
+        s = torch.linspace(0, 1, problem.N + 1, dtype=problem.dtype, device=problem.device).reshape(1, -1, 1)
+        return batch.x0.unsqueeze(1) + s * (goal - batch.x0).unsqueeze(1)
+    return None
+
+
+def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method: str = "hm-ilqr") -> Solution:
+    """Solve the ``batch`` of instances of ``problem`` by HM-iLQR (module docstring)."""
+    opts = options
+    x0, params, B = batch.x0, batch.params, batch.B
+    constraints = Constraints.of(problem)
+    segments = Segments.of(problem.N, opts.segments, x0.device)
+    guess = initial_states(problem, batch)
+    if guess is None:  # the rollout of U0: no defects to close
+        guess = rollout(problem.dynamics, x0, batch.U0, params)
+    nodes = guess[:, segments.starts].clone()
+    nodes[:, 0] = x0
+    X, U, gaps = rollout_segments(problem.dynamics, params, nodes, batch.U0, segments)  # Algorithm 1, lines 2-8
+    like = x0
+    c = constraints
+    stage_params = StageParameters(
+        rlb=torch.full((B,), opts.al_iterations == 0, dtype=torch.bool, device=x0.device),
+        lam=like.new_zeros(B, problem.N, c.mi), lamN=like.new_zeros(B, c.miN),
+        lamE=like.new_zeros(B, problem.N, c.me), lamEN=like.new_zeros(B, c.meN),
+        mu=like.new_full((B,), opts.penalty_initial), psi=like.new_full((B,), opts.barrier_initial),
+        delta=like.new_full((B,), opts.relaxation_initial))
+    objective = HybridObjective(constraints, stage_params)
+    J = objective.value(X, U, params)
+    D = gaps + objective.equality_residual(X, U, params)
+    status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
+    finite_start = torch.isfinite(J) & torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(D)
+    status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
+    status = torch.where((status == Status.RUNNING) & ~finite_start, int(Status.INFEASIBLE_START), status)
+    mu_V = like.new_full((B,), opts.regularization_initial)
+    iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
+    al_iterations = torch.zeros_like(iterations)
+    last_violation = constraints.max_violation(X, U, params)
+    rows = []
+    for it in range(opts.iterations):
+        active = status == Status.RUNNING
+        if not bool(active.any()):  # the iteration's host synchronisation
+            break
+        s = objective.params
+        lqr, rhs, f = objective.expand(X, U, params)
+        rhs.c = defects(f, X, segments)
+        crls = s.rlb & opts.crls
+        start_mu_V = torch.where(crls, torch.full_like(mu_V, opts.regularization_initial), mu_V)
+        t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, start_mu_V, active, crls, opts)
+        dJ = J - t.J
+        X, U, J, D = t.X, t.U, t.J, t.D
+        iterations = iterations + active.long()
+        # regularisation: CRLS keeps what it reached; plain LS follows its schedule
+        plain = torch.where(t.took | t.stationary, (mu_V / opts.regularization_increase).clamp_min(
+            opts.regularization_initial), (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max))
+        mu_V = torch.where(active, torch.where(crls, t.mu_V, plain), mu_V)
+        rows_violation = constraints.max_violation(X, U, params)
+        violation = torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments))
+        moved = t.took | t.stationary
+        # the exit test of an RLB instance, before its parameters move (its multipliers are those of this ψ)
+        done = (active & s.rlb & moved & (violation <= opts.constraint_tolerance)
+                & (s.psi <= opts.barrier_min * (1 + 1e-9))
+                & (t.stationary | (dJ.abs() < opts.cost_tolerance)))
+        failed = active & t.failed & (crls | (mu_V >= opts.regularization_max))
+        # AL stage: multipliers and penalty after every iteration (eqs. 15-16); RLB stage: ψ, δ (18) and the
+        # equality rows' AL terms after every accepted step
+        # Algorithm 2's "if update": the multipliers move once the inner M-iLQR has nearly converged on J_1 (a
+        # relative change of J_1 below al_update_tolerance; inf: after every iteration)
+        inner_done = moved & (t.stationary | (dJ.abs() <= opts.al_update_tolerance * (1 + J.abs())))
+        update_al = active & ~s.rlb & inner_done
+        # Algorithm 3's "if update": ψ, δ move once the barrier problem of this ψ is nearly solved
+        update_rlb = active & s.rlb & moved & ~done & (t.decrease <= opts.barrier_update * s.psi)
+        # eq. (16)'s penalty increase where the violation of the rows did not shrink enough
+        grow = rows_violation > opts.penalty_trigger * last_violation
+        new = _updated(objective, X, U, params, s, update_al, update_rlb, grow, opts)
+        last_violation = torch.where(update_al | update_rlb, rows_violation, last_violation)
+        al_iterations = al_iterations + (active & ~s.rlb).long()
+        handover = active & ~s.rlb & ((update_al & (violation <= opts.constraint_tolerance_al))
+                                      | (al_iterations >= opts.al_iterations))
+        new.rlb = s.rlb | handover
+        held_before = objective.equality_residual(X, U, params)
+        objective = HybridObjective(constraints, new)
+        J = torch.where(active, objective.value(X, U, params), J)  # the objective of the new parameters
+        D = D - held_before + objective.equality_residual(X, U, params)  # handed over: the goal joins the defects
+        status = torch.where(done, int(Status.CONVERGED), status)
+        status = torch.where(failed & ~done, int(Status.MAX_REGULARIZATION), status)
+        rows.append({
+            "cost": total_cost(problem, X, U, params), "max_violation": violation, "step_size": t.alpha,
+            "regularization": mu_V, "stage": s.rlb.long(), "defect_norm": D.sqrt(), "barrier": s.psi,
+            "relaxation": s.delta, "penalty": s.mu,
+        })
+        if opts.verbose:
+            logger.info("hm-ilqr %4d  cost %.10g  violation %.2e  rlb %d  running %d", it,
+                        float(rows[-1]["cost"].max()), float(violation.max()), int(s.rlb.sum()), int(active.sum()))
+    status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
+    return _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method)
+
+
+def _max_defect(X, U, problem, params, segments) -> Tensor:
+    """Largest defect ``|d_k|_∞`` ``(B,)`` at the nodes."""
+    k = segments.starts[1:] - 1
+    if k.numel() == 0:
+        return X.new_zeros(X.shape[0])
+    f = map_stage(problem.dynamics, X[:, k], U[:, k], params)
+    return (f - X[:, k + 1]).abs().flatten(1).amax(-1)
+
+
+def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb, grow, opts) -> StageParameters:
+    """The stage parameters after an iteration: eq. (15) and, where ``grow``, (16) where ``update_al``; (18) where
+    ``update_rlb``."""
+    lam, lamN = s.lam, s.lamN
+    if objective.mi:
+        cand = updated_multipliers(objective.stage_ineq(X, U, params), lam, s.mu.reshape(-1, 1, 1), opts.dual_max)
+        lam = torch.where(update_al.reshape(-1, 1, 1), cand, lam)
+    if objective.miN:
+        cand = updated_multipliers(objective.terminal_ineq(X, params), lamN, s.mu.reshape(-1, 1), opts.dual_max)
+        lamN = torch.where(update_al.reshape(-1, 1), cand, lamN)
+    lamE, lamEN = s.lamE, s.lamEN
+    if objective.me:  # the equality rows' AL multipliers, λ ← λ + μ h
+        lamE = torch.where(update_al.reshape(-1, 1, 1), s.lamE + s.mu.reshape(-1, 1, 1) * objective.stage_eq(
+            X, U, params), s.lamE).clamp(-opts.dual_max, opts.dual_max)
+    if objective.meN:
+        lamEN = torch.where(update_al.reshape(-1, 1), s.lamEN + s.mu.reshape(-1, 1) * objective.terminal_eq(
+            X, params), s.lamEN).clamp(-opts.dual_max, opts.dual_max)
+    mu = torch.where(update_al & grow, increased_penalty(s.mu, opts.penalty_scaling, opts.penalty_max), s.mu)
+    psi, delta = updated_barrier(s.psi, s.delta, opts)
+    return StageParameters(rlb=s.rlb, lam=lam, lamN=lamN, lamE=lamE, lamEN=lamEN, mu=mu,
+                           psi=torch.where(update_rlb, psi, s.psi), delta=torch.where(update_rlb, delta, s.delta))
+
+
+def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method):
+    """Gains, costates and multipliers at the final point (one more expansion and LQR solve), and the
+    :class:`Solution`."""
+    lqr, rhs, f = objective.expand(X, U, params)
+    rhs.c = defects(f, X, segments)
+    factor = factorize(regularized(lqr, torch.zeros_like(mu_V)))
+    # the equality rows' multipliers ν of the LQR step at the final point; the costates from the Lagrangian's
+    # stationarity in the states, λ_N = q_N + C_Nᵀ ν_N, λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k (q holds the inequality
+    # rows' P'), which at a converged point is the Riccati costate without its step terms
+    step = factor.solve(rhs, multipliers=True)
+    ineq, ineqN = objective.multipliers(X, U, params)
+    B = X.shape[0]
+    # the equality rows: the core's ν where they are held (RLB stage), the AL estimate λ + μ h elsewhere
+    s = objective.params
+    eq, eqN = X.new_zeros(B, problem.N, 0), X.new_zeros(B, 0)
+    if constraints.me:
+        eq = torch.where(s.rlb.reshape(-1, 1, 1), step.nu, s.lamE + s.mu.reshape(-1, 1, 1) * objective.stage_eq(
+            X, U, params))
+    if constraints.meN:
+        eqN = torch.where(s.rlb.reshape(-1, 1), step.nuN, s.lamEN + s.mu.reshape(-1, 1) * objective.terminal_eq(
+            X, params))
+    violation = torch.maximum(constraints.max_violation(X, U, params), _max_defect(X, U, problem, params, segments))
+    return Solution(
+        X=X, U=U, K=factor.K, cost=total_cost(problem, X, U, params), max_violation=violation, status=status,
+        iterations=iterations, history=History.from_rows(rows),
+        costate=_adjoint(lqr, rhs, eq if constraints.me else None, eqN if constraints.meN else None, s.rlb),
+        multipliers=multiplier_blocks(constraints, torch.cat([ineq, eq], -1), torch.cat([ineqN, eqN], -1)),
+        penalties={name: s.mu for name, rows_ in constraints.split_ineq(ineq).items()}, method=method,
+    )
+
+
+def _adjoint(lqr, rhs, nu, nuN, held) -> Tensor:
+    """``λ (B, N+1, nx)``: ``λ_N = q_N + C_Nᵀ ν_N``, ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k``, the ``ν`` terms where
+    the rows are ``held (B,)`` (elsewhere their AL terms are inside ``q``)."""
+    if nu is not None:
+        nu = nu * held.reshape(-1, 1, 1).to(nu.dtype)
+    if nuN is not None:
+        nuN = nuN * held.reshape(-1, 1).to(nuN.dtype)
+    def tmv(M, v):
+        return (M.transpose(-1, -2) @ v.unsqueeze(-1)).squeeze(-1)
+
+    lam = rhs.qN if nuN is None else rhs.qN + tmv(lqr.CN, nuN)
+    lams = [lam]
+    for k in range(lqr.A.shape[1] - 1, -1, -1):
+        lam = rhs.q[:, k] + tmv(lqr.A[:, k], lam)
+        if nu is not None:
+            lam = lam + tmv(lqr.C[:, k], nu[:, k])
+        lams.append(lam)
+    return torch.stack(lams[::-1], 1)
