@@ -10,10 +10,11 @@ from .solve import Method, solve
 from .solvers import Solver
 from .solvers.altro.options import ALTROOptions
 from .solvers.altro.projection import ProjectionOptions
+from .solvers.eilqr.options import EILQROptions
 from .solvers.ipm.options import IPOptions
 from .time_penalty import TimePenalized, time_penalized
 
-__all__ = ["ALTROOptions", "History", "ILQROptions", "IPOptions", "MPC", "ProjectionOptions", "Method", "Problem", "Solution", "Solver", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
+__all__ = ["ALTROOptions", "EILQROptions", "History", "ILQROptions", "IPOptions", "MPC", "ProjectionOptions", "Method", "Problem", "Solution", "Solver", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
 __version__ = "0.1.0"
 
 

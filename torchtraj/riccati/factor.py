@@ -63,8 +63,13 @@ class RiccatiFactor:
     #: ``(B, N, nu)``: 1 on the controls that active ``bounds`` rows hold (``None`` without declared bounds)
     fixed: Optional[Tensor] = None
 
-    def solve(self, rhs: LQRVectors, multipliers: bool = False) -> LQRSolution:
-        """Solve the LQR problem for the right-hand side ``rhs`` (one backward and one forward sweep)."""
+    def solve(self, rhs: LQRVectors, multipliers: bool = False, initial_multiplier: Optional[Tensor] = None
+              ) -> LQRSolution:
+        """Solve the LQR problem for the right-hand side ``rhs`` (one backward and one forward sweep).
+
+        ``initial_multiplier``: ``η_0 (B, nx)``, the multipliers of the rows ``G_0 δx_0 + g_0 = 0`` left at the
+        initial state (:attr:`LQRSolution.g0`). With ``δx_0`` fixed any value solves the KKT conditions and the
+        default is zero; where ``δx_0`` is optimised (Horizon eILQR §II-D) it is the one its stage-0 system gives."""
         lqr = self.lqr
         Bsz, N = lqr.B.shape[0], lqr.B.shape[1]
         constrained = lqr.propagated
@@ -102,9 +107,9 @@ class RiccatiFactor:
         dV1 = (k_all * Qu_all).sum((1, 2))
         dV2 = 0.5 * (k_all * torch.stack(Quuks, 1)).sum((1, 2))
         dx, du = self._forward(rhs, k_all)
-        out = LQRSolution(dx=dx, du=du, k=k_all, p=p_all, dV1=dV1, dV2=dV2)
+        out = LQRSolution(dx=dx, du=du, k=k_all, p=p_all, dV1=dV1, dV2=dV2, g0=g_next)
         if multipliers:
-            self._multipliers(rhs, out, Qu_all)
+            self._multipliers(rhs, out, Qu_all, initial_multiplier)
         return out
 
     # ------------------------------------------------------------------ helpers
@@ -121,7 +126,8 @@ class RiccatiFactor:
             us.append(u)
         return torch.stack(xs, 1), torch.stack(us, 1)
 
-    def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qu: Tensor) -> None:
+    def _multipliers(self, rhs: LQRVectors, out: LQRSolution, Qu: Tensor,
+                     initial_multiplier: Optional[Tensor] = None) -> None:
         """Recover ν (forward, from the u-stationarity of each stage) and λ (backward)."""
         lqr = self.lqr
         N = lqr.A.shape[1]
@@ -131,7 +137,8 @@ class RiccatiFactor:
         if self.fixed is not None:
             out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, dx, du, Qu)
         if lqr.propagated:
-            nus, nuN = _propagated_multipliers(self.lqr, self.stage, self.terminal, self.Quu, self.Qux, dx, du, Qu)
+            nus, nuN = _propagated_multipliers(self.lqr, self.stage, self.terminal, self.Quu, self.Qux, dx, du, Qu,
+                                               initial_multiplier)
         if self.exact:  # ∇V_k at δx_k: one product for all stages instead of a backward sweep
             out.costate = (self.P @ dx.unsqueeze(-1)).squeeze(-1) + out.p
             return

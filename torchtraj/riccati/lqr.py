@@ -109,6 +109,10 @@ class LQRSolution:
     ``dV = (dV1, dV2)`` with ``ΔV(α) = α dV1 + α² dV2`` (ALTRO eq. 16, zero defects), and — when
     asked for — costates ``costate (B, N+1, nx)`` (``costate[:, 0]`` is the multiplier of the
     initial condition), stage multipliers ``nu (B, N, m)`` and terminal multipliers ``nuN (B, mN)``.
+
+    ``g0 (B, nx)``: with back-propagated rows, the right-hand side of the rows ``G_0 δx_0 + g_0 = 0`` that no
+    control satisfied and stage 0 hands to the initial state (``G_0`` is ``RiccatiFactor.stage[0].G``); a solver
+    that optimises ``δx_0`` (Horizon eILQR §II-D) minimises ``V_0`` subject to them.
     """
 
     dx: Tensor
@@ -120,3 +124,4 @@ class LQRSolution:
     costate: Optional[Tensor] = None
     nu: Optional[Tensor] = None
     nuN: Optional[Tensor] = None
+    g0: Optional[Tensor] = None

@@ -28,6 +28,7 @@ rows handed to stage k+1. The rows ``G_0`` have no earlier stage: the initial co
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -148,16 +149,18 @@ def _propagated_feedforward(con: _Constraint, G_after: Tensor, Vf: Tensor, chol:
 
 
 def _propagated_multipliers(lqr: LQR, stage: list, terminal: _Constraint, Quu: Tensor, Qux: Tensor, dx: Tensor,
-                            du: Tensor, Qu: Tensor):
+                            du: Tensor, Qu: Tensor, initial_multiplier: Optional[Tensor] = None):
     """The forward multiplier sweep: the stage rows' ``ν_k (B, m)`` as a list over k, and ``ν_N (B, mN)``.
 
     ``stage`` and ``terminal`` are the factorisation's :class:`_Constraint` records, ``Quu (B, N, nu, nu)`` and
     ``Qux (B, N, nu, nx)`` its Q-function blocks; ``dx (B, N+1, nx)``, ``du (B, N, nu)`` the step, ``Qu (B, N, nu)``
-    the linear terms of the Q-functions."""
+    the linear terms of the Q-functions; ``initial_multiplier (B, nx)`` the multipliers ``η_0`` of the rows ``G_0``
+    (default zero: a fixed initial state absorbs them)."""
     Bsz, N, nx = lqr.A.shape[0], lqr.A.shape[1], lqr.A.shape[-1]
     nus = [None] * N
     m = lqr.C.shape[2] if lqr.C is not None else 0
-    eta = dx.new_zeros(Bsz, nx)  # multiplier of G_0 rows: absorbed by the initial condition
+    # multiplier of G_0 rows: absorbed by the initial condition unless the initial state is optimised
+    eta = dx.new_zeros(Bsz, nx) if initial_multiplier is None else initial_multiplier
     for t in range(N):
         con = stage[t]
         grad_u = _mv(Quu[:, t], du[:, t]) + _mv(Qux[:, t], dx[:, t]) + Qu[:, t]

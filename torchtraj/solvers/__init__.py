@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from .altro import ALILQR, ALTRO
 from .base import Solver
+from .eilqr import EILQR
 from .ilqr import ILQR
 from .ipm import IPM
 
@@ -46,5 +47,6 @@ register(ILQR())
 register(ALTRO())
 register(ALILQR())
 register(IPM())
+register(EILQR())
 
-__all__ = ["ALILQR", "ALTRO", "ILQR", "IPM", "Solver", "get", "names", "register"]
+__all__ = ["ALILQR", "ALTRO", "EILQR", "ILQR", "IPM", "Solver", "get", "names", "register"]
