@@ -54,10 +54,10 @@ class EILQROptions:
         verbose: log one line per iteration.
     """
 
-    iterations: int = 100
+    iterations: int = 200
     tolerance: Optional[float] = None
-    barrier_weight: float = 1e-3
-    barrier_relaxation: float = 1e-4
+    barrier_weight: float = 1e-4
+    barrier_relaxation: float = 1e-5
     merit_factor: float = 1.5
     merit_floor: float = 1e-6
     merit_monotone: bool = False
