@@ -9,8 +9,8 @@ The merit (Horizon eq. 8; Nocedal & Wright 2006 §15.4) of a multiple-shooting p
 
 ``J`` the barrier-augmented cost and ``c_0`` the initial rows (``x̄_0 − x_0``, or ``h_0(x_0)`` and the fixed
 components of a free start). It is exact where ``γ`` exceeds every multiplier (eq. 9), so :func:`penalty` sets
-``γ ← max(γ, κ max|y⁺| + γ_0)`` from the Newton step's own estimates ``y⁺`` (``κ = merit_factor`` the margin,
-``γ_0 = merit_floor``; never lowered, the safeguard that keeps every accepted step a decrease of one function).
+``γ = κ max|y⁺| + γ_0`` from the Newton step's own estimates ``y⁺`` (``κ = merit_factor`` the margin,
+``γ_0 = merit_floor``; with ``merit_monotone`` never lowered).
 Along a step ``p`` that satisfies the linearised constraints (``C + ∇C p = 0``) the directional derivative is
 
 .. math::  D m(w; p) = ∇J^T p − γ \|C\|_1 \ \le\ −p^T (∇^2 L + εI) p − (γ − \|y^+\|_∞) \|C\|_1 < 0
@@ -72,7 +72,8 @@ def model_infeasibility(model: Model, x0: Tensor, X: Tensor) -> Tensor:
 
 
 def penalty(gamma: Tensor, size: Tensor, opts: EILQROptions) -> Tensor:
-    """``γ ← max(γ, κ max|y⁺| + γ_0)`` (module docstring); ``size (B,)`` is ``max|y⁺|``."""
+    """``γ = κ max|y⁺| + γ_0``, or its maximum with the last ``γ`` (``merit_monotone``); ``size (B,)`` is
+    ``max|y⁺|``."""
     target = opts.merit_factor * size + opts.merit_floor
     return target if opts.merit_monotone is False else torch.maximum(gamma, target)
 

@@ -9,10 +9,11 @@ inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrie
 2. the Newton step by the shared Riccati core with constraint back-propagation, with the initial state optimised
    where asked (:mod:`~torchtraj.solvers.eilqr.newton`, :mod:`~torchtraj.solvers.eilqr.initial_state`),
    regularised until the reduced Hessians are positive definite;
-3. the ℓ1 merit's weight ``γ`` from the step's multipliers and the backtracking line search on it
-   (:mod:`~torchtraj.solvers.eilqr.merit`); the accepted ``α`` moves the primal variables and the multipliers,
-   ``y ← y + α (y⁺ − y)``. A step that no ``α`` accepts raises the next iteration's regularisation floor (a
-   shorter, more gradient-like step); an accepted one resets it (the paper's Fig. 5: adaptive ``α``, ``ε_reg``).
+3. the ℓ1 merit's weight ``γ`` from the step's multipliers, the full step, its second-order correction and the
+   backtracking line search (:mod:`~torchtraj.solvers.eilqr.merit`, :mod:`~torchtraj.solvers.eilqr.globalization`);
+   the accepted ``α`` moves the primal variables and the multipliers, ``y ← y + α (y⁺ − y)``. A step refused or cut
+   below ``short_step`` raises the next iteration's regularisation (a shorter, more gradient-like step), a full one
+   lowers it (the paper's Fig. 5: adaptive ``α`` and ``ε_reg``; :class:`EILQROptions`).
 
 Every decision is a mask on the batch: an instance that stops keeps its iterate and never changes another.
 """
@@ -57,7 +58,14 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                 method: str = "eilqr") -> Solution:
     """Solve the ``batch`` of instances of ``problem`` from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
     optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting; without it the controls are rolled out),
-    with the parameters batched to B."""
+    with the parameters batched to B.
+
+    The history has a row per iteration (at the iterate the step starts from): ``cost`` (the barrier-augmented cost
+    the iteration minimises), ``max_violation`` (the largest defect, equality or initial-row residual),
+    ``step_size`` (``α``, 0 where refused), ``regularization`` (``ε_reg``) and in ``extra`` ``defects``,
+    ``equality`` (``‖h, h_N‖∞``), ``merit``, ``gamma`` and ``kkt_error``. ``Solution.cost`` is the problem's own
+    cost; ``multipliers`` hold the equalities' (``stage_eq``, ``terminal_eq``), the barrier's implied ones under the
+    inequality blocks' names and, with a free start, ``initial``."""
     opts = options or EILQROptions()
     x0, params = batch.x0, batch.params
     B = x0.shape[0]
