@@ -3,8 +3,8 @@ r"""One globalised step of eILQR (Horizon §II-F): the full step, its second-ord
 A full Newton step that the ℓ1 merit refuses near a solution (the Maratos effect: the linearised dynamics leave a
 second-order defect that ``γ ‖C‖₁`` charges more than the step gains) would cut the step size for ever and lose the
 quadratic convergence. Before backtracking, the step is corrected once (Nocedal & Wright 2006 §18.3, "second-order
-correction"; IPOPT's form, Wächter & Biegler 2006 §2.4): the same factorised KKT system (refactorised here, with the
-same ``ε``) with the constraint values ``c(w) + c(w + p)`` instead of ``c(w)``, so that ``∇c (p̂ − p) = −c(w + p)``
+correction"; IPOPT's form, Wächter & Biegler 2006 §2.4): the same factorised KKT system (one vector solve; a
+refactorisation with the same ``ε`` where the inertia correction mixed factorisations) with the constraint values ``c(w) + c(w + p)`` instead of ``c(w)``, so that ``∇c (p̂ − p) = −c(w + p)``
 removes the defect the full step left. The corrected step is taken whole if it passes the Armijo test of ``p``;
 otherwise the step sizes ``α = β, β², …`` of ``p`` are tried in batched rounds
 (:func:`~torchtraj.solvers.eilqr.merit.line_search`).
@@ -19,7 +19,7 @@ import torch
 from ...globalization.line_search import Accepted
 from .initial_state import InitialRows
 from .merit import armijo_bound, constraint_values, line_search, merit_at, slope, trial_steps
-from .newton import direction, pick_direction
+from .newton import direction, pick_direction, resolve
 
 
 def globalized_step(soft, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts):
@@ -37,7 +37,8 @@ def globalized_step(soft, cons, params, model, it, x0, initial, d, eps, gamma, l
             model, defects=model.defects + defects, h=model.h if h is None else model.h + h,
             hN=model.hN if hN is None else model.hN + hN,
             initial=None if model.initial is None else InitialRows(e0=model.initial.e0 + c0, E0=model.initial.E0))
-        soc = direction(corrected, it, x0, eps)
+        # the same factorisation, one vector solve, where every instance's step came from one
+        soc = resolve(d, corrected, it, x0) if d.factor is not None else direction(corrected, it, x0, eps)
         m = merit_at(soft, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma)
         bound = armijo_bound(merit0, derivative, steps[:1], opts)[:, 0]
         taken = refused & soc.ok & torch.isfinite(m) & (m <= bound)

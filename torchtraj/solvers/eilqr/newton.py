@@ -32,7 +32,7 @@ from torch import Tensor
 from ...core.masks import where_rows
 from ...globalization.regularization import inertia_correction
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
-from ...riccati import all_finite
+from ...riccati import RiccatiFactor, all_finite
 from .initial_state import initial_step
 from .model import Iterate, Model
 from .options import EILQROptions
@@ -52,6 +52,8 @@ class Direction:
     mu0: Tensor
     K: Tensor
     ok: Tensor
+    #: the factorisation every instance's step came from (``None`` where the instances' steps come from several)
+    factor: Optional[RiccatiFactor] = None
 
 
 def _shifted(H: Tensor, eps: Tensor) -> Tensor:
@@ -59,31 +61,48 @@ def _shifted(H: Tensor, eps: Tensor) -> Tensor:
     return H + eps.reshape(-1, *([1] * (H.dim() - 1))) * eye
 
 
+def _rhs(model: Model, it: Iterate, x0: Tensor):
+    me, meN = model.h.shape[-1], model.hN.shape[-1]
+    start = torch.zeros_like(x0) if model.initial is not None else x0 - it.X[:, 0]
+    return newton_rhs(model.lz, model.lNx, model.defects, start, model.h if me else None, model.hN if meN else None)
+
+
 def direction(model: Model, it: Iterate, x0: Tensor, eps: Tensor) -> Direction:
     """The Newton step at ``it`` with the Hessian regularised by ``eps (B,)``."""
     me, meN = model.h.shape[-1], model.hN.shape[-1]
-    free = model.initial is not None
     lqr = held_lqr(model.fz, _shifted(model.Lzz, eps), _shifted(model.LNxx, eps), rows=model.Hz if me else None,
                    rowsN=model.HN if meN else None)
-    start = torch.zeros_like(x0) if free else x0 - it.X[:, 0]
-    rhs = newton_rhs(model.lz, model.lNx, model.defects, start, model.h if me else None, model.hN if meN else None)
-    ns = newton_step(lqr, rhs, multipliers=not free)
-    step, ok = ns.step, ns.factor.ok
-    mu0 = it.mu0
-    if free:  # §II-D: δx_0 and η_0 from the stage-0 system, then the forward pass from them
-        first = initial_step(ns.factor, step, model.initial)
-        step = ns.factor.solve(dataclasses.replace(rhs, x0=first.dx0), multipliers=True,
-                               initial_multiplier=first.eta0)
+    rhs = _rhs(model, it, x0)
+    ns = newton_step(lqr, rhs, multipliers=model.initial is None)
+    return _completed(ns.factor, rhs, ns.step, model, it)
+
+
+def resolve(d: Direction, model: Model, it: Iterate, x0: Tensor) -> Direction:
+    """The step of ``d``'s factorised system for the right-hand side of ``model`` (other constraint values: the
+    second-order correction), one vector solve; ``d.factor`` must be kept (:func:`regularized_direction`)."""
+    rhs = _rhs(model, it, x0)
+    return _completed(d.factor, rhs, d.factor.solve(rhs, multipliers=model.initial is None), model, it)
+
+
+def _completed(factor, rhs, step, model: Model, it: Iterate) -> Direction:
+    """The :class:`Direction` of one solve; with a free start (§II-D), ``δx_0`` and ``η_0`` from the stage-0
+    system and the forward pass again from them."""
+    ok, mu0 = factor.ok, it.mu0
+    if model.initial is not None:
+        first = initial_step(factor, step, model.initial)
+        step = factor.solve(dataclasses.replace(rhs, x0=first.dx0), multipliers=True, initial_multiplier=first.eta0)
         ok, mu0 = ok & first.ok, first.mu0
     nu = step.nu if step.nu is not None else it.nu
     nuN = step.nuN if step.nuN is not None else it.nuN
     ok = ok & all_finite([step.dx, step.du, step.costate])
-    return Direction(dX=step.dx, dU=step.du, lam=step.costate, nu=nu, nuN=nuN, mu0=mu0, K=ns.factor.K, ok=ok)
+    return Direction(dX=step.dx, dU=step.du, lam=step.costate, nu=nu, nuN=nuN, mu0=mu0, K=factor.K, ok=ok,
+                     factor=factor)
 
 
 def pick_direction(mask: Tensor, new: Direction, old: Direction) -> Direction:
+    """``new`` for the instances of ``mask (B,)``, ``old`` elsewhere (no single factorisation is left)."""
     return Direction(**{f.name: where_rows(mask, getattr(new, f.name), getattr(old, f.name))
-                        for f in dataclasses.fields(Direction)})
+                        for f in dataclasses.fields(Direction) if f.name != "factor"})
 
 
 def regularized_direction(attempt: Callable[[Tensor], Direction], floor: Tensor, last: Tensor, running: Tensor,
