@@ -106,6 +106,7 @@ def test_status_max_iterations_and_multiplier_blocks():
     assert float(full.penalties["u_upper"].max()) > 1.0  # the schedule raised them
 
 
+@pytest.mark.slow  # a minute of the default run; the same path is tested on shorter problems
 def test_al_ilqr_stops_at_the_coarse_tolerance():
     """The AL stage alone ends below ``constraint_tolerance``; the projection then reaches 1e-8."""
     problem = tt.problems.get("pendulum")

@@ -4,9 +4,11 @@ import importlib.util
 import io
 import json
 
+import gymnasium as gym
 import pytest
 import torch
 
+import envs  # noqa: F401  registers the environments
 import torchtraj as tt
 from torchtraj import problems
 from torchtraj.bench import __main__ as bench_main
@@ -166,7 +168,7 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
 
     path = tmp_path / "ops.json"
     code, text = run(["--ops", "--method", "al-ilqr", "--problems", "double_integrator", "--ops-horizons", "5", "10",
-                      "--ops-iterations", "2", "--json", str(path)])
+                      "--ops-iterations", "2", "--ops-mpc-steps", "2", "--json", str(path)])
     assert code == 0, text
     data = json.loads(path.read_text())
     (solved,) = data["solves"]
@@ -198,6 +200,19 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
     assert "first 2 iterations" in text
     assert data["header"]["torch"] == torch.__version__
 
+    # the MPC row: two control steps of the pendulum controller after one uncounted, counted here again
+    (step,) = data["mpc"]
+    env = gym.make("torchtraj/Pendulum-v0").unwrapped
+    policy = tt.MPC(env.problem(horizon=30), "al-ilqr", 3)
+    obs, _ = env.reset(seed=0)
+    obs, *_ = env.step(policy(obs))
+    with OperatorCounter() as ops:
+        for _ in range(2):
+            obs, *_ = env.step(policy(obs))
+    assert (step["method"], step["steps"], step["calls"], step["error"]) == ("al-ilqr", 2, ops.total, None)
+    assert next(line for line in text.splitlines()[::-1] if line.startswith("al-ilqr ")).split() == [
+        "al-ilqr", f"{ops.total / 2:.0f}"]
+
 
 def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeypatch):
     from torchtraj import solvers
@@ -221,6 +236,7 @@ def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeyp
     assert seen == [(solvers.names(), ["pendulum", "cartpole", "car_3obs"], [25, 50, 100, 200], 5),
                     (["ilqr"], ["pendulum", "cartpole", "car_3obs"], [5, 7], 3)]
     parser = bench_main.parser()
-    for args in (["--ops", "--grad"], ["--ops", "--ops-horizons", "0"], ["--ops", "--ops-iterations", "0"]):
+    for args in (["--ops", "--grad"], ["--ops", "--ops-horizons", "0"], ["--ops", "--ops-iterations", "0"],
+                 ["--ops", "--ops-mpc-steps", "-1"]):
         with pytest.raises(SystemExit):
             bench_main._check(parser, parser.parse_args(args))

@@ -45,6 +45,7 @@ def test_compiled_altro_matches_eager_on_a_constrained_problem():
     assert_same_solution(eager, compiled)
 
 
+@pytest.mark.slow  # compiling the kernels takes minutes on two cores
 def test_compiled_mpc_steps_match_eager():
     env = envs.PendulumEnv()
     problem = env.problem(horizon=5)
@@ -57,6 +58,7 @@ def test_compiled_mpc_steps_match_eager():
         x = torch.func.vmap(lambda s, a: problem.dynamics(s, a, problem.params))(x, u_eager)
 
 
+@pytest.mark.slow  # compiling the kernels takes minutes on two cores
 def test_compiled_float32_altro_matches_eager_and_isolates_a_failing_instance():
     # float32 batches shorter than a vector register once met an inductor miscompile of argmax (core.masks.first_true)
     problem = tt.problems.get("pendulum", dtype=torch.float32).replace(
@@ -67,8 +69,10 @@ def test_compiled_float32_altro_matches_eager_and_isolates_a_failing_instance():
     eager = tt.solve(problem, x0, "altro", options=opts)
     compiled = tt.solve(problem, x0, "altro", options=dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True)))
     assert compiled.U.dtype == torch.float32
-    assert torch.equal(compiled.status, eager.status) and torch.equal(compiled.iterations, eager.iterations)
-    assert int(compiled.status[1]) == int(tt.Status.NON_FINITE)
+    # not the iteration counts: in float32 the last steps of this short solve meet the tolerances by a few units of
+    # round-off, and inductor's fused arithmetic rounds otherwise than the eager library calls
+    assert int(compiled.status[1]) == int(eager.status[1]) == int(tt.Status.NON_FINITE)
+    assert int(compiled.iterations[1]) == int(eager.iterations[1]) == 0
     keep = torch.tensor([0, 2])
     torch.testing.assert_close(compiled.U[keep], eager.U[keep], atol=1e-5, rtol=0)
     torch.testing.assert_close(compiled.cost[keep], eager.cost[keep], atol=1e-5, rtol=1e-5)

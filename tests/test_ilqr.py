@@ -45,6 +45,7 @@ def test_pendulum_unconstrained_from_problem_guess_reaches_a_better_local_optimu
     assert bool((sol.history.cost[0, 1:] <= sol.history.cost[0, :-1] + 1e-15).all())  # monotone decrease
 
 
+@pytest.mark.slow  # a minute of the default run; the same path is tested on shorter problems
 def test_cartpole_unconstrained_from_perturbed_optimum(reference):
     prob = tt.problems.get("cartpole_unconstrained")
     ipopt = reference["cartpole_unconstrained"]["ipopt"]

@@ -228,6 +228,7 @@ def test_pendulum_swings_up_and_stays_up():
         assert error[0] > 3.0 and (error[-16:] <= 0.1).all()  # seeds 0, 1 are up from steps 58, 46
 
 
+@pytest.mark.slow  # a minute of the default run; the same path is tested on shorter problems
 def test_cartpole_swings_up_without_leaving_the_rail():
     venv = gym.make_vec("torchtraj/CartPoleSwingUp-v0", num_envs=2, max_episode_steps=105)
     run = bench.run_episodes(venv, bench.controller("cartpole", venv), seed=0)

@@ -197,7 +197,11 @@ def test_float32_runs_in_float32_with_a_status_per_instance(method):
     _, ref = solve(method, name, x0[[0, 2]])
     for i, j in ((0, 0), (2, 1)):
         if sol.status[i] == tt.Status.CONVERGED:
-            torch.testing.assert_close(sol.U[i].double(), ref.U[j], rtol=0, atol=1e-3)
+            # the cost is what float32 resolves (measured: within 4e-7 relative, eight seeds); the controls are
+            # determined only to about 5e-3 on this problem's flattest directions, where a change of the
+            # controls moves the cost by less than float32's resolution of it (measured up to 4.2e-3)
+            torch.testing.assert_close(sol.cost[i].double(), ref.cost[j], rtol=1e-6, atol=0)
+            torch.testing.assert_close(sol.U[i].double(), ref.U[j], rtol=0, atol=5e-3)
 
 
 # ---------------------------------------------------------------------------------------------- refused arguments

@@ -31,7 +31,7 @@ def euler(f: Dynamics, dt: StepSize) -> Dynamics:
 
     def step(x: Tensor, u: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         h = _step_size(dt, p)
-        return x + h * f(x, u, p)
+        return x.add(f(x, u, p), alpha=h) if not isinstance(h, Tensor) else x + h * f(x, u, p)
 
     step.__name__ = f"euler({getattr(f, '__name__', 'f')})"
     return step
@@ -42,6 +42,12 @@ def rk4(f: Dynamics, dt: StepSize) -> Dynamics:
 
     def step(x: Tensor, u: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         h = _step_size(dt, p)
+        if not isinstance(h, Tensor):  # a number: each axpy is one fused call (``torch.add``'s ``alpha``)
+            k1 = f(x, u, p)
+            k2 = f(x.add(k1, alpha=0.5 * h), u, p)
+            k3 = f(x.add(k2, alpha=0.5 * h), u, p)
+            k4 = f(x.add(k3, alpha=h), u, p)
+            return x.add(k1.add(k2, alpha=2.0).add(k3, alpha=2.0).add(k4), alpha=h / 6.0)
         k1 = f(x, u, p)
         k2 = f(x + 0.5 * h * k1, u, p)
         k3 = f(x + 0.5 * h * k2, u, p)

@@ -96,6 +96,8 @@ def parser() -> argparse.ArgumentParser:
                    help="with --ops: the horizons of the sweep")
     p.add_argument("--ops-iterations", type=int, metavar="K", default=ops.SWEEP_ITERATIONS,
                    help="with --ops: iterations counted per solve of the horizon sweep")
+    p.add_argument("--ops-mpc-steps", type=int, metavar="K", default=ops.MPC_STEPS,
+                   help="with --ops: control steps counted per MPC row (0: no MPC rows)")
     return p
 
 
@@ -113,6 +115,8 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
     if args.ops and (args.grad or args.compile or args.profile):
         p.error("--ops goes without --grad, --compile and --profile")
+    if args.ops_mpc_steps < 0:
+        p.error(f"--ops-mpc-steps must be >= 0, got {args.ops_mpc_steps}")
     if any(n < 1 for n in args.ops_horizons) or args.ops_iterations < 1:
         p.error(f"--ops-horizons and --ops-iterations must be >= 1, got {args.ops_horizons}, {args.ops_iterations}")
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -192,7 +196,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         p.set_defaults(method=None)  # tells an explicit --method (even the timing rows' default, ilqr) from none
         chosen = p.parse_args(argv).method
         report = ops.run([chosen] if chosen else solvers.names(), args.problems or list(ops.DEFAULT_PROBLEMS),
-                         args.ops_horizons, args.ops_iterations, say, dtype, device)
+                         args.ops_horizons, args.ops_iterations, say, dtype, device, args.ops_mpc_steps)
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(report, f, indent=1)

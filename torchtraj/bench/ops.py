@@ -39,6 +39,10 @@ calls per iteration, and the least-squares slope of calls per iteration over N (
 added stage costs an iteration. A capped solve's calls per iteration include the solve's setup (and ALTRO's
 projection stage) spread over those few iterations, so they read higher than a full solve's.
 
+Last, the MPC row (:func:`count_mpc`): for each method that handles constraints, the calls per control step of
+the pendulum environment's warm-started controller (N = 30, 3 iterations a step, B = 1) over 10 steps of its
+swing-up.
+
 A solve under the counter runs about four times slower than without it (the mode's Python call per operator).
 """
 
@@ -67,6 +71,9 @@ DEFAULT_HORIZONS = (25, 50, 100, 200)
 SWEEP_ITERATIONS = 5
 #: Operators listed per solve in the JSON report (``top_ops``).
 TOP_OPS = 10
+#: The MPC row: the pendulum environment's controller over this horizon, with this many iterations a step,
+#: counted over this many steps.
+MPC_HORIZON, MPC_ITERATIONS, MPC_STEPS = 30, 3, 10
 
 
 class OperatorCounter(TorchDispatchMode):
@@ -132,6 +139,53 @@ def count_solve(problem: Problem, method, options=None, iteration_cap: Optional[
         row.status = ", ".join(Status.describe(sol.status))
         row.top_ops = dict(ops.by_name.most_common(TOP_OPS))
     except Exception as exc:  # one failing solve must not stop the report
+        row.error = f"{type(exc).__name__}: {exc}"
+    return row
+
+
+@dataclass
+class StepCount:
+    """The operator calls of ``steps`` control steps of :class:`~torchtraj.MPC` with ``method`` (B = 1)."""
+
+    method: str
+    horizon: int
+    iterations: int
+    steps: int
+    calls: Optional[int] = None
+    error: Optional[str] = None
+
+    @property
+    def calls_per_step(self) -> Optional[float]:
+        return None if self.calls is None else self.calls / self.steps
+
+    def to_json(self) -> dict:
+        return {**dataclasses.asdict(self), "calls_per_step": self.calls_per_step}
+
+
+def count_mpc(method, horizon: int = MPC_HORIZON, iterations: int = MPC_ITERATIONS, steps: int = MPC_STEPS,
+              seed: int = 0) -> StepCount:
+    """Count ``steps`` control steps of ``tt.MPC(env.problem(horizon), method, iterations)`` on the pendulum
+    environment from its seeded reset (swing-up), after one uncounted step (the first solve is cold, and
+    ``torch.func`` traces on first use). Never raises: an exception is kept in ``error``."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401  registers the environments
+
+    from ..control.mpc import MPC
+
+    solver = solvers.get(method)
+    row = StepCount(solver.name, horizon, iterations, steps)
+    try:
+        env = gym.make("torchtraj/Pendulum-v0").unwrapped
+        policy = MPC(env.problem(horizon=horizon), solver, iterations)
+        obs, _ = env.reset(seed=seed)
+        obs, *_ = env.step(policy(obs))
+        with OperatorCounter() as ops:
+            for _ in range(steps):
+                action = policy(obs)
+                obs, *_ = env.step(action)
+        row.calls = ops.total
+    except Exception as exc:  # one failing controller must not stop the report
         row.error = f"{type(exc).__name__}: {exc}"
     return row
 
@@ -212,10 +266,11 @@ def _sweep_header(horizons: Sequence[int]) -> str:
 
 # ---------------------------------------------------------------------------------------------- report
 def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], iterations: int,
-        say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None) -> dict:
+        say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None, mpc_steps: int = MPC_STEPS) -> dict:
     """Count, print the two tables as their rows come (``say``) and return the report as JSON-able data:
     ``header``, ``skipped`` (``[{problem, method, reason}]``), ``solves`` (:meth:`Count.to_json` each) and
-    ``horizons`` (``problem``, ``iterations`` cap, ``rows``, ``slopes`` per method)."""
+    ``horizons`` (``problem``, ``iterations`` cap, ``rows``, ``slopes`` per method) and ``mpc`` (:meth:`StepCount.to_json`
+    each; ``mpc_steps = 0``: none)."""
     header = {
         "methods": list(methods), "problems": list(names), "horizons": list(horizons), "sweep_iterations": iterations,
         "dtype": str(dtype).replace("torch.", ""), "device": str(torch.device(device or "cpu")),
@@ -266,13 +321,25 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
             if r.error:
                 say(f"  {solver.name} N={r.horizon}: ERROR {r.error.splitlines()[0]}")
         sweep += rows
+    steps = []
+    if mpc_steps:
+        say()
+        say(f"MPC on the pendulum environment (tt.MPC(env.problem(horizon={MPC_HORIZON}), method, {MPC_ITERATIONS}), "
+            f"B = 1): calls per control step over {mpc_steps} steps of the swing-up")
+    for m in methods if mpc_steps else ():
+        if solvers.get(m).handles_constraints:
+            row = count_mpc(m, steps=mpc_steps)
+            calls = f"ERROR {row.error.splitlines()[0]}" if row.error else f"{row.calls_per_step:.0f}"
+            say(f"{row.method:7s}  {calls}")
+            steps.append(row)
     return {
         "header": header, "skipped": skipped, "solves": [r.to_json() for r in solves],
         "horizons": {"problem": sweep_name, "iterations": iterations, "rows": [r.to_json() for r in sweep],
                      "slopes": slopes},
+        "mpc": [r.to_json() for r in steps],
     }
 
 
 def failed(report: dict) -> bool:
-    """Whether some counted solve of ``report`` (:func:`run`) raised."""
-    return any(r["error"] for r in report["solves"] + report["horizons"]["rows"])
+    """Whether some counted solve or control step of ``report`` (:func:`run`) raised."""
+    return any(r["error"] for r in report["solves"] + report["horizons"]["rows"] + report.get("mpc", []))

@@ -16,8 +16,6 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
-from .compiled import matvec
-
 Params = Mapping[str, Tensor]
 
 
@@ -100,9 +98,12 @@ def closed_loop_rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Param
     feedback = K is not None
 
     def simulate(x, Uk, Xr, Kk, p):
-        xs, us = [x], []
+        # the stages' operands split by one call each, not indexed stage by stage
+        Us, xs, us = Uk.unbind(0), [x], []
+        if feedback:
+            Xrs, Ks = Xr.unbind(0), Kk.unbind(0)
         for k in range(N):
-            u = Uk[k] + matvec(Kk[k], x - Xr[k]) if feedback else Uk[k]
+            u = torch.addmv(Us[k], Ks[k], x - Xrs[k]) if feedback else Us[k]
             x = dynamics(x, u, p)
             xs.append(x)
             us.append(u)

@@ -72,6 +72,14 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
     return a @ b
 
 
+def addmatmul(c: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """``c + a @ b`` for batches of matrices ``(B, m, k)``, ``(B, k, n)``: one fused library call eager
+    (``torch.baddbmm``), a broadcast product and sum when traced with a short contraction, as :func:`matmul`."""
+    if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
+        return c + (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    return torch.baddbmm(c, a, b)
+
+
 def matvec(a: Tensor, v: Tensor) -> Tensor:
     """``a @ v`` for a batch of matrices ``a (..., m, n)`` and vectors ``v (..., n)``, as :func:`matmul`."""
     if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:

@@ -82,6 +82,11 @@ class ILQROptions:
     compile: bool = False
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
+    #: The Riccati sweep of the backward pass (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
+    #: ``"parallel"`` (the associative-scan sweep of :mod:`torchtraj.riccati.parallel`, O(log N) deep; there ``ρ``
+    #: is a proximal term on the controls) or ``"auto"``. Read by method ``"ilqr"`` and by ALTRO's inner iLQR
+    #: (not with ``ALTROOptions.square_root``); ALTRO's projection keeps the sequential sweep of its rows.
+    sweep: str = "sequential"
 
 
 def _scaled_step(d: Tensor, U: Tensor) -> Tensor:
@@ -166,8 +171,27 @@ def _backward_pass(objective, backward, X: Tensor, U: Tensor, params, rho: Tenso
     terms ``dV1``, ``dV2`` and the factorisation's ``ok``."""
     lqr, rhs = objective.expand(X, U, params)
     factor = backward(lqr, rho)
-    step = factor.solve(rhs)
+    step = factor.solve(rhs, forward=False)
     return factor.K, step.k, step.dV1, step.dV2, factor.ok
+
+
+def _factorize_parallel(lqr, rho):
+    return factorize(lqr, rho, sweep="parallel")
+
+
+def _factorize_auto(lqr, rho):
+    return factorize(lqr, rho, sweep="auto")
+
+
+#: the backward pass of each ``ILQROptions.sweep``: module-level functions, one compiled kernel serves every solve
+_BACKWARDS = {"sequential": factorize, "parallel": _factorize_parallel, "auto": _factorize_auto}
+
+
+def riccati_backward(sweep: str):
+    """The ``backward(lqr, ρ)`` of :func:`ilqr_step` that factorises with ``sweep`` (``ILQROptions.sweep``)."""
+    if sweep not in _BACKWARDS:
+        raise ValueError(f"ILQROptions.sweep must be one of {', '.join(_BACKWARDS)}, not {sweep!r}")
+    return _BACKWARDS[sweep]
 
 
 def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions,
@@ -175,14 +199,14 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
     """One iteration (expansion, backward pass, line search, regularisation update) on the instances in ``active``.
 
     ``backward(lqr, rho)`` returns a :class:`~torchtraj.riccati.RiccatiFactor`; the default is
-    :func:`~torchtraj.riccati.factorize`. ``cost_tolerance`` (a float or ``(B,)``) overrides
-    ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged. With ``opts.compile`` the
-    iteration is one compiled kernel (one graph while the line search takes a single round).
+    :func:`~torchtraj.riccati.factorize` with ``opts.sweep`` (:func:`riccati_backward`). ``cost_tolerance`` (a float
+    or ``(B,)``) overrides ``opts.cost_tolerance``. Instances outside ``active`` are returned unchanged. With
+    ``opts.compile`` the iteration is one compiled kernel (one graph while the line search takes a single round).
     """
     cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
     iteration = kernel(_iteration, opts.compile)
-    return iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts, backward or factorize,
-                     cost_tolerance)
+    return iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts,
+                     backward or riccati_backward(opts.sweep), cost_tolerance)
 
 
 def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions, backward,

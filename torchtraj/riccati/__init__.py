@@ -37,7 +37,9 @@ The files, in the order they build on each other (``torchtraj.riccati.<file>``):
 - ``bounds``: rows declared simple bounds, which hold controls without the back-propagation;
 - ``factor``: :class:`RiccatiFactor` and its solve, forward and multiplier sweeps;
 - ``factorization``: :func:`factorize`, the backward sweep over the matrices, and :func:`solve_lqr`;
-- ``square_root``: ALTRO's square-root backward pass, giving the same :class:`RiccatiFactor`.
+- ``square_root``: ALTRO's square-root backward pass, giving the same :class:`RiccatiFactor`;
+- ``parallel_scan``, ``parallel``: the parallel-in-time sweep (``factorize(..., sweep="parallel")``), associative
+  scans over the stages, O(log N) deep, for problems without back-propagated rows.
 """
 
 from .factor import RiccatiFactor

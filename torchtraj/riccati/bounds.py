@@ -21,8 +21,6 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ..core.compiled import matvec as _mv
-from .linalg import _cholesky, _cholesky_solve, _factored_solve
 from .lqr import LQR, LQRVectors
 
 
@@ -33,18 +31,6 @@ def _held_controls(lqr: LQR, dtype: torch.dtype) -> Tensor:
     return (lqr.mask @ lqr.bounds.abs().to(dtype)).clamp(max=1.0)
 
 
-def _held_gain(Quu: Tensor, Qux: Tensor, rho: Tensor, held: Tensor):
-    """The gain of the free controls with the held ones out of their system: ``(K, L, info)``.
-
-    ``held (B, nu)`` one stage of :func:`_held_controls`, ``ρI (B, nu, nu)``; the Cholesky factor ``L`` of
-    ``F (Q_uu + ρI) F + I − F`` and its ``info`` (0 where positive definite)."""
-    free = 1.0 - held
-    Hu = (Quu + rho) * free.unsqueeze(-1) * free.unsqueeze(-2) + torch.diag_embed(held)
-    L, info = _cholesky(Hu)
-    K = -_factored_solve(Hu, L, info, Qux * free.unsqueeze(-1))
-    return K, L, info
-
-
 def _held_values(fixed: Optional[Tensor], lqr: LQR, rhs: LQRVectors) -> Optional[Tensor]:
     """``(B, N, nu)``: the values ``δu_i = ∓e`` at which the active ``bounds`` rows hold their controls
     (``fixed``: :func:`_held_controls`, ``None`` without declared bounds)."""
@@ -53,14 +39,6 @@ def _held_values(fixed: Optional[Tensor], lqr: LQR, rhs: LQRVectors) -> Optional
     if rhs.e is None:
         return torch.zeros_like(fixed)
     return -(rhs.e * lqr.mask) @ lqr.bounds.to(rhs.e.dtype)
-
-
-def _held_feedforward(Qu: Tensor, Quu: Tensor, fixed: Tensor, value: Tensor, chol: Tensor) -> Tensor:
-    """One stage's feedforward ``k (B, nu)``: the held controls at their ``value``, the free ones minimise given
-    them (``chol`` the factor of :func:`_held_gain`)."""
-    free = 1.0 - fixed
-    grad = (Qu + _mv(Quu, value)) * free
-    return value - _cholesky_solve(grad.unsqueeze(-1), chol).squeeze(-1)
 
 
 def _bound_multipliers(lqr: LQR, fixed: Tensor, Quu: Tensor, Qux: Tensor, dx: Tensor, du: Tensor,

@@ -25,17 +25,19 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ..core.compiled import matmul as _mm
-from .bounds import _held_controls, _held_gain
+from .bounds import _held_controls
 from .factor import RiccatiFactor
-from .linalg import _cholesky, _factored_solve, _mm_stacked, _mT, _sym, _time_major
+from .linalg import _time_major
 from .lqr import LQR, LQRSolution, LQRVectors
-from .propagation import _propagate_stage, _stage_rows, _terminal_constraint, default_rank_tolerance
+from .parallel import choose_sweep, factorize_parallel
+from .propagation import _stage_rows, _terminal_constraint, default_rank_tolerance
+from .rows import factorize_rows
 from .sanitize import _sanitize_stacked
+from .sweep import factorize_stages, finish_single
 
 
 def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance: Optional[float] = None,
-              shift: Optional[Tensor] = None) -> RiccatiFactor:
+              shift: Optional[Tensor] = None, sweep: str = "sequential") -> RiccatiFactor:
     """Backward Riccati sweep over the matrices of ``lqr``.
 
     Args:
@@ -46,70 +48,43 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
             :func:`default_rank_tolerance`.
         shift: ``δ (B,)`` added to the whole Hessian, every ``Q``, ``R`` and ``QN`` (IPOPT's inertia
             correction ``δ_w I``): the factorised problem, and the returned ``lqr``, are the shifted one.
+        sweep: ``"sequential"`` (this backward sweep), ``"parallel"`` (the associative-scan sweep of
+            :mod:`~torchtraj.riccati.parallel`, O(log N) deep; no back-propagated rows) or ``"auto"``
+            (:func:`~torchtraj.riccati.parallel.choose_sweep`).
     """
+    if sweep != "sequential" and choose_sweep(lqr, sweep) == "parallel":
+        return factorize_parallel(lqr, regularization, shift)
     exact = regularization is None and not lqr.propagated
     lqr, finite, W, Hs = _sanitize_stacked(lqr, shift)
-    Bsz, N, nx, nu = lqr.B.shape[0], lqr.B.shape[1], lqr.A.shape[-1], lqr.B.shape[-1]
+    Bsz, nu = lqr.B.shape[0], lqr.B.shape[-1]
     dtype = lqr.A.dtype
     tol = default_rank_tolerance(dtype) if rank_tolerance is None else rank_tolerance
     if regularization is None:
         regularization = lqr.A.new_zeros(Bsz)
-    eye_u = torch.eye(nu, dtype=dtype, device=lqr.A.device)
-    eye_x = torch.eye(nx, dtype=dtype, device=lqr.A.device).expand(Bsz, nx, nx)
-    rho = regularization.reshape(Bsz, 1, 1) * eye_u
-    # With the stage blocks stacked over z = (δx, δu), one congruence H = Hs + Wᵀ P W gives Q_xx, Q_ux
-    # and Q_uu together, and P = Eᵀ H E with E = [I; K] the value function: four products a stage instead
-    # of nine, larger ones. On CPU PyTorch multiplies small batched matrices (m·n·k < 400) in a scalar
-    # loop that costs more than its BLAS call per instance. Measured at B = 256, nx = 8, nu = 4, a stage:
-    # the Q blocks 120 µs against 340 µs one by one, P 100 µs against 390 µs for Qxx + KᵀQux + QuxᵀK + KᵀQuuK.
-    constrained = lqr.propagated
     held = _held_controls(lqr, dtype) if lqr.bounds is not None else None
-    P = lqr.QN
-    Ps, Ks, Quus, Quxs, chols = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N
-    frees = [None] * N
-    stage = [None] * N if constrained else None
-    terminal = None
-    Ps[N] = P
-    infos = [None] * N
-    G_next = None
-    if constrained:
-        terminal = _terminal_constraint(lqr, tol)
-        G_next = terminal.G
-        CD = _stage_rows(lqr)
-    for t in range(N - 1, -1, -1):
-        Wt = W[t]
-        H = Hs[t] + _mm(_mT(Wt), _mm(P, Wt))
-        Quu, Qux = _sym(H[..., nx:, nx:]), H[..., nx:, :nx]
-        if constrained:
-            K, L, info, stage[t], frees[t] = _propagate_stage(CD[:, t], G_next, Wt, Quu, Qux, rho, tol)
-            G_next = stage[t].G
-        elif held is not None:  # the held controls out of the free ones' system
-            K, L, info = _held_gain(Quu, Qux, rho, held[:, t])
+    if not lqr.propagated:
+        Ps, Ks, Quus, Quxs, chols, oks = factorize_stages(W, Hs, lqr.QN, regularization, held)
+        if nu == 1:
+            chol, ok = finish_single(_time_major(chols), oks)
         else:
-            Hu = Quu + rho
-            L, info = _cholesky(Hu)
-            K = -_factored_solve(Hu, L, info, Qux)
-        infos[t] = info
-        E = torch.cat([eye_x, K], -2)
-        P = _sym(_mm_stacked(_mT(E), _mm_stacked(H, E)))
-        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t] = P, K, Quu, Qux, L
-    return RiccatiFactor(
-        lqr=lqr,
-        K=_time_major(Ks),
-        P=_time_major(Ps),
-        ok=finite & (torch.stack(infos, 1) == 0).all(1),
-        Quu=_time_major(Quus),
-        Qux=_time_major(Quxs),
-        chol=_time_major(chols),
-        free=_time_major(frees) if constrained else None,
-        stage=stage,
-        terminal=terminal,
-        exact=exact,
-        fixed=held,
-    )
+            chol, ok = _time_major(chols), torch.stack(oks, 1).all(1)
+        return RiccatiFactor(lqr=lqr, K=_time_major(Ks), P=_time_major(Ps), ok=finite & ok, Quu=_time_major(Quus),
+                             Qux=_time_major(Quxs), chol=chol, free=None, stage=None, terminal=None, exact=exact,
+                             fixed=held, W=W.transpose(0, 1))
+    return _factorize_propagated(lqr, finite, W, Hs, regularization, tol)
+
+
+def _factorize_propagated(lqr: LQR, finite: Tensor, W: Tensor, Hs: Tensor, regularization: Tensor,
+                          tol: float) -> RiccatiFactor:
+    """The matrix sweep with back-propagated rows (:mod:`~torchtraj.riccati.rows`)."""
+    terminal = _terminal_constraint(lqr, tol)
+    P, K, Quu, Qux, chol, ok, stage, sweep = factorize_rows(W, Hs, lqr.QN, _stage_rows(lqr), terminal.G,
+                                                            regularization, tol)
+    return RiccatiFactor(lqr=lqr, K=K, P=P, ok=finite & ok, Quu=Quu, Qux=Qux, chol=chol, free=sweep["Vf"],
+                         stage=stage, terminal=terminal, exact=False, fixed=None, W=W.transpose(0, 1), rows=sweep)
 
 
 def solve_lqr(lqr: LQR, rhs: LQRVectors, regularization: Optional[Tensor] = None,
-              multipliers: bool = False) -> LQRSolution:
+              multipliers: bool = False, sweep: str = "sequential") -> LQRSolution:
     """Factorise and solve in one call (see :func:`factorize` and :meth:`RiccatiFactor.solve`)."""
-    return factorize(lqr, regularization).solve(rhs, multipliers=multipliers)
+    return factorize(lqr, regularization, sweep=sweep).solve(rhs, multipliers=multipliers)

@@ -115,8 +115,8 @@ class LQRSolution:
     that optimises ``δx_0`` (Horizon eILQR §II-D) minimises ``V_0`` subject to them.
     """
 
-    dx: Tensor
-    du: Tensor
+    dx: Optional[Tensor]  # None: not asked for (RiccatiFactor.solve(forward=False))
+    du: Optional[Tensor]
     k: Tensor
     p: Tensor
     dV1: Tensor

@@ -23,18 +23,20 @@ The multipliers follow by a forward sweep: on the fixing directions the rotated 
 ``−Σ⁻¹ Vᵀ ∇_u`` of the stage's Q-function (its u-stationarity), on the others the multipliers ``η_k`` of the
 compressed rows ``G_k``; rotated back by ``U``, they split into the stage rows' ``ν_k`` and the ``η_{k+1}`` of the
 rows handed to stage k+1. The rows ``G_0`` have no earlier stage: the initial condition absorbs them (``η_0 = 0``).
+
+This module holds the rows' data (:class:`_Constraint`), the terminal rows' compression and the rank tolerance;
+the sweeps themselves are written stage-lean in :mod:`~torchtraj.riccati.rows`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import torch
 from torch import Tensor
 
 from ..core.compiled import matvec as _mv
-from .linalg import _cholesky, _cholesky_solve, _factored_solve, _mT, _pad_cols, _pad_rows, _sym
+from .linalg import _mT, _pad_cols, _pad_rows
 from .lqr import LQR, LQRVectors
 
 
@@ -93,84 +95,7 @@ def _stage_rows(lqr: LQR) -> Tensor:
     return lqr.A.new_zeros(Bsz, N, 0, nx + nu)
 
 
-def _propagate_stage(rows: Tensor, G_next: Tensor, W: Tensor, Quu: Tensor, Qux: Tensor, rho: Tensor, tol: float):
-    """One stage of the matrix recursion with rows: the gain ``K = K_c + V_f K_w`` and the rows left for stage k-1.
-
-    ``rows (B, m, nx+nu)`` the stage's ``[C_k D_k]``, ``G_next (B, nx, nx)`` the rows propagated from stage k+1,
-    ``W = [A_k B_k] (B, nx, nx+nu)``, ``ρI (B, nu, nu)``. Returns ``(K, L, info, constraint, V_f)``: the Cholesky
-    factor ``L`` of the reduced Hessian, its ``info`` (0 where positive definite), the stage's :class:`_Constraint`
-    (its ``G`` is ``G_k``) and the free directions ``V_f (B, nu, nu)`` (zero columns on the fixed ones)."""
-    Bsz, nx = W.shape[0], W.shape[-2]
-    nu = W.shape[-1] - nx
-    dtype = W.dtype
-    M = torch.cat([rows, G_next @ W], -2)
-    Mx, Mu = M[..., :nx], M[..., nx:]
-    mt = Mx.shape[-2]
-    U, s, Vh = torch.linalg.svd(Mu, full_matrices=True)
-    scale = M.abs().amax(dim=(-1, -2)).clamp_min(torch.finfo(dtype).tiny)
-    s_pad = _pad_rows(s.unsqueeze(-1), nu).squeeze(-1)
-    fixed = s_pad > tol * scale.unsqueeze(-1)
-    inv_s = torch.where(fixed, 1.0 / torch.where(fixed, s_pad, torch.ones_like(s_pad)), torch.zeros_like(s_pad))
-    V = _mT(Vh)
-    T = _mT(U) @ Mx  # (B, mt, nx)
-    Kc = -V @ (inv_s.unsqueeze(-1) * _pad_rows(T, nu))
-    rest = torch.ones(Bsz, mt, dtype=dtype, device=W.device)
-    rest[:, : min(mt, nu)] = (~fixed[:, : min(mt, nu)]).to(dtype)
-    U2, gmask, G = _compress(T * rest.unsqueeze(-1), nx, tol, scale)
-    Vf = V * (~fixed).to(dtype).unsqueeze(-2)
-    Hw = _sym(_mT(Vf) @ (Quu + rho) @ Vf + torch.diag_embed(fixed.to(dtype)))
-    L, info = _cholesky(Hw)
-    Kw = -_factored_solve(Hw, L, info, _mT(Vf) @ (Qux + Quu @ Kc))
-    K = Kc + Vf @ Kw
-    return K, L, info, _Constraint(U=U, inv_s=inv_s, V=V, rest=rest, U2=U2, gmask=gmask, G=G), Vf
-
-
 def _terminal_rhs(terminal: _Constraint, lqr: LQR, rhs: LQRVectors) -> Tensor:
     """``g_N (B, nx)``: the right-hand side of the compressed terminal rows."""
     eN = rhs.eN * lqr.maskN if rhs.eN is not None else rhs.qN.new_zeros(rhs.qN.shape[0], 0)
     return _mv(_mT(terminal.U2), eN) * terminal.gmask
-
-
-def _propagated_feedforward(con: _Constraint, G_after: Tensor, Vf: Tensor, chol: Tensor, Quu: Tensor, Qu: Tensor,
-                            e: Tensor, c: Tensor, g_next: Tensor):
-    """Stage k's feedforward ``k = k_c + V_f k_w`` and the right-hand side ``g_k`` of the rows it hands on.
-
-    ``e (B, m)`` the masked stage rows' values, ``G_after`` and ``g_next`` the rows propagated from stage k+1,
-    ``c (B, nx)`` the stage's defect, ``chol`` the factor of the reduced Hessian (:func:`_propagate_stage`)."""
-    nu = Qu.shape[-1]
-    m0 = torch.cat([e, _mv(G_after, c) + g_next], -1)
-    t0 = _mv(_mT(con.U), m0)
-    top = _pad_rows(t0.unsqueeze(-1), nu).squeeze(-1)
-    kc = -_mv(con.V, con.inv_s * top)
-    grad = _mv(Quu, kc) + Qu
-    kw = -_cholesky_solve(_mv(_mT(Vf), grad).unsqueeze(-1), chol).squeeze(-1)
-    k = kc + _mv(Vf, kw)
-    return k, _mv(_mT(con.U2), con.rest * t0) * con.gmask
-
-
-def _propagated_multipliers(lqr: LQR, stage: list, terminal: _Constraint, Quu: Tensor, Qux: Tensor, dx: Tensor,
-                            du: Tensor, Qu: Tensor, initial_multiplier: Optional[Tensor] = None):
-    """The forward multiplier sweep: the stage rows' ``ν_k (B, m)`` as a list over k, and ``ν_N (B, mN)``.
-
-    ``stage`` and ``terminal`` are the factorisation's :class:`_Constraint` records, ``Quu (B, N, nu, nu)`` and
-    ``Qux (B, N, nu, nx)`` its Q-function blocks; ``dx (B, N+1, nx)``, ``du (B, N, nu)`` the step, ``Qu (B, N, nu)``
-    the linear terms of the Q-functions; ``initial_multiplier (B, nx)`` the multipliers ``η_0`` of the rows ``G_0``
-    (default zero: a fixed initial state absorbs them)."""
-    Bsz, N, nx = lqr.A.shape[0], lqr.A.shape[1], lqr.A.shape[-1]
-    nus = [None] * N
-    m = lqr.C.shape[2] if lqr.C is not None else 0
-    # multiplier of G_0 rows: absorbed by the initial condition unless the initial state is optimised
-    eta = dx.new_zeros(Bsz, nx) if initial_multiplier is None else initial_multiplier
-    for t in range(N):
-        con = stage[t]
-        grad_u = _mv(Quu[:, t], du[:, t]) + _mv(Qux[:, t], dx[:, t]) + Qu[:, t]
-        fixed = -con.inv_s * _mv(_mT(con.V), grad_u)  # (B, nu)
-        mt = con.U.shape[-1]
-        nu_hat = _pad_rows(fixed.unsqueeze(-1), mt).squeeze(-1) + _mv(con.U2, eta * con.gmask)
-        nu_tilde = _mv(con.U, nu_hat)
-        nus[t] = nu_tilde[:, :m] * lqr.mask[:, t] if m else nu_tilde[:, :0]
-        eta = nu_tilde[:, m:]
-    con = terminal
-    nuN = _mv(con.U2, eta * con.gmask)
-    nuN = nuN * lqr.maskN if lqr.maskN is not None else nuN
-    return nus, nuN

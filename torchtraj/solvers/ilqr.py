@@ -74,7 +74,7 @@ def solve_ilqr(problem: Problem, batch: Batch, options: Optional[ILQROptions] = 
         if opts.verbose:
             log_iteration("ilqr", it, J, rho, active)
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    K, costate = kernel(_gains_and_costates, opts.compile)(problem, X, U, params, rho)
+    K, costate = kernel(_gains_and_costates, opts.compile)(problem, X, U, params, rho, opts.sweep)
     violation = constraints.max_violation(X, U, params)
     return Solution(
         X=X, U=U, K=K, cost=J, max_violation=violation, status=status, iterations=iterations,
@@ -82,10 +82,10 @@ def solve_ilqr(problem: Problem, batch: Batch, options: Optional[ILQROptions] = 
     )
 
 
-def _gains_and_costates(problem: Problem, X: Tensor, U: Tensor, params, rho: Tensor):
-    """Feedback gains and costates at the solution."""
+def _gains_and_costates(problem: Problem, X: Tensor, U: Tensor, params, rho: Tensor, sweep: str = "sequential"):
+    """Feedback gains (by the ``sweep`` of ``ILQROptions``) and costates at the solution."""
     lqr, rhs = cost_model(problem, X, U, params)
-    return factorize(lqr, rho).K, _adjoint(lqr, rhs)
+    return factorize(lqr, rho, sweep=sweep).K, _adjoint(lqr, rhs)
 
 
 def _adjoint(lqr: LQR, rhs: LQRVectors) -> Tensor:

@@ -15,10 +15,9 @@ from ...core.constraints import Constraints, multiplier_blocks, stack_blocks
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
-from ...iterations.ilqr import ilqr_step, log_iteration, start_status
+from ...iterations.ilqr import ilqr_step, log_iteration, riccati_backward, start_status
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
-from ...riccati import factorize
 from ...riccati.square_root import factorize_sqrt
 from .augmented_lagrangian import AugmentedLagrangian, Duals
 from .options import ALTROOptions
@@ -68,7 +67,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     constraints = Constraints.of(problem)
     duals = warm if isinstance(warm, Duals) else initial_duals(constraints, opts, x0, warm)
     al = AugmentedLagrangian(constraints, duals, opts.square_root)
-    backward = factorize_sqrt if opts.square_root else factorize
+    backward = factorize_sqrt if opts.square_root else riccati_backward(inner.sweep)
     measures = kernel(_measures, inner.compile)
     J = kernel(AugmentedLagrangian.value, inner.compile)(al, X, U, params)
     violation = kernel(AugmentedLagrangian.violation, inner.compile)(al, X, U, params)

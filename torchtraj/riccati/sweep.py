@@ -1,0 +1,177 @@
+r"""The lean sweeps: the recursions of :mod:`~torchtraj.riccati.factorization` and :mod:`~torchtraj.riccati.factor`
+written as a handful of batched library calls per stage.
+
+A stage of a sweep works on tiny matrices, so its cost is the number of calls, not their arithmetic. Everything
+that does not depend on the recursion is therefore done for all stages at once, before or after the loop: the
+stage blocks are split into per-stage views by one ``unbind`` (not one indexing call per block and stage), the
+right-hand sides are stacked and transposed once, the expected decrease ``ΔV`` and the gains' stationarity terms
+are batched over the horizon. Vectors are carried as columns ``(B, n, 1)``, so that each product with its addend is
+one ``baddbmm``. With the stage blocks ``W_k = [A_k B_k]``, ``H_k`` and ``E_k = [I; K_k]`` (ALTRO, Howell et al.
+2019 eqs. 14-16), the matrix sweep is, per stage,
+
+.. math::
+
+    H = H_k + W_k^T P_{k+1} W_k,\quad K_k = -(Q_{uu} + \rho I)^{-1} Q_{ux},\quad P_k = \mathrm{sym}(E_k^T H E_k),
+
+the vector sweep, with ``Q_z = [Q_x; Q_u]`` and ``M_k = (Q_{uu} K_k + Q_{ux})^T`` computed for all stages at once,
+
+.. math::
+
+    Q_z = [q_k; r_k] + W_k^T (P_{k+1} c_k + p_{k+1}),\quad k_k = -(Q_{uu} + \rho I)^{-1} Q_u,\quad
+    p_k = E_k^T Q_z + M_k k_k,
+
+(which is ``Q_x + K_kᵀ (Q_uu k_k + Q_u) + Q_xu k_k``), and the forward sweep
+``δu_k = K_k δx_k + k_k``, ``δx_{k+1} = A_k δx_k + B_k δu_k + c_k``. A single control (``nu = 1``) takes its
+gain as a product with ``−1 / (Q_uu + ρ)``, a division for the whole horizon instead of a factorisation per stage;
+declared bounds (:mod:`~torchtraj.riccati.bounds`) take the free-control mask ``F`` into the same products. Stages
+whose reduced Hessian is not positive definite get the identity in its place, as the general sweep does.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from ..core.compiled import addmatmul, matmul
+from .linalg import _cholesky, _cholesky_solve, _mT, _sym
+
+
+def _stages(a: Tensor) -> tuple:
+    """The per-stage views ``a[:, t]`` of a batch-first ``(B, T, ...)`` tensor, in one call."""
+    return a.unbind(1)
+
+
+def _columns(v: Tensor) -> tuple:
+    """The per-stage column vectors ``(B, n, 1)`` of ``v (B, T, n)``."""
+    return v.unsqueeze(-1).unbind(1)
+
+
+def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optional[Tensor]):
+    """The matrix sweep without back-propagated rows.
+
+    ``W (N, B, nx, nx+nu)`` and ``Hs (N, B, nx+nu, nx+nu)`` the time-major stage blocks, ``QN (B, nx, nx)``,
+    ``ρ (B,)``, ``held (B, N, nu)`` the controls that declared bounds hold (``None``: none). Returns lists over
+    the stages ``(P, K, Quu, Qux, chol, ok)``: ``P`` of length N+1; ``chol`` the Cholesky factors of the reduced
+    Hessians (``nu = 1``: the reduced Hessian negated, whose root :func:`finish_single` takes); ``ok`` per stage,
+    ``(B,)`` booleans (``nu = 1``: ``(B, 1, 1)``)."""
+    N, Bsz, nx, n = W.shape
+    nu = n - nx
+    eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
+    rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
+    minus_rho = -rho
+    Ws, WTs, Hss = W.unbind(0), _mT(W).unbind(0), Hs.unbind(0)
+    if held is not None:
+        free = 1.0 - held
+        outer = _stages(free.unsqueeze(-1) * free.unsqueeze(-2))
+        held_diag = _stages(torch.diag_embed(held))
+        free_rows = _stages(free.unsqueeze(-1))
+    minus_one = W.new_full((), -1.0)
+    P = QN
+    Ps, Ks, Quus, Quxs, chols, oks = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N, [None] * N
+    Ps[N] = P
+    for t in range(N - 1, -1, -1):
+        H = addmatmul(Hss[t], WTs[t], matmul(P, Ws[t]))
+        Qux, Quu = H[:, nx:].split([nx, nu], -1)
+        rows = Qux
+        if nu == 1:  # K = Q_ux / −(Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
+            negative = torch.sub(minus_rho, Quu)
+            if held is not None:  # the held controls out of the free ones' system
+                negative = negative * outer[t] - held_diag[t]
+                rows = Qux * free_rows[t]
+            ok = negative < 0
+            L = torch.where(ok, negative, minus_one)
+            K = rows / L
+        else:
+            Hu = Quu + rho
+            if held is not None:
+                Hu = Hu * outer[t] + held_diag[t]
+                rows = Qux * free_rows[t]
+            L, info = _cholesky(Hu)
+            ok = info == 0
+            K = -_cholesky_solve(rows, L)
+        E = torch.cat([eye_x, K], -2)
+        P = _sym(matmul(_mT(E), matmul(H, E)))
+        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t], oks[t] = P, K, Quu, Qux, L, ok
+    return Ps, Ks, Quus, Quxs, chols, oks
+
+
+def finish_single(chol: Tensor, ok: list) -> tuple:
+    """``nu = 1``: the Cholesky factors ``(B, N, 1, 1)`` from the stacked negated reduced Hessians, and
+    ``ok (B,)``."""
+    return chol.neg().sqrt(), torch.stack(ok, 1).all(1).reshape(-1)
+
+
+def solve_stages(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, chol: Tensor, q: Tensor, r: Tensor,
+                 qN: Tensor, c: Tensor, held: Optional[Tensor] = None, value: Optional[Tensor] = None):
+    """The vector sweep without back-propagated rows: ``(k (B, N, nu), p (B, N+1, nx), Q_u (B, N, nu))``.
+
+    ``W (B, N, nx, nx+nu)``, ``P (B, N+1, nx, nx)``, ``K``, ``Quu``, ``Qux``, ``chol`` of the factorisation;
+    ``q, r, qN, c`` the right-hand side; ``held (B, N, nu)`` the held controls and ``value (B, N, nu)`` the
+    values they are held at (declared bounds, else ``None``)."""
+    Bsz, N, nx = P.shape[0], K.shape[1], P.shape[-1]
+    nu = K.shape[-2]
+    WTs, Ps = _stages(_mT(W)), _stages(P)
+    ET = _stages(torch.cat([torch.eye(nx, dtype=K.dtype, device=K.device).expand(Bsz, N, nx, nx), _mT(K)], -1))
+    Ms = _stages(_mT(matmul(Quu, K) + Qux))
+    qz, cs = _columns(torch.cat([q, r], -1)), _columns(c)
+    if nu == 1:  # k = g Q_u, with g = −1 / (Q_uu + ρ) (zero on held controls)
+        gain = -1.0 / (chol * chol)
+        if held is not None:
+            gain = gain * (1.0 - held).unsqueeze(-1)
+        gains = _stages(gain)
+    else:
+        chols = _stages(chol)
+    if held is not None:
+        frees, values, Quus = _columns(1.0 - held), _columns(value), _stages(Quu)
+    p = qN.unsqueeze(-1)
+    ps, ks, Qus = [None] * (N + 1), [None] * N, [None] * N
+    ps[N] = p
+    for t in range(N - 1, -1, -1):
+        Qz = addmatmul(qz[t], WTs[t], addmatmul(p, Ps[t + 1], cs[t]))
+        Qu = Qz[:, nx:]
+        if held is not None:  # the held controls at their values, the free ones minimise given them
+            grad = addmatmul(Qu, Quus[t], values[t])
+            k = values[t] + (gains[t] * grad if nu == 1 else -_cholesky_solve(grad * frees[t], chols[t]))
+        else:
+            k = gains[t] * Qu if nu == 1 else -_cholesky_solve(Qu, chols[t])
+        p = addmatmul(matmul(ET[t], Qz), Ms[t], k)
+        ps[t], ks[t], Qus[t] = p, k, Qu
+    return torch.stack(ks, 1).squeeze(-1), torch.stack(ps, 1).squeeze(-1), torch.stack(Qus, 1).squeeze(-1)
+
+
+def expected_change(k: Tensor, Qu: Tensor, Quu: Tensor) -> tuple:
+    """``(ΔV1, ΔV2) (B,)``: ``ΔV(α) = α Σ k_kᵀ Q_u + ½ α² Σ k_kᵀ Q_uu k_k`` over all stages at once."""
+    dV1 = (k * Qu).sum((1, 2))
+    dV2 = 0.5 * (k * matmul(Quu, k.unsqueeze(-1)).squeeze(-1)).sum((1, 2))
+    return dV1, dV2
+
+
+def forward_stages(W: Tensor, K: Tensor, k: Tensor, c: Tensor, x0: Tensor) -> tuple:
+    """The step ``(δx (B, N+1, nx), δu (B, N, nu))``: ``δu_k = K_k δx_k + k_k``,
+    ``δx_{k+1} = A_k δx_k + B_k δu_k + c_k`` from ``δx_0 = x0``."""
+    nx = W.shape[-2]
+    As, Bs, Ks = _stages(W[..., :nx]), _stages(W[..., nx:]), _stages(K)
+    ks, cs = _columns(k), _columns(c)
+    x = x0.unsqueeze(-1)
+    xs, us = [x], []
+    for t in range(len(Ks)):
+        u = addmatmul(ks[t], Ks[t], x)
+        x = addmatmul(addmatmul(cs[t], As[t], x), Bs[t], u)
+        xs.append(x)
+        us.append(u)
+    return torch.stack(xs, 1).squeeze(-1), torch.stack(us, 1).squeeze(-1)
+
+
+def costate_stages(A: Tensor, local: Tensor, last: Tensor) -> Tensor:
+    """``λ (B, N+1, nx)`` of ``λ_N = last``, ``λ_k = local_k + A_kᵀ λ_{k+1}`` (``local (B, N, nx)``: the terms of
+    the x-stationarity that do not depend on the recursion, computed for all stages at once)."""
+    ATs, locs = _stages(_mT(A)), _columns(local)
+    lam = last.unsqueeze(-1)
+    lams = [None] * (len(ATs) + 1)
+    lams[-1] = lam
+    for t in range(len(ATs) - 1, -1, -1):
+        lam = addmatmul(locs[t], ATs[t], lam)
+        lams[t] = lam
+    return torch.stack(lams, 1).squeeze(-1)
