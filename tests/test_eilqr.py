@@ -257,3 +257,22 @@ def test_every_problem_with_soft_barriers_ends_with_a_status_and_a_cost_next_to_
           f"{float(sol.max_violation[0]):.2e}")
     if status == tt.Status.CONVERGED:
         assert torch.isfinite(sol.cost).all() and float(sol.max_violation[0]) < 1e-2
+
+
+# ---------------------------------------------------------------------------------------------- gradients
+def test_the_implicit_layer_differentiates_the_barrier_problems_kkt_point():
+    """``tt.solve`` differentiates eILQR's solution as a KKT point of ``EILQR.kkt_problem`` (bounds as barriers, the
+    goal equality exact): the cost's gradient in x0 against central differences of solves at 1e-12."""
+    problem = problems.get("double_integrator")
+    x0 = torch.tensor([0.1, 0.0], dtype=F64, requires_grad=True)
+    sol = tt.solve(problem, x0, "eilqr")
+    (gradient,) = torch.autograd.grad(sol.cost.sum(), x0)
+
+    def cost(x):
+        with torch.no_grad():
+            return float(tt.solve(problem, x, "eilqr", options=tt.EILQROptions(tolerance=1e-12)).cost[0])
+
+    h = 1e-6
+    differences = torch.tensor([(cost(x0.detach() + h * e) - cost(x0.detach() - h * e)) / (2 * h)
+                                for e in torch.eye(2, dtype=F64)], dtype=F64)
+    torch.testing.assert_close(gradient, differences, rtol=1e-5, atol=1e-7)
