@@ -2,7 +2,7 @@
 
 For each method of ``torchtraj.solvers.names()`` and each of a few small problems: it converges, to a KKT point of
 the problem it declares it solves (the constrained one where it ``handles_constraints``, else the unconstrained
-one), a failing instance changes no other, a batch is its instances solved alone, float32 stays float32, and the
+one, or the one its ``kkt_problem`` names), a failing instance changes no other, a batch is its instances solved alone, float32 stays float32, and the
 arguments it does not declare (``X0``, ``duals``) are refused by name. Then ``tt.MPC`` swings the pendulum up with
 every method that handles constraints. A new method is covered by registering it; nothing here names one, except
 the tight options chosen by options class (a new class gets its defaults).
@@ -125,7 +125,12 @@ def test_converges_to_a_kkt_point_of_what_it_solves(method, name):
     assert (sol.status == tt.Status.CONVERGED).all(), sol.status
     if not solver.kkt_point:
         return
-    if solver.handles_constraints:
+    declared = solver.kkt_problem(problem, tight(method, name))
+    if declared is not None:  # the KKT point of the problem it declares instead (eILQR: inequalities as barriers)
+        violation = torchtraj.kkt.largest_violation(declared, sol.X, sol.U, declared.batched_params(2))
+        assert float(violation.max()) < 1e-6
+        stationarity, _, _ = kkt_residuals(declared, with_costate(declared, sol))
+    elif solver.handles_constraints:
         assert float(sol.max_violation.max()) < 1e-6
         stationarity, dual_min, complementarity = kkt_residuals(problem, with_costate(problem, sol))
         assert dual_min > -1e-8, dual_min  # inequality multipliers are nonnegative

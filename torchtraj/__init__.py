@@ -10,11 +10,14 @@ from .solve import Method, solve
 from .solvers import Solver
 from .solvers.altro.options import ALTROOptions
 from .solvers.altro.projection import ProjectionOptions
+from .solvers.eilqr.options import EILQROptions
 from .solvers.hm_ilqr.options import HMILQROptions
 from .solvers.ipm.options import IPOptions
 from .time_penalty import TimePenalized, time_penalized
 
-__all__ = ["ALTROOptions", "HMILQROptions", "History", "ILQROptions", "IPOptions", "MPC", "ProjectionOptions", "Method", "Problem", "Solution", "Solver", "Status", "TimePenalized", "euler", "rk4", "solve", "time_penalized"]
+__all__ = ["ALTROOptions", "EILQROptions", "HMILQROptions", "History", "ILQROptions", "IPOptions", "MPC",
+           "ProjectionOptions", "Method", "Problem", "Solution", "Solver", "Status", "TimePenalized", "euler", "rk4",
+           "solve", "time_penalized"]
 __version__ = "0.1.0"
 
 

@@ -10,6 +10,7 @@ constraints, else of the unconstrained one).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import warnings
@@ -20,7 +21,9 @@ from .core.batch import Batch
 from .core.graphs import graphs_used
 from .core.problem import Problem
 from .core.solution import Solution
+from .core.status import Status
 from .differentiation import implicit
+from .kkt.model import total_cost
 from .solvers.base import Solver
 
 #: The registered methods as an enum, a convenience for ``method=`` (strings do as well); nothing branches on it.
@@ -82,9 +85,16 @@ def solve(
                          f"(torch.no_grad, or detached x0 and params) or use {_declaring('kkt_point')}")
     # a differentiable solve: the method runs on detached inputs, gradients come from its KKT point
     solution = solver.solve(problem, batch.for_solver(detach=True), opts)
-    return implicit.attach_gradients(problem, batch.x0, batch.params, solution, gradients=gradients,
-                                     cuda_graphs=graphs_used(opts, batch.x0.device),
-                                     constrained=solver.handles_constraints)
+    declared = solver.kkt_problem(problem, opts)  # the problem whose KKT point it is, where that is another one
+    out = implicit.attach_gradients(problem if declared is None else declared, batch.x0, batch.params, solution,
+                                    gradients=gradients, cuda_graphs=graphs_used(opts, batch.x0.device),
+                                    constrained=solver.handles_constraints)
+    if declared is None:
+        return out
+    # the cost reported is the problem's own (eILQR's barriers are not part of it); gradients only where converged
+    keep = (out.status == Status.CONVERGED).to(out.cost.dtype)
+    cost = total_cost(problem, out.X, out.U, batch.params)
+    return dataclasses.replace(out, cost=keep * cost + (1 - keep) * cost.detach())
 
 
 def check_problem_and_method(problem, method: Union[str, Method, Solver]) -> Solver:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from .altro import ALILQR, ALTRO
 from .base import Solver
+from .eilqr import EILQR
 from .hm_ilqr import HMILQR
 from .ilqr import ILQR
 from .ipm import IPM
@@ -48,5 +49,6 @@ register(ALTRO())
 register(ALILQR())
 register(IPM())
 register(HMILQR())
+register(EILQR())
 
-__all__ = ["ALILQR", "ALTRO", "HMILQR", "ILQR", "IPM", "Solver", "get", "names", "register"]
+__all__ = ["ALILQR", "ALTRO", "EILQR", "HMILQR", "ILQR", "IPM", "Solver", "get", "names", "register"]

@@ -17,6 +17,9 @@ Every method solves the same problem, for each instance i of a batch,
 - ``takes_duals``: whether a warm start of the multipliers (``tt.solve``'s ``duals``) is accepted;
 - ``kkt_point``: whether a converged solution is a KKT point the implicit layer
   (:mod:`torchtraj.differentiation.implicit`) can refine and differentiate;
+- :meth:`Solver.kkt_problem`: the problem whose KKT point that is, where it is not the one declared above
+  (eILQR's inequalities are soft barriers on the cost: its solution is a KKT point of the barrier-augmented,
+  equality-constrained problem);
 
 and call its methods: :meth:`Solver.solve` on a checked :class:`~torchtraj.core.batch.Batch`, and the hooks of a
 control step (:meth:`Solver.step_options`, :meth:`Solver.warm_start`, :meth:`Solver.carried_duals`). The
@@ -81,6 +84,11 @@ class Solver(abc.ABC):
 
         ``batch`` is checked and contiguous; its ``X0`` is ``None`` unless :attr:`takes_state_guess`, its
         ``duals`` unless :attr:`takes_duals`."""
+
+    def kkt_problem(self, problem: Problem, options) -> Optional[Problem]:
+        """The problem of which a converged solution with ``options`` is a KKT point, where it differs from
+        ``problem`` (constrained or not as :attr:`handles_constraints` says); ``None``: it does not differ."""
+        return None
 
     # ------------------------------------------------------------------ one control step (torchtraj.control.mpc)
     def step_defaults(self):

@@ -1,0 +1,125 @@
+r"""Globalisation of eILQR (Horizon §II-F): backtracking on the exact ℓ1 merit function, batched.
+
+The merit (Horizon eq. 8; Nocedal & Wright 2006 §15.4) of a multiple-shooting point ``w = (X, U)`` is
+
+.. math::
+
+    m(w) = J(w) + γ \|C(w)\|_1,\qquad
+    \|C\|_1 = \sum_k \|f(x_k, u_k) − x_{k+1}\|_1 + \sum_k \|h_k\|_1 + \|h_N\|_1 + \|c_0\|_1,
+
+``J`` the barrier-augmented cost and ``c_0`` the initial rows (``x̄_0 − x_0``, or ``h_0(x_0)`` and the fixed
+components of a free start). It is exact where ``γ`` exceeds every multiplier (eq. 9), so :func:`penalty` sets
+``γ = κ max|y⁺| + γ_0`` from the Newton step's own estimates ``y⁺`` (``κ = merit_factor`` the margin,
+``γ_0 = merit_floor``; with ``merit_monotone`` never lowered).
+Along a step ``p`` that satisfies the linearised constraints (``C + ∇C p = 0``) the directional derivative is
+
+.. math::  D m(w; p) = ∇J^T p − γ \|C\|_1 \ \le\ −p^T (∇^2 L + εI) p − (γ − \|y^+\|_∞) \|C\|_1 < 0
+
+(Nocedal & Wright Thm. 18.2), and the step sizes ``α = β^j`` are tried until Armijo's
+``m(w + α p) ≤ m(w) + η α D m`` holds. Every trial point of every instance is evaluated in one batched call per round
+of ``per_round`` step sizes (:func:`torchtraj.globalization.line_search.backtrack`): the dynamics, the costs and the
+rows at all knots at once, no rollout. A tolerance of a few hundred rounding errors of ``m`` lets the full step
+through once the decrease is below round-off, where the Newton iteration converges quadratically.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from ...core.batching import map_stage, map_state
+from ...core.constraints import Constraints
+from ...core.problem import Problem
+from ...globalization.line_search import Accepted, backtrack
+from ...kkt.model import total_cost
+from .initial_state import InitialState
+from .model import Model
+from .newton import Direction
+from .options import EILQROptions
+
+
+def constraint_values(soft: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
+                      initial: Optional[InitialState]) -> tuple:
+    """The constraints at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: defects ``(B, *E, N, nx)``, ``h`` (or
+    ``None``), ``h_N`` (or ``None``) and the initial rows ``c_0 (B, *E, m_0)``."""
+    defects = map_stage(soft.dynamics, X[..., :-1, :], U, params) - X[..., 1:, :]
+    h = map_stage(cons.stage_eq, X[..., :-1, :], U, params) if cons.me else None
+    hN = map_state(cons.terminal_eq, X[..., -1, :], params) if cons.meN else None
+    if initial is not None:
+        c0 = initial.evaluate(X[..., 0, :], params).e0
+    else:
+        c0 = x0.reshape(x0.shape[0], *([1] * (X.dim() - 3)), -1) - X[..., 0, :]
+    return defects, h, hN, c0
+
+
+def l1_norm(values: tuple) -> Tensor:
+    """``‖C‖₁ (B, *E)`` of :func:`constraint_values`."""
+    defects, h, hN, c0 = values
+    total = defects.abs().sum((-1, -2)) + c0.abs().sum(-1)
+    if h is not None:
+        total = total + h.abs().sum((-1, -2))
+    if hN is not None:
+        total = total + hN.abs().sum(-1)
+    return total
+
+
+def model_infeasibility(model: Model, x0: Tensor, X: Tensor) -> Tensor:
+    """``‖C‖₁ (B,)`` at the model's point, from its values."""
+    c0 = model.initial.e0 if model.initial is not None else x0 - X[:, 0]
+    return l1_norm((model.defects, model.h, model.hN, c0))
+
+
+def penalty(gamma: Tensor, size: Tensor, opts: EILQROptions) -> Tensor:
+    """``γ = κ max|y⁺| + γ_0``, or its maximum with the last ``γ`` (``merit_monotone``); ``size (B,)`` is
+    ``max|y⁺|``."""
+    target = opts.merit_factor * size + opts.merit_floor
+    return target if opts.merit_monotone is False else torch.maximum(gamma, target)
+
+
+def slope(model: Model, d: Direction, gamma: Tensor, l1: Tensor) -> Tensor:
+    """The directional derivative ``D m(w; p) (B,)`` of the merit along the step."""
+    dz = torch.cat([d.dX[:, :-1], d.dU], -1)
+    grad = (model.lz * dz).sum((-1, -2)) + (model.lNx * d.dX[:, -1]).sum(-1)
+    return grad - gamma * l1
+
+
+def trial_steps(opts: EILQROptions, like: Tensor) -> Tensor:
+    """The step sizes ``α = β^j``, ``j < line_search_steps`` (only ``α = 1`` without globalisation)."""
+    count = opts.line_search_steps if opts.globalization else 1
+    return opts.backtracking ** torch.arange(count, dtype=like.dtype, device=like.device)
+
+
+def armijo_bound(merit0: Tensor, derivative: Tensor, alphas: Tensor, opts: EILQROptions) -> Tensor:
+    """``m(0) + η α D m`` plus a few hundred rounding errors of ``m``: ``(B, l)`` for ``alphas (l,)``."""
+    slack = 1e3 * torch.finfo(merit0.dtype).eps * (merit0.abs() + 1.0)
+    return (merit0 + slack).unsqueeze(-1) + opts.armijo * alphas.unsqueeze(0) * derivative.unsqueeze(-1)
+
+
+def merit_at(soft: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
+             initial: Optional[InitialState], gamma: Tensor) -> Tensor:
+    """``m = J + γ ‖C‖₁`` at ``X (B, *E, N+1, nx)``, ``U``: ``(B, *E)``."""
+    g = gamma.reshape(-1, *([1] * (X.dim() - 3)))
+    return total_cost(soft, X, U, params) + g * l1_norm(constraint_values(soft, cons, params, X, U, x0, initial))
+
+
+def line_search(soft: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
+                initial: Optional[InitialState], d: Direction, merit0: Tensor, derivative: Tensor, gamma: Tensor,
+                pending: Tensor, steps: Tensor, opts: EILQROptions) -> Accepted:
+    """Backtracking over ``steps (L,)`` on the merit from ``merit0 (B,)`` with slope ``derivative (B,)``, for the
+    ``pending (B,)`` instances; all trial points of a round in one batched evaluation. Returns
+    :class:`~torchtraj.globalization.line_search.Accepted` with ``values = (merit (B,),)``."""
+
+    def evaluate(alphas: Tensor):
+        a = alphas.reshape(1, -1, 1, 1)
+        Xa = X.unsqueeze(1) + a * d.dX.unsqueeze(1)
+        Ua = U.unsqueeze(1) + a * d.dU.unsqueeze(1)
+        m = merit_at(soft, cons, params, Xa, Ua, x0, initial, gamma)
+        accept = torch.isfinite(m) & (m <= armijo_bound(merit0, derivative, alphas, opts))
+        if not opts.globalization:
+            accept = torch.ones_like(accept)
+        return accept, (m,)
+
+    start = Accepted(found=~pending, alpha=torch.zeros_like(merit0), values=(merit0,))
+    return backtrack(steps, opts.per_round, evaluate, pending, start)

@@ -1,0 +1,125 @@
+r"""The iterate of eILQR and its KKT model: the Lagrangian's derivatives and the residuals of Horizon eqs. (3)-(4).
+
+The iterate is a multiple-shooting point ``w = (X, U)`` with the multipliers of the dynamics ``λ`` (costates,
+``λ_{k+1}`` of ``f(x_k, u_k) − x_{k+1} = 0``), of the stage and terminal equalities ``ν``, ``ν_N`` and, with a free
+initial state, of its rows ``μ_0`` (:mod:`~torchtraj.solvers.eilqr.initial_state`). With the Lagrangian
+(Horizon eq. 2, on the barrier-augmented costs of :mod:`~torchtraj.solvers.eilqr.barrier`)
+
+.. math::
+
+    L = \sum_k \big[\ell_k + ν_k^T h_k + λ_{k+1}^T (f(x_k, u_k) − x_{k+1})\big] + \ell_N + ν_N^T h_N
+        \ (+\ μ_0^T h_0(x_0)),
+
+the KKT conditions (eqs. 3a-3d, 4a-4b) are ``∂L/∂x_k = 0`` (k ≥ 1; also k = 0 with a free ``x_0``),
+``∂L/∂u_k = 0``, the defects ``f(x_k, u_k) − x_{k+1} = 0``, ``h = 0``, ``h_N = 0`` and the initial rows
+(``x̄_0 − x_0 = 0``, or ``h_0 = 0`` on a free ``x_0``). :func:`expand` takes every derivative an iteration needs at
+once with ``torch.func`` (:func:`~torchtraj.core.derivatives.problem_lagrangian_expansion`): the Lagrangian's
+Hessian is the Newton matrix, and the *cost* gradient its right-hand side, so that the Riccati core's
+multipliers are the new estimates ``λ⁺``, ``ν⁺`` themselves (:func:`~torchtraj.kkt.newton.newton_rhs`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import torch
+from torch import Tensor
+
+from ...core.compiled import matvec as _mv
+from ...core.constraints import Constraints
+from ...core.derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_jacobian
+from ...core.problem import Problem
+from ...kkt.model import total_cost
+from ...riccati import all_finite
+from .initial_state import InitialRows
+
+
+@dataclass
+class Iterate:
+    """``X (B, N+1, nx)``, ``U (B, N, nu)``, costates ``lam (B, N+1, nx)`` (``lam[:, 0]`` the initial condition's),
+    equality multipliers ``nu (B, N, me)``, ``nuN (B, meN)`` and the free initial state's ``mu0 (B, m0)``."""
+
+    X: Tensor
+    U: Tensor
+    lam: Tensor
+    nu: Tensor
+    nuN: Tensor
+    mu0: Tensor
+
+
+@dataclass
+class Model:
+    """The iterate's values and derivatives: cost ``J (B,)``; cost gradients ``lz (B, N, nz)``, ``lNx (B, nx)``;
+    Lagrangian Hessians ``Lzz (B, N, nz, nz)``, ``LNxx (B, nx, nx)``; dynamics ``f (B, N, nx)``, ``fz``;
+    equalities ``h (B, N, me)``, ``Hz``, ``hN (B, meN)``, ``HN``; the initial rows ``initial`` (values ``e0 (B, m0)``
+    and Jacobian ``E0 (B, m0, nx)``, or the fixed start's defect ``x̄_0 − x_0``); the residuals ``dual (B,)``,
+    ``primal (B,)`` (``∞``-norms) and ``error = max(dual, primal)``; ``finite (B,)``."""
+
+    J: Tensor
+    lz: Tensor
+    lNx: Tensor
+    Lzz: Tensor
+    LNxx: Tensor
+    f: Tensor
+    fz: Tensor
+    h: Tensor
+    Hz: Tensor
+    hN: Tensor
+    HN: Tensor
+    initial: InitialRows
+    defects: Tensor
+    dual: Tensor
+    primal: Tensor
+    error: Tensor
+    finite: Tensor
+
+
+def _amax(*parts: Tensor) -> Tensor:
+    """``max |parts|`` per instance, ``(B,)`` (zero where all are empty)."""
+    B = parts[0].shape[0]
+    return torch.cat([p.reshape(B, -1).abs() for p in parts] + [parts[0].new_zeros(B, 1)], -1).amax(-1)
+
+
+def expand(soft: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows) -> Model:
+    """Everything an iteration needs at ``it`` (module docstring); ``soft`` is the barrier-augmented problem and
+    ``cons`` its (equality-only) constraints, ``x0 (B, nx)`` the given initial states, ``rows`` the free initial
+    state's :class:`~torchtraj.solvers.eilqr.initial_state.InitialState` or ``None``."""
+    X, U = it.X, it.U
+    nx = X.shape[-1]
+    e = problem_lagrangian_expansion(soft, cons, X, U, params, it.lam, it.nu, None, it.nuN, None)
+    f, fz = stage_jacobian(soft.dynamics, X[:, :-1], U, params)
+    B, N = U.shape[0], U.shape[1]
+    nz = fz.shape[-1]
+    if cons.me:
+        h, Hz = stage_jacobian(cons.stage_eq, X[:, :-1], U, params)
+    else:
+        h, Hz = X.new_zeros(B, N, 0), X.new_zeros(B, N, 0, nz)
+    if cons.meN:
+        hN, HN = terminal_jacobian(cons.terminal_eq, X[:, -1], params)
+    else:
+        hN, HN = X.new_zeros(B, 0), X.new_zeros(B, 0, nx)
+    # the cost gradient: the Lagrangian's less its multiplier terms (the right-hand side whose solve gives λ⁺, ν⁺)
+    lz = e.gradient - _mv(fz.transpose(-1, -2), it.lam[:, 1:]) - _mv(Hz.transpose(-1, -2), it.nu)
+    lNx = e.terminal_gradient - _mv(HN.transpose(-1, -2), it.nuN)
+    initial = rows.evaluate(X[:, 0], params, jacobian=True) if rows is not None else None
+    Lzz = e.hessian
+    curvature = rows.curvature(X[:, 0], it.mu0, params) if rows is not None else None
+    if curvature is not None:  # a free x_0's rows h_0 are part of the Lagrangian (μ_0ᵀ h_0)
+        Lzz = Lzz.clone()
+        Lzz[:, 0, :nx, :nx] += curvature
+    defects = f - X[:, 1:]
+    grad_x = e.gradient[:, 1:, :nx] - it.lam[:, 1:-1]
+    grad_N = e.terminal_gradient - it.lam[:, -1]
+    parts = [grad_x, e.gradient[..., nx:], grad_N]
+    if initial is not None:  # x_0 is a variable: its stationarity counts, with the initial rows' multipliers
+        parts.append(e.gradient[:, 0, :nx] + _mv(initial.E0.transpose(-1, -2), it.mu0))
+        start = initial.e0
+    else:
+        start = x0 - X[:, 0]
+    dual = _amax(*parts)
+    primal = _amax(defects, h, hN, start)
+    J = total_cost(soft, X, U, params)
+    finite = all_finite([e.gradient, e.hessian, e.terminal_hessian, fz, Hz, HN, J.unsqueeze(1), primal.unsqueeze(1)])
+    return Model(J=J, lz=lz, lNx=lNx, Lzz=Lzz, LNxx=e.terminal_hessian, f=f, fz=fz, h=h, Hz=Hz, hN=hN, HN=HN,
+                 initial=initial, defects=defects, dual=dual, primal=primal, error=torch.maximum(dual, primal),
+                 finite=finite)
+

@@ -1,0 +1,108 @@
+"""Options of eILQR (Laurenzi, Ruscelli & Tsagarakis, "A Constrained Iterative LQR Solver for the Trajectory
+Optimization Framework Horizon"): the Newton-KKT step, its ℓ1-merit line search and regularisation, the soft
+barrier of the inequalities and the initial-state optimisation.
+
+The paper gives no numbers for its globalisation; those below are the textbook's it cites (Nocedal & Wright 2006
+§3.1, §15.4, §18.3: Armijo constant 1e-4, halving the step) and IPOPT's inertia-correction schedule
+(Wächter & Biegler 2006 §3.1: ``δ_w^0 = 1e-4``, ``κ_w^- = 1/3``, ``κ_w^+ = 8``, ``κ̄_w^+ = 100``).
+``short_step``, the merit's margin and the barrier's weight are this implementation's choices, measured on the
+problem set (their attributes say how).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence, Union
+
+import torch
+
+
+@dataclass
+class EILQROptions:
+    """Options of :func:`~torchtraj.solvers.eilqr.solver.solve_eilqr`.
+
+    Attributes:
+        iterations: most Newton iterations.
+        tolerance: the KKT error at which an instance has converged, the largest of the Lagrangian's gradient,
+            the dynamics defects, the equality rows and the initial-state rows (``∞``-norms, unscaled);
+            ``None``: 1e-9 in float64, 1e-5 in float32.
+        barrier_weight: ``w`` of the soft barrier ``w Σ β(−g)`` of every inequality row and bound
+            (:mod:`~torchtraj.solvers.eilqr.barrier`); the solution's cost is above the hard-constrained optimum by
+            a gap about linear in ``w`` (the pendulum: +44 % at 1e-3, +6.2 % at 1e-4, +0.8 % at 1e-5, with more
+            iterations as ``w`` falls).
+        barrier_relaxation: ``δ`` of the relaxed log barrier: ``−log t`` for ``t ≥ δ``, its C² quadratic
+            extension below (an infeasible start stays finite).
+        merit_factor, merit_floor: the ℓ1 merit's weight ``γ = merit_factor · max|y⁺| + merit_floor`` from the
+            Newton step's multiplier estimates ``y⁺`` (Horizon eq. 9 with a margin of 50 %; the floor keeps ``γ > 0``
+            where every multiplier vanishes). It is exact above ``max|y*|`` and the step is a descent direction of
+            the merit for any ``γ > max|y⁺|`` (:mod:`~torchtraj.solvers.eilqr.merit`).
+        merit_monotone: never lower ``γ`` during a solve (Nocedal & Wright's safeguard against cycling between
+            merit functions). Off by default: the paper sets a "reasonable" weight from the current estimates,
+            and a weight fixed by the first iterations' large multipliers slowed the pendulum from 57 iterations
+            to more than 100.
+        armijo: the sufficient-decrease constant ``η`` of ``m(α) ≤ m(0) + η α D m``.
+        backtracking: the step-size factor ``β``: trials ``α = β^j``, ``j < line_search_steps``.
+        line_search_steps: how many step sizes are tried; ``per_round``: how many are evaluated in one batched
+            call.
+        regularization_first, regularization_min, regularization_max, regularization_decrease,
+            regularization_increase_first, regularization_increase: the ``ε_reg I`` added to the Lagrangian
+            Hessian (the paper's Fig. 5), with IPOPT's inertia-correction numbers (``δ_w^0``, ``δ_w^{min}``,
+            ``δ_w^{max}``, ``κ_w^-``, ``κ̄_w^+``, ``κ_w^+``). Within an iteration it rises where a reduced Hessian is
+            not positive definite (refactorised, at most ``regularization_attempts`` times). Between iterations it
+            is carried: ``×κ_w^+`` (at least ``δ_w^0``) after a step the merit refused or cut below ``short_step``,
+            ``×κ_w^-`` after a full step (zero below ``regularization_min``), kept otherwise; past
+            ``regularization_max`` the status is ``MAX_REGULARIZATION``.
+        short_step: the step size below which the next iteration is regularised more (a shorter, more
+            gradient-like step where the Newton model was poor).
+        second_order_correction: correct a refused full step once before backtracking
+            (:mod:`~torchtraj.solvers.eilqr.globalization`).
+        globalization: ``False`` takes the full Newton step with no line search and no regularisation (the
+            paper's "crucial" ingredients left out; for experiments).
+        free_initial_state: optimise ``x_0`` (Horizon §II-D): ``True`` for every component, a sequence of the
+            free components' indices (the others stay at the given ``x_0``), ``False`` for none.
+        initial_eq: ``h_0(x_0, p) -> (m_0,)`` equality rows on a free ``x_0`` (a line it starts on, ...).
+        max_state: ``|x|`` above which an instance is ``DIVERGED``.
+        compile: accepted for the control-step interface; eILQR has no compiled kernels and runs eagerly.
+        verbose: log one line per iteration.
+    """
+
+    iterations: int = 200
+    tolerance: Optional[float] = None
+    barrier_weight: float = 1e-4
+    barrier_relaxation: float = 1e-5
+    merit_factor: float = 1.5
+    merit_floor: float = 1e-6
+    merit_monotone: bool = False
+    armijo: float = 1e-4
+    backtracking: float = 0.5
+    line_search_steps: int = 16
+    per_round: int = 4
+    regularization_first: float = 1e-4
+    regularization_min: float = 1e-20
+    regularization_max: float = 1e10
+    regularization_decrease: float = 1.0 / 3.0
+    regularization_increase_first: float = 100.0
+    regularization_increase: float = 8.0
+    regularization_attempts: int = 12
+    short_step: float = 0.1
+    second_order_correction: bool = True
+    globalization: bool = True
+    free_initial_state: Union[bool, Sequence[int]] = False
+    initial_eq: Optional[Callable] = None
+    max_state: float = 1e8
+    compile: bool = False
+    verbose: bool = False
+
+    def __post_init__(self):
+        if self.barrier_weight <= 0 or self.barrier_relaxation <= 0:
+            raise ValueError(f"barrier_weight and barrier_relaxation must be positive, got {self.barrier_weight} "
+                             f"and {self.barrier_relaxation}")
+        if not 0 < self.backtracking < 1:
+            raise ValueError(f"backtracking must lie in (0, 1), got {self.backtracking}")
+        if self.initial_eq is not None and self.free_initial_state is False:
+            raise ValueError("initial_eq constrains a free initial state: set free_initial_state as well")
+
+    def tolerance_for(self, dtype: torch.dtype) -> float:
+        if self.tolerance is not None:
+            return self.tolerance
+        return 1e-9 if dtype == torch.float64 else 1e-5

@@ -1,0 +1,157 @@
+r"""eILQR (Laurenzi, Ruscelli & Tsagarakis, Horizon's equality-constrained iLQR), batched: the loop.
+
+Newton's method on the KKT conditions (§II-A, eqs. 2-4) of the problem with its equalities exact and its
+inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrier`). Each iteration of
+:func:`solve_eilqr`, for every instance still running:
+
+1. the KKT model at the multiple-shooting iterate ``(X, U, λ, ν, ν_N, μ_0)`` (:mod:`~torchtraj.solvers.eilqr.model`);
+   converged where the KKT error is below the tolerance;
+2. the Newton step by the shared Riccati core with constraint back-propagation, with the initial state optimised
+   where asked (:mod:`~torchtraj.solvers.eilqr.newton`, :mod:`~torchtraj.solvers.eilqr.initial_state`),
+   regularised until the reduced Hessians are positive definite;
+3. the ℓ1 merit's weight ``γ`` from the step's multipliers, the full step, its second-order correction and the
+   backtracking line search (:mod:`~torchtraj.solvers.eilqr.merit`, :mod:`~torchtraj.solvers.eilqr.globalization`);
+   the accepted ``α`` moves the primal variables and the multipliers, ``y ← y + α (y⁺ − y)``. A step refused or cut
+   below ``short_step`` raises the next iteration's regularisation (a shorter, more gradient-like step), a full one
+   lowers it (the paper's Fig. 5: adaptive ``α`` and ``ε_reg``; :class:`EILQROptions`).
+
+Every decision is a mask on the batch: an instance that stops keeps its iterate and never changes another.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Optional
+
+import torch
+
+from ...core.batch import Batch
+from ...core.batching import rollout
+from ...core.constraints import Constraints, multiplier_blocks
+from ...core.masks import where_rows
+from ...core.problem import Problem
+from ...core.solution import History, Solution
+from ...core.status import Status
+from ...kkt.merit import largest_violation
+from ...kkt.model import total_cost
+from .barrier import implied_multipliers, soft_problem
+from .initial_state import InitialState
+from .globalization import globalized_step
+from .merit import model_infeasibility, penalty
+from .model import Iterate, expand
+from .newton import direction, empty_multipliers, multiplier_size, regularized_direction
+from .options import EILQROptions
+
+logger = logging.getLogger("torchtraj")
+
+
+def _step(it: Iterate, d, alpha, take) -> Iterate:
+    """``it`` moved by ``α`` along ``d`` where ``take (B,)``: the primal step and ``y ← y + α (y⁺ − y)``."""
+    def move(x, dx):
+        return where_rows(take, x + alpha.reshape(-1, *([1] * (x.dim() - 1))) * dx, x)
+
+    return Iterate(X=move(it.X, d.dX), U=move(it.U, d.dU), lam=move(it.lam, d.lam - it.lam),
+                   nu=move(it.nu, d.nu - it.nu), nuN=move(it.nuN, d.nuN - it.nuN), mu0=move(it.mu0, d.mu0 - it.mu0))
+
+
+def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] = None,
+                method: str = "eilqr") -> Solution:
+    """Solve the ``batch`` of instances of ``problem`` from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
+    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting; without it the controls are rolled out),
+    with the parameters batched to B.
+
+    The history has a row per iteration (at the iterate the step starts from): ``cost`` (the barrier-augmented cost
+    the iteration minimises), ``max_violation`` (the largest defect, equality or initial-row residual),
+    ``step_size`` (``α``, 0 where refused), ``regularization`` (``ε_reg``) and in ``extra`` ``defects``,
+    ``equality`` (``‖h, h_N‖∞``), ``merit``, ``gamma`` and ``kkt_error``. ``Solution.cost`` is the problem's own
+    cost; ``multipliers`` hold the equalities' (``stage_eq``, ``terminal_eq``), the barrier's implied ones under the
+    inequality blocks' names and, with a free start, ``initial``."""
+    opts = options or EILQROptions()
+    x0, params = batch.x0, batch.params
+    B = x0.shape[0]
+    soft = soft_problem(problem, opts.barrier_weight, opts.barrier_relaxation)
+    cons = Constraints.of(soft)
+    tol = opts.tolerance_for(x0.dtype)
+    initial = InitialState(opts.free_initial_state, opts.initial_eq, x0) \
+        if opts.free_initial_state is not False else None
+    X = rollout(problem.dynamics, x0, batch.U0, params) if batch.X0 is None else batch.X0.clone()
+    if batch.X0 is not None and initial is None:
+        X[:, 0] = x0  # a fixed start: the guess's first state is the given one
+    m0 = initial.evaluate(X[:, 0], params).e0.shape[-1] if initial is not None else 0
+    it = Iterate(X, batch.U0.clone(), *empty_multipliers(X, cons.me, cons.meN, m0))
+    status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
+    start_ok = torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(it.U).flatten(1).all(-1)
+    status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
+    status = torch.where((status == Status.RUNNING) & ~start_ok, int(Status.INFEASIBLE_START), status)
+    gamma = torch.zeros(B, dtype=x0.dtype, device=x0.device)
+    floor, last = torch.zeros_like(gamma), torch.zeros_like(gamma)
+    iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
+    K = x0.new_zeros(B, problem.N, problem.nu, problem.nx)
+    rows = []
+    for step in range(opts.iterations + 1):
+        model = expand(soft, cons, params, it, x0, initial)
+        running = status == Status.RUNNING
+        status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
+        status = torch.where(running & model.finite & (model.error <= tol), int(Status.CONVERGED), status)
+        diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
+        status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
+        running = status == Status.RUNNING
+        l1 = model_infeasibility(model, x0, it.X)
+        if step == opts.iterations or not bool(running.any()):
+            break
+        d, eps = regularized_direction(lambda e: direction(model, it, x0, e), floor, last, running, opts,
+                                       regularize=opts.globalization)
+        factored = running & (d.ok | (not opts.globalization))
+        gamma = torch.where(factored, penalty(gamma, multiplier_size(d, initial is not None), opts), gamma)
+        d, ls, merit0 = globalized_step(soft, cons, params, model, it, x0, initial, d, eps, gamma, l1, factored,
+                                        opts)
+        take = factored & ls.found
+        it = _step(it, d, ls.alpha, take)
+        K = where_rows(take, d.K, K)
+        last = torch.where(take & (eps > 0), eps, last)
+        # Fig. 5's adaptive ε_reg: a step the merit refuses or cuts short asks for more regularisation (a shorter,
+        # more gradient-like step) at the next iteration, a full one for less, down to none
+        short = factored & (~ls.found | (ls.alpha < opts.short_step))
+        larger = torch.clamp(opts.regularization_increase * torch.maximum(floor, eps), min=opts.regularization_first)
+        smaller = opts.regularization_decrease * eps
+        smaller = torch.where(smaller < opts.regularization_min, 0.0, smaller)
+        full = take & (ls.alpha == 1.0)
+        floor = torch.where(short, larger, torch.where(full, smaller, torch.where(take, eps, floor)))
+        blown = running & (~factored | (floor > opts.regularization_max))
+        status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
+        iterations = iterations + running.long()
+        rows.append(dict(cost=model.J, max_violation=model.primal, step_size=torch.where(take, ls.alpha, 0.0),
+                         regularization=eps, defects=model.defects.abs().flatten(1).amax(-1),
+                         equality=_equality(model), merit=merit0, gamma=gamma, kkt_error=model.error))
+        if opts.verbose:
+            logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  gamma %.1e  running %d", method, step,
+                        model.J.min().item(), model.J.max().item(), model.error.max().item(),
+                        gamma.max().item(), running.sum().item())
+    status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
+    return _solution(problem, soft, it, K, status, iterations, rows, x0, params, initial, opts, method)
+
+
+def _equality(model) -> torch.Tensor:
+    """``‖(h, h_N)‖∞ (B,)`` of the model."""
+    B = model.J.shape[0]
+    return torch.cat([model.h.reshape(B, -1).abs(), model.hN.abs(), model.J.new_zeros(B, 1)], -1).amax(-1)
+
+
+def _solution(problem, soft, it, K, status, iterations, rows, x0, params, initial, opts, method) -> Solution:
+    """The shared :class:`~torchtraj.Solution`: the problem's own cost and violation (the barrier's are not the
+    problem's), the costates, the equalities' multipliers and the barrier's implied inequality multipliers."""
+    cons = Constraints.of(problem)
+    z, zN = implied_multipliers(problem, it.X, it.U, params, opts.barrier_weight, opts.barrier_relaxation)
+    stage = torch.cat([z, it.nu], -1)
+    terminal = torch.cat([zN, it.nuN], -1)
+    multipliers = multiplier_blocks(cons, stage, terminal)
+    if initial is not None:
+        multipliers["initial"] = it.mu0
+    violation = largest_violation(problem, it.X, it.U, params, x0=None if initial is not None else x0)
+    if initial is not None:
+        e0 = initial.evaluate(it.X[:, 0], params).e0
+        violation = torch.maximum(violation, torch.cat([e0.abs(), e0.new_zeros(e0.shape[0], 1)], -1).amax(-1))
+    history = History.from_rows(rows)
+    return Solution(X=it.X, U=it.U, K=K, cost=total_cost(problem, it.X, it.U, params), max_violation=violation,
+                    status=status, iterations=iterations, history=history, costate=it.lam,
+                    multipliers=multipliers, method=method)
