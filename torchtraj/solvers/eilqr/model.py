@@ -21,6 +21,7 @@ multipliers are the new estimates ``λ⁺``, ``ν⁺`` themselves (:func:`~torch
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 

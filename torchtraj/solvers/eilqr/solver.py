@@ -35,8 +35,8 @@ from ...core.status import Status
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
 from .barrier import implied_multipliers, soft_problem
-from .initial_state import InitialState
 from .globalization import globalized_step
+from .initial_state import InitialState
 from .merit import model_infeasibility, penalty
 from .model import Iterate, expand
 from .newton import direction, empty_multipliers, multiplier_size, regularized_direction
