@@ -568,3 +568,25 @@ def test_mehrotra_ends_an_infeasible_instance_with_a_status():
     alone = tt.solve(problem, torch.tensor([[0.5, 0.0]], dtype=F64), method="ipm", options=options)
     assert both.status.tolist() == [tt.Status.CONVERGED, tt.Status.MAX_REGULARIZATION]
     assert torch.allclose(both.U[:1], alone.U, rtol=0, atol=1e-12) and both.iterations[0] == alone.iterations[0]
+
+
+def test_the_parallel_in_time_sweep_takes_the_same_steps():
+    """``IPOptions.sweep = "parallel"``: the Newton steps by the associative-scan Riccati sweep, on a problem without
+    equality rows (bounds as barriers), give the sequential sweep's iterates to round-off; with a goal equality the
+    rows need the sequential back-propagation, which "parallel" refuses by name and "auto" takes."""
+    problem = tt.problems.get("pendulum").replace(horizon=12, u_init=torch.zeros(1, dtype=torch.float64),
+                                                 terminal_eq=None)
+    x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
+    sequential = tt.solve(problem, x0, "ipm")
+    parallel = tt.solve(problem, x0, "ipm", options=tt.IPOptions(sweep="parallel"))
+    assert (sequential.status == tt.Status.CONVERGED).all()
+    assert torch.equal(parallel.status, sequential.status) and torch.equal(parallel.iterations, sequential.iterations)
+    torch.testing.assert_close(parallel.U, sequential.U, rtol=0, atol=1e-9)
+    torch.testing.assert_close(parallel.costate, sequential.costate, rtol=0, atol=1e-8)
+    goal = tt.problems.get("pendulum").replace(horizon=12, u_init=torch.zeros(1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="parallel"):
+        tt.solve(goal, x0, "ipm", options=tt.IPOptions(sweep="parallel"))
+    auto = tt.solve(goal, x0, "ipm", options=tt.IPOptions(sweep="auto"))
+    assert torch.equal(auto.U, tt.solve(goal, x0, "ipm").U)
+    with pytest.raises(ValueError, match="sweep"):
+        tt.IPOptions(sweep="scan")

@@ -96,8 +96,15 @@ class IPOptions:
     mehrotra_mu_max_factor: float = 1e3
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
+    #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
+    #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; only for problems without equality rows, whose
+    #: back-propagation is sequential) or ``"auto"`` (parallel where it applies and pays, by
+    #: :func:`~torchtraj.riccati.parallel.choose_sweep`).
+    sweep: str = "sequential"
 
     def __post_init__(self):
+        if self.sweep not in ("sequential", "parallel", "auto"):
+            raise ValueError(f"sweep must be 'sequential', 'parallel' or 'auto', not {self.sweep!r}")
         if self.barrier_strategy not in ("monotone", "mehrotra"):
             raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
         if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:

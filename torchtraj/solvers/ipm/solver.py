@@ -143,8 +143,8 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
 
         def attempt(delta):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels: no kwargs)
             if mehrotra:
-                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True)
-            return direction_k(lqr, rhs, delta, model, it, target_mu)
+                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True, sweep=opts.sweep)
+            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, False, opts.sweep)
 
         d, delta = regularized_direction(attempt, floor, last, running, opts)
         factored = running & d.ok
