@@ -15,9 +15,12 @@ when the reduced Hessians are not positive definite, the primal regularisation `
 further attempt multiplies it by ``κ̄_w^+`` (no ``δ_w^{last}``) or ``κ_w^+``.
 
 Both act on the batch: ``(B,)`` tensors in and out, one element's schedule independent of the others'.
+:func:`corrected_attempts` runs the inertia correction's attempts for a whole batch of Newton steps.
 """
 
 from __future__ import annotations
+
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -45,3 +48,29 @@ def inertia_correction(delta: Tensor, last: Tensor, first: float, minimum: float
     start = torch.where(last == 0, torch.full_like(delta, first), torch.clamp(decrease * last, min=minimum))
     grow = torch.where(last == 0, increase_first, increase) * delta
     return torch.where(delta == 0, start, grow)
+
+
+def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: Tensor, opts, pick: Callable,
+                       attempts: int) -> tuple:
+    """IPOPT's inertia correction for a batch: the step of every ``running (B,)`` instance with the smallest
+    ``δ_w`` from ``floor (B,)`` up whose reduced Hessians are positive definite.
+
+    ``attempt(δ_w)`` factorises and solves the whole batch, returning a step with ``ok (B,)``; ``pick(mask, new,
+    old)`` takes ``new`` on ``mask``; ``last (B,)`` is the last nonzero ``δ_w`` that worked; ``opts`` holds the
+    schedule's ``regularization_first``, ``_min``, ``_decrease``, ``_increase_first``, ``_increase`` and ``_max``.
+    At most ``attempts`` attempts follow the first. An instance whose ``δ_w`` passes ``regularization_max`` or whose
+    attempts run out keeps its last, failed, step. Returns ``(step, δ_w (B,))``."""
+    delta = floor
+    step = attempt(delta)
+    pending = running & ~step.ok
+    for _ in range(attempts):
+        if not bool(pending.any()):
+            break
+        larger = inertia_correction(delta, last, opts.regularization_first, opts.regularization_min,
+                                    opts.regularization_decrease, opts.regularization_increase_first,
+                                    opts.regularization_increase)
+        delta = torch.where(pending, larger, delta)
+        pending = pending & (delta <= opts.regularization_max)
+        step = pick(pending, attempt(delta), step)
+        pending = pending & ~step.ok
+    return step, delta

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from ...core.masks import where_rows
-from ...globalization.regularization import inertia_correction
+from ...globalization.regularization import corrected_attempts
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import RiccatiFactor, all_finite
 from .initial_state import initial_step
@@ -109,21 +109,10 @@ def regularized_direction(attempt: Callable[[Tensor], Direction], floor: Tensor,
                           opts: EILQROptions, regularize: bool = True) -> tuple:
     """The step of every ``running (B,)`` instance with the smallest ``ε`` from ``floor (B,)`` up whose reduced
     Hessians are positive definite (IPOPT's inertia correction from ``last (B,)``, the last nonzero ``ε`` that
-    worked); ``regularize=False`` takes the first attempt as it is. Returns ``(direction, ε (B,))``."""
-    eps = floor
-    d = attempt(eps)
-    pending = running & ~d.ok
-    for _ in range(opts.regularization_attempts if regularize else 0):
-        if not bool(pending.any()):
-            break
-        larger = inertia_correction(eps, last, opts.regularization_first, opts.regularization_min,
-                                    opts.regularization_decrease, opts.regularization_increase_first,
-                                    opts.regularization_increase)
-        eps = torch.where(pending, larger, eps)
-        pending = pending & (eps <= opts.regularization_max)
-        d = pick_direction(pending, attempt(eps), d)
-        pending = pending & ~d.ok
-    return d, eps
+    worked: :func:`~torchtraj.globalization.regularization.corrected_attempts`); ``regularize=False`` takes the
+    first attempt as it is. Returns ``(direction, ε (B,))``."""
+    return corrected_attempts(attempt, floor, last, running, opts, pick_direction,
+                              opts.regularization_attempts if regularize else 0)
 
 
 def multiplier_size(d: Direction, free: bool) -> Tensor:

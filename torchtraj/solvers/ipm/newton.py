@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 
 from ...core.compiled import matvec as _mv
-from ...globalization.regularization import inertia_correction
+from ...globalization.regularization import corrected_attempts
 from ...kkt import newton as kkt_newton
 from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
 from .compaction import pick
@@ -128,20 +128,7 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
 def regularized_direction(attempt: Callable[[Tensor], Direction], floor: Tensor, last: Tensor, running: Tensor,
                           opts: IPOptions) -> tuple:
     """The step of every ``running (B,)`` instance with the smallest ``δ_w`` (from ``floor (B,)``) whose system is
-    positive definite, by IPOPT's inertia correction (``last (B,)``: the last nonzero ``δ_w`` that was);
-    ``attempt(δ_w)`` factorises and solves the batch. An instance whose ``δ_w`` passes ``regularization_max`` or
-    whose attempts run out keeps its last, failed, direction. Returns ``(direction, δ_w (B,))``."""
-    delta = floor
-    d = attempt(delta)
-    pending = running & ~d.ok
-    for _ in range(opts.regularization_attempts):
-        if not bool(pending.any()):
-            break
-        larger = inertia_correction(delta, last, opts.regularization_first, opts.regularization_min,
-                                    opts.regularization_decrease, opts.regularization_increase_first,
-                                    opts.regularization_increase)
-        delta = torch.where(pending, larger, delta)
-        pending = pending & (delta <= opts.regularization_max)
-        d = pick(pending, attempt(delta), d)
-        pending = pending & ~d.ok
-    return d, delta
+    positive definite, by IPOPT's inertia correction (:func:`~torchtraj.globalization.regularization.corrected_attempts`;
+    ``last (B,)``: the last nonzero ``δ_w`` that was); ``attempt(δ_w)`` factorises and solves the batch. Returns
+    ``(direction, δ_w (B,))``."""
+    return corrected_attempts(attempt, floor, last, running, opts, pick, opts.regularization_attempts)
