@@ -74,5 +74,7 @@ def test_compiled_float32_altro_matches_eager_and_isolates_a_failing_instance():
     assert int(compiled.status[1]) == int(eager.status[1]) == int(tt.Status.NON_FINITE)
     assert int(compiled.iterations[1]) == int(eager.iterations[1]) == 0
     keep = torch.tensor([0, 2])
-    torch.testing.assert_close(compiled.U[keep], eager.U[keep], atol=1e-5, rtol=0)
+    # the controls to what float32 determines on the pendulum's flattest directions (as in the contract test's float32
+    # case: up to about 5e-3), the cost to float32's resolution of it
+    torch.testing.assert_close(compiled.U[keep], eager.U[keep], atol=5e-3, rtol=0)
     torch.testing.assert_close(compiled.cost[keep], eager.cost[keep], atol=1e-5, rtol=1e-5)
