@@ -101,8 +101,7 @@ class RiccatiFactor:
         lqr = self.lqr
         N = lqr.A.shape[1]
         dx, du = out.dx, out.du
-        nus = [None] * N
-        nuN = None
+        nus = nuN = None
         if self.fixed is not None:
             out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, dx, du, Qu)
         if lqr.propagated:

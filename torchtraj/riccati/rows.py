@@ -30,6 +30,7 @@ from ..core.compiled import addmatmul, matmul
 from .linalg import _cholesky, _cholesky_solve, _mT, _sym, _time_major
 from .lqr import LQR, LQRVectors
 from .propagation import _Constraint, _terminal_rhs
+from .sweep import stage_terms
 
 
 def factorize_rows(W: Tensor, Hs: Tensor, QN: Tensor, rows: Tensor, G_last: Tensor, rho: Tensor, tol: float):
@@ -86,7 +87,6 @@ def factorize_rows(W: Tensor, Hs: Tensor, QN: Tensor, rows: Tensor, G_last: Tens
             ok = Hw > 0
             L = torch.where(ok, Hw, one)
             K = addmatmul(Kc, Vf, rhs / L.neg())
-            ok = ok.reshape(Bsz)
         else:
             L, info = _cholesky(Hw)
             ok = info == 0
@@ -100,8 +100,9 @@ def factorize_rows(W: Tensor, Hs: Tensor, QN: Tensor, rows: Tensor, G_last: Tens
     stage = [_Constraint(U=out["U"][t], inv_s=out["inv_s"][t], V=None, rest=out["rest"][t], U2=out["U2"][t],
                          gmask=out["kept"][t], G=out["G"][t]) for t in range(N)]
     st = {name: _time_major(values) for name, values in out.items() if name not in ("P", "ok")}
+    # Z = −H_w⁻¹ V_fᵀ; a single control's factor is the root of H_w (kept as it is in the loop)
     L = st["L"].sqrt() if nu == 1 else st["L"]
-    Z = (-1.0 / (L * L)) * _mT(st["Vf"]) if nu == 1 else -torch.cholesky_solve(_mT(st["Vf"]), L)
+    Z = _mT(st["Vf"]) / st["L"].neg() if nu == 1 else -_cholesky_solve(_mT(st["Vf"]), L)
     sweep = {
         "UT": _mT(st["U"]),
         "U": st["U"],
@@ -115,7 +116,7 @@ def factorize_rows(W: Tensor, Hs: Tensor, QN: Tensor, rows: Tensor, G_last: Tens
         "fix": fix,
     }
     P_all = _time_major(out["P"] + [QN])
-    return (P_all, st["K"], st["Quu"], st["Qux"], L, torch.stack(out["ok"], 1).all(1), stage, sweep)
+    return (P_all, st["K"], st["Quu"], st["Qux"], L, torch.stack(out["ok"], 1).all(1).reshape(Bsz), stage, sweep)
 
 
 def solve_rows(lqr: LQR, sweep: dict, terminal: _Constraint, W: Tensor, P: Tensor, K: Tensor, Quu: Tensor,
@@ -128,10 +129,8 @@ def solve_rows(lqr: LQR, sweep: dict, terminal: _Constraint, W: Tensor, P: Tenso
     Bsz, N, nx = P.shape[0], K.shape[1], P.shape[-1]
     m = sweep["U"].shape[-1] - nx
     fix = sweep["fix"]
-    WTs, Ps, Quus = _mT(W).unbind(1), P.unbind(1), Quu.unbind(1)
-    ET = torch.cat([torch.eye(nx, dtype=K.dtype, device=K.device).expand(Bsz, N, nx, nx), _mT(K)], -1).unbind(1)
-    Ms = _mT(matmul(Quu, K) + Qux).unbind(1)
-    qz, cs = torch.cat([rhs.q, rhs.r], -1).unsqueeze(-1).unbind(1), rhs.c.unsqueeze(-1).unbind(1)
+    WTs, Ps, ET, Ms, qz, cs = stage_terms(W, P, K, Quu, Qux, rhs.q, rhs.r, rhs.c)
+    Quus = Quu.unbind(1)
     G_after = torch.cat([sweep["G"][:, 1:], terminal.G.unsqueeze(1)], 1).unbind(1)
     UT, negVS, Z, Vf, Y = (sweep[name].unbind(1) for name in ("UT", "negVS", "Z", "Vf", "Y"))
     if m:

@@ -103,6 +103,15 @@ def finish_single(chol: Tensor, ok: list) -> tuple:
     return chol.neg().sqrt(), torch.stack(ok, 1).all(1).reshape(-1)
 
 
+def stage_terms(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, q: Tensor, r: Tensor, c: Tensor) -> tuple:
+    """What every vector sweep reads per stage, split once for all stages: ``(W_kᵀ, P_k, E_kᵀ, M_k, [q_k; r_k],
+    c_k)`` with ``E_k = [I; K_k]``, ``M_k = (Q_uu K_k + Q_ux)ᵀ`` and the vectors as columns (module docstring)."""
+    Bsz, N, nx = P.shape[0], K.shape[1], P.shape[-1]
+    ET = torch.cat([torch.eye(nx, dtype=K.dtype, device=K.device).expand(Bsz, N, nx, nx), _mT(K)], -1)
+    return (_stages(_mT(W)), _stages(P), _stages(ET), _stages(_mT(matmul(Quu, K) + Qux)),
+            _columns(torch.cat([q, r], -1)), _columns(c))
+
+
 def solve_stages(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, chol: Tensor, q: Tensor, r: Tensor,
                  qN: Tensor, c: Tensor, held: Optional[Tensor] = None, value: Optional[Tensor] = None):
     """The vector sweep without back-propagated rows: ``(k (B, N, nu), p (B, N+1, nx), Q_u (B, N, nu))``.
@@ -110,12 +119,8 @@ def solve_stages(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, chol
     ``W (B, N, nx, nx+nu)``, ``P (B, N+1, nx, nx)``, ``K``, ``Quu``, ``Qux``, ``chol`` of the factorisation;
     ``q, r, qN, c`` the right-hand side; ``held (B, N, nu)`` the held controls and ``value (B, N, nu)`` the
     values they are held at (declared bounds, else ``None``)."""
-    Bsz, N, nx = P.shape[0], K.shape[1], P.shape[-1]
-    nu = K.shape[-2]
-    WTs, Ps = _stages(_mT(W)), _stages(P)
-    ET = _stages(torch.cat([torch.eye(nx, dtype=K.dtype, device=K.device).expand(Bsz, N, nx, nx), _mT(K)], -1))
-    Ms = _stages(_mT(matmul(Quu, K) + Qux))
-    qz, cs = _columns(torch.cat([q, r], -1)), _columns(c)
+    N, nx, nu = K.shape[1], P.shape[-1], K.shape[-2]
+    WTs, Ps, ET, Ms, qz, cs = stage_terms(W, P, K, Quu, Qux, q, r, c)
     if nu == 1:  # k = g Q_u, with g = −1 / (Q_uu + ρ) (zero on held controls)
         gain = -1.0 / (chol * chol)
         if held is not None:
