@@ -30,6 +30,9 @@ class Status(enum.IntEnum):
     MAX_REGULARIZATION = 4
     #: The initial guess could not be used (e.g. non-finite rollout of the initial controls).
     INFEASIBLE_START = 5
+    #: Converged to a stationary point of the constraint violation that is not feasible: the instance is
+    #: (locally) infeasible (the interior-point method's restoration phase, Wächter & Biegler 2006 §3.3).
+    LOCALLY_INFEASIBLE = 6
 
     @classmethod
     def describe(cls, status: torch.Tensor) -> list:

@@ -46,6 +46,8 @@ class Final:
 
     X: Tensor
     U: Tensor
+    s: Tensor
+    sN: Tensor
     lam: Tensor
     z: Tensor
     zN: Tensor
@@ -59,7 +61,7 @@ class Final:
 
     @classmethod
     def of(cls, it: Iterate, model: Model, status: Tensor, iterations: Tensor, K: Tensor) -> "Final":
-        return cls(X=it.X, U=it.U, lam=it.lam, z=it.z, zN=it.zN, nu=it.nu, nuN=it.nuN, J=model.J,
+        return cls(X=it.X, U=it.U, s=it.s, sN=it.sN, lam=it.lam, z=it.z, zN=it.zN, nu=it.nu, nuN=it.nuN, J=model.J,
                    violation=model.violation, status=status, iterations=iterations, K=K)
 
     def write(self, index: Tensor, rows: "Final") -> "Final":

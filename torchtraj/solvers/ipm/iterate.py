@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Optional
 
 from torch import Tensor
 
@@ -24,7 +25,6 @@ class Iterate:
     lam: Tensor
     nu: Tensor
     nuN: Tensor
-
 
 
 @dataclass
@@ -52,3 +52,18 @@ class Model:
     primal_error: Tensor  # (B,) largest residual of the barrier problem's constraints
     finite: Tensor  # (B,)
     knots: Tensor  # (N, mi): 1 where a stage inequality row applies
+
+
+@dataclass
+class Hooks:
+    """What a caller of the iteration (:func:`~torchtraj.solvers.ipm.solver.run`) may set per instance; the
+    restoration phase (:mod:`~torchtraj.solvers.ipm.restoration`) solves its own problem with them.
+
+    ``barrier (B,)``: initial ``μ`` (else ``IPOptions.barrier_initial``); ``budget (B,)``: iterations left (else
+    ``IPOptions.iterations``); ``start(it) -> Iterate``: changes the initial iterate; ``leave(params, it, model)
+    -> (B,)``: the instances that may stop now, reported ``CONVERGED``."""
+
+    barrier: Optional[Tensor] = None
+    budget: Optional[Tensor] = None
+    start: Optional[Callable] = None
+    leave: Optional[Callable] = None

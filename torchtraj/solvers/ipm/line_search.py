@@ -46,7 +46,7 @@ def _max_step(value: Tensor, step: Tensor, tau: Tensor) -> Tensor:
     return torch.cat([ratio, ratio.new_ones(ratio.shape[0], 1)], -1).amin(-1)
 
 
-def _log_barrier(s: Tensor, sN: Tensor, knots: Tensor) -> Tensor:
+def log_barrier(s: Tensor, sN: Tensor, knots: Tensor) -> Tensor:
     """``Σ log s`` over the rows that apply: ``(B, *E)``."""
     stage = torch.where(knots > 0, torch.log(s), 0.0).flatten(-2).sum(-1)
     return stage + torch.log(sN).sum(-1)
@@ -82,7 +82,7 @@ def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPO
     fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``, the barrier objective ``φ`` and its slope ``∇φ · Δ``."""
     a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
     knots = model.knots
-    phi = model.J - mu * _log_barrier(it.s, it.sN, knots)
+    phi = model.J - mu * log_barrier(it.s, it.sN, knots)
     barrier_slope = torch.where(knots > 0, d.ds / it.s, 0.0).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
     slope = _cost_directional(model, it, d) - mu * barrier_slope
     return a_max, a_dual, phi, slope
@@ -108,7 +108,7 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     rows = constraint_parts(cons, Xc, Uc, params, jacobians=False)
     parts = (defects, rows.h, rows.hN, (rows.g + sc) * knots, rows.gN + sNc)
     theta_c = torch.cat([p.reshape(B, L, -1).abs() for p in parts], -1).sum(-1)
-    phi_c = Jc - mu.unsqueeze(1) * _log_barrier(sc, sNc, knots)
+    phi_c = Jc - mu.unsqueeze(1) * log_barrier(sc, sNc, knots)
     theta, phi, slope = model.theta.unsqueeze(1), phi.unsqueeze(1), slope.unsqueeze(1)
     switching = (slope < 0) & (alphas * (-slope).clamp_min(0) ** opts.switching_phi_power
                                > opts.switching * theta ** opts.switching_theta_power)

@@ -94,6 +94,21 @@ class IPOptions:
     #: bounds its ``μ`` (``mu_max_fact``).
     mehrotra_sigma_max: float = 100.0
     mehrotra_mu_max_factor: float = 1e3
+    #: Feasibility restoration (Wächter & Biegler 2006 §3.3, :mod:`~torchtraj.solvers.ipm.restoration`): where the
+    #: filter line search finds no step, minimise the ℓ1 infeasibility from there, ``ρ Σ (p + n) + ζ/2 ‖D_R (w −
+    #: w_R)‖²`` (``resto_penalty_parameter`` ρ; ``ζ = restoration_proximity √μ_R``, ``resto_proximity_weight``), and
+    #: return once the point is acceptable to the filter and ``θ ≤ κ_resto θ_R`` (``required_infeasibility_reduction``).
+    #: Off: such an instance retries with a larger ``δ_w`` until ``regularization_max``. ``ρ`` is 10, not IPOPT's
+    #: 1000: a violated relaxed row's multiplier goes to ``ρ``, and on the circles of ``car_3obs`` (``∇²g = −2I``)
+    #: that is a curvature of ``−2ρ`` that the inertia correction has to cover; with 1000 the restoration phase
+    #: there creeps (steps of 1e-3) and ends ``MAX_REGULARIZATION``; with 10 the solve converges in 139 iterations.
+    restoration: bool = True
+    restoration_penalty: float = 10.0
+    restoration_proximity: float = 1.0
+    restoration_reduction: float = 0.9
+    #: After a restoration phase, inequality multipliers above this are reset to 1 (``bound_mult_reset_threshold``);
+    #: the costates and equality multipliers restart at zero (``constr_mult_reset_threshold`` = 0).
+    restoration_multiplier_reset: float = 1000.0
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,

@@ -47,9 +47,11 @@ from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
 from .expansion import Base, expand, initial_iterate, kkt_error
 from .kernels import kernel_of, uses_graphs
+from .iterate import Hooks
 from .line_search import line_search
 from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
+from .restoration import restore
 
 logger = logging.getLogger("torchtraj")
 
@@ -59,7 +61,20 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     """Solve the ``batch`` of instances of ``problem``: from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
     optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting starts from defects; without it the
     controls are rolled out), with the parameters batched to B."""
-    opts = options or IPOptions()
+    out, cons, records = run(problem, batch, options or IPOptions(), method=method)
+    knots = cons.ineq_knot_mask
+    multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
+    return Solution(
+        X=out.X, U=out.U, K=out.K, cost=out.J, max_violation=out.violation, status=out.status,
+        iterations=out.iterations, history=full_history(records), costate=out.lam, multipliers=multipliers,
+        method=method,
+    )
+
+
+def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] = None, method: str = "ipm"):
+    """The iteration of :func:`solve_interior_point` (module docstring), with the caller's per-instance
+    :class:`Hooks`. Returns ``(Final, Constraints, history records)``."""
+    hooks = hooks or Hooks()
     x0, U0, X0, params = batch.x0, batch.U0, batch.X0, batch.params
     B, N, nx = x0.shape[0], problem.N, problem.nx
     cons = Constraints.of(problem)
@@ -69,9 +84,16 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     else:
         X = torch.cat([x0.unsqueeze(1), X0[:, 1:]], 1)
     it = initial_iterate(cons, params, X, U0, opts)
+    if hooks.start is not None:
+        it = hooks.start(it)
     expand_k = kernel_of(expand, opts, x0.device)
     direction_k = kernel_of(direction, opts, x0.device)
-    mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device)
+    mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
+        else hooks.barrier.clone()
+    budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
+        else hooks.budget
+    restoring = opts.restoration and hooks.leave is None  # a restoration phase has none of its own
+    budgeted = hooks.budget is not None  # else the loop's own count is the budget, until a restoration phase
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
     start_ok = torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(U0).flatten(1).all(-1)
     status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
@@ -103,7 +125,11 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
         running = status == Status.RUNNING
         error = kkt_error(cons, model, it, opts)
         status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
-        status = torch.where(running & model.finite & (error <= tol), int(Status.CONVERGED), status)
+        done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
+        status = torch.where(running & model.finite & done, int(Status.CONVERGED), status)
+        if budgeted and step < opts.iterations:  # a budget (Hooks), or iterations a restoration phase took
+            status = torch.where(running & (iterations >= budget) & (status == Status.RUNNING),
+                                 int(Status.MAX_ITERATIONS), status)
         diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
         status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
         running = status == Status.RUNNING
@@ -130,9 +156,9 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
             index = keep if index is None else index[keep]
             it, model, filt, base = gather_rows(it, keep), gather_rows(model, keep), gather_rows(filt, keep), \
                 None if base is None else gather_rows(base, keep)
-            mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running, ceiling = (
+            mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running, ceiling, budget = (
                 v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running,
-                                  ceiling))
+                                  ceiling, budget))
             params = param_rows(params, keep)
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
@@ -159,9 +185,18 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
         K = where_rows(take, d.K, K)
         last = torch.where(take & (delta > 0), delta, last)
         missed = factored & ~ls.found
+        if restoring and bool(missed.any()):  # W&B 2006 §3.3: the instances whose line search failed
+            back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, missed, budget - iterations,
+                           opts, run)
+            it, filt = back.it, back.filter
+            status = torch.where(missed & ~back.returned, back.status, status)
+            iterations = iterations + back.iterations
+            missed = missed & ~back.returned
+            floor = torch.where(back.returned, 0.0, floor)
+            budgeted = True
         floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
                                                 min=opts.regularization_first), torch.where(take, 0.0, floor))
-        blown = running & (~d.ok | (floor > opts.regularization_max))
+        blown = running & (~d.ok | (floor > opts.regularization_max)) & (status == Status.RUNNING)
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         iterations = iterations + running.long()
         records.append((index, history_row(model, torch.where(take, ls.alpha, 0.0), delta, mu, error), True))
@@ -171,11 +206,4 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
                         running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
     out = Final.of(it, model, status, iterations, K)
-    out = out if final is None else final.write(index, out)
-    knots = cons.ineq_knot_mask
-    multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
-    return Solution(
-        X=out.X, U=out.U, K=out.K, cost=out.J, max_violation=out.violation, status=out.status,
-        iterations=out.iterations, history=full_history(records), costate=out.lam, multipliers=multipliers,
-        method=method,
-    )
+    return (out if final is None else final.write(index, out)), cons, records
