@@ -339,10 +339,11 @@ def test_duals_are_refused():
 
 @pytest.mark.slow
 def test_obstacles_without_restoration_end_with_a_status():
-    """car_3obs from the problem set's guess: the method has no restoration phase and (today) does not
-    converge; it must still return a per-instance, non-RUNNING status, and a finite point if converged."""
+    """car_3obs from the problem set's guess with the restoration phase off (``IPOptions(restoration=False)``;
+    with it, tests/test_ipm_restoration.py): it must still return a per-instance, non-RUNNING status, and a finite
+    point if converged."""
     problem = tt.problems.get("car_3obs")
-    sol = tt.solve(problem, method="ipm")
+    sol = tt.solve(problem, method="ipm", options=tt.IPOptions(restoration=False))
     assert isinstance(sol, tt.Solution) and sol.status.shape == (1,)
     status = int(sol.status[0])
     assert status in {int(s) for s in tt.Status} and status != tt.Status.RUNNING

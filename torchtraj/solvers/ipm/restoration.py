@@ -32,7 +32,7 @@ restoration ends as soon as that point is acceptable to the augmented filter, be
 ``μ``; inequality multipliers above 1000 are reset to 1, costates and equality multipliers to zero (IPOPT's
 ``bound_mult_reset_threshold``, ``constr_mult_reset_threshold``). **Local infeasibility**: where the restoration
 problem converges (its own ``E_0 ≤ tol``) at a point the filter does not accept, the instance is a stationary point
-of the infeasibility: :attr:`~torchtraj.core.status.Status.LOCALLY_INFEASIBLE`. Any other ending of the restoration
+of the infeasibility: :attr:`~torchtraj.core.status.Status.LOCALLY_INFEASIBLE`, reported at that point. Any other ending of the restoration
 (iterations, regularisation) is the instance's status. A restoration phase does not enter one of its own (a failed
 line search there raises ``δ_w``), and ``ζ`` is fixed for the phase at its start (IPOPT lets it follow ``μ``).
 """
@@ -236,7 +236,7 @@ def restore(problem: Problem, cons: Constraints, params, x0: Tensor, it: Iterate
                    lam=torch.zeros_like(its.lam), nu=torch.zeros_like(its.nu), nuN=torch.zeros_like(its.nuN))
     status = torch.where(converged, int(Status.LOCALLY_INFEASIBLE), final.status)
     zeros = torch.zeros_like(entering, dtype=torch.long)
-    return Restored(it=_scatter(it, index, pick(returned, rows, its)), filter=_scatter(filt, index, augmented),
+    return Restored(it=_scatter(it, index, pick(converged, rows, its)), filter=_scatter(filt, index, augmented),
                     returned=zeros.bool().index_copy(0, index, returned),
                     status=zeros.index_copy(0, index, status), iterations=zeros.index_copy(0, index, final.iterations))
 
