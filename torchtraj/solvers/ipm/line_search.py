@@ -22,6 +22,7 @@ entry.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
@@ -33,6 +34,7 @@ from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...globalization.line_search import Accepted, backtrack
 from ...kkt.model import total_cost
+from .compaction import pick
 from .expansion import constraint_parts
 from .iterate import Iterate, Model
 from .kernels import kernel_of
@@ -94,8 +96,9 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     """The filter tests (module docstring) at the step sizes ``alphas (B, l)``, all evaluated at once, from the
     current barrier objective ``phi`` and its slope ``slope`` (:func:`step_measures`).
 
-    Returns ``accept (B, l)`` and ``f_type (B, l)``: the step is an f-type step that met the Armijo condition
-    (no filter entry is added for those)."""
+    Returns ``accept (B, l)``, ``f_type (B, l)``: the step is an f-type step that met the Armijo condition
+    (no filter entry is added for those), the candidates' ``θ (B, l)`` and their residuals ``(defects, h, hN,
+    g + s, gN + sN)`` (``(B, l, ...)`` each; a second-order correction starts from them)."""
     B, L = alphas.shape
     knots = model.knots
     a4 = alphas.reshape(B, L, 1, 1)
@@ -118,7 +121,7 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     finite = torch.isfinite(theta_c) & torch.isfinite(phi_c)
     accept = finite & (theta_c <= theta_max.unsqueeze(1)) & filt.acceptable(theta_c, phi_c) \
         & torch.where(f_type, armijo, decrease)
-    return accept, f_type & armijo
+    return accept, f_type & armijo, theta_c, parts
 
 
 def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor, knots: Tensor,
@@ -151,9 +154,13 @@ class Step:
 
 
 def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
-                filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor, opts: IPOptions) -> Step:
+                filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor, opts: IPOptions,
+                correct: Optional[Callable] = None) -> Step:
     """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation; a further
-    round only while a ``pending`` instance has found no acceptable step."""
+    round only while a ``pending`` instance has found no acceptable step. ``correct(need, α_max, φ, ∇φ·Δ,
+    residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`) of the instances ``need (B,)``
+    whose first trial point was rejected with ``θ`` not below the current one; where it finds a step, that step is
+    taken instead of a shorter one (W&B 2006 §2.3)."""
     L = opts.line_search_steps
     a_max, a_dual, phi, slope = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
     size, round_off = step_and_round_off(it, d)
@@ -161,9 +168,13 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     powers = opts.line_search_decrease ** torch.arange(L, dtype=it.X.dtype, device=it.X.device)
     filter_test = kernel_of(trial, opts, it.X.device)
 
+    first = []  # the first round's rejected full steps, for the second-order correction
+
     def acceptable(alphas):
-        accept, f_ok = filter_test(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min,
-                                   alphas, opts)
+        accept, f_ok, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi, slope, filt,
+                                                   theta_max, theta_min, alphas, opts)
+        if not first:
+            first.append((accept[:, 0], theta_c[:, 0], parts))
         return accept, (f_ok,)
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny,))
@@ -171,6 +182,17 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     steps = backtrack(a_max.unsqueeze(1) * powers, max(1, opts.line_search_parallel), acceptable, pending, start,
                       sync_first=True)
     found, alpha, (f_type,) = steps.found, steps.alpha, steps.values
+    corrected = None
+    if correct is not None and first:
+        accepted, theta_first, parts = first[0]
+        need = pending & ~tiny & ~accepted & (theta_first >= model.theta)
+        if bool(need.any()):
+            corrected = correct(need, a_max, phi, slope, parts)
+            alpha = torch.where(corrected.found, corrected.alpha, alpha)
+            f_type = torch.where(corrected.found, corrected.f_type, f_type)
+            found = found | corrected.found
     filt = filt.add(found & ~f_type, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
     new_it = kernel_of(advance, opts, it.X.device)(it, d, alpha, a_dual, mu, model.knots, opts)
+    if corrected is not None:
+        new_it = pick(corrected.found, corrected.it, new_it)
     return Step(new_it, alpha, found, filt)

@@ -94,6 +94,10 @@ class IPOptions:
     #: bounds its ``μ`` (``mu_max_fact``).
     mehrotra_sigma_max: float = 100.0
     mehrotra_mu_max_factor: float = 1e3
+    #: Second-order corrections of a rejected full step (W&B 2006 §2.3, :mod:`~torchtraj.solvers.ipm.soc`): at most
+    #: this many (``max_soc``; 0: none), stopped when ``θ`` does not fall by ``soc_decrease`` (``kappa_soc``).
+    second_order_corrections: int = 4
+    soc_decrease: float = 0.99
     #: Feasibility restoration (Wächter & Biegler 2006 §3.3, :mod:`~torchtraj.solvers.ipm.restoration`): where the
     #: filter line search finds no step, minimise the ℓ1 infeasibility from there, ``ρ Σ (p + n) + ζ/2 ‖D_R (w −
     #: w_R)‖²`` (``resto_penalty_parameter`` ρ; ``ζ = restoration_proximity √μ_R``, ``resto_proximity_weight``), and

@@ -52,6 +52,7 @@ from .line_search import line_search
 from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
+from .soc import second_order_correction
 
 logger = logging.getLogger("torchtraj")
 
@@ -178,7 +179,12 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
         else:
-            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts)
+            def correct(need, a_max, phi, slope, first):  # W&B §2.3, on this iteration's system
+                return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
+                                               theta_min, need, a_max, first, lqr, delta, x0, opts)
+
+            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts,
+                             correct if opts.second_order_corrections > 0 else None)
         take = factored & ls.found
         it = pick(take, ls.it, it)
         filt = pick(take, ls.filter, filt)

@@ -1,0 +1,41 @@
+"""The interior-point method's second-order corrections (Wächter & Biegler 2006 §2.3), against the analytic optimum.
+
+A terminal equality on the unit circle, ``|x_N|² = 1``, and a terminal cost ``2(|x_N|² − 1) − x_{N,1}`` (the
+classical Maratos example on the circle), started on the circle at the angle 0.5: the linearised constraint is the
+tangent, so the full Newton step leaves the circle, its ``θ`` grows, and the filter rejects it. With the correction
+every step is taken whole; without it the line search halves the second step. Either way the solution is the
+analytic optimum ``x_N = (1, 0)``, ``u_k = (1/2, 0)``, cost ``−1 + 10⁻³ · 2 · (1/2)² = −0.9995``.
+"""
+
+import math
+
+import torch
+
+import torchtraj as tt
+
+F64 = torch.float64
+
+
+def circle_problem() -> tt.Problem:
+    return tt.Problem(
+        dynamics=lambda x, u, p: x + u,
+        stage_cost=lambda x, u, p: 1e-3 * (u * u).sum(),
+        terminal_cost=lambda x, p: 2.0 * ((x * x).sum() - 1.0) - x[0],
+        terminal_eq=lambda x, p: ((x * x).sum() - 1.0).reshape(1),
+        x0=torch.zeros(2, dtype=F64), horizon=2, nu=2)
+
+
+def test_second_order_correction_rescues_the_full_step_on_a_curved_constraint():
+    problem = circle_problem()
+    xN = torch.tensor([math.cos(0.5), math.sin(0.5)], dtype=F64)
+    X0, U0 = torch.stack([torch.zeros(2, dtype=F64), xN / 2, xN]), torch.stack([xN / 2, xN / 2])
+    solve = lambda soc: tt.solve(problem, method="ipm", X0=X0, U0=U0,  # noqa: E731
+                                 options=tt.IPOptions(second_order_corrections=soc))
+    with_soc, without = solve(4), solve(0)
+    for sol in (with_soc, without):
+        assert sol.status.tolist() == [tt.Status.CONVERGED]
+        assert abs(float(sol.cost[0]) + 0.9995) < 1e-9
+        torch.testing.assert_close(sol.X[0, -1], torch.tensor([1.0, 0.0], dtype=F64), rtol=0, atol=1e-8)
+    assert bool((without.history.step_size[0] < 1).any())  # the filter rejected a full step
+    assert bool((with_soc.history.step_size[0] == 1).all())  # the corrected full step was taken instead
+    assert int(with_soc.iterations[0]) < int(without.iterations[0])

@@ -1,0 +1,91 @@
+r"""Second-order corrections of a rejected full step (Wächter & Biegler 2006 §2.3, "second-order corrections").
+
+Where the first trial point ``w + α_max Δw`` of the filter line search is rejected and its constraint violation
+did not decrease, ``θ(w + α_max Δw) ≥ θ(w)`` — the Maratos effect of a curved constraint, whose linearisation
+the full step leaves —, the step is corrected before a shorter one is tried: the same factorised system (the
+primal-dual matrix does not change) is solved for the constraint right-hand side
+
+.. math::  c^{soc}_{p+1} = α^{soc}_p\, c^{soc}_p + c(w + α^{soc}_p Δw^{soc}_p), \qquad
+           c^{soc}_0 = α_{max}\, c(w) + c(w + α_{max} Δw),
+
+for every row ``c`` of the barrier problem (defects, ``h``, ``h_N``, ``g + s``, ``g_N + s_N``): replacing the
+residuals by ``c^{soc}`` in the right-hand side of the reduced system (:func:`~torchtraj.solvers.ipm.newton.newton_rhs`)
+gives the corrected step ``Δw^{soc}`` (its ``Δs``, ``Δz`` by FATROP eq. 8 from the same residuals). Its largest step
+to the boundary ``α^{soc}`` is tried with the filter test of the line search; at most ``p_max`` corrections
+(``IPOptions.second_order_corrections``, IPOPT's ``max_soc`` = 4), stopped once
+``θ(w + α^{soc} Δw^{soc}) > κ_soc θ`` of the previous trial (``soc_decrease`` κ_soc = 0.99). An accepted corrected
+step is taken instead of any shorter step of the original direction. The Armijo test of a corrected step uses its
+own ``α^{soc}`` times the original slope (W&B use ``α_max``); the system is factorised again (the line search keeps
+no factor), which is paid only by the iterations that correct.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ...core.constraints import Constraints
+from ...core.problem import Problem
+from ...globalization.filter import Filter
+from ...riccati import LQR, factorize
+from .compaction import pick
+from .iterate import Iterate, Model
+from .line_search import advance, fraction_to_boundary, trial
+from .newton import Direction, direction, newton_rhs
+from .options import IPOptions
+
+
+@dataclass
+class Correction:
+    """Per instance: a corrected step was accepted ``found (B,)``, its size ``alpha (B,)``, whether it was an f-type
+    step ``f_type (B,)``, and the iterate after it ``it``."""
+
+    found: Tensor
+    alpha: Tensor
+    f_type: Tensor
+    it: Iterate
+
+
+def _scaled(alpha: Tensor, value: Tensor) -> Tensor:
+    return alpha.reshape(-1, *[1] * (value.dim() - 1)) * value
+
+
+def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
+                            mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
+                            theta_min: Tensor, need: Tensor, a_max: Tensor, first: tuple, lqr: LQR, delta: Tensor,
+                            x0: Tensor, opts: IPOptions) -> Correction:
+    """The corrections (module docstring) of the instances ``need (B,)``, from the residuals ``first`` of the rejected
+    trial points (``(B, l, ...)`` each, the full step first) and the system ``lqr`` regularised by ``δ_w``."""
+    knots, nx = model.knots, it.X.shape[-1]
+    tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
+    current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
+    c_soc = tuple(_scaled(a_max, c) + t[:, 0] for c, t in zip(current, first))
+    theta_old = torch.cat([t[:, 0].reshape(t.shape[0], -1).abs() for t in first], -1).sum(-1)
+    factor = factorize(lqr, shift=delta, sweep=opts.sweep)
+    found = torch.zeros_like(need)
+    alpha, f_type, best = torch.zeros_like(mu), torch.zeros_like(need), d
+    a_dual = torch.zeros_like(mu)
+    active = need
+    for _ in range(opts.second_order_corrections):
+        if not bool(active.any()):
+            break
+        defects, h, hN, gs, gsN = c_soc
+        corrected = dataclasses.replace(model, f=defects + it.X[:, 1:], h=h, hN=hN, g=(gs - it.s) * knots,
+                                        gN=gsN - it.sN)
+        step = direction(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, factor=factor)
+        a_soc, a_dual_soc = fraction_to_boundary(it, step, tau)
+        accept, f_ok, theta_c, parts = trial(problem, cons, params, it, step, model, mu, phi, slope, filt, theta_max,
+                                             theta_min, a_soc.unsqueeze(1), opts)
+        new = active & accept[:, 0] & step.ok
+        found = found | new
+        alpha, a_dual = torch.where(new, a_soc, alpha), torch.where(new, a_dual_soc, a_dual)
+        f_type = torch.where(new, f_ok[:, 0], f_type)
+        best = pick(new, step, best)
+        active = active & ~new & step.ok & (theta_c[:, 0] <= opts.soc_decrease * theta_old)
+        theta_old = theta_c[:, 0]
+        c_soc = tuple(_scaled(a_soc, c) + t[:, 0] for c, t in zip(c_soc, parts))
+    return Correction(found=found, alpha=alpha, f_type=f_type,
+                      it=advance(it, best, alpha, a_dual, mu, knots, opts))
