@@ -246,7 +246,8 @@ def test_pendulum_state_guess(reference):
 # ---------------------------------------------------------------------------------- unconstrained
 def test_unconstrained_problem_matches_ilqr():
     """pendulum_unconstrained from the problem's guess: iLQR (tight) and the IPM end at the same local
-    optimum (0.0137812669, test_ilqr.py; IPOPT finds another one from this guess). The cost is flat along
+    optimum (0.0137812669, test_ilqr.py; IPOPT finds another one from this guess, and so does the IPM with its
+    least-squares initial costates, tests/test_ipm_globalization.py: here they start at zero). The cost is flat along
     part of the swing: tight iLQR stops 7.6e-11 above in cost, 1e-3 away in U, with a reduced gradient of
     6e-8. So: the costs agree to 1e-10, the IPM's reduced gradient (autograd through a rollout) vanishes,
     and iLQR started at the IPM's controls stops there at once."""
@@ -255,7 +256,7 @@ def test_unconstrained_problem_matches_ilqr():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ilqr = tt.solve(problem, method="ilqr", options=tight)
-    ipm = tt.solve(problem, method="ipm", options=tt.IPOptions(tolerance=1e-10))
+    ipm = tt.solve(problem, method="ipm", options=tt.IPOptions(tolerance=1e-10, least_squares_multipliers=False))
     assert ilqr.status[0] == tt.Status.CONVERGED and ipm.status[0] == tt.Status.CONVERGED
     assert ipm.multipliers == {} and float(ipm.max_violation[0]) < 1e-10  # only the dynamics
     assert abs(float(ipm.cost[0]) - float(ilqr.cost[0])) < 1e-10

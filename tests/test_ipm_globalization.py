@@ -11,6 +11,7 @@ import math
 
 import torch
 
+
 import torchtraj as tt
 
 F64 = torch.float64
@@ -39,3 +40,18 @@ def test_second_order_correction_rescues_the_full_step_on_a_curved_constraint():
     assert bool((without.history.step_size[0] < 1).any())  # the filter rejected a full step
     assert bool((with_soc.history.step_size[0] == 1).all())  # the corrected full step was taken instead
     assert int(with_soc.iterations[0]) < int(without.iterations[0])
+
+
+def test_least_squares_multipliers_take_ipopts_path(reference):
+    """pendulum_unconstrained from the problem set's guess (constraints: the dynamics alone, so the estimate is of
+    the costates): started at the least-squares costates (W&B §3.6) the IPM reaches IPOPT's optimum in IPOPT's
+    iterations; started at zero costates it takes more and ends at another local optimum (the one iLQR finds,
+    tests/test_interior_point.py)."""
+    problem = tt.problems.get("pendulum_unconstrained")
+    ipopt = reference["pendulum_unconstrained"]["ipopt"]
+    estimated = tt.solve(problem, method="ipm")
+    zero = tt.solve(problem, method="ipm", options=tt.IPOptions(least_squares_multipliers=False))
+    assert estimated.status.tolist() == zero.status.tolist() == [tt.Status.CONVERGED]
+    assert abs(float(estimated.cost[0]) - ipopt["cost"]) / ipopt["cost"] < 1e-8
+    assert int(estimated.iterations[0]) <= ipopt["iterations"] < int(zero.iterations[0])
+    assert abs(float(zero.cost[0]) - ipopt["cost"]) / ipopt["cost"] > 0.5

@@ -94,6 +94,11 @@ class IPOptions:
     #: bounds its ``μ`` (``mu_max_fact``).
     mehrotra_sigma_max: float = 100.0
     mehrotra_mu_max_factor: float = 1e3
+    #: Start the costates and the equality and inequality-row multipliers at their least-squares estimate
+    #: (W&B 2006 §3.6, :mod:`~torchtraj.solvers.ipm.initialization`), kept where its largest entry is at most
+    #: ``multiplier_init_max`` (``constr_mult_init_max``), else zero.
+    least_squares_multipliers: bool = True
+    multiplier_init_max: float = 1000.0
     #: Second-order corrections of a rejected full step (W&B 2006 §2.3, :mod:`~torchtraj.solvers.ipm.soc`): at most
     #: this many (``max_soc``; 0: none), stopped when ``θ`` does not fall by ``soc_decrease`` (``kappa_soc``).
     second_order_corrections: int = 4

@@ -47,6 +47,7 @@ from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
 from .expansion import Base, expand, initial_iterate, kkt_error
 from .kernels import kernel_of, uses_graphs
+from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .line_search import line_search
 from .newton import direction, newton_lqr, regularized_direction
@@ -120,6 +121,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
             base = Base(it.X, it.U, model)
+        if step == 0 and opts.least_squares_multipliers and hooks.start is None:  # W&B §3.6, then re-expanded
+            it = least_squares_multipliers(model, it, status == Status.RUNNING, opts)
+            model = expand_k(problem, cons, params, it, opts, base)
         if theta_max is None:
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
             theta_max, theta_min = opts.theta_max_factor * theta_0, opts.theta_min_factor * theta_0
