@@ -247,7 +247,10 @@ def test_pendulum_state_guess(reference):
 def test_unconstrained_problem_matches_ilqr():
     """pendulum_unconstrained from the problem's guess: iLQR (tight) and the IPM end at the same local
     optimum (0.0137812669, test_ilqr.py; IPOPT finds another one from this guess, and so does the IPM with its
-    least-squares initial costates, tests/test_ipm_globalization.py: here they start at zero). The cost is flat along
+    least-squares initial costates, tests/test_ipm_globalization.py: here they start at zero, and no second-order
+    correction is taken: with them the IPM ends at a KKT point of its own (stationarity 1.2e-14) whose defects of
+    1.1e-11 the unstable swing amplifies to 7.5e-7 in the rollout the reduced gradient below is taken on, which is
+    then 2.9e-3). The cost is flat along
     part of the swing: tight iLQR stops 7.6e-11 above in cost, 1e-3 away in U, with a reduced gradient of
     6e-8. So: the costs agree to 1e-10, the IPM's reduced gradient (autograd through a rollout) vanishes,
     and iLQR started at the IPM's controls stops there at once."""
@@ -256,7 +259,8 @@ def test_unconstrained_problem_matches_ilqr():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ilqr = tt.solve(problem, method="ilqr", options=tight)
-    ipm = tt.solve(problem, method="ipm", options=tt.IPOptions(tolerance=1e-10, least_squares_multipliers=False))
+    ipm = tt.solve(problem, method="ipm", options=tt.IPOptions(tolerance=1e-10, least_squares_multipliers=False,
+                                                                   second_order_corrections=0))
     assert ilqr.status[0] == tt.Status.CONVERGED and ipm.status[0] == tt.Status.CONVERGED
     assert ipm.multipliers == {} and float(ipm.max_violation[0]) < 1e-10  # only the dynamics
     assert abs(float(ipm.cost[0]) - float(ilqr.cost[0])) < 1e-10
@@ -404,7 +408,8 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
         out[declared] = (sol, list(calls), torch.autograd.grad(loss, [x0, k, goal]))
     (plain, plain_calls, plain_grads), (lq, lq_calls, lq_grads) = out[False], out[True]
     assert lq_calls == ["quadratic_stage_hessian"]
-    assert plain_calls == ["problem_lagrangian_expansion"] * (int(plain.iterations.max()) + 1)
+    # one per iterate, and the first iterate's again with its least-squares multipliers
+    assert plain_calls == ["problem_lagrangian_expansion"] * (int(plain.iterations.max()) + 2)
     assert torch.equal(lq.iterations, plain.iterations)
     X, U = lq.X.detach(), lq.U.detach()
     assert bool(((X[:, 1:-1, 0] < -0.2 + 1e-6).sum(-1) >= 1).all())  # the state row holds on an arc

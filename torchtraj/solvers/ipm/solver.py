@@ -6,24 +6,29 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 :func:`solve_interior_point`, for every instance still running, is:
 
 1. the model at the iterate and its optimality measures ``E_μ``, ``θ``
-   (:mod:`~torchtraj.solvers.ipm.expansion`); converged where ``E_0 ≤ tol``;
+   (:mod:`~torchtraj.solvers.ipm.expansion`); converged where ``E_0 ≤ tol``; at the first iterate, the
+   least-squares multipliers (:mod:`~torchtraj.solvers.ipm.initialization`, W&B §3.6);
 2. for a linear-quadratic problem, the active-set crossover of the instances near a solution
    (:mod:`~torchtraj.solvers.ipm.crossover_driver`, :mod:`~torchtraj.solvers.ipm.crossover`);
 3. the barrier update, monotone or Mehrotra's (:mod:`~torchtraj.solvers.ipm.barrier`);
 4. the Newton step: the reduced primal-dual system as an LQR problem, factorised with IPOPT's inertia correction
    (:mod:`~torchtraj.solvers.ipm.newton`, :mod:`torchtraj.globalization.regularization`);
-5. the filter line search with the fraction-to-boundary rule (:mod:`~torchtraj.solvers.ipm.line_search`,
-   :mod:`torchtraj.globalization`), or Mehrotra's corrector taken whole;
-6. finished instances leave the batch being iterated (:mod:`~torchtraj.solvers.ipm.compaction`).
+5. the filter line search with the fraction-to-boundary rule and second-order corrections
+   (:mod:`~torchtraj.solvers.ipm.line_search`, :mod:`~torchtraj.solvers.ipm.soc`, :mod:`torchtraj.globalization`),
+   or Mehrotra's corrector taken whole;
+6. where no step was found, the feasibility restoration phase of those instances, gathered
+   (:mod:`~torchtraj.solvers.ipm.restoration`, W&B §3.3): back with a point the filter accepts, or
+   ``LOCALLY_INFEASIBLE``;
+7. finished instances leave the batch being iterated (:mod:`~torchtraj.solvers.ipm.compaction`).
 
-The defaults are IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), in :class:`IPOptions`.
+The defaults are IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), in :class:`IPOptions`, but for the
+restoration phase's penalty ``ρ`` (see there).
 
-Left out, and what happens instead: there is no feasibility-restoration phase and no second-order
-correction. An instance whose line search finds no acceptable step keeps its iterate and
-retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regularization_max`` its status
-is ``MAX_REGULARIZATION``. The filter holds the last ``filter_size`` entries of each instance.
-Multipliers start at zero (``λ``, ``ν``, ``y``) and ``dual_initial`` (``z``), not at IPOPT's least-squares
-estimate; slacks at ``max(−g, κ_1)``.
+Left out: the watchdog (W&B §3.2), the filter reset heuristic, the tiny-step rule's multiplier test (§3.9) and
+the perturbation ``δ_c`` for degenerate constraint Jacobians (§3.1). With ``IPOptions(restoration=False)`` an
+instance whose line search finds no acceptable step keeps its iterate and retries with a larger ``δ_w`` (a
+shorter, more gradient-like step); past ``regularization_max`` its status is ``MAX_REGULARIZATION``; so does a
+restoration phase whose own line search fails. The filter holds the last ``filter_size`` entries of each instance.
 """
 
 from __future__ import annotations
@@ -201,12 +206,12 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             it, filt = back.it, back.filter
             status = torch.where(missed & ~back.returned, back.status, status)
             iterations = iterations + back.iterations
-            missed = missed & ~back.returned
             floor = torch.where(back.returned, 0.0, floor)
+            missed = torch.zeros_like(missed)  # back, or ended with the restoration's status: no larger δ_w
             budgeted = True
         floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
                                                 min=opts.regularization_first), torch.where(take, 0.0, floor))
-        blown = running & (~d.ok | (floor > opts.regularization_max)) & (status == Status.RUNNING)
+        blown = running & (~d.ok | (floor > opts.regularization_max))
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         iterations = iterations + running.long()
         records.append((index, history_row(model, torch.where(take, ls.alpha, 0.0), delta, mu, error), True))
