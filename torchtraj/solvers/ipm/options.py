@@ -107,7 +107,8 @@ class IPOptions:
     #: filter line search finds no step, minimise the ℓ1 infeasibility from there, ``ρ Σ (p + n) + ζ/2 ‖D_R (w −
     #: w_R)‖²`` (``resto_penalty_parameter`` ρ; ``ζ = restoration_proximity √μ_R``, ``resto_proximity_weight``), and
     #: return once the point is acceptable to the filter and ``θ ≤ κ_resto θ_R`` (``required_infeasibility_reduction``).
-    #: Off: such an instance retries with a larger ``δ_w`` until ``regularization_max``. ``ρ`` is 10, not IPOPT's
+    #: Off, or with ``barrier_strategy="mehrotra"`` (no filter): such an instance retries with a larger ``δ_w`` until
+    #: ``regularization_max``. ``ρ`` is 10, not IPOPT's
     #: 1000: a violated relaxed row's multiplier goes to ``ρ``, and on the circles of ``car_3obs`` (``∇²g = −2I``)
     #: that is a curvature of ``−2ρ`` that the inertia correction has to cover; with 1000 the restoration phase
     #: there creeps (steps of 1e-3) and ends ``MAX_REGULARIZATION``; with 10 the solve converges in 143 iterations.

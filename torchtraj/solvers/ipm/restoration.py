@@ -34,7 +34,7 @@ restoration ends as soon as that point is acceptable to the augmented filter, be
 problem converges (its own ``E_0 ≤ tol``) at a point the filter does not accept, the instance is a stationary point
 of the infeasibility: :attr:`~torchtraj.core.status.Status.LOCALLY_INFEASIBLE`, reported at that point. Any other ending of the restoration
 (iterations, regularisation) is the instance's status. A restoration phase does not enter one of its own (a failed
-line search there raises ``δ_w``), and ``ζ`` is fixed for the phase at its start (IPOPT lets it follow ``μ``).
+line search there raises ``δ_w``); Mehrotra's steps (no filter) take none; and ``ζ`` is fixed for the phase at its start (IPOPT lets it follow ``μ``).
 """
 
 from __future__ import annotations

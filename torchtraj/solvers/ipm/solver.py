@@ -99,7 +99,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         else hooks.barrier.clone()
     budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
         else hooks.budget
-    restoring = opts.restoration and hooks.leave is None  # a restoration phase has none of its own
+    mehrotra = opts.barrier_strategy == "mehrotra"
+    # a restoration phase has none of its own; Mehrotra's steps have no filter to return to
+    restoring = opts.restoration and hooks.leave is None and not mehrotra
     budgeted = hooks.budget is not None  # else the loop's own count is the budget, until a restoration phase
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
     start_ok = torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(U0).flatten(1).all(-1)
@@ -114,7 +116,6 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     theta_max = theta_min = None
     base = None
     compacting = opts.compact_below > 0 and not opts.compile and not uses_graphs(opts, x0.device)
-    mehrotra = opts.barrier_strategy == "mehrotra"
     crossing = opts.crossover and problem.linear_quadratic and cons.mi + cons.miN > 0
     # from the unconstrained optimum only where every row is a control bound: with state rows the active-set
     # updates can go round in circles (the oscillator of the tests: eight sets without settling)
