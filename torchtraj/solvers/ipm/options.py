@@ -111,7 +111,8 @@ class IPOptions:
     #: ``regularization_max``. ``ρ`` is 10, not IPOPT's
     #: 1000: a violated relaxed row's multiplier goes to ``ρ``, and on the circles of ``car_3obs`` (``∇²g = −2I``)
     #: that is a curvature of ``−2ρ`` that the inertia correction has to cover; with 1000 the restoration phase
-    #: there creeps (steps of 1e-3) and ends ``MAX_REGULARIZATION``; with 10 the solve converges in 143 iterations.
+    #: there creeps (steps of 1e-3) and ends ``MAX_REGULARIZATION`` (measured without the second-order corrections
+    #: and the least-squares start); with 10 the solve converges in 143 iterations.
     restoration: bool = True
     restoration_penalty: float = 10.0
     restoration_proximity: float = 1.0

@@ -32,7 +32,9 @@ restoration ends as soon as that point is acceptable to the augmented filter, be
 ``μ``; inequality multipliers above 1000 are reset to 1, costates and equality multipliers to zero (IPOPT's
 ``bound_mult_reset_threshold``, ``constr_mult_reset_threshold``). **Local infeasibility**: where the restoration
 problem converges (its own ``E_0 ≤ tol``) at a point the filter does not accept, the instance is a stationary point
-of the infeasibility: :attr:`~torchtraj.core.status.Status.LOCALLY_INFEASIBLE`, reported at that point. Any other ending of the restoration
+of the infeasibility: :attr:`~torchtraj.core.status.Status.LOCALLY_INFEASIBLE`, reported at that point (where its
+``θ`` is above the tolerance; else the main iteration resumes there; an iterate already that feasible takes no
+restoration phase, its failed line search being one at round-off). Any other ending of the restoration
 (iterations, regularisation) is the instance's status. A restoration phase does not enter one of its own (a failed
 line search there raises ``δ_w``); Mehrotra's steps (no filter) take none; and ``ζ`` is fixed for the phase at its start (IPOPT lets it follow ``μ``).
 """
@@ -180,7 +182,8 @@ class Restored:
 
 
 def restore(problem: Problem, cons: Constraints, params, x0: Tensor, it: Iterate, model: Model, mu: Tensor,
-            filt: Filter, theta_max: Tensor, entering: Tensor, budget: Tensor, opts: IPOptions, run) -> Restored:
+            filt: Filter, theta_max: Tensor, entering: Tensor, budget: Tensor, tol: float, opts: IPOptions,
+            run) -> Restored:
     """The restoration phase (module docstring) of the instances ``entering (B,)``, solved together by ``run``
     (:func:`~torchtraj.solvers.ipm.solver.run`) with at most ``budget (B,)`` iterations each."""
     index = entering.nonzero().squeeze(-1)
@@ -228,7 +231,9 @@ def restore(problem: Problem, cons: Constraints, params, x0: Tensor, it: Iterate
                         method="restoration")
     X, U, s = final.X[..., :nx], final.U[..., :nu], torch.where(knots > 0, final.s[..., :mi], 1.0)
     converged = final.status == Status.CONVERGED
-    returned = converged & back(p_r, X, U, s, final.sN)
+    theta = main_measures(problem, cons, p_r, X, U, s, final.sN, mus)[0]
+    # converged at a point the filter refuses: infeasible, unless feasible to the tolerance (then resume there)
+    returned = converged & (back(p_r, X, U, s, final.sN) | (theta <= tol))
     reset = opts.restoration_multiplier_reset
     z = torch.where(final.z[..., :mi] > reset, 1.0, final.z[..., :mi]) * knots
     zN = torch.where(final.zN > reset, 1.0, final.zN)

@@ -201,14 +201,17 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         K = where_rows(take, d.K, K)
         last = torch.where(take & (delta > 0), delta, last)
         missed = factored & ~ls.found
-        if restoring and bool(missed.any()):  # W&B 2006 §3.3: the instances whose line search failed
-            back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, missed, budget - iterations,
-                           opts, run)
+        # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance (steps
+        # at round-off: those keep the larger-δ_w path)
+        entering = missed & (model.theta > tol) if restoring else None
+        if entering is not None and bool(entering.any()):
+            back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, entering, budget - iterations,
+                           tol, opts, run)
             it, filt = back.it, back.filter
-            status = torch.where(missed & ~back.returned, back.status, status)
+            status = torch.where(entering & ~back.returned, back.status, status)
             iterations = iterations + back.iterations
             floor = torch.where(back.returned, 0.0, floor)
-            missed = torch.zeros_like(missed)  # back, or ended with the restoration's status: no larger δ_w
+            missed = missed & ~entering  # back, or ended with the restoration's status: no larger δ_w
             budgeted = True
         floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
                                                 min=opts.regularization_first), torch.where(take, 0.0, floor))
