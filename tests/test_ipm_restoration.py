@@ -1,7 +1,8 @@
 """The interior-point method's feasibility restoration (Wächter & Biegler 2006 §3.3) against independent references.
 
 * a restoration that turns a stall into convergence: car_3obs at N = 25 from the problem set's guess ends
-  ``MAX_REGULARIZATION`` without it, and reaches IPOPT's optimum (stored, tests/data) with it;
+  ``MAX_REGULARIZATION`` without it, and with it converges within 1.5 times IPOPT's iterations (stored, tests/data)
+  to a lower local optimum than IPOPT's, one that IPOPT warm-started there keeps;
 * a genuinely infeasible instance (a goal its velocity bound cannot reach; IPOPT: Infeasible_Problem_Detected)
   ends ``LOCALLY_INFEASIBLE``, and the batch's other instances are bit for bit their solves alone;
 * slow: car_3obs and quadrotor2d of the problem set, default options, converge within 1.5 times IPOPT's iterations,
@@ -31,8 +32,19 @@ def test_restoration_turns_a_stall_into_convergence():
     sol = tt.solve(problem, method="ipm")
     ipopt = DATA["car_3obs_N25"]["ipopt"]
     assert sol.status.tolist() == [tt.Status.CONVERGED] and float(sol.max_violation[0]) < 1e-8
-    assert abs(float(sol.cost[0]) - ipopt["cost"]) / ipopt["cost"] < 1e-7
     assert int(sol.iterations[0]) <= 1.5 * ipopt["iterations"]
+    stationarity, dual_min, complementarity = kkt_residuals(problem, sol)
+    assert stationarity < 1e-6 and dual_min >= 0 and complementarity < 1e-6
+    # a lower local optimum than IPOPT's (10.2438 against 14.1054: the route on the other side of a circle), which
+    # IPOPT warm-started there keeps
+    cost = float(sol.cost[0])
+    assert cost < ipopt["cost"] * (1 - 1e-3)
+    pytest.importorskip("casadi")
+    from torchtraj.bench.reference import ReferenceSolver
+
+    warm = ReferenceSolver(spec, "ipopt").solve(X0=sol.X[0].numpy(), U0=sol.U[0].numpy(), warm_start=True)
+    assert warm.ok and abs(warm.cost - cost) / cost < 1e-6, (warm.cost, cost)
+    assert np.abs(warm.X - sol.X[0].numpy()).max() < 1e-2
 
 
 def test_an_infeasible_instance_ends_locally_infeasible_and_changes_no_other():
