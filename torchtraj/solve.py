@@ -18,11 +18,13 @@ from typing import Optional, Union
 
 from . import solvers
 from .core.batch import Batch
+from .core.constraints import Constraints
 from .core.graphs import graphs_used
 from .core.problem import Problem
 from .core.solution import Solution
 from .core.status import Status
 from .differentiation import implicit
+from .kkt import certificate
 from .kkt.model import total_cost
 from .solvers.base import Solver
 
@@ -78,14 +80,16 @@ def solve(
     if getattr(opts, "verbose", False):
         _ensure_log_handler()
     _check_declarations(solver, problem, batch)
+    declared = solver.kkt_problem(problem, opts)  # the problem whose KKT point it is, where that is another one
     if not implicit.requires_gradients(batch.x0, batch.params):
-        return solver.solve(problem, batch.for_solver(), opts)
+        return _certified(solver, problem if declared is None else declared, batch,
+                          solver.solve(problem, batch.for_solver(), opts))
     if not solver.kkt_point:
         raise ValueError(f"method {solver.name!r} returns no KKT point to differentiate; solve without gradients "
                          f"(torch.no_grad, or detached x0 and params) or use {_declaring('kkt_point')}")
     # a differentiable solve: the method runs on detached inputs, gradients come from its KKT point
-    solution = solver.solve(problem, batch.for_solver(detach=True), opts)
-    declared = solver.kkt_problem(problem, opts)  # the problem whose KKT point it is, where that is another one
+    solution = _certified(solver, problem if declared is None else declared, batch,
+                          solver.solve(problem, batch.for_solver(detach=True), opts))
     out = implicit.attach_gradients(problem if declared is None else declared, batch.x0, batch.params, solution,
                                     gradients=gradients, cuda_graphs=graphs_used(opts, batch.x0.device),
                                     constrained=solver.handles_constraints)
@@ -95,6 +99,19 @@ def solve(
     keep = (out.status == Status.CONVERGED).to(out.cost.dtype)
     cost = total_cost(problem, out.X, out.U, batch.params)
     return dataclasses.replace(out, cost=keep * cost + (1 - keep) * cost.detach())
+
+
+def _certified(solver: Solver, problem: Problem, batch: Batch, solution: Solution) -> Solution:
+    """``solution`` with its KKT residuals, and ``CONVERGED`` only where they are within the certificate's
+    tolerances (:mod:`torchtraj.kkt.certificate`): the KKT conditions of ``problem`` with its constraints where the
+    method handles them, without them where it ignores them."""
+    if not solver.kkt_point:
+        return solution
+    constraints = Constraints.of(problem, ignored=not solver.handles_constraints)
+    params = {k: v.detach() for k, v in batch.params.items()}
+    status, residuals = certificate.certify(problem, solution.status, solution.X, solution.U, solution.multipliers,
+                                            params, batch.x0.detach(), constraints)
+    return dataclasses.replace(solution, status=status, kkt=residuals.as_dict())
 
 
 def check_problem_and_method(problem, method: Union[str, Method, Solver]) -> Solver:

@@ -56,6 +56,8 @@ class Solution:
         multipliers: multipliers of each constraint block, keyed by block name.
         penalties: final penalty weights of each block (augmented-Lagrangian methods).
         method: the method's name.
+        kkt: the KKT residuals ``{name: (B,)}`` at the solution (stationarity, feasibility, complementarity,
+            dual sign; :mod:`torchtraj.kkt.certificate`), which decide whether a status is ``CONVERGED``.
     """
 
     X: Tensor
@@ -70,6 +72,7 @@ class Solution:
     multipliers: dict = field(default_factory=dict)
     penalties: dict = field(default_factory=dict)
     method: str = ""
+    kkt: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> Tensor:
