@@ -145,7 +145,13 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         stage, terminal, costate, K = result.stage, result.terminal, result.costate, result.K
     else:
         status = torch.where(al_done, int(Status.CONVERGED), status)
-        stage, terminal = al.duals.stage, al.duals.terminal
+        # at an inner optimum the first-order multiplier estimate is the update of eq. (17), λ + I_μ c projected
+        # (Nocedal & Wright, §17.3): the gradient of L_A is the Lagrangian's with it. Unfinished instances keep the
+        # multipliers they would go on with.
+        estimate = al.updated_duals(X, U, params, 1.0, opts.penalty_max, opts.dual_max)
+        done = al_done.reshape(-1, 1, 1)
+        stage = torch.where(done, estimate.stage, al.duals.stage)
+        terminal = torch.where(al_done.reshape(-1, 1), estimate.terminal, al.duals.terminal)
         costate = None
         # the gains of the last backward pass, at the iterate before the last step: a converged step is below
         # the tolerances, and a new expansion and factorisation only for K would cost a third of an MPC step
