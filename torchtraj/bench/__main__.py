@@ -92,6 +92,11 @@ def parser() -> argparse.ArgumentParser:
                         "B = 1, each method's default options, so the tolerance and --iterations flags do not apply; "
                         "then a horizon sweep on the first problem); --method then defaults to every registered "
                         "method and --problems to pendulum cartpole car_3obs")
+    p.add_argument("--defaults", action="store_true",
+                   help="run every method that handles the problems' constraints with its default options and no "
+                        "guess on the problem set instead, against IPOPT (torchtraj.bench.defaults); --method then "
+                        "defaults to every such method, --batch to 1 (B > 1: sample_x0 batches, the first "
+                        "--reference-instances compared with IPOPT)")
     p.add_argument("--ops-horizons", nargs="+", type=int, metavar="N", default=list(ops.DEFAULT_HORIZONS),
                    help="with --ops: the horizons of the sweep")
     p.add_argument("--ops-iterations", type=int, metavar="K", default=ops.SWEEP_ITERATIONS,
@@ -201,6 +206,14 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
             with open(args.json, "w") as f:
                 json.dump(report, f, indent=1)
         return 1 if ops.failed(report) else 0
+    if args.defaults:
+        from . import defaults
+        p.set_defaults(method=None)
+        chosen = p.parse_args(argv).method
+        batches = args.batch if args.batch != p.get_default("batch") else [1]
+        rows = defaults.run([chosen] if chosen else solvers.names(), args.problems or problems.names(), batches,
+                            args.seed, args.reference_instances, say)
+        return 0 if all(r.converged == r.batch for r in rows) else 1
     if args.grad:
         from . import grad
         batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]
