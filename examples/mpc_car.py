@@ -4,9 +4,9 @@ Run:  python examples/mpc_car.py [--seeds 4]      (saves mpc_car.png when matplo
 
 The environment is ``torchtraj/Car-v0``: each seed draws its own layout of four circles between the start and the
 goal (3, 3); the episode ends on reaching the goal (within 0.2) or on a collision. The controller's problem is
-the environment's own (``venv.problem()``, i.e. envs.car.problem, on the step the environment takes): it minimises
-the squared distance to the goal over a 1.5 s horizon (N = 30), ten times more at its end, with 0 ≤ v ≤ 3,
-|ω| ≤ 3 and every circle (inflated by 0.15) as constraints. The circles are a per-instance parameter read from
+the environment's own (``venv.problem()``, i.e. torchtraj.envs.car.problem, on the step the environment takes):
+it minimises the squared distance to the goal over a 1.5 s horizon (N = 30), ten times more at its end, with
+0 ≤ v ≤ 3, |ω| ≤ 3 and every circle (inflated by 0.15) as constraints. The circles are a per-instance parameter read from
 each observation, so one batched ALTRO solve (3 iterations, warm-started) serves every layout. An episode
 succeeds when the car reaches the goal without a collision.
 """
@@ -18,7 +18,6 @@ import argparse
 import gymnasium as gym
 import numpy as np
 
-import envs  # noqa: F401  (registers the torchtraj environments; each builds its controller's problem)
 from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
 
 

@@ -19,7 +19,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import envs  # registers the torchtraj environments; each builds its controller's problem
+from torchtraj import envs  # registers the torchtraj environments; each builds its controller's problem
 from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
 
 

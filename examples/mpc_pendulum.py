@@ -18,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import envs  # registers the torchtraj environments; each builds its controller's problem
+from torchtraj import envs  # registers the torchtraj environments; each builds its controller's problem
 from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
 
 PLAN_STEPS = (0, 15, 30)  # control steps whose predicted trajectories are drawn

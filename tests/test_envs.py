@@ -10,7 +10,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
-import envs
+from torchtraj import envs
 from torchtraj import models
 
 DT = 0.05

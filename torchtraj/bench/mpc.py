@@ -4,7 +4,7 @@ r"""MPC on the torchtraj environments: the controllers, their acceptance runs an
 of a run seeded ``s`` is the single environment seeded ``s + i``; a vector environment of B sub-environments plays
 them with one batched :class:`~torchtraj.MPC` call per step), and the time per control step at B = 1 and B = 64.
 
-Controllers (:func:`controller`): each environment's own problem, ``envs.<task>.problem(env.params)`` (see the
+Controllers (:func:`controller`): each environment's own problem, ``env.problem(...)`` (see the
 "Controller Problem" section of the environment's docstring: the pendulum's cost is its reward, negated; the
 cart-pole's and the car's are quadratics with the reward's optimum, the car's obstacles constraints), on the step
 the environment takes, solved by ``method="altro"`` without projection, 3 iterations per control step, warm-started
@@ -34,17 +34,12 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-import envs  # the environments and their controllers' problems; importing it registers the environments
-from envs.core import upright_error
+from torchtraj.envs.core import upright_error  # importing torchtraj registers the environments
 
 from ..control.mpc import DEFAULT_ALTRO, MPC
 from . import profile
 
 IDS = {"pendulum": "torchtraj/Pendulum-v0", "cartpole": "torchtraj/CartPoleSwingUp-v0", "car": "torchtraj/Car-v0"}
-
-#: The problem builder of each task, ``problem(params, **options)``: the environment module's own.
-PROBLEMS = {"pendulum": envs.pendulum.problem, "cartpole": envs.cartpole.problem, "car": envs.car.problem}
-
 
 #: ALTRO options of each task's controller, on top of :data:`torchtraj.control.mpc.DEFAULT_ALTRO`.
 TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0}}
@@ -53,15 +48,15 @@ TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0
 def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, problem_options=None,
                compile: bool = False, **options) -> MPC:
     """The :class:`~torchtraj.MPC` of ``task`` (``"pendulum"``, ``"cartpole"``, ``"car"``) for ``env``, a single or
-    vector environment of that task; ``problem_options`` go to the task's problem builder (:data:`PROBLEMS`, called
-    with ``env.params``), ``compile`` to the policy, ``options`` are :class:`~torchtraj.ALTROOptions` fields to
-    change from :data:`TASK_OPTIONS`."""
-    if task not in PROBLEMS:
-        raise ValueError(f"unknown task {task!r}; known tasks are {sorted(PROBLEMS)}")
+    vector environment of that task; ``problem_options`` go to the environment's own problem builder,
+    ``env.problem(**problem_options)``, ``compile`` to the policy, ``options`` are :class:`~torchtraj.ALTROOptions`
+    fields to change from :data:`TASK_OPTIONS`."""
+    if task not in IDS:
+        raise ValueError(f"unknown task {task!r}; known tasks are {sorted(IDS)}")
     problem_options = dict(problem_options or {})
     if horizon is not None:
         problem_options["horizon"] = horizon
-    problem = PROBLEMS[task](env.params, **problem_options)
+    problem = env.unwrapped.problem(**problem_options)  # gymnasium.make wraps
     opts = dataclasses.replace(DEFAULT_ALTRO, **{**TASK_OPTIONS[task], **options})
     if task != "car":
         return MPC(problem, "altro", iterations, opts, compile=compile)
@@ -240,19 +235,23 @@ def pendulum_v1_example():
 def parser():
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m torchtraj.bench --mpc", description=__doc__.split("\n\n")[1],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--tasks", nargs="+", default=[*IDS, "pendulum_v1"], choices=[*IDS, "pendulum_v1"])
-    p.add_argument("--episodes", type=int, default=100, help="seeded episodes per task (0: skip)")
-    p.add_argument("--vector-envs", type=int, default=64, help="sub-environments of the autoreset run (0: skip)")
-    p.add_argument("--vector-episodes", type=int, default=2, help="episodes per sub-environment in that run")
-    p.add_argument("--v1-seeds", type=int, default=20, help="Pendulum-v1 episodes (0: skip)")
-    p.add_argument("--timing-batch", nargs="*", type=int, default=[1, 64], help="B of the timing rows (none: skip)")
-    p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row")
+    # each help text states its default once (argparse's defaults formatter repeated them)
+    p = argparse.ArgumentParser(prog="python -m torchtraj.bench --mpc", description=__doc__.split("\n\n")[1])
+    p.add_argument("--tasks", nargs="+", default=[*IDS, "pendulum_v1"], choices=[*IDS, "pendulum_v1"],
+                   help="tasks to run; pendulum_v1 is Gymnasium's Pendulum-v1 (default: all)")
+    p.add_argument("--episodes", type=int, default=100, help="seeded episodes per task (0: skip; default: 100)")
+    p.add_argument("--vector-envs", type=int, default=64,
+                   help="sub-environments of the autoreset run (0: skip; default: 64)")
+    p.add_argument("--vector-episodes", type=int, default=2,
+                   help="episodes per sub-environment in that run (default: 2)")
+    p.add_argument("--v1-seeds", type=int, default=20, help="Pendulum-v1 episodes (0: skip; default: 20)")
+    p.add_argument("--timing-batch", nargs="*", type=int, default=[1, 64],
+                   help="B of the timing rows (none: skip; default: 1 64)")
+    p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row (default: 100)")
     p.add_argument("--compile", action="store_true",
                    help="run the episodes with torch.compile'd kernels (MPC(compile=True); each batch size compiles first) "
                         "and time the policy both ways")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
     return p
 
