@@ -19,6 +19,7 @@ from typing import Optional, TextIO
 import torch
 
 from .. import problems, solvers
+from ..core.progress import Progress
 from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.base import Solver
@@ -192,8 +193,10 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         profile.quiet_inductor()
     _check(p, args)
     out = out or sys.stdout
+    bar = Progress(label=f"bench {args.method}", unit="rows")  # on stderr, between the timed solves
 
     def say(text: str = "") -> None:
+        bar.clear()  # a table line never lands on the bar's line
         print(text, file=out, flush=True)
 
     if args.threads is not None:
@@ -269,6 +272,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
 
     rows: list = []
     throughput: list = []
+    bar.total = sum(len(args.batch) if not (augmented and default_batches) else 1 + (p.name == "pendulum")
+                    for p in todo)
     for problem in todo:
         refs = _build_references(problem.name, args.reference_tolerance) if with_reference else {}
         problem_rows = []
@@ -293,10 +298,13 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                     row.vs_ipopt = relative_difference(row, ipopt)
                 say(table.format_row(row))
             problem_rows += group
+            bar.update(converged=torch.tensor(ours.instance_ok or [False], dtype=torch.bool),
+                       violation=ours.max_violation, problem=problem.name)
         throughput.append(_throughput(problem.name, problem_rows, max(batches)))
         if args.profile and max(batches) > 1:
             throughput.append(_profile_line(problem, method, max(batches), args.seed, problem_options))
         rows += problem_rows
+    bar.close()
     say()
     for line in throughput:
         say(line)

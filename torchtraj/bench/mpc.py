@@ -37,6 +37,8 @@ import torch
 from torchtraj.envs.core import upright_error  # importing torchtraj registers the environments
 
 from ..control.mpc import DEFAULT_ALTRO, MPC
+from ..core.progress import Progress
+from ..core.status import Status
 from . import profile
 
 IDS = {"pendulum": "torchtraj/Pendulum-v0", "cartpole": "torchtraj/CartPoleSwingUp-v0", "car": "torchtraj/Car-v0"}
@@ -94,11 +96,15 @@ class Run:
         return float(np.mean([success(e) for e in self.episodes]))
 
 
-def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step: Optional[Callable] = None) -> Run:
+def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step: Optional[Callable] = None,
+                 progress: bool = False, label: str = "episodes") -> Run:
     """Play ``episodes_per_env`` episodes on each sub-environment of ``venv`` (next-step autoreset), calling
     ``policy`` once per step on the whole batch of observations and ``policy.reset(mask)`` with the
-    sub-environments that just restarted. Sub-environments that are done wait (their extra episodes are dropped)."""
+    sub-environments that just restarted. Sub-environments that are done wait (their extra episodes are dropped).
+    ``progress`` draws a bar on stderr (:class:`~torchtraj.core.progress.Progress`): episodes finished, and the
+    share of the last control step's solves that converged and their largest violation."""
     B = venv.num_envs
+    bar = Progress(B * episodes_per_env, label, unit="episodes", enabled=progress)
     obs, _ = venv.reset(seed=seed)
     history, rewards, infos = [np.asarray(obs)], [np.zeros(B)], [{}]
     start, count = np.zeros(B, dtype=int), np.zeros(B, dtype=int)
@@ -126,8 +132,15 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
                 rewards=np.array([r[i] for r in rewards[a + 1:t + 1]]),
                 infos={k: np.array([inf[k][i] for inf in infos[a + 1:t + 1]]) for k in infos[t]},
                 terminated=bool(np.asarray(terminated)[i])))
+        finished = int((done & (count < episodes_per_env)).sum())
         count = count + done
         restarted = done
+        solution = getattr(policy, "solution", None)
+        if solution is not None:
+            bar.update(finished, converged=solution.status == Status.CONVERGED, violation=solution.max_violation)
+        else:
+            bar.update(finished)
+    bar.close()
     return Run(episodes, seconds)
 
 
@@ -206,14 +219,16 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
 
 
 # ---------------------------------------------------------------------------------------------- acceptance
-def acceptance(task: str, num_envs: int = 100, episodes_per_env: int = 1, seed: int = 0, **controller_options) -> Run:
+def acceptance(task: str, num_envs: int = 100, episodes_per_env: int = 1, seed: int = 0, progress: bool = False,
+               **controller_options) -> Run:
     """``num_envs × episodes_per_env`` episodes of ``task`` in one vector environment seeded ``seed``, one batched
     MPC call per step; with one episode per environment, episode ``i`` is the single environment seeded
-    ``seed + i``."""
+    ``seed + i``. ``progress``: a bar on stderr (:func:`run_episodes`)."""
     import gymnasium as gym
 
     venv = gym.make_vec(IDS[task], num_envs=num_envs)
-    return run_episodes(venv, controller(task, venv, **controller_options), episodes_per_env, seed)
+    return run_episodes(venv, controller(task, venv, **controller_options), episodes_per_env, seed,
+                        progress=progress, label=task)
 
 
 def pendulum_v1_example():
@@ -281,7 +296,7 @@ def main(argv: Optional[list] = None, out=None) -> int:
         for label, envs_, per_env, seed in runs:
             if envs_ < 1 or per_env < 1:
                 continue
-            run = acceptance(task, envs_, per_env, seed, compile=args.compile)
+            run = acceptance(task, envs_, per_env, seed, progress=True, compile=args.compile)
             wins = sum(SUCCESS[task](e) for e in run.episodes)
             rate = wins / len(run.episodes)
             failed |= rate < 0.95
