@@ -72,13 +72,15 @@ def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 
 @dataclass
 class Episode:
     """One finished episode of sub-environment ``env``: observations ``(T+1, n_obs)`` (first to final), rewards
-    ``(T,)``, per-step ``info`` entries ``{name: (T,)}``, and how it ended."""
+    ``(T,)``, per-step ``info`` entries ``{name: (T,)}``, how it ended, and the actions ``(T, nu)`` it took (as the
+    policy returned them; the environment clips them to its action space)."""
 
     env: int
     observations: np.ndarray
     rewards: np.ndarray
     infos: dict
     terminated: bool
+    actions: Optional[np.ndarray] = None
 
     @property
     def total(self) -> float:
@@ -106,7 +108,7 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
     B = venv.num_envs
     bar = Progress(B * episodes_per_env, label, unit="episodes", enabled=progress)
     obs, _ = venv.reset(seed=seed)
-    history, rewards, infos = [np.asarray(obs)], [np.zeros(B)], [{}]
+    history, rewards, infos, taken = [np.asarray(obs)], [np.zeros(B)], [{}], [None]
     start, count = np.zeros(B, dtype=int), np.zeros(B, dtype=int)
     restarted = np.zeros(B, dtype=bool)
     episodes, seconds = [], []
@@ -118,6 +120,7 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
         if hasattr(policy, "reset"):
             policy.reset(restarted)
         history.append(np.asarray(obs))
+        taken.append(np.asarray(actions, dtype=np.float64).reshape(B, -1))
         rewards.append(np.asarray(reward, dtype=np.float64))
         infos.append({k: np.asarray(v) for k, v in info.items() if not k.startswith("_")})
         if on_step is not None:
@@ -131,7 +134,7 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
                 env=int(i), observations=np.stack([h[i] for h in history[a:t + 1]]),
                 rewards=np.array([r[i] for r in rewards[a + 1:t + 1]]),
                 infos={k: np.array([inf[k][i] for inf in infos[a + 1:t + 1]]) for k in infos[t]},
-                terminated=bool(np.asarray(terminated)[i])))
+                terminated=bool(np.asarray(terminated)[i]), actions=np.stack([u[i] for u in taken[a + 1:t + 1]])))
         finished = int((done & (count < episodes_per_env)).sum())
         count = count + done
         restarted = done

@@ -96,10 +96,11 @@ class Progress:
         if self.enabled:
             self._maybe_draw()
 
-    def write(self, text: str) -> None:
-        """Print ``text`` (a line of the caller's own output on the same terminal) without tearing the bar."""
+    def write(self, text: str, file: Optional[TextIO] = None) -> None:
+        """Print ``text`` (a line of the caller's own output, to ``file``, by default the bar's stream) without
+        tearing the bar: its line is cleared first and drawn again at the next update."""
         self.clear()
-        print(text, file=self.stream, flush=True)
+        print(text, file=self.stream if file is None else file, flush=True)
 
     def clear(self) -> None:
         """Erase the bar's line on a terminal (before other output); the next update draws it again."""
