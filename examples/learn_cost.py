@@ -157,9 +157,10 @@ def figure(problem, demo_X, history):
     epochs = range(len(history["loss"]))
     curves.semilogy(epochs, history["loss"], "o-", label="imitation loss mean |X − X*|² [m²]")
     curves.semilogy(epochs, history["error"], "s-", label="goal error, max relative [1]")
-    curves.set(xlabel="epoch (one L-BFGS step)", ylabel="value (log scale)", title="learning curves")
+    curves.set(xlabel="epoch [L-BFGS steps]", ylabel="loss [m²], relative error [1] (log scale)",
+               title="learning curves")
     curves.xaxis.set_major_locator(MaxNLocator(integer=True))
-    curves.legend(fontsize=8, loc="upper right")
+    curves.legend(fontsize=8, loc="center right")
     fig.suptitle("Learning a cost's goal from demonstrations, through tt.solve's implicit gradients")
     return fig
 

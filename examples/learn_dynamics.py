@@ -142,9 +142,10 @@ def figure(problem, expert_X, history):
     curves.semilogy(epochs, history["loss"], "o-", label="imitation loss (|U − U*|² + |X − X*|²)")
     curves.semilogy(epochs, history["error"], "s-", label="parameter error, max relative [1]")
     curves.axhline(1e-3, color="gray", ls="--", lw=1, label="target 1e-3")
-    curves.set(xlabel="epoch (one L-BFGS step)", ylabel="value (log scale)", title="learning curves")
+    curves.set(xlabel="epoch [L-BFGS steps]", ylabel="loss [rad², (rad/s)², (N m)²], rel. error [1]",
+               title="learning curves")
     curves.xaxis.set_major_locator(MaxNLocator(integer=True))
-    curves.legend(fontsize=8, loc="upper right")
+    curves.legend(fontsize=8, loc="center right")
     fig.suptitle("Learning a pendulum's mass, length and damping by imitation, through tt.solve's gradients")
     return fig
 
