@@ -96,11 +96,13 @@ def figure(run, plans, dt, torque_limit):
               title="pendulum angle (0: upright, −π: hanging)")
     ax[1].set(xlabel="time t [s]", ylabel="angular velocity ω [rad/s]", title="angular velocity")
     ax[2].set(xlabel="time t [s]", ylabel="torque τ [N m]", title="MPC control (first move of each plan)")
-    ax[0].legend(fontsize=7, loc="lower right")
+    ax[0].legend(fontsize=7, loc="center right")
     ax[1].legend(fontsize=7, loc="upper right")
     ax[2].legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"MPC swing-up of the torque-limited pendulum (torchtraj/Pendulum-v0), {len(episodes)} episodes; "
-                 f"first {(shown - 1) * dt:.1f} s shown")
+    length = (max(len(e.observations) for e in episodes) - 1) * dt
+    trimmed = f"; first {(shown - 1) * dt:.1f} s of {length:.0f} s shown (then held)" if shown * dt < length else ""
+    fig.suptitle(f"MPC swing-up of the torque-limited pendulum (torchtraj/Pendulum-v0), {len(episodes)} episodes"
+                 + trimmed)
     return fig
 
 
