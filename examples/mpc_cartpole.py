@@ -18,7 +18,8 @@ import argparse
 import gymnasium as gym
 import numpy as np
 
-from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
+import torchtraj as tt  # importing torchtraj registers torchtraj/CartPoleSwingUp-v0 and the other environments
+from torchtraj.bench import mpc as bench  # the episode runner and the success tests
 
 
 def main(argv=None):
@@ -32,7 +33,8 @@ def main(argv=None):
 
     venv = gym.make_vec("torchtraj/CartPoleSwingUp-v0", num_envs=seeds,
                         **({"max_episode_steps": steps} if steps else {}))
-    mpc = bench.controller("cartpole", venv)
+    problem = venv.problem()  # the environment hands over its controller's problem: its own step and cost
+    mpc = tt.MPC(problem, "altro", iterations=3)  # warm-started from the previous step's shifted solution
     print(f"MPC: {mpc}")
     run = bench.run_episodes(venv, mpc, seed=args.seed, progress=True)
     wins = 0

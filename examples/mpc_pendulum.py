@@ -18,8 +18,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from torchtraj import envs  # registers the torchtraj environments; each builds its controller's problem
-from torchtraj.bench import mpc as bench  # the controllers' options, the episode runner, the success tests
+import torchtraj as tt  # importing torchtraj registers torchtraj/Pendulum-v0 and the other environments
+from torchtraj import envs
+from torchtraj.bench import mpc as bench  # the episode runner and the success tests
 
 PLAN_STEPS = (0, 15, 30)  # control steps whose predicted trajectories are drawn
 
@@ -34,7 +35,8 @@ def main(argv=None):
     seeds, steps = (2, 20) if args.quick else (args.seeds, None)
 
     venv = gym.make_vec("torchtraj/Pendulum-v0", num_envs=seeds, **({"max_episode_steps": steps} if steps else {}))
-    mpc = bench.controller("pendulum", venv)
+    problem = venv.problem()  # the environment hands over its controller's problem: its own step and cost
+    mpc = tt.MPC(problem, "altro", iterations=3)  # warm-started from the previous step's shifted solution
     print(f"MPC: {mpc}")
     plans = {}
 
