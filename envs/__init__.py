@@ -1,5 +1,8 @@
 """Gymnasium environments whose dynamics are torchtraj's models, each with a batched twin stepped in torch.
 
+This folder is the package ``torchtraj.envs``: installed, ``pyproject.toml`` maps it there (no top-level package
+named ``envs`` is installed); in a source checkout ``torchtraj/envs/__init__.py`` loads it under that name.
+
 Importing ``torchtraj`` registers::
 
     torchtraj/Pendulum-v0          PendulumEnv / PendulumVectorEnv                 (torchtraj.models pendulum)
@@ -26,6 +29,8 @@ controller's :class:`torchtraj.Problem`, built on the same functions), likewise 
 
 from __future__ import annotations
 
+from torchtraj.registration import IDS, MAX_EPISODE_STEPS, register
+
 from .car import CarEnv, CarParams, CarVectorEnv
 from .cartpole import CartPoleParams, CartPoleSwingUpEnv, CartPoleSwingUpVectorEnv
 from .core import ModelEnv, upright_error
@@ -37,6 +42,4 @@ __all__ = [
     "ModelEnv", "ModelVectorEnv", "PendulumEnv", "PendulumParams", "PendulumVectorEnv", "IDS", "upright_error",
 ]
 
-from torchtraj.registration import IDS, MAX_EPISODE_STEPS, register
-
-register()  # ``import torchtraj`` has done it already; importing this package alone does it too
+register()  # ``import torchtraj`` has done it already (this package imports torchtraj first): a no-op then

@@ -128,7 +128,8 @@ def figure(theta, torque):
         ax[0].axhline(2 * np.pi * k, color="tab:green", lw=1, ls=":", label="upright" if k == 0 else None)
     ax[0].set_ylim(low, high)
     for bound in (-MAX_TORQUE, MAX_TORQUE):
-        ax[1].axhline(bound, color="tab:red", lw=1, ls="--", label=f"torque bound ±{MAX_TORQUE:g}" if bound > 0 else None)
+        ax[1].axhline(bound, color="tab:red", lw=1, ls="--",
+                      label=f"torque bound ±{MAX_TORQUE:g} N m" if bound > 0 else None)
     ax[0].set(xlabel="time t [s]", ylabel="angle from upright θ [rad], unwrapped",
               title="pendulum angle (0: upright, ±π: hanging)")
     ax[1].set(xlabel="time t [s]", ylabel="torque τ [N m]", title="MPC control (first move of each plan)")

@@ -6,8 +6,8 @@ The environment is ``torchtraj/Car-v0``: each seed draws its own layout of four 
 goal (3, 3); the episode ends on reaching the goal (within 0.2) or on a collision. The controller's problem is
 the environment's own (``venv.problem()``, i.e. torchtraj.envs.car.problem, on the step the environment takes):
 it minimises the squared distance to the goal over a 1.5 s horizon (N = 30), ten times more at its end, with
-0 ≤ v ≤ 3, |ω| ≤ 3 and every circle (inflated by 0.15) as constraints. The circles are a per-instance parameter read from
-each observation, so one batched ALTRO solve (3 iterations, warm-started) serves every layout. An episode
+0 ≤ v ≤ 3, |ω| ≤ 3 and every circle (inflated by 0.15) as constraints. The circles are a per-instance parameter
+read from each observation, so one batched ALTRO solve (3 iterations, warm-started) serves every layout. An episode
 succeeds when the car reaches the goal without a collision.
 """
 
@@ -70,7 +70,7 @@ def figure(run, goal, goal_radius):
         ax.plot(episode.observations[0, 0], episode.observations[0, 1], "o", color="tab:blue", ms=4, label="start")
         outcome = "reached the goal" if bench.car_success(episode) else (
             "collided" if episode.infos["collided"].any() else "did not arrive")
-        ax.set(xlim=(-0.5, 3.7), ylim=(-0.5, 3.7), aspect="equal", xlabel="x [m]",
+        ax.set(xlim=(-0.6, 3.8), ylim=(-0.8, 3.8), aspect="equal", xlabel="x [m]",
                title=f"episode {episode.env}: {outcome}")
     axes[0].set_ylabel("y [m]")
     axes[0].legend(fontsize=7, loc="upper left")

@@ -74,7 +74,8 @@ def test_bench_help_states_every_default_once_and_every_option_has_help(which):
     lines = parser.format_help().replace("\n", " ")
     assert "(default: None)" not in lines and "(default: False)" not in lines
     for action in parser._actions:
-        assert (action.help or "").count("(default:") + (action.help or "").count("; default:") <= 1, action.option_strings
+        text = action.help or ""
+        assert text.count("(default:") + text.count("; default:") <= 1, action.option_strings
 
 
 def test_package_description_names_the_built_methods_only():

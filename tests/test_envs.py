@@ -329,7 +329,7 @@ def test_make_vec_returns_torch_tensors_when_asked():
 @pytest.mark.slow
 def test_the_wheel_installs_torchtraj_envs_and_no_top_level_envs(tmp_path):
     """The packaging maps ``envs/`` to ``torchtraj.envs``: the wheel holds the environments under torchtraj/ and
-    nothing named ``envs`` at its top (manual check of the installs: the module docstring of torchtraj/envs)."""
+    nothing named ``envs`` at its top (the installs by hand: torchtraj/envs/__init__.py)."""
     source = tmp_path / "source"  # a copy: building writes build/ and egg-info next to the sources
     for part in ("envs", "torchtraj"):
         shutil.copytree(ROOT / part, source / part, ignore=shutil.ignore_patterns("__pycache__"))

@@ -5,7 +5,13 @@ An installed torchtraj has the environments at ``torchtraj/envs`` (``pyproject.t
 checkout, or an editable install) the import lands here instead; this module then loads ``envs/__init__.py`` under
 the name ``torchtraj.envs``, with ``envs/`` as its package path, and puts it in its own place in ``sys.modules``. So
 ``torchtraj.envs.pendulum`` and friends are the same modules in every setting, and no top-level package named
-``envs`` is ever importable.
+``envs`` is installed.
+
+Checked by ``tests/test_envs.py`` (the wheel's contents, slow) and by hand, in a fresh virtual environment::
+
+    python -m venv /tmp/v && /tmp/v/bin/pip install -e '.[test]'     # then, as well, a plain `pip install .`
+    cd / && /tmp/v/bin/python -c "import torchtraj, gymnasium, importlib.util as u; \
+        gymnasium.make('torchtraj/Pendulum-v0'); import torchtraj.envs; print(u.find_spec('envs'))"   # None
 """
 
 import importlib.util
