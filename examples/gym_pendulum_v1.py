@@ -133,7 +133,7 @@ def figure(theta, torque):
     ax[0].set(xlabel="time t [s]", ylabel="angle from upright θ [rad], unwrapped",
               title="pendulum angle (0: upright, ±π: hanging)")
     ax[1].set(xlabel="time t [s]", ylabel="torque τ [N m]", title="MPC control (first move of each plan)")
-    ax[0].legend(fontsize=7, loc="best")
+    ax[0].legend(fontsize=7, loc="center right")
     ax[1].legend(fontsize=7, loc="best")
     fig.suptitle("Gymnasium's Pendulum-v1 under torchtraj MPC (a torch model of its step, ALTRO)")
     return fig
