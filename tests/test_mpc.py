@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-import envs
+from torchtraj import envs
 import torchtraj as tt
 from torchtraj.bench import mpc as bench
 from torchtraj.control.mpc import DEFAULT_ALTRO

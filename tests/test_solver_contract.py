@@ -15,7 +15,7 @@ import pytest
 import torch
 from kkt import kkt_residuals
 
-import envs
+from torchtraj import envs
 import torchtraj as tt
 import torchtraj.kkt
 from torchtraj import problems, solvers

@@ -31,6 +31,8 @@ from typing import Callable, Mapping, Optional
 import torch
 from torch import Tensor
 
+from .describe import problem_repr
+
 Params = Mapping[str, Tensor]
 StageFn = Callable[[Tensor, Tensor, Params], Tensor]
 StateFn = Callable[[Tensor, Params], Tensor]
@@ -298,6 +300,9 @@ class Problem:
                 shape = "quadratic" if name.endswith("cost") else "affine"
                 raise ValueError(f"Problem declared linear_quadratic, but Problem.{name} is not {shape}: its {kind} "
                                  f"changes by {gap:.3g} between two probe points")
+
+    def __repr__(self) -> str:
+        return problem_repr(self)  # sizes, dtype, constraints present, parameter shapes; never whole tensors
 
     def constraint_sizes(self) -> dict:
         """Number of rows of each constraint function (0 when absent), as the probe call found them."""

@@ -8,6 +8,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from .describe import solution_repr
 from .status import Status
 
 
@@ -83,16 +84,19 @@ class Solution:
     def batch_size(self) -> int:
         return int(self.X.shape[0])
 
+    def __repr__(self) -> str:
+        return solution_repr(self)
+
     def summary(self) -> str:
         """A few lines a person can read: status counts, cost and violation ranges."""
         counts = ", ".join(f"{k}: {v}" for k, v in Status.counts(self.status).items())
         finite = torch.isfinite(self.cost)
-        cost = self.cost[finite]
+        cost = self.cost.detach()[finite]  # a differentiable solve's cost requires grad: read numbers only
         lines = [
             f"{self.method} on {self.batch_size} instance(s): {counts}",
             f"  iterations {int(self.iterations.min())}..{int(self.iterations.max())}",
         ]
         if cost.numel():
             lines.append(f"  cost {float(cost.min()):.8g}..{float(cost.max()):.8g}")
-            lines.append(f"  max violation {float(self.max_violation[finite].max()):.3g}")
+            lines.append(f"  max violation {float(self.max_violation.detach()[finite].max()):.3g}")
         return "\n".join(lines)
