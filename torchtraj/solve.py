@@ -25,7 +25,6 @@ from .core.solution import Solution
 from .core.status import Status
 from .differentiation import implicit
 from .kkt import certificate
-from .kkt.model import total_cost
 from .solvers.base import Solver
 
 #: The registered methods as an enum, a convenience for ``method=`` (strings do as well); nothing branches on it.
@@ -96,9 +95,8 @@ def solve(
     if declared is None:
         return out
     # the cost reported is the problem's own (eILQR's barriers are not part of it); gradients only where converged
-    keep = (out.status == Status.CONVERGED).to(out.cost.dtype)
-    cost = total_cost(problem, out.X, out.U, batch.params)
-    return dataclasses.replace(out, cost=keep * cost + (1 - keep) * cost.detach())
+    cost = implicit.masked_cost(problem, out.status == Status.CONVERGED, out.X, out.U, batch.params)
+    return dataclasses.replace(out, cost=cost)
 
 
 def _certified(solver: Solver, problem: Problem, batch: Batch, solution: Solution) -> Solution:
