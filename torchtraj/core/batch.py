@@ -44,6 +44,23 @@ def batch_size(named: dict) -> int:
     return next(iter(sizes.values()), 1)
 
 
+def check_parameter_batch(problem: Problem, B: int) -> None:
+    """Refuse a parameter whose batch dimension was not said: one given to the constructor (so taken as one
+    instance's value, its shape not declared in ``param_shapes``) whose leading dimension is the batch size. It may
+    be one value per instance passed as if it were one instance's (every instance would then see all of them)."""
+    if B <= 1:
+        return
+    for k in sorted(problem._inferred_shapes):
+        shape = tuple(problem.param_shapes[k])
+        if shape and shape[0] == B and tuple(problem.params[k].shape) == shape:
+            raise ValueError(
+                f"parameter {k!r} was given to the Problem constructor with shape {shape}, whose leading dimension is "
+                f"the batch size {B}: the constructor takes one instance's parameters, so every instance would see "
+                f"all {B} rows. For one value per instance, build the problem with one instance's value and pass "
+                f"the batch with problem.with_params({k}=values) (or declare param_shapes={{{k!r}: {shape[1:]}}}); "
+                f"if {shape} is one instance's value, declare it: param_shapes={{{k!r}: {shape}}}")
+
+
 @dataclass
 class Batch:
     """One solve's inputs, broadcast to the batch (module docstring).
@@ -71,7 +88,12 @@ class Batch:
         x0 = batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)
         U0 = batched(problem.u_init if U0 is None else U0, "U0", (N, nu), problem)
         X0 = batched(X0, "X0", (N + 1, nx), problem)
-        B = batch_size({"x0": x0, "U0": U0, "X0": X0, "params": torch.empty(problem.param_batch_size())})
+        named = {"x0": x0, "U0": U0, "X0": X0}
+        empty = [name for name, t in named.items() if t is not None and t.shape[0] == 0]
+        if empty:
+            raise ValueError(f"{' and '.join(empty)} {'hold' if len(empty) > 1 else 'holds'} an empty batch (B = 0): there is no instance to solve")
+        B = batch_size({**named, "params": torch.empty(problem.param_batch_size())})
+        check_parameter_batch(problem, B)
         x0, U0 = x0.expand(B, nx), U0.expand(B, N, nu)
         X0 = None if X0 is None else X0.expand(B, N + 1, nx)
         return cls(x0=x0, U0=U0, X0=X0, params=problem.batched_params(B), duals=duals, B=B)
