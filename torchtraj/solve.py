@@ -18,7 +18,7 @@ from typing import Optional, Union
 
 from . import solvers
 from .core.batch import Batch
-from .core.constraints import Constraints
+from .core.constraints import Constraints, check_duals
 from .core.graphs import graphs_used
 from .core.problem import Problem
 from .core.solution import Solution
@@ -125,6 +125,8 @@ def _check_declarations(solver: Solver, problem: Problem, batch: Batch) -> None:
     if batch.duals is not None and not solver.takes_duals:
         raise ValueError(f"method {solver.name!r} takes no warm-started duals; duals is for "
                          f"{_declaring('takes_duals')}")
+    if batch.duals is not None:
+        check_duals(Constraints.of(problem), batch.duals, batch.B)
     if batch.X0 is not None and not solver.takes_state_guess:
         raise ValueError(f"method {solver.name!r} simulates its states from x0 and cannot take X0; use a method "
                          f"that accepts a state guess: {_declaring('takes_state_guess')}")
