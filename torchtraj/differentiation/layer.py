@@ -154,7 +154,11 @@ class ImplicitSolution(torch.autograd.Function):
                                   "definite: not a strict local minimum with the active set held, often a "
                                   "solver stopped short of one; tighter solver tolerances help)"),
                    (degenerate, "the active constraint rows are linearly dependent (LICQ fails: more active "
-                                "rows than the controls can satisfy, or rows at round-off)"),
+                                "rows than the controls can satisfy, or rows at round-off); the derivative is not "
+                                "defined there. Remove redundant constraints (a bound also written as a "
+                                "stage_ineq row, an equality stated twice), or give a row that only touches its "
+                                "bound some margin; attach_gradients' active_tolerance sets which rows count as "
+                                "active"),
                    (not_kkt, "the point is not a KKT point (Newton refinement with the active set held "
                              "could not reach stationarity: the solver stopped short of a solution; "
                              "tighter solver tolerances help)"),
