@@ -26,14 +26,11 @@ from __future__ import annotations
 
 import warnings
 import weakref
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .problem import Problem
 
 #: torch.func's messages (their distinctive part) and what to write instead, in the order they are matched.
 _ADVICE = (
@@ -169,8 +166,9 @@ def _check(name: str, fn: Callable, stage: bool, x: Tensor, u: Tensor, p: dict) 
                       f"{what}; compute it with differentiable torch operations", UserWarning, stacklevel=4)
 
 
-def probe(problem: "Problem") -> dict:
-    """Check every function of ``problem`` (module docstring); return the rows of each constraint function."""
+def probe(problem) -> dict:
+    """Check every function of ``problem`` (a :class:`~torchtraj.Problem`, which calls this from its constructor:
+    module docstring); return the rows of each constraint function."""
     nx, dtype = problem.nx, problem.dtype
     x, u, p = problem.x0.detach(), problem.u_init[0].detach(), problem.instance_params()
     out = call_once("dynamics", problem.dynamics, True, x, u, p, dtype)
