@@ -21,6 +21,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from .probe import accepts_one_row
 from .problem import Problem
 
 
@@ -45,20 +46,26 @@ def batch_size(named: dict) -> int:
 
 
 def check_parameter_batch(problem: Problem, B: int) -> None:
-    """Refuse a parameter whose batch dimension was not said: one given to the constructor (so taken as one
-    instance's value, its shape not declared in ``param_shapes``) whose leading dimension is the batch size. It may
-    be one value per instance passed as if it were one instance's (every instance would then see all of them)."""
+    """Refuse a parameter whose batch dimension was not said and cannot be told: one given to the constructor (so
+    taken as one instance's value, its shape not declared in ``param_shapes``), of two or more dimensions, whose
+    leading dimension is the batch size, and which the problem's functions accept as well with one row
+    (:func:`~torchtraj.core.probe.accepts_one_row`). It is then likely one value per instance passed as if it were
+    one instance's, and every instance would see all of them. A matrix the functions use as one (``e @ Q @ e``)
+    fails with one row and passes; a vector parameter is taken as one instance's (its length may be anything)."""
     if B <= 1:
         return
     for k in sorted(problem._inferred_shapes):
         shape = tuple(problem.param_shapes[k])
-        if shape and shape[0] == B and tuple(problem.params[k].shape) == shape:
+        if len(shape) < 2 or shape[0] != B or tuple(problem.params[k].shape) != shape:
+            continue
+        if accepts_one_row(problem, k):
             raise ValueError(
                 f"parameter {k!r} was given to the Problem constructor with shape {shape}, whose leading dimension is "
-                f"the batch size {B}: the constructor takes one instance's parameters, so every instance would see "
-                f"all {B} rows. For one value per instance, build the problem with one instance's value and pass "
-                f"the batch with problem.with_params({k}=values) (or declare param_shapes={{{k!r}: {shape[1:]}}}); "
-                f"if {shape} is one instance's value, declare it: param_shapes={{{k!r}: {shape}}}")
+                f"the batch size {B}, and the problem's functions accept one row of it as well: its batch dimension "
+                f"must be said. The constructor takes one instance's parameters, so every instance would see all "
+                f"{B} rows. For one value per instance, build the problem with one instance's value and pass the "
+                f"batch with problem.with_params({k}=values) (or declare param_shapes={{{k!r}: {shape[1:]}}}); if "
+                f"{shape} is one instance's value, declare it: param_shapes={{{k!r}: {shape}}}")
 
 
 @dataclass

@@ -194,3 +194,37 @@ def probe(problem) -> dict:
         if sizes[name]:
             check_under_torch_func(name, fn, stage, x, u, p)
     return sizes
+
+
+def _outputs(problem, p: dict) -> list:
+    """The shapes and dtypes of every function's output at ``x0``, ``u_init[0]`` and parameters ``p``; ``None``
+    where a function fails."""
+    x, u = problem.x0.detach(), problem.u_init[0].detach()
+    out = []
+    for name in ("dynamics", "stage_cost", "terminal_cost", "stage_eq", "stage_ineq", "state_ineq", "terminal_eq",
+                 "terminal_ineq"):
+        fn = getattr(problem, name)
+        if fn is None:
+            continue
+        xc, uc, pc = _copies(x, u, p)
+        try:
+            value = fn(xc, uc, pc) if name in ("dynamics", "stage_cost", "stage_eq", "stage_ineq") else fn(xc, pc)
+        except Exception:  # noqa: BLE001 (any failure means: not this shape)
+            return None
+        if not isinstance(value, Tensor):
+            return None
+        out.append((tuple(value.shape), value.dtype))
+    return out
+
+
+def accepts_one_row(problem, name: str) -> bool:
+    """Whether every function of ``problem`` runs, with outputs of the same shapes, when the parameter ``name`` is
+    replaced by its first row: then its shape does not tell one instance's value from one value per instance
+    (:func:`torchtraj.core.batch.check_parameter_batch`). Remembered per problem."""
+    cache = problem.__dict__.setdefault("_accepts_one_row", {})
+    if name not in cache:
+        p = problem.instance_params()
+        full = _outputs(problem, p)
+        row = _outputs(problem, {**p, name: p[name][0]})
+        cache[name] = full is not None and row == full
+    return cache[name]

@@ -13,13 +13,20 @@ functions (no batch dimension; the library vmaps them over batch and time)::
 State-only path constraints start at knot 1 because x_0 is fixed;
 put a state constraint on x_N in the terminal functions.
 
-``p`` is a dict of tensors. Each entry has a per-instance shape (``param_shapes``,
-by default the shape given at construction) and may carry one extra leading batch
-dimension; gradients flow to these tensors in differentiable solves.
+``p`` is a dict of tensors. Each entry has a per-instance shape and may carry one extra leading batch
+dimension; gradients flow to these tensors in differentiable solves. The constructor takes *one instance's*
+parameters: a shape not declared in ``param_shapes`` is the given value's. One value per instance is passed
+with :meth:`Problem.with_params` (or declared: ``param_shapes={"goal": (2,)}`` with a ``(B, 2)`` value). The batch
+dimension is never guessed: where a constructor's parameter of two or more dimensions has the solve's batch size as
+its leading dimension and the functions accept one row of it too, the solve refuses it and says how to declare it
+(:func:`torchtraj.core.batch.check_parameter_batch`).
 
-The problem is checked at construction by a probe call of every function:
-wrong output shapes, non-finite outputs and mismatched dimensions raise a
-``ValueError`` naming the function and the shapes.
+The problem is checked at construction (:mod:`torchtraj.core.probe`): every function runs on copies of the
+inputs and under ``torch.func.vmap`` / ``jacrev`` as the solvers run it; wrong output shapes or dtypes,
+non-finite outputs, in-place writes into the inputs, code that torch.func cannot batch (``.item()``, numpy,
+Python branches on tensors) and mismatched dimensions raise a ``ValueError`` naming the function and what to
+change; a cut graph (a Jacobian identically zero where the value changes) is warned about. Bounds must not be
+NaN, a lower bound ``+inf`` or an upper bound ``-inf`` is infeasible, and ``lower <= upper``.
 """
 
 from __future__ import annotations
@@ -49,9 +56,10 @@ class Problem:
         stage_cost: ``l(x, u, p) -> ()``.
         terminal_cost: ``l_N(x, p) -> ()``.
         x0: default initial state ``(nx,)``.
-        horizon: number of intervals N (N+1 knots).
-        nu: number of controls.
-        params: ``p``, a dict of tensors (per-instance shape, optional leading batch dim).
+        horizon: number of intervals N (N+1 knots), a positive integer (numpy integers accepted, bools not).
+        nu: number of controls, a positive integer.
+        params: ``p``, a dict of tensors: one instance's values (module docstring); batched ones through
+            :meth:`with_params` or a declared ``param_shapes``.
         stage_eq / stage_ineq: ``(x, u, p) -> (m,)``, on knots 0..N-1 (``g <= 0``).
         state_ineq: ``(x, p) -> (m,)`` on knots 1..N-1.
         terminal_eq / terminal_ineq: ``(x, p) -> (m,)`` on knot N.
@@ -61,7 +69,8 @@ class Problem:
         X_init: optional ``(N+1, nx)`` default initial state guess.
         dt: duration of one interval, when the problem has one (for plots and time penalties).
         name: a label for reports.
-        param_shapes: per-instance shape of each parameter; defaults to the given shapes.
+        param_shapes: per-instance shape of some or all parameters; the others' are the given shapes. A value with
+            one more leading dimension than its declared shape is batched.
         linear_quadratic: declares the dynamics and every constraint affine in ``(x, u)`` and the costs
             quadratic (parameters may enter any way). The interior-point method then expands the problem
             once and evaluates its derivatives at later iterates by products, and implicit differentiation
