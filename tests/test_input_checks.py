@@ -221,3 +221,10 @@ def test_environments_refuse_a_non_finite_start_state():
     env = envs.PendulumEnv()
     with pytest.raises(ValueError, match="options\\['state'\\] must be finite"):
         env.reset(options={"state": np.array([np.nan, 0.0])})
+
+
+def test_max_iterations_says_which_limit_was_hit():
+    prob = make(u_lower=-0.2 * torch.ones(1, dtype=F64), u_upper=0.2 * torch.ones(1, dtype=F64))
+    sol = tt.solve(prob, method="al-ilqr", options=tt.ALTROOptions(iterations_outer=1, projection=False))
+    assert sol.status[0] == tt.Status.MAX_ITERATIONS
+    assert "max_iterations: 1 after the outer loop's limit (iterations_outer" in sol.summary()
