@@ -168,6 +168,8 @@ class ModelEnv(gym.Env[np.ndarray, np.ndarray]):
             x0 = np.asarray(given, dtype=np.float64)
             if x0.shape != (self.model.nx,):
                 raise ValueError(f"options['state'] must have shape ({self.model.nx},), got {x0.shape}")
+            if not np.isfinite(x0).all():
+                raise ValueError(f"options['state'] must be finite, got {x0.tolist()}")
         self._x = torch.as_tensor(x0, dtype=DTYPE).clone()
         self._layout = {k: torch.as_tensor(v, dtype=DTYPE).clone() for k, v in layout.items()}
         self.elapsed_steps = 0

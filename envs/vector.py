@@ -136,6 +136,8 @@ class ModelVectorEnv(VectorEnv):
         if given is not None:
             x0 = torch.broadcast_to(torch.as_tensor(given, dtype=DTYPE, device=self.device),
                                     (self.num_envs, self.model.nx))[torch.as_tensor(indices, device=self.device)]
+            if not bool(torch.isfinite(x0).all()):
+                raise ValueError(f"options['state'] must be finite, got {x0.tolist()}")
         self._restart_at(indices, x0, layout)
         return self._out(self.single_env._observe(self._x, self._layout)), {}
 

@@ -96,6 +96,12 @@ class Solution:
             f"{self.method} on {self.batch_size} instance(s): {counts}",
             f"  iterations {int(self.iterations.min())}..{int(self.iterations.max())}",
         ]
+        outer = self.history.extra.get("outer_limit")
+        limited = self.status == Status.MAX_ITERATIONS
+        if outer is not None and outer.numel() and bool(limited.any()):
+            by_outer = int((limited & (outer[:, -1] > 0)).sum())
+            lines.append(f"  max_iterations: {by_outer} after the outer loop's limit (iterations_outer dual updates), "
+                         f"{int(limited.sum()) - by_outer} after the iteration budget or an unconverged projection")
         if cost.numel():
             lines.append(f"  cost {float(cost.min()):.8g}..{float(cost.max()):.8g}")
             lines.append(f"  max violation {float(self.max_violation.detach()[finite].max()):.3g}")

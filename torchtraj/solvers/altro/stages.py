@@ -75,6 +75,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     running = status == Status.RUNNING
     al_done = torch.zeros_like(running)
     stalled = torch.zeros_like(running)
+    outer_limit = torch.zeros_like(running)
     rho = torch.full((B,), inner.regularization_initial, dtype=x0.dtype, device=x0.device)
     drho = torch.zeros_like(rho)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
@@ -107,7 +108,10 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         running = (status == Status.RUNNING) & ~al_done
         rows.append({"cost": J, "max_violation": violation, "step_size": s.alpha, "regularization": rho,
                      "penalty": _largest_penalty(al.duals),
-                     "outer_iteration": outer_count.to(J.dtype)})
+                     "outer_iteration": outer_count.to(J.dtype),
+                     # which limit a MAX_ITERATIONS instance hit (Solution.summary): the outer loop's
+                     "outer_limit": (outer_limit | exhausted).to(J.dtype)})
+        outer_limit = outer_limit | exhausted
         if opts.verbose:
             log_iteration(method, it, J, rho, running)
     status = torch.where(running, int(Status.MAX_ITERATIONS), status)
