@@ -18,9 +18,9 @@ field of a shard is packed into one flat buffer, padded to the longest shard's a
 
 What is gathered: ``X``, ``U``, ``K``, ``cost``, ``max_violation``, ``status``, ``iterations``, ``costate``, every
 block of ``multipliers`` and ``penalties``, and the :class:`~torchtraj.History`. Histories are ``(B_r, T_r)`` with
-``T_r`` the shard's own iteration count; entries after an instance stopped repeat its final values, so a shard's
-history is extended to the largest ``T`` by repeating its last column, which is what a one-process solve of the
-whole batch records. Gathered tensors carry no gradients (collectives are not differentiated); to train through
+``T_r`` the shard's own iteration count. After an instance stopped, the solvers record its final values again at
+every later iteration, with step size 0 (no step was taken), so a shard's history is extended to the largest ``T``
+the same way, by its last column and a zero step size: what a one-process solve of the whole batch records. Gathered tensors carry no gradients (collectives are not differentiated); to train through
 the solver on several processes, let each rank call :func:`torchtraj.solve` on its share under
 ``DistributedDataParallel`` (``examples/learn_dynamics_ddp.py``).
 
@@ -57,6 +57,8 @@ from .core.solution import History, Solution
 from .solve import solve as solve_one
 
 HISTORY_BASE = ("cost", "max_violation", "step_size", "regularization")
+#: What the solvers record for an instance after it stopped, where it is not its last value: no step taken.
+STOPPED_FILL = {"history/step_size": 0.0}
 
 
 def world() -> tuple:
@@ -212,8 +214,9 @@ def _spec(fields: list, steps: int) -> list:
     return [(n, ([steps] if n.startswith("history/") else []) + list(s), d) for n, s, d in fields]
 
 
-def _extend(t: Tensor, count: int, steps: int) -> Tensor:
-    """A history ``(B, T, ...)`` extended to ``steps`` by repeating its last entry (NaN where it has none)."""
+def _extend(t: Tensor, count: int, steps: int, fill: Optional[float] = None) -> Tensor:
+    """A history ``(B, T, ...)`` extended to ``steps`` by repeating its last entry, or by ``fill`` where given
+    (NaN where it has no entry)."""
     if t.shape[0] != count or t.dim() < 2:  # History.from_rows([]) of a solve without iterations
         t = torch.full((count, 0), float("nan"), dtype=t.dtype, device=t.device)
     have = t.shape[1]
@@ -221,7 +224,8 @@ def _extend(t: Tensor, count: int, steps: int) -> Tensor:
         return t
     if have == 0:
         return torch.full((count, steps, *t.shape[2:]), float("nan"), dtype=t.dtype, device=t.device)
-    return torch.cat([t, t[:, -1:].expand(count, steps - have, *t.shape[2:])], dim=1)
+    tail = t[:, -1:].expand(count, steps - have, *t.shape[2:])
+    return torch.cat([t, tail if fill is None else torch.full_like(tail, fill)], dim=1)
 
 
 def _flatten(local: Optional[Solution], count: int, spec: list, steps: int, device) -> dict:
@@ -229,7 +233,8 @@ def _flatten(local: Optional[Solution], count: int, spec: list, steps: int, devi
     if local is None:
         return {n: torch.empty((0, *s), dtype=getattr(torch, d), device=device) for n, s, d in spec}
     found = _fields(local)
-    return {n: _extend(found[n], count, steps) if n.startswith("history/") else found[n] for n, _, _ in spec}
+    return {n: _extend(found[n], count, steps, STOPPED_FILL.get(n)) if n.startswith("history/") else found[n]
+            for n, _, _ in spec}
 
 
 def _wire(dtype_name: str) -> torch.dtype:
