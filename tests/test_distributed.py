@@ -26,6 +26,7 @@ from torchtraj import distributed
 import ranks
 
 WORLD = 2
+COUNT = 8
 
 
 #: The default test's ALTRO runs three outer iterations: quick, and its instances stop for different reasons.
@@ -108,10 +109,23 @@ def test_shards_are_balanced_contiguous_and_in_order():
         assert max(lengths) - min(lengths) <= 1
 
 
-def test_two_ranks_gather_the_one_process_solution_bit_for_bit(tmp_path):
-    count = 8
-    ranks.run(_work_gather_modes, WORLD, "double_integrator", count, tmp_path, timeout=240)
-    want = _reference("double_integrator", count, **QUICK)
+def _work_everything(rank, world, out):
+    _work_gather_modes(rank, world, "double_integrator", COUNT, out)
+    _work_ddp(rank, world, DDP_RUN, out)
+
+
+@pytest.fixture(scope="module")
+def two_ranks(tmp_path_factory) -> Path:
+    """The folder of what two Gloo ranks saved: the solves of :func:`_work_gather_modes`, the training of
+    :func:`_work_ddp` (one launch for both: a fresh process's imports and first solve cost more than the runs)."""
+    out = tmp_path_factory.mktemp("two_ranks")
+    ranks.run(_work_everything, WORLD, out, timeout=300)
+    return out
+
+
+def test_two_ranks_gather_the_one_process_solution_bit_for_bit(two_ranks):
+    tmp_path = two_ranks
+    want = _reference("double_integrator", COUNT, **QUICK)
     # a meaningful comparison: multipliers that are not all zero, and instances that stopped for different reasons
     assert any(bool((v != 0).any()) for v in want.multipliers.values())
     assert len(set(want.status.tolist())) > 1 and len(set(want.iterations.tolist())) > 1
@@ -175,10 +189,10 @@ def _work_ddp(rank, world, run, out):
     _save(result, out / f"ddp-{rank}.pt")
 
 
-def test_ddp_learns_the_parameters_of_the_one_process_run(tmp_path):
+def test_ddp_learns_the_parameters_of_the_one_process_run(two_ranks):
+    tmp_path = two_ranks
     example = _example()
     one = example.main(**DDP_RUN)
-    ranks.run(_work_ddp, WORLD, DDP_RUN, tmp_path, timeout=240)
     start = torch.tensor([example.START[k] for k in example.LEARNED], dtype=torch.float64)
     assert (one["theta"] - start).abs().min() > 1e-2 and one["loss"][-1] < 0.5 * one["loss"][0]  # it learnt
     for rank in range(WORLD):

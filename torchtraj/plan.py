@@ -225,7 +225,9 @@ def run(args) -> int:
         try:
             state = [prepare(out, settings)]
         except Exception as exc:
-            state = [f"{type(exc).__name__}: {exc}"]
+            if size == 1:
+                raise
+            state = [f"{type(exc).__name__}: {exc}"]  # every rank stops with it, below
     if size > 1:
         dist.broadcast_object_list(state, src=0)
     if state[0] == "done":
