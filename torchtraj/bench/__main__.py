@@ -94,6 +94,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--mpc", action="store_true",
                    help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
                         "own: python -m torchtraj.bench --mpc --help)")
+    p.add_argument("--scale-out", action="store_true",
+                   help="time one batch on 1, 2, ... local processes instead (torchtraj.bench.scale_out, with options "
+                        "of its own: python -m torchtraj.bench --scale-out --help)")
     p.add_argument("--ops", action="store_true",
                    help="report eager torch operator calls per solve and per iteration instead (torchtraj.bench.ops: "
                         "B = 1, each method's default options, so the tolerance and --iterations flags do not apply; "
@@ -192,6 +195,9 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if "--mpc" in argv:
         from . import mpc
         return mpc.main([a for a in argv if a != "--mpc"], out)
+    if "--scale-out" in argv:
+        from . import scale_out
+        return scale_out.main([a for a in argv if a != "--scale-out"], out)
     p = parser()
     args = p.parse_args(argv)
     if args.compile:
