@@ -5,7 +5,8 @@ over the ranks of a process group: rank r of W holds instances ``torchtraj.distr
 them with :func:`torchtraj.solve` *with gradients* (implicit differentiation of the KKT conditions). The loss of the
 whole batch is
 
-    loss(θ) = (1/B) Σ_b |U_b(θ) − U_b*|² + |X_b(θ) − X_b*|²  =  Σ_r loss_r(θ),   loss_r = (1/B) Σ_{b in shard r} (…),
+    loss(θ) = (1/B) Σ_b |U_b(θ) − U_b*|² + |X_b(θ) − X_b*|²  =  Σ_r loss_r(θ),
+    loss_r(θ) = (1/B) Σ_{b in shard r} |U_b(θ) − U_b*|² + |X_b(θ) − X_b*|²,
 
 so each rank backpropagates ``W · loss_r``: DistributedDataParallel averages the ranks' gradients (divides by W)
 into exactly ∇loss, and the loss values that L-BFGS's line search compares are summed by one ``all_reduce``. Every

@@ -8,7 +8,8 @@ The reference is :func:`torchtraj.solve` of the whole batch in the test's own pr
 the solvers' batch isolation promises: every per-instance operation (batched matrix products, factorisations,
 line-search decisions by masks) computes instance i from instance i's data only, with the same kernels whatever B
 is. The default test runs ALTRO (three outer iterations) on the double integrator (bounds, terminal equality:
-non-zero multipliers, and instances that stop for different reasons); the pendulum batch of 256 is the slow acceptance run.
+non-zero multipliers, and instances that stop for different reasons); the pendulum batch of 256 is the slow
+acceptance run.
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ def _work_gather_modes(rank, world, name, count, out):
     local = _cut_solution(whole, mine)
     _save(distributed.exchange(local, None, gather="none")[0], out / f"none-{rank}.pt")
     _save(distributed.exchange(local, None, gather=1)[0], out / f"to1-{rank}.pt")
+    # per-instance parameters are cut with the batch
+    _save(distributed.solve(*_per_instance_goals(count), "ilqr"), out / f"goals-{rank}.pt")
     # one instance on two ranks: rank 1's shard is empty
     single = distributed.solve(problem, x0[:1], "ilqr", gather="rank0")
     _save(single, out / f"single-{rank}.pt")
@@ -65,6 +68,13 @@ def _work_gather_modes(rank, world, name, count, out):
         distributed.solve(problem, x0[:2], "ilqr" if rank == 0 else "no-such-method")
     except RuntimeError as exc:
         _save(str(exc), out / f"error-{rank}.pt")
+
+
+def _per_instance_goals(count: int) -> tuple:
+    """The double integrator with a goal per instance ``(B, nx)`` and a shared initial state."""
+    problem = tt.problems.get("double_integrator")
+    goals = problem.params["goal"] + torch.linspace(-1.0, 1.0, count, dtype=torch.float64)[:, None]
+    return problem.with_params(goal=goals), None
 
 
 def _cut_solution(sol, part: slice):
@@ -141,6 +151,12 @@ def test_two_ranks_gather_the_one_process_solution_bit_for_bit(two_ranks):
                           tt.problems.sample_x0("double_integrator", 1, seed=0), "ilqr")
     assert_identical(_load(tmp_path / "single-0.pt"), single)
     assert _load(tmp_path / "single-1.pt") is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        goals = tt.solve(*_per_instance_goals(COUNT), "ilqr")
+    assert len(set(goals.cost.tolist())) == COUNT  # each instance has its own goal
+    for rank in range(WORLD):
+        assert_identical(_load(tmp_path / f"goals-{rank}.pt"), goals)
     for rank in range(WORLD):
         message = _load(tmp_path / f"error-{rank}.pt")
         assert "rank 1" in message and "no-such-method" in message and "rank 0" not in message

@@ -66,7 +66,8 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch)
 
     solved = []
     original = plan.solve_chunk
-    monkeypatch.setattr(plan, "solve_chunk", lambda problem, x0, *a: solved.append(len(x0)) or original(problem, x0, *a))
+    monkeypatch.setattr(plan, "solve_chunk",
+                        lambda problem, x0, *a: solved.append(len(x0)) or original(problem, x0, *a))
     assert plan.main([*ARGS, "--out", str(out)]) == 0
     assert solved == [3, 1]  # only the two chunks the killed run had not written
     assert not parts.exists()

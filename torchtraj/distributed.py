@@ -20,9 +20,10 @@ What is gathered: ``X``, ``U``, ``K``, ``cost``, ``max_violation``, ``status``, 
 block of ``multipliers`` and ``penalties``, and the :class:`~torchtraj.History`. Histories are ``(B_r, T_r)`` with
 ``T_r`` the shard's own iteration count. After an instance stopped, the solvers record its final values again at
 every later iteration, with step size 0 (no step was taken), so a shard's history is extended to the largest ``T``
-the same way, by its last column and a zero step size: what a one-process solve of the whole batch records. Gathered tensors carry no gradients (collectives are not differentiated); to train through
-the solver on several processes, let each rank call :func:`torchtraj.solve` on its share under
-``DistributedDataParallel`` (``examples/learn_dynamics_ddp.py``).
+the same way, by its last column and a zero step size: what a one-process solve of the whole batch records.
+Gathered tensors carry no gradients (collectives are not differentiated); to train through the solver on several
+processes, let each rank call :func:`torchtraj.solve` on its share under ``DistributedDataParallel``
+(``examples/learn_dynamics_ddp.py``).
 
 Failures: every rank catches the exception of its own solve; the ranks exchange an ok flag and the message, and
 then *every* rank raises a ``RuntimeError`` naming each failing rank and its reason, so no rank is left waiting in
@@ -171,7 +172,7 @@ def _destination(gather, size: int):
 def _shard_problem(problem: Problem, part: slice, count: int) -> Problem:
     """``problem`` with its batched parameters cut to the shard; the shared ones stay as they are."""
     cut = {k: v[part] for k, v in problem.params.items()
-           if v.dim() == len(problem.param_shapes[k]) + 1 and v.shape[0] == count}
+           if v.dim() == len(problem.param_shapes.get(k, v.shape)) + 1 and v.shape[0] == count}
     return problem.with_params(**cut) if cut else problem
 
 

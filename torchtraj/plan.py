@@ -215,7 +215,7 @@ def merge(parts: Path, todo: list, settings: dict) -> dict:
 
 def run(args) -> int:
     rank, size = distributed.world()
-    device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}" if args.device == "cuda" else "cpu")
+    device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}" if args.device == "cuda" else "cpu")
     x0 = initial_states(args)
     settings = settings_of(args, x0)
     out = Path(args.out)
@@ -292,7 +292,7 @@ def main(argv: Optional[list] = None) -> int:
     if launched and not dist.is_initialized():
         backend = "nccl" if args.device == "cuda" else "gloo"
         if args.device == "cuda":
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
         dist.init_process_group(backend, timeout=datetime.timedelta(seconds=args.timeout))
     try:
         return run(args)
