@@ -215,3 +215,23 @@ def test_ddp_learns_the_parameters_of_the_one_process_run(two_ranks):
         two = _load(tmp_path / f"ddp-{rank}.pt")
         assert (two["theta"] - one["theta"]).abs().max() < 1e-8, (two["theta"], one["theta"])
         assert two["loss"] == pytest.approx(one["loss"], rel=1e-10)
+
+
+def test_bench_scale_out_rows_and_speed_up(monkeypatch):
+    """``python -m torchtraj.bench --scale-out`` reaches its table (the launches replaced by fixed timings)."""
+    import io
+
+    from torchtraj.bench import __main__ as bench
+    from torchtraj.bench import scale_out
+
+    def row(args, world):
+        return {"wall_s": 8.0 / world, "cpu_s": [6.0 / world] * world, "converged": 1.0, "iterations_max": 7,
+                "processes": world, "instances_per_s": args.batch * world / 8.0, "load_before": 0.0,
+                "load_after": 0.0, "free_core_instances_per_s": args.batch * world / 6.0}
+
+    monkeypatch.setattr(scale_out, "run_row", row)
+    out = io.StringIO()
+    assert bench.main(["--scale-out", "--batch", "16", "--processes", "1", "2"], out) == 0
+    lines = out.getvalue().splitlines()
+    assert "B = 16" in lines[0]
+    assert lines[-1].split()[:4] == ["2", "4.00", "4.00", "2.00"]  # processes, wall s, inst/s, speed-up

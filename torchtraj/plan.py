@@ -6,9 +6,9 @@
     torchrun --nproc-per-node 2 -m torchtraj.plan --problem pendulum --count 4096 --method altro --out plans.pt
 
 The initial states are ``torchtraj.problems.sample_x0(problem, count, seed)`` (or the ``(count, nx)`` tensor in
-``--x0 FILE``). They are cut into chunks of ``--chunk-size`` instances (the chunks depend on the count and the chunk
-size only, never on the number of processes); the chunks still to do are dealt round-robin to the ranks, each rank
-solves its chunk with :func:`torchtraj.solve`, and rank 0 receives every round's chunks through
+``--x0 FILE``, read by rank 0). They are cut into chunks of ``--chunk-size`` instances (the chunks depend on the
+count and the chunk size only, never on the number of processes); the chunks still to do are dealt round-robin to
+the ranks, each rank solves its chunk with :func:`torchtraj.solve`, and rank 0 receives every round's chunks through
 :func:`torchtraj.distributed.exchange` (tensor collectives: no shared file system is needed) and writes each one
 atomically (a temporary file, then ``os.replace``) to ``OUT.parts/chunk-<start>-<stop>.pt``. Once all chunks are
 there, rank 0 merges them in instance order into ``OUT`` (atomically too) and removes ``OUT.parts``. ``OUT`` is a dict
@@ -216,20 +216,21 @@ def merge(parts: Path, todo: list, settings: dict) -> dict:
 def run(args) -> int:
     rank, size = distributed.world()
     device = torch.device(f"cuda:{int(os.environ.get('LOCAL_RANK', '0'))}" if args.device == "cuda" else "cpu")
-    x0 = initial_states(args)
-    settings = settings_of(args, x0)
     out = Path(args.out)
     parts = Path(f"{out}.parts")
-    state = [None]
+    state = [None, None]  # rank 0 reads the initial states (no file system shared by the ranks is needed)
     if rank == 0:
         try:
-            state = [prepare(out, settings)]
+            x0 = initial_states(args)
+            state = [prepare(out, settings_of(args, x0)), x0]
         except Exception as exc:
             if size == 1:
                 raise
-            state = [f"{type(exc).__name__}: {exc}"]  # every rank stops with it, below
+            state = [f"{type(exc).__name__}: {exc}", None]  # every rank stops with it, below
     if size > 1:
         dist.broadcast_object_list(state, src=0)
+    x0 = state[1]
+    settings = None if x0 is None else settings_of(args, x0)
     if state[0] == "done":
         if rank == 0:
             print(f"{out} is complete already")
@@ -269,18 +270,31 @@ def run(args) -> int:
             written += len(records)
             if exit_after and written >= exit_after:
                 os._exit(17)
+    outcome = [None]
     if rank == 0:
-        merged = merge(parts, all_chunks, settings)
-        save_atomic(merged, out)
-        shutil.rmtree(parts)
-        s = merged["summary"]
-        quantiles = ", ".join(f"{k:g}: {v:.6g}" for k, v in s["cost_quantiles"].items())
-        print(f"{out}: {s['count']} instances of {args.problem} by {args.method} on {size} process(es); converged "
-              f"{100 * s['converged_fraction']:.1f}% {s['status_counts']}; cost quantiles {{{quantiles}}}; "
-              f"{1e3 * s['seconds_per_instance']:.2f} ms solve time per instance")
-    if size > 1:
-        dist.barrier()
+        try:
+            finish(parts, all_chunks, settings, out, args, size)
+        except Exception as exc:
+            if size == 1:
+                raise
+            outcome = [f"{type(exc).__name__}: {exc}"]
+    if size > 1:  # the other ranks learn how the merge went (and do not wait on it past the timeout)
+        dist.broadcast_object_list(outcome, src=0)
+    if outcome[0] is not None:
+        raise RuntimeError(f"rank 0: {outcome[0]}")
     return 0
+
+
+def finish(parts: Path, all_chunks: list, settings: dict, out: Path, args, size: int) -> None:
+    """Rank 0: merge the chunks into ``out``, remove ``OUT.parts``, print the summary."""
+    merged = merge(parts, all_chunks, settings)
+    save_atomic(merged, out)
+    shutil.rmtree(parts)
+    s = merged["summary"]
+    quantiles = ", ".join(f"{k:g}: {v:.6g}" for k, v in s["cost_quantiles"].items())
+    print(f"{out}: {s['count']} instances of {args.problem} by {args.method} on {size} process(es); converged "
+          f"{100 * s['converged_fraction']:.1f}% {s['status_counts']}; cost quantiles {{{quantiles}}}; "
+          f"{1e3 * s['seconds_per_instance']:.2f} ms solve time per instance")
 
 
 def main(argv: Optional[list] = None) -> int:
