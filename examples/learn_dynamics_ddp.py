@@ -41,7 +41,9 @@ from torchtraj import distributed  # noqa: E402
 
 LEARNED = ("mass", "damping")
 START = {"mass": 1.6, "damping": 0.25}
-OPTIONS = tt.ILQROptions(cost_tolerance=1e-8, gradient_tolerance=1e-5)
+#: The interior point (its default options): it reaches points the KKT certificate calls converged on this problem, and
+#: only converged instances get implicit gradients.
+METHOD, OPTIONS = "ipm", tt.IPOptions()
 
 
 class Learner(torch.nn.Module):
@@ -54,7 +56,7 @@ class Learner(torch.nn.Module):
 
     def forward(self, x0: torch.Tensor, U0: torch.Tensor) -> tuple:
         params = dict(zip(LEARNED, self.log_theta.exp()))
-        sol = tt.solve(self.problem.with_params(**params), x0, U0=U0, options=OPTIONS)
+        sol = tt.solve(self.problem.with_params(**params), x0, METHOD, U0=U0, options=OPTIONS)
         return sol.X, sol.U
 
 
@@ -67,7 +69,7 @@ def demonstrations(problem: tt.Problem, x0: torch.Tensor) -> tuple:
     """The expert's ``(X*, U*)`` with the true model, each rank solving its shard (refined by the Newton steps of a
     differentiable solve, so exact to round-off), gathered on every rank."""
     true = {k: torch.tensor(v, dtype=torch.float64, requires_grad=True) for k, v in TRUE.items()}
-    expert = distributed.solve(problem.with_params(**true), x0, options=OPTIONS, gather="all")
+    expert = distributed.solve(problem.with_params(**true), x0, METHOD, options=OPTIONS, gather="all")
     if not bool(expert.converged.all()):
         raise RuntimeError(f"the expert did not converge: status {expert.status.tolist()}")
     return expert.X.detach(), expert.U.detach()

@@ -87,7 +87,8 @@ def _cut_solution(sol, part: slice):
                        iterations=sol.iterations[part], history=history,
                        costate=None if sol.costate is None else sol.costate[part],
                        multipliers={k: v[part] for k, v in sol.multipliers.items()},
-                       penalties={k: v[part] for k, v in sol.penalties.items()}, method=sol.method)
+                       penalties={k: v[part] for k, v in sol.penalties.items()}, method=sol.method,
+                       kkt={k: v[part] for k, v in sol.kkt.items()})
 
 
 def _bits(t):

@@ -42,7 +42,7 @@ def _load(path: Path) -> dict:
 def assert_same_output(a: dict, b: dict) -> None:
     for k in FIELDS:
         assert torch.equal(a[k], b[k]), k
-    for group in ("multipliers", "penalties"):
+    for group in plan.GROUPS:
         assert a[group].keys() == b[group].keys()
         assert all(torch.equal(a[group][k], b[group][k]) for k in a[group]), group
 
@@ -83,7 +83,9 @@ def test_a_killed_run_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch)
     want = _reference()
     for k in FIELDS[1:]:
         assert torch.equal(resumed[k], getattr(want, k)), k
-    assert all(torch.equal(resumed["multipliers"][k], v) for k, v in want.multipliers.items())
+    for group in plan.GROUPS:
+        assert resumed[group].keys() == getattr(want, group).keys()
+        assert all(torch.equal(resumed[group][k], v) for k, v in getattr(want, group).items()), group
     summary = resumed["summary"]
     assert summary["count"] == COUNT
     assert summary["converged_fraction"] == pytest.approx(float(want.converged.double().mean()))

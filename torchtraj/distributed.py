@@ -17,12 +17,12 @@ field of a shard is packed into one flat buffer, padded to the longest shard's a
 ``all_gather_object``.
 
 What is gathered: ``X``, ``U``, ``K``, ``cost``, ``max_violation``, ``status``, ``iterations``, ``costate``, every
-block of ``multipliers`` and ``penalties``, and the :class:`~torchtraj.History`. Histories are ``(B_r, T_r)`` with
-``T_r`` the shard's own iteration count. After an instance stopped, the solvers record its final values again at
-every later iteration, with step size 0 (no step was taken), so a shard's history is extended to the largest ``T``
-the same way, by its last column and a zero step size: what a one-process solve of the whole batch records.
-Gathered tensors carry no gradients (collectives are not differentiated); to train through the solver on several
-processes, let each rank call :func:`torchtraj.solve` on its share under ``DistributedDataParallel``
+block of ``multipliers`` and ``penalties``, the KKT residuals ``kkt`` and the :class:`~torchtraj.History`. Histories
+are ``(B_r, T_r)`` with ``T_r`` the shard's own iteration count. After an instance stopped, the solvers record its
+final values again at every later iteration, with step size 0 (no step was taken), so a shard's history is extended
+to the largest ``T`` the same way, by its last column and a zero step size: what a one-process solve of the whole
+batch records. Gathered tensors carry no gradients (collectives are not differentiated); to train through the solver
+on several processes, let each rank call :func:`torchtraj.solve` on its share under ``DistributedDataParallel``
 (``examples/learn_dynamics_ddp.py``).
 
 Failures: every rank catches the exception of its own solve; the ranks exchange an ok flag and the message, and
@@ -187,12 +187,13 @@ def _cut(tree, part: slice, count: int):
 
 def _fields(sol: Solution) -> dict:
     """The solution's tensors by flat name: the fields, ``multipliers/<block>``, ``penalties/<block>``,
-    ``history/<name>``."""
+    ``kkt/<residual>``, ``history/<name>``."""
     out = {k: getattr(sol, k) for k in ("X", "U", "K", "cost", "max_violation", "status", "iterations")}
     if sol.costate is not None:
         out["costate"] = sol.costate
     out.update({f"multipliers/{k}": v for k, v in sol.multipliers.items()})
     out.update({f"penalties/{k}": v for k, v in sol.penalties.items()})
+    out.update({f"kkt/{k}": v for k, v in sol.kkt.items()})
     h = sol.history
     out.update({f"history/{k}": getattr(h, k) for k in HISTORY_BASE})
     out.update({f"history/extra/{k}": v for k, v in h.extra.items()})
@@ -287,4 +288,4 @@ def _assemble(parts: list, spec: list, method: str) -> Solution:
     return Solution(X=whole["X"], U=whole["U"], K=whole["K"], cost=whole["cost"], max_violation=whole["max_violation"],
                     status=whole["status"], iterations=whole["iterations"], history=history,
                     costate=whole.get("costate"), multipliers=block("multipliers/"), penalties=block("penalties/"),
-                    method=method)
+                    method=method, kkt=block("kkt/"))

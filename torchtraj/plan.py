@@ -11,11 +11,11 @@ count and the chunk size only, never on the number of processes); the chunks sti
 the ranks, each rank solves its chunk with :func:`torchtraj.solve`, and rank 0 receives every round's chunks through
 :func:`torchtraj.distributed.exchange` (tensor collectives: no shared file system is needed) and writes each one
 atomically (a temporary file, then ``os.replace``) to ``OUT.parts/chunk-<start>-<stop>.pt``. Once all chunks are
-there, rank 0 merges them in instance order into ``OUT`` (atomically too) and removes ``OUT.parts``. ``OUT`` is a dict
-read by ``torch.load``: ``x0``, ``X``, ``U``, ``K``, ``cost``, ``max_violation``, ``status``, ``iterations``,
-``costate`` (or ``None``), ``multipliers`` and ``penalties`` (dicts of per-block tensors), ``summary`` (converged
-fraction, cost quantiles, solve seconds per instance) and ``settings`` (the command's arguments). The per-iteration
-histories are not kept (their lengths differ between chunks).
+there, rank 0 merges them in instance order into ``OUT`` (atomically too) and removes ``OUT.parts``. ``OUT`` is a
+dict read by ``torch.load``: ``x0``, ``X``, ``U``, ``K``, ``cost``, ``max_violation``, ``status``, ``iterations``,
+``costate`` (or ``None``), ``multipliers``, ``penalties`` and ``kkt`` (dicts of per-block tensors), ``summary``
+(converged fraction, cost quantiles, solve seconds per instance) and ``settings`` (the command's arguments). The
+per-iteration histories are not kept (their lengths differ between chunks).
 
 Resuming: run the same command again after an interruption. The chunks found in ``OUT.parts`` are skipped (a chunk
 file exists only once it was written whole); ``OUT.parts/settings.pt`` must match the command's settings, so a
@@ -38,6 +38,7 @@ import torch
 import torch.distributed as dist
 
 from . import distributed, problems, solvers
+from .core.progress import Progress
 from .core.solution import Solution
 from .core.status import Status
 from .solve import solve
@@ -45,6 +46,7 @@ from .solve import solve
 #: Test hook: exit hard (``os._exit``) after this many chunks were written by this run, as a kill would.
 EXIT_AFTER_ENV = "_TORCHTRAJ_PLAN_EXIT_AFTER_CHUNKS"
 FIELDS = ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate")
+GROUPS = ("multipliers", "penalties", "kkt")
 QUANTILES = (0.0, 0.1, 0.5, 0.9, 1.0)
 
 
@@ -95,34 +97,14 @@ def save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-class Progress:
-    """A one-line stderr bar: chunks done, converged fraction and largest violation so far."""
-
-    def __init__(self, total: int, done: int, enabled: bool):
-        self.total, self.done, self.enabled = total, done, enabled
-        self.solved = self.converged = 0
-        self.violation = 0.0
-        self.start = time.perf_counter()
-        self.tty = sys.stderr.isatty()
-
-    def update(self, chunk_solutions: list) -> None:
-        for sol in chunk_solutions:
-            self.done += 1
-            self.solved += sol["status"].numel()
-            self.converged += int((sol["status"] == Status.CONVERGED).sum())
-            finite = sol["max_violation"][torch.isfinite(sol["max_violation"])]
-            self.violation = max(self.violation, float(finite.max()) if finite.numel() else 0.0)
-        if not self.enabled:
-            return
-        width = 30
-        filled = width * self.done // max(self.total, 1)
-        rate = self.converged / max(self.solved, 1)
-        line = (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} chunks  converged "
-                f"{100 * rate:.1f}%  max violation {self.violation:.2e}  {time.perf_counter() - self.start:.0f} s")
-        sys.stderr.write(("\r" + line) if self.tty else line + "\n")
-        if self.tty and self.done == self.total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+def _tally(tally: dict, records: list) -> dict:
+    """The bar's fields after ``records``: the converged fraction and the largest finite violation so far."""
+    for r in records:
+        tally["solved"] += r["status"].numel()
+        tally["converged"] += int((r["status"] == Status.CONVERGED).sum())
+        finite = r["max_violation"][torch.isfinite(r["max_violation"])]
+        tally["violation"] = max(tally["violation"], float(finite.max()) if finite.numel() else 0.0)
+    return {"converged": tally["converged"] / max(tally["solved"], 1), "violation": tally["violation"]}
 
 
 def initial_states(args) -> torch.Tensor:
@@ -173,9 +155,7 @@ def solve_chunk(problem, x0: torch.Tensor, method: str, options, device) -> tupl
 
 def chunk_record(sol, x0: torch.Tensor, seconds: float) -> dict:
     record = {k: (None if getattr(sol, k) is None else getattr(sol, k).cpu()) for k in FIELDS}
-    record.update(x0=x0.cpu(), seconds=seconds,
-                  multipliers={k: v.cpu() for k, v in sol.multipliers.items()},
-                  penalties={k: v.cpu() for k, v in sol.penalties.items()})
+    record.update(x0=x0.cpu(), seconds=seconds, **{g: {k: v.cpu() for k, v in getattr(sol, g).items()} for g in GROUPS})
     return record
 
 
@@ -187,8 +167,8 @@ def split_record(sol, sizes: list, x0s: list, seconds: list) -> list:
         offset += size
         piece = Solution(
             **{k: (None if getattr(sol, k) is None else getattr(sol, k)[part]) for k in FIELDS},
-            history=sol.history, multipliers={k: v[part] for k, v in sol.multipliers.items()},
-            penalties={k: v[part] for k, v in sol.penalties.items()}, method=sol.method)
+            history=sol.history, method=sol.method,
+            **{g: {k: v[part] for k, v in getattr(sol, g).items()} for g in GROUPS})
         records.append(chunk_record(piece, x0, secs))
     return records
 
@@ -198,7 +178,7 @@ def merge(parts: Path, todo: list, settings: dict) -> dict:
     records = [torch.load(chunk_path(parts, a, b), weights_only=True) for a, b in todo]
     out = {k: torch.cat([r[k] for r in records]) for k in ("x0",) + FIELDS if records[0][k] is not None}
     out.setdefault("costate", None)
-    for group in ("multipliers", "penalties"):
+    for group in GROUPS:
         out[group] = {k: torch.cat([r[group][k] for r in records]) for k in records[0][group]}
     cost = out["cost"][torch.isfinite(out["cost"])]
     q = torch.tensor(QUANTILES, dtype=cost.dtype)
@@ -245,7 +225,9 @@ def run(args) -> int:
     spec = problems.at_horizon(args.problem, args.horizon) if args.horizon else args.problem
     problem = problems.get(spec, device=device)
     options = options_for(args.method, args.problem, args.iterations)
-    progress = Progress(len(all_chunks), len(all_chunks) - len(todo), rank == 0 and not args.no_progress)
+    progress = Progress(len(all_chunks), label="plan", unit="chunks", enabled=rank == 0 and not args.no_progress)
+    progress.count = len(all_chunks) - len(todo)  # written by an earlier run
+    tally = {"solved": 0, "converged": 0, "violation": 0.0}
     exit_after = int(os.environ.get(EXIT_AFTER_ENV, "0"))
     written = 0
     for first in range(0, len(todo), size):
@@ -266,7 +248,7 @@ def run(args) -> int:
             records = split_record(sol, sizes[: len(round_chunks)], x0s, timing[: len(round_chunks)])
             for (a, b), record in zip(round_chunks, records):
                 save_atomic(record, chunk_path(parts, a, b))
-            progress.update(records)
+            progress.update(len(records), **_tally(tally, records))
             written += len(records)
             if exit_after and written >= exit_after:
                 os._exit(17)
