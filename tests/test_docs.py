@@ -102,6 +102,10 @@ def _check_command(words: list) -> None:
         arguments = words[3:]
         if "--mpc" in arguments:  # the MPC runs have a parser of their own
             mpc.parser().parse_args([a for a in arguments if a != "--mpc"])
+        elif "--scale-out" in arguments:  # so do the scale-out runs
+            from torchtraj.bench import scale_out
+
+            scale_out.parser().parse_args([a for a in arguments if a != "--scale-out"])
         else:
             parser().parse_args(arguments)
         return
