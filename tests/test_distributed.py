@@ -14,6 +14,7 @@ acceptance run.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import warnings
 from pathlib import Path
@@ -161,6 +162,10 @@ def test_two_ranks_gather_the_one_process_solution_bit_for_bit(two_ranks):
     for rank in range(WORLD):
         message = _load(tmp_path / f"error-{rank}.pt")
         assert "rank 1" in message and "no-such-method" in message and "rank 0" not in message
+
+
+def test_every_solution_field_is_gathered():
+    assert {f.name for f in dataclasses.fields(tt.Solution)} == set(distributed.GATHERED)
 
 
 def test_without_a_process_group_it_is_tt_solve():

@@ -58,6 +58,9 @@ from .core.solution import History, Solution
 from .solve import solve as solve_one
 
 HISTORY_BASE = ("cost", "max_violation", "step_size", "regularization")
+#: The :class:`~torchtraj.Solution` fields the gather carries (a field added to Solution belongs here; a test checks).
+GATHERED = ("X", "U", "K", "cost", "max_violation", "status", "iterations", "history", "costate", "multipliers",
+            "penalties", "method", "kkt")
 #: What the solvers record for an instance after it stopped, where it is not its last value: no step taken.
 STOPPED_FILL = {"history/step_size": 0.0}
 
