@@ -17,8 +17,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
-from torchtraj import envs
-from torchtraj import models
+from torchtraj import envs, models
 
 DT = 0.05
 MODEL_OF = {"torchtraj/Pendulum-v0": "pendulum", "torchtraj/CartPoleSwingUp-v0": "cartpole",

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchtraj import envs
 import torchtraj as tt
+from torchtraj import envs
 from torchtraj.bench import mpc as bench
 from torchtraj.control.mpc import DEFAULT_ALTRO
 

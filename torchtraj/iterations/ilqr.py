@@ -17,10 +17,11 @@ Each iteration, for every instance still running:
    ``δ ← max(δ φ, φ), ρ ← max(ρ δ, ρ_min)``.
 
 An instance converges when an accepted step changes the cost by less than
-``cost_tolerance`` (or by less than ten rounding errors of the cost in its dtype: float32 cannot tell a smaller
-change) and the scaled control step ``mean_k max_i |d_ki| / (|u_ki| + 1)`` is below
-``gradient_tolerance``, or when the model predicts a decrease below
-``expected_decrease_tolerance``. Converged and failed instances are frozen by masks; the
+``cost_tolerance`` and the scaled control step ``mean_k max_i |d_ki| / (|u_ki| + 1)`` is below
+``gradient_tolerance``, or when the model predicts a decrease below ``expected_decrease_tolerance``. Each
+tolerance is met at the dtype's resolution where it lies below it (float32: a cost change or predicted decrease of
+ten rounding errors of the cost, a scaled step of √eps), so that a float32 solve stops where float32 can tell no
+more instead of raising its regularisation until it fails. Converged and failed instances are frozen by masks; the
 batch stops when no instance is running.
 """
 
@@ -228,7 +229,10 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
 def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions, backward,
                cost_tolerance) -> Step:
     K, k, dV1, dV2, ok = _backward_pass(objective, backward, X, U, params, rho)
-    stationary = -dV1 < opts.expected_decrease_tolerance
+    # tolerances below what the dtype resolves are met at its resolution (float32: the cost to ~10 rounding errors,
+    # the scaled step to √eps), not iterated after until the regularisation runs away
+    eps = torch.finfo(J.dtype).eps
+    stationary = (-dV1 < opts.expected_decrease_tolerance) | (-dV1 <= 10 * eps * J.abs())
     Xn, Un, Jn, alpha, found = _line_search(problem, objective, params, x0, X, U, J, K, k, dV1, dV2, active & ok, opts)
     success = ok & found
     take = active & success & ~stationary
@@ -238,9 +242,9 @@ def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts:
     rho_new, drho_new = rho_schedule(rho, drho, success | stationary, opts.regularization_increase,
                                      opts.regularization_min)
     rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)
-    # a cost change within a few rounding errors of the cost is as small as this dtype can tell (float32)
-    settled = (dJ.abs() < cost_tolerance) | (dJ.abs() <= 10 * torch.finfo(J.dtype).eps * J.abs())
-    converged = active & ok & (stationary | (take & settled & (grad < opts.gradient_tolerance)))
+    settled = (dJ.abs() < cost_tolerance) | (dJ.abs() <= 10 * eps * J.abs())
+    small = (grad < opts.gradient_tolerance) | (grad <= eps ** 0.5)
+    converged = active & ok & (stationary | (take & settled & small))
     blown = active & ~converged & (rho > opts.regularization_max)
     alpha = torch.where(take, alpha, torch.zeros_like(alpha))
     return Step(X, U, J, rho, drho, take, converged, blown, alpha, K, torch.where(take, dJ, 0.0))
