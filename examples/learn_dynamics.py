@@ -61,7 +61,7 @@ def main(argv=None) -> dict:
     problem = swing_up()
     x0 = torch.stack([torch.empty(batch).uniform_(-0.5, 0.5), torch.empty(batch).uniform_(-0.5, 0.5)], -1)
     x0 = x0.to(torch.float64)
-    options = tt.ILQROptions(cost_tolerance=1e-8, gradient_tolerance=1e-5)
+    options = tt.ILQROptions()  # the defaults: solves the KKT certificate accepts (tt.solve calls them CONVERGED)
     # a differentiable solve is refined to round-off by Newton steps: so the expert is exact too
     true_params = {k: torch.tensor(v, dtype=torch.float64, requires_grad=True) for k, v in TRUE.items()}
     expert = tt.solve(problem.with_params(**true_params), x0, options=options)

@@ -35,8 +35,9 @@ from torch.nn.parallel import DistributedDataParallel
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-import torchtraj as tt  # noqa: E402
 from learn_dynamics import TRUE, swing_up  # noqa: E402
+
+import torchtraj as tt  # noqa: E402
 from torchtraj import distributed  # noqa: E402
 
 LEARNED = ("mass", "damping")

@@ -24,7 +24,7 @@ def main(argv=None):
 
     problem = tt.problems.get("pendulum_unconstrained")
     x0 = tt.problems.sample_x0("pendulum_unconstrained", batch, seed=0)
-    options = tt.ILQROptions(cost_tolerance=1e-8, gradient_tolerance=1e-6, iterations=10 if args.quick else 300)
+    options = tt.ILQROptions(iterations=10 if args.quick else 300)
     start = time.perf_counter()
     sol = tt.solve(problem, x0, method="ilqr", options=options)
     seconds = time.perf_counter() - start
