@@ -20,7 +20,7 @@ it comes within 0.5 of the nominal start or of the goal, or within 0.3 of anothe
 free, and every gap between obstacles is at least 0.3 wide, so no chain of circles can wall off the goal. A
 partial layout that leaves no room for its next circle (500 draws fail) is dropped and drawn again whole.
 
-The task as pure functions (:mod:`envs.core`), which the environment itself calls; the layout is
+The task as pure functions (:mod:`torchtraj.envs.core`), which the environment itself calls; the layout is
 ``{"obstacles": (..., n, 3)}``::
 
     dynamics(x, u, p)                          the RK4 step over dt = 0.05 of the model (no parameters)
@@ -215,7 +215,7 @@ class CarEnv(ModelEnv):
 
     ## Controller Problem
 
-    ``env.problem(horizon=30, margin=0.15)`` (``envs.car.problem(env.params, ...)``) is the MPC controller's
+    ``env.problem(horizon=30, margin=0.15)`` (``torchtraj.envs.car.problem(env.params, ...)``) is the MPC controller's
     :class:`torchtraj.Problem`, on the environment's own step (:data:`dynamics`), with ``p`` the car's position and
     ``g`` the goal::
 
@@ -256,7 +256,7 @@ class CarEnv(ModelEnv):
         return self.params.goal_radius
 
     def problem(self, horizon: int = 30, margin: float = 0.15) -> Problem:
-        """The controller's problem (``## Controller Problem``): ``envs.car.problem(self.params, ...)``."""
+        """The controller's problem (``## Controller Problem``): ``torchtraj.envs.car.problem(self.params, ...)``."""
         return problem(self.params, horizon, margin)
 
     @property
@@ -308,7 +308,7 @@ class CarEnv(ModelEnv):
 
 
 class CarVectorEnv(ModelVectorEnv):
-    """``num_envs`` :class:`CarEnv` stepped as one batched torch operation (see :mod:`envs.vector`).
+    """``num_envs`` :class:`CarEnv` stepped as one batched torch operation (see :mod:`torchtraj.envs.vector`).
 
     ``CarVectorEnv(num_envs, device="cpu", array_type="numpy", render_mode=None, max_episode_steps=200,
     num_obstacles=4, goal=(3.0, 3.0), goal_radius=0.2)``; ``gymnasium.make_vec("torchtraj/Car-v0", ...)``

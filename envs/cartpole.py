@@ -13,7 +13,7 @@ crossing the rail ends the episode, the reward is non-negative (ending early can
 
 on the state before the step: 1 only upright, centred, still and unforced; 0 hanging down.
 
-The task as pure functions (:mod:`envs.core`), which the environment itself calls::
+The task as pure functions (:mod:`torchtraj.envs.core`), which the environment itself calls::
 
     dynamics(x, u, p)                          the RK4 step over dt = 0.05 of the model, p = env.model_params
     reward(x, u, x_next, layout, params)       r_k above
@@ -140,7 +140,8 @@ class CartPoleSwingUpEnv(ModelEnv):
 
     ## Controller Problem
 
-    ``env.problem(horizon=40, rail_margin=0.4, terminal_weight=1.0)`` (``envs.cartpole.problem(env.params, ...)``)
+    ``env.problem(horizon=40, rail_margin=0.4, terminal_weight=1.0)``
+    (``torchtraj.envs.cartpole.problem(env.params, ...)``)
     is the MPC controller's :class:`torchtraj.Problem`, on the environment's own step (:data:`dynamics`), with
     ``e = wrap(θ − π)``::
 
@@ -173,7 +174,7 @@ class CartPoleSwingUpEnv(ModelEnv):
         return self.params.rail_limit
 
     def problem(self, horizon: int = 40, rail_margin: float = 0.4, terminal_weight: float = 1.0) -> Problem:
-        """The controller's problem (``## Controller Problem``): ``envs.cartpole.problem(self.params, ...)``."""
+        """The controller's problem (``## Controller Problem``): ``cartpole.problem(self.params, ...)``."""
         return problem(self.params, horizon, rail_margin, terminal_weight)
 
     def _sample(self, rng: np.random.Generator):
@@ -202,7 +203,7 @@ class CartPoleSwingUpEnv(ModelEnv):
 
 
 class CartPoleSwingUpVectorEnv(ModelVectorEnv):
-    """``num_envs`` :class:`CartPoleSwingUpEnv` stepped as one batched torch operation (see :mod:`envs.vector`).
+    """``num_envs`` :class:`CartPoleSwingUpEnv` stepped as one batched torch operation (:mod:`torchtraj.envs.vector`).
 
     ``CartPoleSwingUpVectorEnv(num_envs, device="cpu", array_type="numpy", render_mode=None,
     max_episode_steps=200, rail_limit=2.4)``; ``gymnasium.make_vec("torchtraj/CartPoleSwingUp-v0", ...)`` builds it.

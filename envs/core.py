@@ -9,7 +9,8 @@ A model-based controller that plans with ``env.model``, ``env.model_params`` and
 dynamics the environment steps, not with a copy that could drift from it. Quantities drawn at reset that stay fixed
 for the episode (the car's obstacles) form the episode's *layout*.
 
-Each task module (:mod:`envs.pendulum`, :mod:`envs.cartpole`, :mod:`envs.car`) is written as pure functions, in
+Each task module (:mod:`torchtraj.envs.pendulum`, :mod:`torchtraj.envs.cartpole`, :mod:`torchtraj.envs.car`) is
+written as pure functions, in
 the manner of Gymnasium's ``phys2d`` environments, around a frozen dataclass of the task's parameters
 (``env.params``)::
 
@@ -23,7 +24,8 @@ batch dimension, as torchtraj's per-instance functions are written) and the envi
 methods below call them. ``env.problem(...)`` is ``problem(env.params, ...)``.
 
 The task functions of a subclass (``_observe``, ``_reward``, ``_terminated``, ``_info``) take batch-first tensors
-``x: (B, nx)``, ``u: (B, nu)``, layout ``{name: (B, ...)}``, so the native vector environment (:mod:`envs.vector`)
+``x: (B, nx)``, ``u: (B, nu)``, layout ``{name: (B, ...)}``, so the native vector environment
+(:mod:`torchtraj.envs.vector`)
 runs the same definitions over all its sub-environments at once; a single environment calls them with ``B = 1``.
 ``_sample(rng)`` draws ``(x0, layout)`` for one episode from a numpy generator, in a fixed order, so that a vector
 environment that owns one generator per sub-environment reproduces the single environments draw for draw.
@@ -166,6 +168,8 @@ class ModelEnv(gym.Env[np.ndarray, np.ndarray]):
             x0 = np.asarray(given, dtype=np.float64)
             if x0.shape != (self.model.nx,):
                 raise ValueError(f"options['state'] must have shape ({self.model.nx},), got {x0.shape}")
+            if not np.isfinite(x0).all():
+                raise ValueError(f"options['state'] must be finite, got {x0.tolist()}")
         self._x = torch.as_tensor(x0, dtype=DTYPE).clone()
         self._layout = {k: torch.as_tensor(v, dtype=DTYPE).clone() for k, v in layout.items()}
         self.elapsed_steps = 0

@@ -11,7 +11,7 @@ with the angle error measured from upright::
 
 taken on the state before the step, as the running cost ``ℓ(x_k, u_k)`` of a trajectory optimisation problem.
 
-The task as pure functions (:mod:`envs.core`), which the environment itself calls::
+The task as pure functions (:mod:`torchtraj.envs.core`), which the environment itself calls::
 
     dynamics(x, u, p)                          the RK4 step over dt = 0.05 of the model, p = env.model_params
     running_cost(x, u)                         e² + 0.1 ω² + 0.001 τ²  (= −reward)
@@ -130,7 +130,7 @@ class PendulumEnv(ModelEnv):
 
     ## Controller Problem
 
-    ``env.problem(horizon=30)`` (``envs.pendulum.problem(env.params, horizon)``) is the MPC controller's
+    ``env.problem(horizon=30)`` (``torchtraj.envs.pendulum.problem(env.params, horizon)``) is the MPC controller's
     :class:`torchtraj.Problem`, on the environment's own step (:data:`dynamics`) and its own reward::
 
         minimise  Σ_k dt (e_k² + 0.1 ω_k² + 0.001 τ_k²) + e_N² + 0.1 ω_N²,   |τ_k| ≤ 3,   N = 30 (1.5 s)
@@ -152,7 +152,7 @@ class PendulumEnv(ModelEnv):
         super().__init__(models.get("pendulum"), [-limit], [limit], 2, max_episode_steps, render_mode, dynamics)
 
     def problem(self, horizon: int = 30) -> Problem:
-        """The controller's problem (``## Controller Problem``): ``envs.pendulum.problem(self.params, horizon)``."""
+        """The controller's problem (``## Controller Problem``): ``pendulum.problem(self.params, horizon)``."""
         return problem(self.params, horizon)
 
     def _sample(self, rng: np.random.Generator):
@@ -174,7 +174,7 @@ class PendulumEnv(ModelEnv):
 
 
 class PendulumVectorEnv(ModelVectorEnv):
-    """``num_envs`` :class:`PendulumEnv` stepped as one batched torch operation (see :mod:`envs.vector`).
+    """``num_envs`` :class:`PendulumEnv` stepped as one batched torch operation (see :mod:`torchtraj.envs.vector`).
 
     ``PendulumVectorEnv(num_envs, device="cpu", array_type="numpy", render_mode=None, max_episode_steps=200)``;
     ``gymnasium.make_vec("torchtraj/Pendulum-v0", num_envs=...)`` builds it.

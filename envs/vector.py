@@ -4,7 +4,8 @@ For sub-environments ``i = 0..B−1`` with states ``X: (B, nx)`` and actions ``U
 
     X' = vmap(F)(X, clip(U)),   r = r(X, U, X'),   terminated = T(X'),   truncated = (k_i + 1 ≥ max_episode_steps)
 
-with ``F = model.discrete(dt, "rk4")`` and the task functions of the single environment class (:mod:`envs.core`),
+with ``F = model.discrete(dt, "rk4")`` and the task functions of the single environment class
+(:mod:`torchtraj.envs.core`),
 on CPU or CUDA (``device=``), in float64. There is no Python loop over sub-environments in a step; the only loop is
 over the sub-environments that restart, to draw their initial states from their own generators (below).
 
@@ -98,7 +99,7 @@ class ModelVectorEnv(VectorEnv):
         return self.single_env.observation_to_state(obs)
 
     def problem(self, **options) -> Problem:
-        """The controller's problem, the single environment's :meth:`~envs.core.ModelEnv.problem` (on the CPU)."""
+        """The controller's problem, the single environment's :meth:`~torchtraj.envs.core.ModelEnv.problem` (CPU)."""
         return self.single_env.problem(**options)
 
     # ------------------------------------------------------------------ Gymnasium API
@@ -135,6 +136,8 @@ class ModelVectorEnv(VectorEnv):
         if given is not None:
             x0 = torch.broadcast_to(torch.as_tensor(given, dtype=DTYPE, device=self.device),
                                     (self.num_envs, self.model.nx))[torch.as_tensor(indices, device=self.device)]
+            if not bool(torch.isfinite(x0).all()):
+                raise ValueError(f"options['state'] must be finite, got {x0.tolist()}")
         self._restart_at(indices, x0, layout)
         return self._out(self.single_env._observe(self._x, self._layout)), {}
 

@@ -1,6 +1,6 @@
 """Control Gymnasium's own Pendulum-v1 with torchtraj's MPC, given a torch model of its step.
 
-Run:  python examples/gym_pendulum_v1.py [--seeds 4]     (saves gym_pendulum_v1.png when matplotlib is installed)
+Run:  python examples/gym_pendulum_v1.py [--seeds 4] [--quick]    (saves gym_pendulum_v1.png when matplotlib is installed)
 
 Nothing here is specific to torchtraj's environments: any Gymnasium environment can be controlled once its step is
 written in torch. Pendulum-v1 (gymnasium/envs/classic_control/pendulum.py), with θ = 0 upright, g = 10, m = l = 1,
@@ -68,58 +68,75 @@ def controller(horizon: int = 20, iterations: int = 5) -> tt.MPC:
     return tt.MPC(problem, "altro", iterations, observation_to_state=observation_to_state)
 
 
-def run(seeds: int = 4, seed: int = 0, horizon: int = 20, iterations: int = 5):
-    """Play one episode per seed ``seed .. seed + seeds − 1``; returns ``(returns (S,), θ (S, 201), τ (S, 200))``."""
-    env = gym.make_vec("Pendulum-v1", num_envs=seeds, vectorization_mode="sync")
+def run(seeds: int = 4, seed: int = 0, horizon: int = 20, iterations: int = 5, steps: int = 200):
+    """Play one episode of ``steps`` steps per seed ``seed .. seed + seeds − 1``; returns ``(returns (S,),
+    θ (S, steps + 1), τ (S, steps))``, θ unwrapped (continuous over full turns, 0 upright as in Pendulum-v1)."""
+    env = gym.make_vec("Pendulum-v1", num_envs=seeds, vectorization_mode="sync", max_episode_steps=steps)
     mpc = controller(horizon, iterations)
     obs, _ = env.reset(seed=seed)
     thetas, torques, returns = [observation_to_state(torch.as_tensor(obs, dtype=torch.float64))[:, 0]], [], 0.0
-    for _ in range(env.spec.max_episode_steps):
+    for _ in range(steps):
         action = mpc(obs.astype(np.float64))
         obs, reward, terminated, truncated, _ = env.step(action)
         returns = returns + reward
         thetas.append(observation_to_state(torch.as_tensor(obs, dtype=torch.float64))[:, 0])
         torques.append(torch.as_tensor(action[:, 0]))
     env.close()  # the episodes are all truncated at the same step: nothing after this is an autoreset
-    return np.asarray(returns), torch.stack(thetas, 1), torch.stack(torques, 1)
+    theta = torch.from_numpy(np.unwrap(torch.stack(thetas, 1).numpy(), axis=1))  # no jumps of 2π at ±π
+    return np.asarray(returns), theta, torch.stack(torques, 1)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=4, help="episodes, seeded seed .. seed + seeds - 1")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first episode")
     parser.add_argument("--horizon", type=int, default=20, help="MPC horizon N (steps of 0.05 s)")
     parser.add_argument("--iterations", type=int, default=5, help="solver iterations per control step")
     parser.add_argument("--output", default="gym_pendulum_v1.png", help="where the picture goes")
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 2 seeds, 20-step episodes (1 s)")
     args = parser.parse_args(argv)
-    returns, theta, torque = run(args.seeds, args.seed, args.horizon, args.iterations)
+    seeds, steps = (2, 20) if args.quick else (args.seeds, 200)
+    returns, theta, torque = run(seeds, args.seed, args.horizon, args.iterations, steps)
     upright = wrap(theta[:, -1]).abs() <= 0.1
     for i, (r, ok) in enumerate(zip(returns, upright.tolist())):
         print(f"seed {args.seed + i}: return {r:8.2f}  ends upright: {ok}")
-    print(f"average return {returns.mean():.2f} over {args.seeds} seeds; ended upright: {int(upright.sum())} of "
-          f"{args.seeds}")
-    _plot(theta, torque, args.output)
+    print(f"average return {returns.mean():.2f} over {seeds} seeds; ended upright: {int(upright.sum())} of {seeds}")
+    fig = figure(theta, torque)
+    if fig is not None:
+        fig.savefig(args.output, dpi=120)
+        print(f"picture saved to {args.output}")
+    return fig
 
 
-def _plot(theta, torque, path):
+def figure(theta, torque):
+    """Angle from upright (unwrapped) and torque of each episode against time: a matplotlib ``Figure``, or
+    ``None`` without matplotlib."""
     try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError:
         print("matplotlib is not installed (pip install 'torchtraj[plot]'): no picture")
-        return
+        return None
     t = np.arange(theta.shape[1]) * DT
-    fig = Figure(figsize=(10, 3.6))
-    FigureCanvasAgg(fig)
+    fig = Figure(figsize=(11, 3.8), layout="constrained")
     ax = fig.subplots(1, 2)
-    for th, tau in zip(wrap(theta), torque):
-        ax[0].plot(t, th, lw=1, alpha=0.6)
-        ax[1].step(t[:-1], tau, where="post", lw=1, alpha=0.6)
-    ax[0].set(xlabel="time [s]", ylabel="wrap(θ) [rad] (0 upright)", title="Pendulum-v1 under MPC")
-    ax[1].set(xlabel="time [s]", ylabel="torque τ [N m]", title="applied torques")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    print(f"picture saved to {path}")
+    for i, (th, tau) in enumerate(zip(theta, torque)):
+        line, = ax[0].plot(t, th, lw=1.2, label=f"episode {i}")
+        ax[1].step(t[:-1], tau, where="post", lw=1.2, color=line.get_color(), label=f"episode {i}")
+    low, high = ax[0].get_ylim()
+    low, high = min(low, -np.pi - 0.3), max(high, np.pi + 0.3)  # upright (0) and hanging (±π) in view
+    for k in range(int(np.ceil(low / (2 * np.pi))), int(np.floor(high / (2 * np.pi))) + 1):  # 2πk is upright
+        ax[0].axhline(2 * np.pi * k, color="tab:green", lw=1, ls=":", label="upright" if k == 0 else None)
+    ax[0].set_ylim(low, high)
+    for bound in (-MAX_TORQUE, MAX_TORQUE):
+        ax[1].axhline(bound, color="tab:red", lw=1, ls="--",
+                      label=f"torque bound ±{MAX_TORQUE:g} N m" if bound > 0 else None)
+    ax[0].set(xlabel="time t [s]", ylabel="angle from upright θ [rad], unwrapped",
+              title="pendulum angle (0: upright, ±π: hanging)")
+    ax[1].set(xlabel="time t [s]", ylabel="torque τ [N m]", title="MPC control (first move of each plan)")
+    ax[0].legend(fontsize=7, loc="center right")
+    ax[1].legend(fontsize=7, loc="best")
+    fig.suptitle("Gymnasium's Pendulum-v1 under torchtraj MPC (a torch model of its step, ALTRO)")
+    return fig
 
 
 if __name__ == "__main__":

@@ -8,7 +8,6 @@ import gymnasium as gym
 import pytest
 import torch
 
-import envs  # noqa: F401  registers the environments
 import torchtraj as tt
 from torchtraj import problems
 from torchtraj.bench import __main__ as bench_main

@@ -11,8 +11,8 @@ import shutil
 import pytest
 import torch
 
-import envs
 import torchtraj as tt
+from torchtraj import envs
 
 pytest.importorskip("torch._inductor")
 pytestmark = pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),

@@ -1,7 +1,14 @@
-"""The envs package: Gymnasium API, seeding, dynamics identity with torchtraj.models, vector/single equivalence."""
+"""The torchtraj.envs package: Gymnasium API, seeding, dynamics identity with torchtraj.models, vector/single
+equivalence, registration by ``import torchtraj``, and the package's name once installed."""
 
+import os
 import re
+import shutil
+import subprocess
+import sys
 import warnings
+import zipfile
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -10,8 +17,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
-import envs
-from torchtraj import models
+from torchtraj import envs, models
 
 DT = 0.05
 MODEL_OF = {"torchtraj/Pendulum-v0": "pendulum", "torchtraj/CartPoleSwingUp-v0": "cartpole",
@@ -289,3 +295,53 @@ def test_vector_env_on_cuda_matches_cpu(env_id):
     cuda = _vector_rollout(gym.make_vec(env_id, num_envs=8, device="cuda", **kwargs), 2, actions)
     for a, b in zip(cpu, cuda):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------- name and registration
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _python(code: str, cwd: Path) -> str:
+    """Run ``code`` in a fresh interpreter that imports this checkout (``PYTHONPATH``) from ``cwd``."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def test_import_torchtraj_registers_the_ids_without_importing_the_environments(tmp_path):
+    out = _python("import sys, gymnasium, torchtraj\n"
+                  "print('torchtraj.envs' in sys.modules)\n"
+                  "env = gymnasium.make('torchtraj/Pendulum-v0')\n"
+                  "print(type(env.unwrapped).__module__, env.unwrapped.problem().name)\n", tmp_path)
+    assert out.split() == ["False", "torchtraj.envs.pendulum", "pendulum_mpc"]
+
+
+def test_make_vec_returns_torch_tensors_when_asked():
+    venv = gym.make_vec("torchtraj/Car-v0", num_envs=2, array_type="torch")
+    obs, _ = venv.reset(seed=0)
+    obs, reward, terminated, truncated, _ = venv.step(torch.zeros(2, 2))
+    assert all(isinstance(a, torch.Tensor) for a in (obs, reward, terminated, truncated))
+    assert isinstance(gym.make_vec("torchtraj/Car-v0", num_envs=2).reset(seed=0)[0], np.ndarray)
+
+
+@pytest.mark.slow
+def test_the_wheel_installs_torchtraj_envs_and_no_top_level_envs(tmp_path):
+    """The packaging maps ``envs/`` to ``torchtraj.envs``: the wheel holds the environments under torchtraj/ and
+    nothing named ``envs`` at its top (the installs by hand: torchtraj/envs/__init__.py)."""
+    source = tmp_path / "source"  # a copy: building writes build/ and egg-info next to the sources
+    for part in ("envs", "torchtraj"):
+        shutil.copytree(ROOT / part, source / part, ignore=shutil.ignore_patterns("__pycache__"))
+    for part in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / part, source / part)
+    done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-w",
+                           str(tmp_path), str(source)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    (wheel,) = tmp_path.glob("torchtraj-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/")[0] for n in names}
+    assert tops == {"torchtraj", next(t for t in tops if t.endswith(".dist-info"))}
+    for module in ("__init__", "core", "vector", "pendulum", "cartpole", "car", "render"):
+        assert f"torchtraj/envs/{module}.py" in names
+    shipped = zipfile.ZipFile(wheel).read("torchtraj/envs/__init__.py").decode()
+    assert shipped == (ROOT / "envs" / "__init__.py").read_text()  # the package itself, not the checkout's shim

@@ -359,12 +359,12 @@ def test_ipm_float32_gradients_through_an_active_obstacle_agree_with_float64():
 
 
 def test_refine_reaches_round_off_stationarity():
-    """iLQR at its default tolerances stops with a reduced gradient of about 2e-3 here; the Newton
-    refinement makes the reduced gradient, computed independently by autograd through a rollout,
-    vanish to round-off."""
+    """iLQR at Altro.jl's tolerances (``ILQROptions.fast``) stops with a reduced gradient of about 2e-3 here,
+    which the KKT certificate reports as STALLED; the Newton refinement makes the reduced gradient, computed
+    independently by autograd through a rollout, vanish to round-off."""
     problem = pendulum()
-    sol = tt.solve(problem)
-    assert bool(sol.converged.all())
+    sol = tt.solve(problem, options=tt.ILQROptions.fast())
+    assert sol.status.tolist() == [tt.Status.STALLED]
     params = problem.batched_params(1)
     x0 = problem.x0.unsqueeze(0)
 
@@ -473,22 +473,23 @@ def test_pendulum_instances_refined_from_reference_accuracy_match_central_differ
     assert float(grad.abs().min()) > 100
 
 
-def test_pendulum_solves_stopped_short_of_a_kkt_point_get_zero_gradients_and_a_reason():
-    """ALTRO's default tolerances stop instances 0 and 1 (mass 1.2) at status CONVERGED but 18 % and 5 %
-    above the cost of their KKT points (0.0221408, 0.0263426; Newton steps of the KKT conditions of
-    size 1e1 - 1e4 away). They have no derivative: instance 0's reduced Hessian is indefinite, instance 1
-    factorises but refinement cannot reach stationarity; each gets a zero gradient and a warning with
-    its own reason."""
+def test_pendulum_solves_stopped_short_of_a_kkt_point_are_stalled_and_get_zero_gradients():
+    """Altro.jl's tolerances (``ALTROOptions.fast``) stop instances 0 and 1 (mass 1.2) 4 % and more above the cost
+    of their KKT points (0.0221408, 0.0263426), at points ALTRO's own tests accept: the KKT certificate reports
+    them STALLED, and they get zero gradients with a warning naming them. The default options reach those KKT
+    points and are differentiated."""
+    optimum = torch.tensor([0.022140766852, 0.026342644443], dtype=F64)
+    with pytest.warns(RuntimeWarning, match=r"instance\(s\) \[0, 1\] did not converge \(status \['stalled', 'stalled'\]"):
+        sol, leaf, loss = _pendulum_mass_solve([0, 1], tt.ALTROOptions.fast())
+    assert sol.status.tolist() == [tt.Status.STALLED, tt.Status.STALLED]
+    assert bool((sol.cost.detach() > 1.04 * optimum).all())
+    (grad,) = torch.autograd.grad(loss.sum(), [leaf])
+    assert grad.tolist() == [0.0, 0.0]
     sol, leaf, loss = _pendulum_mass_solve([0, 1], None)
     assert bool(sol.converged.all())
-    optimum = torch.tensor([0.022140766852, 0.026342644443], dtype=F64)
-    assert bool((sol.cost.detach() > 1.04 * optimum).all())
-    with pytest.warns(RuntimeWarning) as record:
-        (grad,) = torch.autograd.grad(loss.sum(), [leaf])
-    text = " | ".join(str(w.message) for w in record)
-    assert "instance(s) [0]: the KKT system could not be factorised" in text, text
-    assert "instance(s) [1]: the point is not a KKT point" in text, text
-    assert grad.tolist() == [0.0, 0.0]
+    torch.testing.assert_close(sol.cost.detach(), optimum, rtol=1e-6, atol=0)
+    (grad,) = torch.autograd.grad(loss.sum(), [leaf])
+    assert bool((grad != 0).all())
 
 
 def test_dependent_active_rows_are_counted():

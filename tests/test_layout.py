@@ -4,7 +4,8 @@ cycle (also none hidden inside a function), and every file reads in one sitting.
 The layers, bottom to top: ``core`` (problem, constraints, batching, derivatives, solution, status) → ``riccati``
 (the LQR core) → ``kkt`` (the linear-quadratic model and the Newton step with held rows) → ``globalization`` and
 ``iterations`` (pieces several solvers share) → ``solvers`` (one folder or file each) → ``differentiation`` →
-``solve`` (``tt.solve``) → ``control`` (MPC); the package's ``__init__`` sits on top, ``bench`` beside it.
+``solve`` (``tt.solve``) → ``control`` (MPC) → ``distributed`` (one batch over a process group); the package's
+``__init__`` sits on top, ``bench`` and ``plan`` (command-line tools over the problem set) beside it.
 """
 
 import ast
@@ -15,7 +16,8 @@ import pytest
 PACKAGE = Path(__file__).resolve().parent.parent / "torchtraj"
 
 #: The layers in order: a module may import from its own layer and those before it, never from a later one.
-LAYERS = ("core", "riccati", "kkt", "globalization", "iterations", "solvers", "differentiation", "solve", "control")
+LAYERS = ("core", "riccati", "kkt", "globalization", "iterations", "solvers", "differentiation", "solve", "control",
+          "distributed")
 
 #: The largest file the layout allows, in lines.
 MAX_LINES = 400

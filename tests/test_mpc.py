@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-import envs
 import torchtraj as tt
+from torchtraj import envs
 from torchtraj.bench import mpc as bench
 from torchtraj.control.mpc import DEFAULT_ALTRO
 
@@ -141,7 +141,8 @@ def test_ilqr_method_and_a_new_batch_size():
     mpc(STATES)
     u = mpc(STATES[:2])  # a new batch: every instance starts cold
     torch.testing.assert_close(u, pendulum_mpc()[0](STATES[:2]), rtol=0, atol=1e-12)
-    ilqr = tt.MPC(mpc.problem, "ilqr", 2)
+    with pytest.warns(UserWarning, match="ignores the constraints"):  # said at construction
+        ilqr = tt.MPC(mpc.problem, "ilqr", 2)
     with pytest.warns(UserWarning, match="ignores the constraints"):
         u = ilqr(STATES)
         sol = tt.solve(mpc.problem, STATES, "ilqr", options=tt.ILQROptions(iterations=2))

@@ -15,10 +15,9 @@ import pytest
 import torch
 from kkt import kkt_residuals
 
-import envs
 import torchtraj as tt
 import torchtraj.kkt
-from torchtraj import problems, solvers
+from torchtraj import envs, problems, solvers
 from torchtraj.core.constraints import Constraints, stack_blocks
 from torchtraj.core.derivatives import stage_jacobian
 

@@ -1,4 +1,10 @@
-"""torchtraj: batched, differentiable trajectory optimisation in PyTorch."""
+"""torchtraj: batched, differentiable trajectory optimisation in PyTorch.
+
+Start with :class:`Problem` (a problem written as per-instance functions), :func:`solve` (one batched solve; the
+methods are listed by ``torchtraj.solvers.names()``) and :class:`MPC` (a receding-horizon controller). The problem
+set is :mod:`torchtraj.problems`, the models :mod:`torchtraj.models`, the Gymnasium environments
+:mod:`torchtraj.envs` (their ids, ``torchtraj/Pendulum-v0`` and others, are registered by ``import torchtraj``).
+"""
 
 from .control.mpc import MPC
 from .core.problem import Problem
@@ -6,6 +12,7 @@ from .core.solution import History, Solution
 from .core.status import Status
 from .integrators import euler, rk4
 from .iterations.ilqr import ILQROptions
+from .registration import register as _register_environments
 from .solve import Method, solve
 from .solvers import Solver
 from .solvers.altro.options import ALTROOptions
@@ -20,11 +27,19 @@ __all__ = ["ALTROOptions", "EILQROptions", "HMILQROptions", "History", "ILQROpti
            "solve", "time_penalized"]
 __version__ = "0.1.0"
 
+#: Submodules imported on first use (``tt.problems``, ...): they cost import time most programs do not need.
+_LAZY = ("envs", "models", "problems")
+
+_register_environments()  # strings only: gymnasium imports torchtraj.envs when it makes one
+
 
 def __getattr__(name):
-    # the model zoo and the problem set are imported on first use
-    if name in ("models", "problems"):
+    if name in _LAZY:
         import importlib
 
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'torchtraj' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -19,6 +19,7 @@ from typing import Optional, TextIO
 import torch
 
 from .. import problems, solvers
+from ..core.progress import Progress
 from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.base import Solver
@@ -43,27 +44,32 @@ THROUGHPUT_BATCH = 1024
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m torchtraj.bench", description=__doc__.split("\n\n", 1)[1],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
+    )  # each help text states its default once (argparse's defaults formatter repeated them)
     p.add_argument("--problems", nargs="+", metavar="NAME", choices=problems.names(),
                    help=f"problems to run, from {problems.names()}; default: every problem the method can solve "
                         "(ilqr: those without constraints); the others are listed as skipped, with the reason")
-    p.add_argument("--method", default="ilqr", choices=solvers.names(), help="torchtraj method")
-    p.add_argument("--batch", nargs="+", type=int, default=[1, 64, 1024], metavar="B", help="batch sizes")
-    p.add_argument("--seed", type=int, default=0, help="seed of sample_x0 for B > 1")
-    p.add_argument("--dtype", choices=("float64", "float32"), default="float64")
-    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    p.add_argument("--cost-tolerance", type=float, default=1e-8, help="the method options' cost_tolerance")
-    p.add_argument("--gradient-tolerance", type=float, default=1e-6, help="the method options' gradient_tolerance")
+    p.add_argument("--method", default="ilqr", choices=solvers.names(),
+                   help="torchtraj method (default: ilqr; altro with --grad)")
+    p.add_argument("--batch", nargs="+", type=int, default=[1, 64, 1024], metavar="B",
+                   help="batch sizes (default: 1 64 1024; 16 64 256 with --grad)")
+    p.add_argument("--seed", type=int, default=0, help="seed of sample_x0 for B > 1 (default: 0)")
+    p.add_argument("--dtype", choices=("float64", "float32"), default="float64",
+                   help="dtype of the problems and the solve (default: float64)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="device of the torchtraj rows; the references run on the CPU (default: cpu)")
+    p.add_argument("--cost-tolerance", type=float, default=1e-8,
+                   help="the method options' cost_tolerance (default: 1e-8)")
+    p.add_argument("--gradient-tolerance", type=float, default=1e-6,
+                   help="the method options' gradient_tolerance (default: 1e-6)")
     p.add_argument("--iterations", type=int, default=None,
                    help="the method options' iteration cap (default: the options' own default)")
     p.add_argument("--warmup-iterations", type=int, default=5,
-                   help="iteration cap of the untimed one-instance warm-up solve before each timed row")
+                   help="iteration cap of the untimed one-instance warm-up solve before each timed row (default: 5)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
     p.add_argument("--no-reference", action="store_true", help="skip the CasADi IPOPT / FATROP rows")
     p.add_argument("--reference-instances", type=int, default=16,
-                   help="IPOPT / FATROP solve the first min(B, this) of a row's initial states")
-    p.add_argument("--reference-tolerance", type=float, default=1e-8, help="IPOPT / FATROP tol")
+                   help="IPOPT / FATROP solve the first min(B, this) of a row's initial states (default: 16)")
+    p.add_argument("--reference-tolerance", type=float, default=1e-8, help="IPOPT / FATROP tol (default: 1e-8)")
     p.add_argument("--json", metavar="PATH", help="also write the header and all rows as JSON to PATH")
     p.add_argument("--profile", action="store_true",
                    help="after the rows, solve the throughput batch again under cProfile and print where its time "
@@ -74,7 +80,7 @@ def parser() -> argparse.ArgumentParser:
                         "16 64 256 (the pendulum rows use those <= 64) and --method to altro")
     p.add_argument("--gradients", choices=("implicit", "unrolled"), default="implicit",
                    help="with --grad: tt.solve's gradients mode (unrolled: the final iLQR step's derivative, "
-                        "approximate where the dynamics or constraints are curved)")
+                        "approximate where the dynamics or constraints are curved; default: implicit)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the solver's kernels (ILQROptions.compile); every row first runs untimed at "
                         "its own batch size, which compiles, and says how long that took")
@@ -83,21 +89,31 @@ def parser() -> argparse.ArgumentParser:
                         "(IPOptions.cuda_graphs; no effect on a CPU)")
     p.add_argument("--barrier", choices=("monotone", "mehrotra"), default="monotone",
                    help="with --grad --method ipm: the barrier strategy of the linear_box rows "
-                        "(IPOptions.barrier_strategy; mehrotra is for convex problems, so the pendulum rows stay monotone)")
+                        "(IPOptions.barrier_strategy; mehrotra is for convex problems, so the pendulum rows stay "
+                        "monotone; default: monotone)")
     p.add_argument("--mpc", action="store_true",
                    help="run the MPC acceptance runs and timing instead (torchtraj.bench.mpc, with options of its "
                         "own: python -m torchtraj.bench --mpc --help)")
+    p.add_argument("--scale-out", action="store_true",
+                   help="time one batch on 1, 2, ... local processes instead (torchtraj.bench.scale_out, with options "
+                        "of its own: python -m torchtraj.bench --scale-out --help)")
     p.add_argument("--ops", action="store_true",
                    help="report eager torch operator calls per solve and per iteration instead (torchtraj.bench.ops: "
                         "B = 1, each method's default options, so the tolerance and --iterations flags do not apply; "
                         "then a horizon sweep on the first problem); --method then defaults to every registered "
                         "method and --problems to pendulum cartpole car_3obs")
+    p.add_argument("--defaults", action="store_true",
+                   help="run every method that handles the problems' constraints with its default options and no "
+                        "guess on the problem set instead, against IPOPT (torchtraj.bench.defaults); --method then "
+                        "defaults to every such method, --batch to 1 (B > 1: sample_x0 batches, the first "
+                        "--reference-instances compared with IPOPT)")
     p.add_argument("--ops-horizons", nargs="+", type=int, metavar="N", default=list(ops.DEFAULT_HORIZONS),
-                   help="with --ops: the horizons of the sweep")
+                   help=f"with --ops: the horizons of the sweep (default: {' '.join(map(str, ops.DEFAULT_HORIZONS))})")
     p.add_argument("--ops-iterations", type=int, metavar="K", default=ops.SWEEP_ITERATIONS,
-                   help="with --ops: iterations counted per solve of the horizon sweep")
+                   help="with --ops: iterations counted per solve of the horizon sweep "
+                        f"(default: {ops.SWEEP_ITERATIONS})")
     p.add_argument("--ops-mpc-steps", type=int, metavar="K", default=ops.MPC_STEPS,
-                   help="with --ops: control steps counted per MPC row (0: no MPC rows)")
+                   help=f"with --ops: control steps counted per MPC row (0: no MPC rows; default: {ops.MPC_STEPS})")
     return p
 
 
@@ -179,14 +195,19 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if "--mpc" in argv:
         from . import mpc
         return mpc.main([a for a in argv if a != "--mpc"], out)
+    if "--scale-out" in argv:
+        from . import scale_out
+        return scale_out.main([a for a in argv if a != "--scale-out"], out)
     p = parser()
     args = p.parse_args(argv)
     if args.compile:
         profile.quiet_inductor()
     _check(p, args)
     out = out or sys.stdout
+    bar = Progress(label=f"bench {args.method}", unit="rows")  # on stderr, between the timed solves
 
     def say(text: str = "") -> None:
+        bar.clear()  # a table line never lands on the bar's line
         print(text, file=out, flush=True)
 
     if args.threads is not None:
@@ -201,6 +222,14 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
             with open(args.json, "w") as f:
                 json.dump(report, f, indent=1)
         return 1 if ops.failed(report) else 0
+    if args.defaults:
+        from . import defaults
+        p.set_defaults(method=None)
+        chosen = p.parse_args(argv).method
+        batches = args.batch if args.batch != p.get_default("batch") else [1]
+        rows = defaults.run([chosen] if chosen else solvers.names(), args.problems or problems.names(), batches,
+                            args.seed, args.reference_instances, say)
+        return 0 if all(r.converged == r.batch for r in rows) else 1
     if args.grad:
         from . import grad
         batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]
@@ -262,6 +291,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
 
     rows: list = []
     throughput: list = []
+    bar.total = sum(len(args.batch) if not (augmented and default_batches) else 1 + (p.name == "pendulum")
+                    for p in todo)
     for problem in todo:
         refs = _build_references(problem.name, args.reference_tolerance) if with_reference else {}
         problem_rows = []
@@ -286,10 +317,13 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                     row.vs_ipopt = relative_difference(row, ipopt)
                 say(table.format_row(row))
             problem_rows += group
+            bar.update(converged=torch.tensor(ours.instance_ok or [False], dtype=torch.bool),
+                       violation=ours.max_violation, problem=problem.name)
         throughput.append(_throughput(problem.name, problem_rows, max(batches)))
         if args.profile and max(batches) > 1:
             throughput.append(_profile_line(problem, method, max(batches), args.seed, problem_options))
         rows += problem_rows
+    bar.close()
     say()
     for line in throughput:
         say(line)

@@ -4,7 +4,7 @@ r"""MPC on the torchtraj environments: the controllers, their acceptance runs an
 of a run seeded ``s`` is the single environment seeded ``s + i``; a vector environment of B sub-environments plays
 them with one batched :class:`~torchtraj.MPC` call per step), and the time per control step at B = 1 and B = 64.
 
-Controllers (:func:`controller`): each environment's own problem, ``envs.<task>.problem(env.params)`` (see the
+Controllers (:func:`controller`): each environment's own problem, ``env.problem(...)`` (see the
 "Controller Problem" section of the environment's docstring: the pendulum's cost is its reward, negated; the
 cart-pole's and the car's are quadratics with the reward's optimum, the car's obstacles constraints), on the step
 the environment takes, solved by ``method="altro"`` without projection, 3 iterations per control step, warm-started
@@ -34,17 +34,14 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-import envs  # the environments and their controllers' problems; importing it registers the environments
-from envs.core import upright_error
+from torchtraj.envs.core import upright_error  # importing torchtraj registers the environments
 
 from ..control.mpc import DEFAULT_ALTRO, MPC
+from ..core.progress import Progress
+from ..core.status import Status
 from . import profile
 
 IDS = {"pendulum": "torchtraj/Pendulum-v0", "cartpole": "torchtraj/CartPoleSwingUp-v0", "car": "torchtraj/Car-v0"}
-
-#: The problem builder of each task, ``problem(params, **options)``: the environment module's own.
-PROBLEMS = {"pendulum": envs.pendulum.problem, "cartpole": envs.cartpole.problem, "car": envs.car.problem}
-
 
 #: ALTRO options of each task's controller, on top of :data:`torchtraj.control.mpc.DEFAULT_ALTRO`.
 TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0}}
@@ -53,15 +50,15 @@ TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0
 def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, problem_options=None,
                compile: bool = False, **options) -> MPC:
     """The :class:`~torchtraj.MPC` of ``task`` (``"pendulum"``, ``"cartpole"``, ``"car"``) for ``env``, a single or
-    vector environment of that task; ``problem_options`` go to the task's problem builder (:data:`PROBLEMS`, called
-    with ``env.params``), ``compile`` to the policy, ``options`` are :class:`~torchtraj.ALTROOptions` fields to
-    change from :data:`TASK_OPTIONS`."""
-    if task not in PROBLEMS:
-        raise ValueError(f"unknown task {task!r}; known tasks are {sorted(PROBLEMS)}")
+    vector environment of that task; ``problem_options`` go to the environment's own problem builder,
+    ``env.problem(**problem_options)``, ``compile`` to the policy, ``options`` are :class:`~torchtraj.ALTROOptions`
+    fields to change from :data:`TASK_OPTIONS`."""
+    if task not in IDS:
+        raise ValueError(f"unknown task {task!r}; known tasks are {sorted(IDS)}")
     problem_options = dict(problem_options or {})
     if horizon is not None:
         problem_options["horizon"] = horizon
-    problem = PROBLEMS[task](env.params, **problem_options)
+    problem = env.unwrapped.problem(**problem_options)  # gymnasium.make wraps
     opts = dataclasses.replace(DEFAULT_ALTRO, **{**TASK_OPTIONS[task], **options})
     if task != "car":
         return MPC(problem, "altro", iterations, opts, compile=compile)
@@ -75,13 +72,15 @@ def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 
 @dataclass
 class Episode:
     """One finished episode of sub-environment ``env``: observations ``(T+1, n_obs)`` (first to final), rewards
-    ``(T,)``, per-step ``info`` entries ``{name: (T,)}``, and how it ended."""
+    ``(T,)``, per-step ``info`` entries ``{name: (T,)}``, how it ended, and the actions ``(T, nu)`` it took (as the
+    policy returned them; the environment clips them to its action space)."""
 
     env: int
     observations: np.ndarray
     rewards: np.ndarray
     infos: dict
     terminated: bool
+    actions: Optional[np.ndarray] = None
 
     @property
     def total(self) -> float:
@@ -99,13 +98,17 @@ class Run:
         return float(np.mean([success(e) for e in self.episodes]))
 
 
-def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step: Optional[Callable] = None) -> Run:
+def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step: Optional[Callable] = None,
+                 progress: bool = False, label: str = "episodes") -> Run:
     """Play ``episodes_per_env`` episodes on each sub-environment of ``venv`` (next-step autoreset), calling
     ``policy`` once per step on the whole batch of observations and ``policy.reset(mask)`` with the
-    sub-environments that just restarted. Sub-environments that are done wait (their extra episodes are dropped)."""
+    sub-environments that just restarted. Sub-environments that are done wait (their extra episodes are dropped).
+    ``progress`` draws a bar on stderr (:class:`~torchtraj.core.progress.Progress`): episodes finished, and the
+    share of the last control step's solves that converged and their largest violation."""
     B = venv.num_envs
+    bar = Progress(B * episodes_per_env, label, unit="episodes", enabled=progress)
     obs, _ = venv.reset(seed=seed)
-    history, rewards, infos = [np.asarray(obs)], [np.zeros(B)], [{}]
+    history, rewards, infos, taken = [np.asarray(obs)], [np.zeros(B)], [{}], [None]
     start, count = np.zeros(B, dtype=int), np.zeros(B, dtype=int)
     restarted = np.zeros(B, dtype=bool)
     episodes, seconds = [], []
@@ -117,6 +120,7 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
         if hasattr(policy, "reset"):
             policy.reset(restarted)
         history.append(np.asarray(obs))
+        taken.append(np.asarray(actions, dtype=np.float64).reshape(B, -1))
         rewards.append(np.asarray(reward, dtype=np.float64))
         infos.append({k: np.asarray(v) for k, v in info.items() if not k.startswith("_")})
         if on_step is not None:
@@ -130,9 +134,16 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
                 env=int(i), observations=np.stack([h[i] for h in history[a:t + 1]]),
                 rewards=np.array([r[i] for r in rewards[a + 1:t + 1]]),
                 infos={k: np.array([inf[k][i] for inf in infos[a + 1:t + 1]]) for k in infos[t]},
-                terminated=bool(np.asarray(terminated)[i])))
+                terminated=bool(np.asarray(terminated)[i]), actions=np.stack([u[i] for u in taken[a + 1:t + 1]])))
+        finished = int((done & (count < episodes_per_env)).sum())
         count = count + done
         restarted = done
+        solution = getattr(policy, "solution", None)
+        if solution is not None:
+            bar.update(finished, converged=solution.status == Status.CONVERGED, violation=solution.max_violation)
+        else:
+            bar.update(finished)
+    bar.close()
     return Run(episodes, seconds)
 
 
@@ -211,14 +222,16 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
 
 
 # ---------------------------------------------------------------------------------------------- acceptance
-def acceptance(task: str, num_envs: int = 100, episodes_per_env: int = 1, seed: int = 0, **controller_options) -> Run:
+def acceptance(task: str, num_envs: int = 100, episodes_per_env: int = 1, seed: int = 0, progress: bool = False,
+               **controller_options) -> Run:
     """``num_envs × episodes_per_env`` episodes of ``task`` in one vector environment seeded ``seed``, one batched
     MPC call per step; with one episode per environment, episode ``i`` is the single environment seeded
-    ``seed + i``."""
+    ``seed + i``. ``progress``: a bar on stderr (:func:`run_episodes`)."""
     import gymnasium as gym
 
     venv = gym.make_vec(IDS[task], num_envs=num_envs)
-    return run_episodes(venv, controller(task, venv, **controller_options), episodes_per_env, seed)
+    return run_episodes(venv, controller(task, venv, **controller_options), episodes_per_env, seed,
+                        progress=progress, label=task)
 
 
 def pendulum_v1_example():
@@ -240,19 +253,23 @@ def pendulum_v1_example():
 def parser():
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m torchtraj.bench --mpc", description=__doc__.split("\n\n")[1],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--tasks", nargs="+", default=[*IDS, "pendulum_v1"], choices=[*IDS, "pendulum_v1"])
-    p.add_argument("--episodes", type=int, default=100, help="seeded episodes per task (0: skip)")
-    p.add_argument("--vector-envs", type=int, default=64, help="sub-environments of the autoreset run (0: skip)")
-    p.add_argument("--vector-episodes", type=int, default=2, help="episodes per sub-environment in that run")
-    p.add_argument("--v1-seeds", type=int, default=20, help="Pendulum-v1 episodes (0: skip)")
-    p.add_argument("--timing-batch", nargs="*", type=int, default=[1, 64], help="B of the timing rows (none: skip)")
-    p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row")
+    # each help text states its default once (argparse's defaults formatter repeated them)
+    p = argparse.ArgumentParser(prog="python -m torchtraj.bench --mpc", description=__doc__.split("\n\n")[1])
+    p.add_argument("--tasks", nargs="+", default=[*IDS, "pendulum_v1"], choices=[*IDS, "pendulum_v1"],
+                   help="tasks to run; pendulum_v1 is Gymnasium's Pendulum-v1 (default: all)")
+    p.add_argument("--episodes", type=int, default=100, help="seeded episodes per task (0: skip; default: 100)")
+    p.add_argument("--vector-envs", type=int, default=64,
+                   help="sub-environments of the autoreset run (0: skip; default: 64)")
+    p.add_argument("--vector-episodes", type=int, default=2,
+                   help="episodes per sub-environment in that run (default: 2)")
+    p.add_argument("--v1-seeds", type=int, default=20, help="Pendulum-v1 episodes (0: skip; default: 20)")
+    p.add_argument("--timing-batch", nargs="*", type=int, default=[1, 64],
+                   help="B of the timing rows (none: skip; default: 1 64)")
+    p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row (default: 100)")
     p.add_argument("--compile", action="store_true",
                    help="run the episodes with torch.compile'd kernels (MPC(compile=True); each batch size compiles first) "
                         "and time the policy both ways")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
     return p
 
@@ -282,7 +299,7 @@ def main(argv: Optional[list] = None, out=None) -> int:
         for label, envs_, per_env, seed in runs:
             if envs_ < 1 or per_env < 1:
                 continue
-            run = acceptance(task, envs_, per_env, seed, compile=args.compile)
+            run = acceptance(task, envs_, per_env, seed, progress=True, compile=args.compile)
             wins = sum(SUCCESS[task](e) for e in run.episodes)
             rate = wins / len(run.episodes)
             failed |= rate < 0.95

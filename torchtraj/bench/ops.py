@@ -169,8 +169,6 @@ def count_mpc(method, horizon: int = MPC_HORIZON, iterations: int = MPC_ITERATIO
     ``torch.func`` traces on first use). Never raises: an exception is kept in ``error``."""
     import gymnasium as gym
 
-    import envs  # noqa: F401  registers the environments
-
     from ..control.mpc import MPC
 
     solver = solvers.get(method)

@@ -51,6 +51,7 @@ control instead (clamped) and starts cold at the next step; it never changes ano
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Callable, Mapping, Optional, Union
 
 import numpy as np
@@ -81,8 +82,9 @@ class MPC(torch.nn.Module):
     Args:
         problem: the template: dynamics, costs, constraints, horizon and parameters. Its ``x0`` is replaced at each
             call by the measured states; its ``u_init`` is the cold start.
-        method: a registered method (:func:`torchtraj.solvers.names`; a method that ignores constraints, as
-            ``"ilqr"``, warns at every call on a constrained problem).
+        method: a registered method (:func:`torchtraj.solvers.names`), checked here: an unknown name is a
+            ``ValueError`` listing the valid ones; a method that ignores constraints, as ``"ilqr"``, on a
+            constrained problem warns once, here, rather than at every control step.
         iterations: solver iterations per control step (the method's ``step_options``: ALTRO's
             ``iterations_inner`` with ``iterations_outer = 1``, the others' ``iterations``). ``None`` uses
             ``options`` as given.
@@ -110,6 +112,11 @@ class MPC(torch.nn.Module):
                  observation_to_params: Optional[Callable] = None, compile: bool = False):
         super().__init__()
         solver = check_problem_and_method(problem, method)
+        self._ignores_constraints = problem.has_constraints and not solver.handles_constraints
+        if self._ignores_constraints:
+            warnings.warn(f"MPC: method {solver.name!r} ignores the constraints of problem {problem.name!r}; the "
+                          "controls are clamped to the control bounds and the state constraints are not enforced",
+                          UserWarning, stacklevel=2)
         if iterations is not None and (int(iterations) != iterations or iterations < 1):
             raise ValueError(f"iterations must be a positive int or None, got {iterations!r}")
         self.problem, self.solver, self.method = problem, solver, solver.name
@@ -196,7 +203,10 @@ class MPC(torch.nn.Module):
         p = self.problem
         U0, duals = self.warm_start()
         start = time.perf_counter()
-        sol = solve(p, x, self.solver, options=self.options, **self.solver.warm_start(U0, duals))
+        with warnings.catch_warnings():
+            if self._ignores_constraints:  # said once, at construction
+                warnings.filterwarnings("ignore", message=".*ignores the constraints")
+            sol = solve(p, x, self.solver, options=self.options, **self.solver.warm_start(U0, duals))
         self.solve_seconds = time.perf_counter() - start
         failed = torch.isin(sol.status, self._failures) | ~torch.isfinite(sol.U).flatten(1).all(-1)
         usable = ~failed

@@ -21,6 +21,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from .probe import accepts_one_row
 from .problem import Problem
 
 
@@ -42,6 +43,29 @@ def batch_size(named: dict) -> int:
     if len(set(sizes.values())) > 1:
         raise ValueError(f"batch sizes disagree: {sizes}")
     return next(iter(sizes.values()), 1)
+
+
+def check_parameter_batch(problem: Problem, B: int) -> None:
+    """Refuse a parameter whose batch dimension was not said and cannot be told: one given to the constructor (so
+    taken as one instance's value, its shape not declared in ``param_shapes``), of two or more dimensions, whose
+    leading dimension is the batch size, and which the problem's functions accept as well with one row
+    (:func:`~torchtraj.core.probe.accepts_one_row`). It is then likely one value per instance passed as if it were
+    one instance's, and every instance would see all of them. A matrix the functions use as one (``e @ Q @ e``)
+    fails with one row and passes; a vector parameter is taken as one instance's (its length may be anything)."""
+    if B <= 1:
+        return
+    for k in sorted(problem._inferred_shapes):
+        shape = tuple(problem.param_shapes[k])
+        if len(shape) < 2 or shape[0] != B or tuple(problem.params[k].shape) != shape:
+            continue
+        if accepts_one_row(problem, k):
+            raise ValueError(
+                f"parameter {k!r} was given to the Problem constructor with shape {shape}, whose leading dimension is "
+                f"the batch size {B}, and the problem's functions accept one row of it as well: its batch dimension "
+                f"must be said. The constructor takes one instance's parameters, so every instance would see all "
+                f"{B} rows. For one value per instance, build the problem with one instance's value and pass the "
+                f"batch with problem.with_params({k}=values) (or declare param_shapes={{{k!r}: {shape[1:]}}}); if "
+                f"{shape} is one instance's value, declare it: param_shapes={{{k!r}: {shape}}}")
 
 
 @dataclass
@@ -71,7 +95,12 @@ class Batch:
         x0 = batched(problem.x0 if x0 is None else x0, "x0", (nx,), problem)
         U0 = batched(problem.u_init if U0 is None else U0, "U0", (N, nu), problem)
         X0 = batched(X0, "X0", (N + 1, nx), problem)
-        B = batch_size({"x0": x0, "U0": U0, "X0": X0, "params": torch.empty(problem.param_batch_size())})
+        named = {"x0": x0, "U0": U0, "X0": X0}
+        empty = [name for name, t in named.items() if t is not None and t.shape[0] == 0]
+        if empty:
+            raise ValueError(f"{' and '.join(empty)} {'hold' if len(empty) > 1 else 'holds'} an empty batch (B = 0): there is no instance to solve")
+        B = batch_size({**named, "params": torch.empty(problem.param_batch_size())})
+        check_parameter_batch(problem, B)
         x0, U0 = x0.expand(B, nx), U0.expand(B, N, nu)
         X0 = None if X0 is None else X0.expand(B, N + 1, nx)
         return cls(x0=x0, U0=U0, X0=X0, params=problem.batched_params(B), duals=duals, B=B)

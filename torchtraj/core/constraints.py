@@ -227,3 +227,48 @@ def stack_blocks(constraints: Constraints, blocks: dict, fill: float, like: Tens
     stage = torch.cat(parts + [get("stage_eq", (B, N, c.me))], -1)
     terminal = torch.cat([get("terminal_ineq", (B, c.miN)), get("terminal_eq", (B, c.meN))], -1)
     return stage, terminal
+
+
+#: The entries of a warm start of the multipliers (``tt.solve``'s ``duals``).
+DUAL_ENTRIES = ("multipliers", "penalties", "costate")
+
+
+def check_duals(constraints: Constraints, duals: dict, batch: int) -> None:
+    """A clear error for a warm start ``duals`` that does not fit ``constraints``: an unknown entry or block name
+    (the valid ones listed), a block whose shape does not broadcast to ``(B, N, rows)`` (stage) or ``(B, rows)``
+    (terminal), or a costate not broadcasting to ``(B, N+1, nx)``."""
+    if not isinstance(duals, dict):
+        raise TypeError(f"duals must be a dict with entries among {DUAL_ENTRIES}, got {type(duals).__name__}")
+    unknown = sorted(set(duals) - set(DUAL_ENTRIES))
+    if unknown:
+        raise ValueError(f"duals has unknown entries {unknown}; the valid ones are {list(DUAL_ENTRIES)}")
+    c, prob = constraints, constraints.problem
+    shapes = {name: (batch, prob.N, rows.stop - rows.start) for name, rows in c.ineq_blocks.items()
+              if rows.stop > rows.start}
+    for name, m, stage in (("stage_eq", c.me, True), ("terminal_ineq", c.miN, False), ("terminal_eq", c.meN, False)):
+        if m:
+            shapes[name] = (batch, prob.N, m) if stage else (batch, m)
+    for entry in ("multipliers", "penalties"):
+        blocks = duals.get(entry) or {}
+        if not isinstance(blocks, dict):
+            raise TypeError(f"duals[{entry!r}] must be a dict of per-block tensors, got {type(blocks).__name__}")
+        wrong = sorted(set(blocks) - set(shapes))
+        if wrong:
+            raise ValueError(f"duals[{entry!r}] names unknown constraint block(s) {wrong}; this problem's blocks "
+                             f"are {sorted(shapes)}")
+        for name, value in blocks.items():
+            _check_dual(f"duals[{entry!r}][{name!r}]", value, shapes[name])
+    if duals.get("costate") is not None:
+        _check_dual("duals['costate']", duals["costate"], (batch, prob.N + 1, prob.nx))
+
+
+def _check_dual(where: str, value, shape: tuple) -> None:
+    # shapes only: the values are not read (no host synchronisation in a control loop's warm starts)
+    value = value if isinstance(value, Tensor) else torch.as_tensor(value)
+    try:
+        fits = torch.broadcast_shapes(tuple(value.shape), shape) == shape
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"{where} has shape {tuple(value.shape)}, which does not broadcast to {shape} "
+                         f"(B, N, rows) / (B, rows): one value per knot and row, as Solution.multipliers holds them")

@@ -13,23 +13,34 @@ functions (no batch dimension; the library vmaps them over batch and time)::
 State-only path constraints start at knot 1 because x_0 is fixed;
 put a state constraint on x_N in the terminal functions.
 
-``p`` is a dict of tensors. Each entry has a per-instance shape (``param_shapes``,
-by default the shape given at construction) and may carry one extra leading batch
-dimension; gradients flow to these tensors in differentiable solves.
+``p`` is a dict of tensors. Each entry has a per-instance shape and may carry one extra leading batch
+dimension; gradients flow to these tensors in differentiable solves. The constructor takes *one instance's*
+parameters: a shape not declared in ``param_shapes`` is the given value's. One value per instance is passed
+with :meth:`Problem.with_params` (or declared: ``param_shapes={"goal": (2,)}`` with a ``(B, 2)`` value). The batch
+dimension is never guessed: where a constructor's parameter of two or more dimensions has the solve's batch size as
+its leading dimension and the functions accept one row of it too, the solve refuses it and says how to declare it
+(:func:`torchtraj.core.batch.check_parameter_batch`).
 
-The problem is checked at construction by a probe call of every function:
-wrong output shapes, non-finite outputs and mismatched dimensions raise a
-``ValueError`` naming the function and the shapes.
+The problem is checked at construction (:mod:`torchtraj.core.probe`): every function runs on copies of the
+inputs and under ``torch.func.vmap`` / ``jacrev`` as the solvers run it; wrong output shapes or dtypes,
+non-finite outputs, in-place writes into the inputs, code that torch.func cannot batch (``.item()``, numpy,
+Python branches on tensors) and mismatched dimensions raise a ``ValueError`` naming the function and what to
+change; a cut graph (a Jacobian identically zero where the value changes) is warned about. Bounds must not be
+NaN, a lower bound ``+inf`` or an upper bound ``-inf`` is infeasible, and ``lower <= upper``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Optional
 
 import torch
 from torch import Tensor
+
+from .describe import problem_repr
+from .probe import probe
 
 Params = Mapping[str, Tensor]
 StageFn = Callable[[Tensor, Tensor, Params], Tensor]
@@ -45,9 +56,10 @@ class Problem:
         stage_cost: ``l(x, u, p) -> ()``.
         terminal_cost: ``l_N(x, p) -> ()``.
         x0: default initial state ``(nx,)``.
-        horizon: number of intervals N (N+1 knots).
-        nu: number of controls.
-        params: ``p``, a dict of tensors (per-instance shape, optional leading batch dim).
+        horizon: number of intervals N (N+1 knots), a positive integer (numpy integers accepted, bools not).
+        nu: number of controls, a positive integer.
+        params: ``p``, a dict of tensors: one instance's values (module docstring); batched ones through
+            :meth:`with_params` or a declared ``param_shapes``.
         stage_eq / stage_ineq: ``(x, u, p) -> (m,)``, on knots 0..N-1 (``g <= 0``).
         state_ineq: ``(x, p) -> (m,)`` on knots 1..N-1.
         terminal_eq / terminal_ineq: ``(x, p) -> (m,)`` on knot N.
@@ -57,7 +69,8 @@ class Problem:
         X_init: optional ``(N+1, nx)`` default initial state guess.
         dt: duration of one interval, when the problem has one (for plots and time penalties).
         name: a label for reports.
-        param_shapes: per-instance shape of each parameter; defaults to the given shapes.
+        param_shapes: per-instance shape of some or all parameters; the others' are the given shapes. A value with
+            one more leading dimension than its declared shape is batched.
         linear_quadratic: declares the dynamics and every constraint affine in ``(x, u)`` and the costs
             quadratic (parameters may enter any way). The interior-point method then expands the problem
             once and evaluates its derivatives at later iterates by products, and implicit differentiation
@@ -96,16 +109,19 @@ class Problem:
             raise ValueError(f"Problem.x0 must have shape (nx,), got {tuple(x0.shape)}")
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
         set_("x0", x0)
-        if not isinstance(self.horizon, int) or self.horizon < 1:
-            raise ValueError(f"Problem.horizon must be a positive int, got {self.horizon!r}")
-        if not isinstance(self.nu, int) or self.nu < 1:
-            raise ValueError(f"Problem.nu must be a positive int, got {self.nu!r}")
+        set_("horizon", _positive_int("horizon", self.horizon))
+        set_("nu", _positive_int("nu", self.nu))
         params = {k: torch.as_tensor(v, dtype=x0.dtype, device=x0.device) for k, v in self.params.items()}
         set_("params", params)
-        if self.param_shapes is None:
-            set_("param_shapes", {k: tuple(v.shape) for k, v in params.items()})
+        declared = dict(self.param_shapes or {})
+        unknown = set(declared) - set(params)
+        if unknown:
+            raise ValueError(f"param_shapes names unknown parameters {sorted(unknown)}; the parameters are {sorted(params)}")
+        # a shape not declared is the given value's: one instance's parameter (see Batch.build for the ambiguous case)
+        set_("param_shapes", {k: tuple(declared.get(k, v.shape)) for k, v in params.items()})
+        object.__setattr__(self, "_inferred_shapes", frozenset(k for k in params if k not in declared))
         for k, v in params.items():
-            shape = tuple(self.param_shapes.get(k, v.shape))
+            shape = tuple(self.param_shapes[k])
             if tuple(v.shape) != shape and tuple(v.shape[1:]) != shape:
                 raise ValueError(
                     f"parameter {k!r} has shape {tuple(v.shape)}; expected {shape} or (B, *{shape})"
@@ -117,11 +133,20 @@ class Problem:
                 value = torch.as_tensor(value, dtype=x0.dtype, device=x0.device)
                 if value.shape != (n,):
                     raise ValueError(f"Problem.{name} must have shape ({n},), got {tuple(value.shape)}")
+                if bool(torch.isnan(value).any()):
+                    raise ValueError(f"Problem.{name} holds NaN at {_where(torch.isnan(value))}: a bound must be a number, "
+                                     f"or ±inf where unbounded")
                 set_(name, value)
         for lo, hi in (("u_lower", "u_upper"), ("x_lower", "x_upper")):
             a, b = getattr(self, lo), getattr(self, hi)
+            # +inf below or -inf above is no absent bound but an impossible one (no value meets it)
+            for name, bound, impossible in ((lo, a, float("inf")), (hi, b, -float("inf"))):
+                if bound is not None and bool((bound == impossible).any()):
+                    raise ValueError(f"Problem.{name} is {impossible} at {_where(bound == impossible)}: no value "
+                                     f"satisfies it (infeasible); an absent bound is {-impossible}")
             if a is not None and b is not None and bool((a > b).any()):
-                raise ValueError(f"Problem.{lo} exceeds Problem.{hi}: {a.tolist()} > {b.tolist()}")
+                raise ValueError(f"Problem.{lo} exceeds Problem.{hi} at {_where(a > b)} (infeasible bounds): "
+                                 f"{a.tolist()} > {b.tolist()}")
         u_init = self.u_init if self.u_init is not None else torch.zeros(nu)
         u_init = torch.as_tensor(u_init, dtype=x0.dtype, device=x0.device)
         if u_init.shape == (nu,):
@@ -167,8 +192,25 @@ class Problem:
 
     # ------------------------------------------------------------ transforms
     def replace(self, **changes) -> "Problem":
-        """A copy with some fields changed (validated again)."""
-        return dataclasses.replace(self, **changes)
+        """A copy with some fields changed (validated again).
+
+        A new ``horizon`` without a new ``u_init`` / ``X_init`` resizes the guesses: a guess that is the same at every
+        step (the default zeros, or a ``(nu,)`` guess) stays that per-step value; a time-varying one is cut to the new
+        horizon, or extended by repeating its last control (last state for ``X_init``). Parameters keep their
+        declared or inferred per-instance shapes."""
+        if "horizon" in changes:
+            N = _positive_int("horizon", changes["horizon"])
+            if "u_init" not in changes:
+                constant = bool((self.u_init == self.u_init[:1]).all())
+                changes["u_init"] = self.u_init[0] if constant else _resized(self.u_init, N)
+            if "X_init" not in changes and self.X_init is not None:
+                changes["X_init"] = _resized(self.X_init, N + 1)
+        new = dataclasses.replace(self, **changes)
+        if "param_shapes" not in changes:
+            # the shapes passed on were the resolved ones: those inferred here stay inferred (Batch.build)
+            object.__setattr__(new, "_inferred_shapes",
+                               (self._inferred_shapes & set(new.params)) | (set(new.params) - set(self.params)))
+        return new
 
     def with_params(self, **params: Tensor) -> "Problem":
         """A copy whose parameters ``params`` are replaced (per-instance or batched)."""
@@ -222,43 +264,11 @@ class Problem:
 
     # ---------------------------------------------------------------- probing
     def _probe(self) -> None:
-        """Call every function once on x0 / u_init[0]; raise ValueError on misuse."""
-        nx = self.nx
-        x, u, p = self.x0, self.u_init[0], self.instance_params()
-
-        def call(name, fn, *args):
-            try:
-                out = fn(*args)
-            except Exception as exc:  # re-raised with the function named
-                raise ValueError(f"Problem.{name} failed on a probe call: {exc}") from exc
-            if not isinstance(out, Tensor):
-                raise ValueError(f"Problem.{name} must return a torch.Tensor, got {type(out).__name__}")
-            if not bool(torch.isfinite(out).all()):
-                raise ValueError(f"Problem.{name} returned non-finite values at x0, u_init[0]: {out}")
-            return out
-
-        out = call("dynamics", self.dynamics, x, u, p)
-        if out.shape != (nx,):
-            raise ValueError(f"Problem.dynamics must return shape ({nx},) for x of shape ({nx},), got {tuple(out.shape)}")
-        for name, fn, args in (("stage_cost", self.stage_cost, (x, u, p)), ("terminal_cost", self.terminal_cost, (x, p))):
-            out = call(name, fn, *args)
-            if out.shape != ():
-                raise ValueError(f"Problem.{name} must return a scalar (shape ()), got {tuple(out.shape)}")
-        sizes = {}
-        for name in ("stage_eq", "stage_ineq", "state_ineq", "terminal_eq", "terminal_ineq"):
-            fn = getattr(self, name)
-            sizes[name] = 0
-            if fn is None:
-                continue
-            args = (x, u, p) if name.startswith("stage") else (x, p)
-            out = call(name, fn, *args)
-            if out.dim() != 1:
-                raise ValueError(f"Problem.{name} must return a vector (m,), got shape {tuple(out.shape)}")
-            sizes[name] = int(out.shape[0])
+        """Run every function as the solvers will (:mod:`torchtraj.core.probe`); raise ValueError on misuse."""
         # read once, here: the solvers' constraint layout (Constraints) never calls the user's functions for it again
-        object.__setattr__(self, "_constraint_sizes", sizes)
+        object.__setattr__(self, "_constraint_sizes", probe(self))
         if self.linear_quadratic:
-            self._check_linear_quadratic(x, u, p)
+            self._check_linear_quadratic(self.x0, self.u_init[0], self.instance_params())
 
     def _constant_derivatives(self, x: Tensor, u: Tensor, p: Params) -> dict:
         """The derivatives that a linear-quadratic problem has constant: Jacobians of the dynamics and
@@ -299,6 +309,29 @@ class Problem:
                 raise ValueError(f"Problem declared linear_quadratic, but Problem.{name} is not {shape}: its {kind} "
                                  f"changes by {gap:.3g} between two probe points")
 
+    def __repr__(self) -> str:
+        return problem_repr(self)  # sizes, dtype, constraints present, parameter shapes; never whole tensors
+
     def constraint_sizes(self) -> dict:
         """Number of rows of each constraint function (0 when absent), as the probe call found them."""
         return dict(self._constraint_sizes)
+
+
+def _positive_int(name: str, value) -> int:
+    """``value`` as a Python int (numpy integers accepted); a bool, a float or a value below 1 is a ValueError."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
+        kind = " (a bool)" if isinstance(value, bool) else f" ({type(value).__name__})"
+        raise ValueError(f"Problem.{name} must be a positive int, got {value!r}{kind}")
+    return int(value)
+
+
+def _where(mask: Tensor) -> list:
+    """The indices where ``mask`` holds, for an error message."""
+    return torch.nonzero(mask).reshape(-1).tolist()
+
+
+def _resized(guess: Tensor, length: int) -> Tensor:
+    """``guess (L, n)`` cut to ``length`` rows, or extended by repeating its last row."""
+    if guess.shape[0] >= length:
+        return guess[:length]
+    return torch.cat([guess, guess[-1:].expand(length - guess.shape[0], guess.shape[1])])

@@ -8,6 +8,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from .describe import solution_repr
 from .status import Status
 
 
@@ -56,6 +57,8 @@ class Solution:
         multipliers: multipliers of each constraint block, keyed by block name.
         penalties: final penalty weights of each block (augmented-Lagrangian methods).
         method: the method's name.
+        kkt: the KKT residuals ``{name: (B,)}`` at the solution (stationarity, feasibility, complementarity,
+            dual sign; :mod:`torchtraj.kkt.certificate`), which decide whether a status is ``CONVERGED``.
     """
 
     X: Tensor
@@ -70,6 +73,7 @@ class Solution:
     multipliers: dict = field(default_factory=dict)
     penalties: dict = field(default_factory=dict)
     method: str = ""
+    kkt: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> Tensor:
@@ -80,16 +84,25 @@ class Solution:
     def batch_size(self) -> int:
         return int(self.X.shape[0])
 
+    def __repr__(self) -> str:
+        return solution_repr(self)
+
     def summary(self) -> str:
         """A few lines a person can read: status counts, cost and violation ranges."""
         counts = ", ".join(f"{k}: {v}" for k, v in Status.counts(self.status).items())
         finite = torch.isfinite(self.cost)
-        cost = self.cost[finite]
+        cost = self.cost.detach()[finite]  # a differentiable solve's cost requires grad: read numbers only
         lines = [
             f"{self.method} on {self.batch_size} instance(s): {counts}",
             f"  iterations {int(self.iterations.min())}..{int(self.iterations.max())}",
         ]
+        outer = self.history.extra.get("outer_limit")
+        limited = self.status == Status.MAX_ITERATIONS
+        if outer is not None and outer.numel() and bool(limited.any()):
+            by_outer = int((limited & (outer[:, -1] > 0)).sum())
+            lines.append(f"  max_iterations: {by_outer} after the outer loop's limit (iterations_outer dual updates), "
+                         f"{int(limited.sum()) - by_outer} after the iteration budget or an unconverged projection")
         if cost.numel():
             lines.append(f"  cost {float(cost.min()):.8g}..{float(cost.max()):.8g}")
-            lines.append(f"  max violation {float(self.max_violation[finite].max()):.3g}")
+            lines.append(f"  max violation {float(self.max_violation.detach()[finite].max()):.3g}")
         return "\n".join(lines)

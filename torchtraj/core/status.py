@@ -18,7 +18,7 @@ class Status(enum.IntEnum):
 
     #: Still iterating (only seen inside solvers and in truncated histories).
     RUNNING = -1
-    #: Met the convergence tolerances.
+    #: Met the method's convergence tolerances at a KKT point (:mod:`torchtraj.kkt.certificate`).
     CONVERGED = 0
     #: Hit the iteration limit before meeting the tolerances.
     MAX_ITERATIONS = 1
@@ -30,9 +30,12 @@ class Status(enum.IntEnum):
     MAX_REGULARIZATION = 4
     #: The initial guess could not be used (e.g. non-finite rollout of the initial controls).
     INFEASIBLE_START = 5
+    #: The method's own stopping test passed at a point that is not a KKT point to the certificate's tolerances
+    #: (:mod:`torchtraj.kkt.certificate`; ``Solution.kkt`` holds the residuals): tighten the method's tolerances.
+    STALLED = 6
     #: Converged to a stationary point of the constraint violation that is not feasible: the instance is
     #: (locally) infeasible (the interior-point method's restoration phase, Wächter & Biegler 2006 §3.3).
-    LOCALLY_INFEASIBLE = 6
+    LOCALLY_INFEASIBLE = 7
 
     @classmethod
     def describe(cls, status: torch.Tensor) -> list:

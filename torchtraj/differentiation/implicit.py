@@ -19,10 +19,18 @@ from .kkt_system import (
     kkt_system,
     rows_at,
 )
-from .layer import GRADIENT_MODES, ImplicitSolution, attach_gradients, check_gradients_mode, requires_gradients
+from .layer import (
+    GRADIENT_MODES,
+    FirstOrderOnly,
+    ImplicitSolution,
+    attach_gradients,
+    check_gradients_mode,
+    masked_cost,
+    requires_gradients,
+)
 from .refine import Refined, _newton_step, default_stationarity_tolerance, refine  # noqa: F401
 
-__all__ = ["GRADIENT_MODES", "ImplicitSolution", "KKTSystem", "Multipliers", "Refined", "Rows",
+__all__ = ["GRADIENT_MODES", "FirstOrderOnly", "ImplicitSolution", "KKTSystem", "Multipliers", "Refined", "Rows",
            "active_rows", "attach_gradients", "backward_solve", "check_gradients_mode",
-           "default_active_tolerance", "default_stationarity_tolerance", "dependent_rows", "kkt_system",
+           "default_active_tolerance", "default_stationarity_tolerance", "dependent_rows", "kkt_system", "masked_cost",
            "parameter_gradients", "refine", "requires_gradients", "rows_at"]

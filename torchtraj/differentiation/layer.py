@@ -19,7 +19,13 @@ Instances get a **zero gradient**, and a ``RuntimeWarning`` names them with the 
 * refinement did not reach a KKT point (its stationarity test; skipped with ``refine_steps=0``);
 * the gradient is not finite;
 
-(at the backward pass for all but the first); other instances of the batch are unaffected.
+(at the backward pass for all but the first); other instances of the batch are unaffected. "Zero" is exact, for
+shared parameters too: every mask is a ``torch.where`` (its backward selects, where a product ``0 · g`` would turn
+the ``NaN`` derivative of a failed instance into a ``NaN`` sum over the batch), and the cost's explicit
+``∂l/∂p`` reaches the parameters only through the rows kept (:func:`masked_cost`).
+
+Second-order gradients are not available: the backward pass is not itself differentiable, and differentiating
+its result again (``create_graph=True`` then a second ``backward``) raises a ``RuntimeError`` that says so.
 
 Unrolled mode (``tt.solve(..., gradients="unrolled")``): the derivative of one final iLQR
 (Gauss-Newton SQP) step taken at the solver's point with its active set held, the iterations before it
@@ -52,7 +58,6 @@ from typing import Mapping, Optional
 
 import torch
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 from ..core.masks import where_rows
 from ..core.problem import Problem
@@ -111,8 +116,19 @@ class ImplicitSolution(torch.autograd.Function):
         ctx.save_for_backward(X, U, x0, *params)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, X_bar: Tensor, U_bar: Tensor):
+        # grad mode is on here only under create_graph=True: the gradients are computed without a graph and
+        # marked so that differentiating them again raises a clear error (module docstring)
+        second_order = torch.is_grad_enabled()
+        with torch.no_grad():
+            grads = ImplicitSolution._gradients(ctx, X_bar.detach(), U_bar.detach())
+        if not second_order:
+            return grads
+        anchors = tuple(t for t, needed in zip(ctx.saved_tensors[2:], ctx.needs_input_grad[3:]) if needed)
+        return tuple(None if g is None else FirstOrderOnly.apply(g, *anchors) for g in grads)
+
+    @staticmethod
+    def _gradients(ctx, X_bar: Tensor, U_bar: Tensor) -> tuple:
         spec: _Spec = ctx.spec
         X, U, x0, *values = ctx.saved_tensors
         params = dict(zip(spec.names, values))
@@ -138,7 +154,11 @@ class ImplicitSolution(torch.autograd.Function):
                                   "definite: not a strict local minimum with the active set held, often a "
                                   "solver stopped short of one; tighter solver tolerances help)"),
                    (degenerate, "the active constraint rows are linearly dependent (LICQ fails: more active "
-                                "rows than the controls can satisfy, or rows at round-off)"),
+                                "rows than the controls can satisfy, or rows at round-off); the derivative is not "
+                                "defined there. Remove redundant constraints (a bound also written as a "
+                                "stage_ineq row, an equality stated twice), or give a row that only touches its "
+                                "bound some margin; attach_gradients' active_tolerance sets which rows count as "
+                                "active"),
                    (not_kkt, "the point is not a KKT point (Newton refinement with the active set held "
                              "could not reach stationarity: the solver stopped short of a solution; "
                              "tighter solver tolerances help)"),
@@ -154,6 +174,39 @@ class ImplicitSolution(torch.autograd.Function):
         grads = [masked(p_bar[n]) if ctx.needs_input_grad[4 + i] else None for i, n in enumerate(spec.names)]
         x0_grad = masked(x0_bar) if ctx.needs_input_grad[3] else None
         return (None, None, None, x0_grad, *grads)
+
+
+class FirstOrderOnly(torch.autograd.Function):
+    """The identity on a gradient of :class:`ImplicitSolution`, whose own backward raises: the implicit layer gives
+    first-order gradients only (module docstring). ``anchors`` (the inputs that require grad) connect it to the
+    graph so that a second differentiation reaches it."""
+
+    @staticmethod
+    def forward(gradient: Tensor, *anchors: Tensor):
+        return gradient.clone()
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        pass
+
+    @staticmethod
+    def backward(ctx, *grads):
+        raise RuntimeError("tt.solve gives first-order gradients only: the implicit layer's backward pass (an "
+                           "adjoint KKT solve) is not differentiable again, so second-order gradients (a Hessian, "
+                           "a gradient of a gradient) through a solve are not available; take finite differences "
+                           "of first-order gradients instead")
+
+
+def masked_cost(problem: Problem, keep: Tensor, X: Tensor, U: Tensor, params: Mapping[str, Tensor]) -> Tensor:
+    """The total cost ``(B,)`` at ``X (B, N+1, nx)``, ``U (B, N, nu)`` whose gradients come from the instances in
+    ``keep (B,)`` only: the other rows of ``X``, ``U`` and of every parameter that requires grad are cut by
+    ``torch.where`` before the cost is evaluated, so a failed instance's non-finite ``∂l/∂p`` is selected away rather
+    than multiplied by zero (``0 · NaN = NaN``, which a shared parameter's sum over the batch would spread)."""
+    def cut(t: Tensor) -> Tensor:
+        return where_rows(keep, t, t.detach()) if t.requires_grad else t
+
+    cost = total_cost(problem, cut(X), cut(U), {k: cut(v) for k, v in params.items()})
+    return torch.where(keep, cost, cost.detach())
 
 
 def _indices(mask: Tensor) -> list:
@@ -210,8 +263,6 @@ def attach_gradients(problem: Problem, x0: Tensor, params: Mapping[str, Tensor],
     spec = _Spec(problem=problem, names=names, usable=usable, stationary=stationary, constrained=constrained,
                  active_tolerance=active_tolerance, refined=refined, gauss_newton=unrolled, cuda_graphs=cuda_graphs)
     X, U = ImplicitSolution.apply(spec, X, U, x0, *(params[n] for n in names))
-    cost = total_cost(problem, X, U, params)
     # where an instance gets no gradient, its cost gets none either (not even the explicit ∂l/∂p)
-    keep = usable.to(cost.dtype)
-    cost = keep * cost + (1 - keep) * cost.detach()
+    cost = masked_cost(problem, usable, X, U, params)
     return dataclasses.replace(solution, X=X, U=U, cost=cost, max_violation=violation)

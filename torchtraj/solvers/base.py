@@ -36,6 +36,7 @@ from torch import Tensor
 
 from ..core.batch import Batch
 from ..core.constraints import Constraints
+from ..core.options import validate
 from ..core.problem import Problem
 from ..core.solution import Solution
 
@@ -66,15 +67,22 @@ class Solver(abc.ABC):
 
     def options(self, options):
         """``options`` as an :attr:`options_class` instance: ``None`` gives :meth:`default_options`, a dict its
-        fields; anything else is a ``TypeError``."""
+        fields; anything else is a ``TypeError``. Every field is checked (:func:`torchtraj.core.options.validate`:
+        types, nested options' classes, positive budgets, non-negative tolerances, positive barriers and
+        penalties), a bad one named in a ``ValueError`` or ``TypeError``."""
         cls = self.options_class
         if options is None:
             return self.default_options()
         if isinstance(options, dict):
-            return cls(**options)
+            unknown = sorted(set(options) - {f.name for f in dataclasses.fields(cls)})
+            if unknown:
+                raise TypeError(f"options for method {self.name!r}: unknown field(s) {unknown}; {cls.__name__} has "
+                                f"{[f.name for f in dataclasses.fields(cls)]}")
+            options = cls(**options)
         if not isinstance(options, cls):
             raise TypeError(f"options for method {self.name!r} must be {cls.__name__} or a dict, "
                             f"got {type(options).__name__}")
+        validate(options)
         return options
 
     # ------------------------------------------------------------------ solving

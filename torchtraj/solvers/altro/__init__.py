@@ -9,31 +9,28 @@ step have had one update by eq. (17) with ``μ = penalty_initial``,
 
     \lambda \leftarrow \Pi_{\mathcal K}\big(\lambda + \mu\, c(x, u)\big),
 
-which ALTRO makes itself unless the instance met its tolerances (``CONVERGED``); :meth:`ALTRO.carried_duals` makes
-it for those, so that the multipliers improve by one update per control step.
+which ALTRO makes itself where the inner solve ended short of its tolerances, and which is the multiplier estimate
+it reports where it met them (:func:`~torchtraj.solvers.altro.stages.finish`): either way the multipliers improve by
+one update per control step. Without that update an over-estimated multiplier of a bound that is no longer active
+stays frozen for good: held by it, a pendulum can come to rest 0.64 rad from upright at τ = 2.94 under a bound of
+3, and every later step converges there again.
 """
 
 from __future__ import annotations
 
 import dataclasses
 
-import torch
-
 from ...core.batch import Batch
-from ...core.compiled import kernel
-from ...core.constraints import Constraints, multiplier_blocks, stack_blocks
-from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import Solution
-from ...core.status import Status
 from ..base import Solver
-from .augmented_lagrangian import AugmentedLagrangian, Duals
 from .options import ALTROOptions
 from .solver import solve_altro
 
 #: ALTRO's settings for MPC: no projection (the applied control is clamped to its bounds anyway, and the projection
-#: adds 12 % (median) to 26 % (mean) to a pendulum step at B = 1); the rest are ALTRO's defaults.
-MPC_OPTIONS = ALTROOptions(projection=False)
+#: adds 12 % (median) to 26 % (mean) to a pendulum step at B = 1) and Altro.jl's stopping tolerances
+#: (:meth:`ALTROOptions.fast`): a control step is a few warm-started iterations, not a solve to the optimum.
+MPC_OPTIONS = ALTROOptions.fast(projection=False)
 
 
 class ALTRO(Solver):
@@ -63,24 +60,6 @@ class ALTRO(Solver):
         return dataclasses.replace(opts, iterations_inner=int(iterations), iterations_outer=1)
 
     # warm_start: the base's. Not the shifted states: ALTRO's X0 means its infeasible start, another problem.
-
-    def carried_duals(self, constraints: Constraints, solution: Solution, options: ALTROOptions) -> dict:
-        """``solution.multipliers``, updated once by eq. (17) with ``μ = penalty_initial`` where ALTRO stopped
-        without an update (``CONVERGED``: met its tolerances). Else an over-estimated multiplier of a bound that is
-        no longer active stays frozen for good: held by it, a pendulum can come to rest 0.64 rad from upright at
-        τ = 2.94 under a bound of 3, and every later step converges there again."""
-        if not solution.multipliers:
-            return {}
-        c, mu = constraints, options.penalty_initial
-        lam, lamN = stack_blocks(c, solution.multipliers, 0.0, solution.X)
-        duals = Duals(lam, lamN, torch.full_like(lam, mu), torch.full_like(lamN, mu))
-        params = c.problem.batched_params(solution.batch_size)
-        update = kernel(AugmentedLagrangian.updated_duals, options.ilqr.compile)
-        new = update(AugmentedLagrangian(c, duals), solution.X, solution.U, params, 1.0, options.penalty_max,
-                     options.dual_max)
-        updated = multiplier_blocks(c, new.stage, new.terminal)
-        done = solution.status == Status.CONVERGED
-        return {k: where_rows(done, updated[k], v) for k, v in solution.multipliers.items()}
 
 
 class ALILQR(ALTRO):

@@ -75,6 +75,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     running = status == Status.RUNNING
     al_done = torch.zeros_like(running)
     stalled = torch.zeros_like(running)
+    outer_limit = torch.zeros_like(running)
     rho = torch.full((B,), inner.regularization_initial, dtype=x0.dtype, device=x0.device)
     drho = torch.zeros_like(rho)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
@@ -107,7 +108,10 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         running = (status == Status.RUNNING) & ~al_done
         rows.append({"cost": J, "max_violation": violation, "step_size": s.alpha, "regularization": rho,
                      "penalty": _largest_penalty(al.duals),
-                     "outer_iteration": outer_count.to(J.dtype)})
+                     "outer_iteration": outer_count.to(J.dtype),
+                     # which limit a MAX_ITERATIONS instance hit (Solution.summary): the outer loop's
+                     "outer_limit": (outer_limit | exhausted).to(J.dtype)})
+        outer_limit = outer_limit | exhausted
         if opts.verbose:
             log_iteration(method, it, J, rho, running)
     status = torch.where(running, int(Status.MAX_ITERATIONS), status)
@@ -145,7 +149,13 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         stage, terminal, costate, K = result.stage, result.terminal, result.costate, result.K
     else:
         status = torch.where(al_done, int(Status.CONVERGED), status)
-        stage, terminal = al.duals.stage, al.duals.terminal
+        # at an inner optimum the first-order multiplier estimate is the update of eq. (17), λ + I_μ c projected
+        # (Nocedal & Wright, §17.3): the gradient of L_A is the Lagrangian's with it. Unfinished instances keep the
+        # multipliers they would go on with.
+        estimate = al.updated_duals(X, U, params, 1.0, opts.penalty_max, opts.dual_max)
+        done = al_done.reshape(-1, 1, 1)
+        stage = torch.where(done, estimate.stage, al.duals.stage)
+        terminal = torch.where(al_done.reshape(-1, 1), estimate.terminal, al.duals.terminal)
         costate = None
         # the gains of the last backward pass, at the iterate before the last step: a converged step is below
         # the tolerances, and a new expansion and factorisation only for K would cost a third of an MPC step

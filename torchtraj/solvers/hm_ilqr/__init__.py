@@ -32,7 +32,7 @@ class HMILQR(Solver):
         return solve_hm_ilqr(problem, batch, options, method=self.name)
 
     def step_defaults(self) -> HMILQROptions:
-        return HMILQROptions(al_iterations=0)
+        return HMILQROptions.fast(al_iterations=0)
 
 
 __all__ = ["HMILQR", "HMILQROptions"]

@@ -1,0 +1,99 @@
+"""The KKT certificate (torchtraj.kkt.certificate): CONVERGED only at a KKT point, for every method.
+
+Its residuals are checked against independent computations (the gradient of the rolled-out cost by autograd, a
+multiplier flipped by hand), and ``tt.solve`` is checked to report a point that a method's own stopping test
+accepted short of the optimum as ``STALLED``.
+"""
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj import problems
+from torchtraj.core.batching import rollout
+from torchtraj.core.constraints import Constraints
+from torchtraj.kkt import certificate
+
+F64 = torch.float64
+
+
+def short_pendulum(dtype=F64) -> tt.Problem:
+    """The benchmark pendulum over N = 10 without its goal: nonlinear, its torque bound active at the start."""
+    return problems.get("pendulum", dtype=dtype).replace(horizon=10, u_init=torch.zeros(1, dtype=dtype),
+                                                          terminal_eq=None)
+
+
+def test_stationarity_is_the_gradient_of_the_rolled_out_cost():
+    """Unconstrained and without defects, the reduced gradient is ∇_U J(rollout(U)): autograd through a rollout."""
+    problem = problems.get("pendulum_unconstrained").replace(horizon=12, u_init=torch.zeros(1, dtype=F64))
+    x0 = problems.sample_x0("pendulum_unconstrained", 3, seed=1)
+    U = 0.3 * torch.randn(3, 12, 1, dtype=F64, generator=torch.Generator().manual_seed(0))
+    params = problem.batched_params(3)
+    X = rollout(problem.dynamics, x0, U, params)
+    res = certificate.residuals(problem, X, U, {}, params, x0, Constraints.of(problem))
+    Ug = U.clone().requires_grad_(True)
+    cost = tt.kkt.total_cost(problem, rollout(problem.dynamics, x0, Ug, params), Ug, params).sum()
+    (gradient,) = torch.autograd.grad(cost, Ug)
+    # the multipliers (costates) are small here, so IPOPT's scale s_d is 1
+    torch.testing.assert_close(res.stationarity, gradient.abs().flatten(1).amax(1), rtol=1e-10, atol=1e-14)
+    assert (res.feasibility < 1e-14).all() and (res.complementarity == 0).all()
+
+
+def test_a_kkt_point_passes_and_a_wrong_signed_multiplier_fails():
+    problem = short_pendulum()
+    x0 = problems.sample_x0("pendulum", 2, seed=0)
+    sol = tt.solve(problem, x0, method="ipm")
+    assert (sol.status == tt.Status.CONVERGED).all()
+    assert max(float(v.max()) for v in sol.kkt.values()) < 1e-7
+    params = problem.batched_params(2)
+    c = Constraints.of(problem)
+    active = sol.multipliers["u_upper"].abs() > 1e-3
+    assert active.any()  # the torque bound holds, so a multiplier is nonzero
+    upper = sol.multipliers["u_upper"]
+    flipped = {**sol.multipliers, "u_upper": torch.where(active, -upper, upper)}
+    status, res = certificate.certify(problem, sol.status, sol.X, sol.U, flipped, params, x0, c)
+    assert (res.dual_sign > 1e-3).all() and (res.stationarity > 1e-3).all()
+    assert (status == tt.Status.STALLED).all()
+
+
+def test_complementarity_and_feasibility_are_measured():
+    problem = short_pendulum()
+    x0 = problems.sample_x0("pendulum", 1, seed=0)
+    sol = tt.solve(problem, x0, method="ipm")
+    params, c = problem.batched_params(1), Constraints.of(problem)
+    # a multiplier on a bound row that is far from active: z g is its value times the slack
+    inactive = sol.multipliers["u_lower"].abs() < 1e-9
+    z = torch.where(inactive, torch.full_like(sol.multipliers["u_lower"], 0.5), sol.multipliers["u_lower"])
+    res = certificate.residuals(problem, sol.X, sol.U, {**sol.multipliers, "u_lower": z}, params, x0, c)
+    slack = (sol.U - problem.u_lower).squeeze(-1)[inactive.squeeze(-1)]
+    assert float(res.complementarity) == pytest.approx(float((0.5 * slack).max()), rel=1e-9)
+    # a state moved off its dynamics: the defect is the violation
+    X = sol.X.clone()
+    X[:, 5, 0] += 0.25
+    res = certificate.residuals(problem, X, sol.U, sol.multipliers, params, x0, c)
+    assert float(res.feasibility) >= 0.25 - 1e-12
+
+
+def test_altro_with_its_paper_tolerances_stops_short_and_says_so():
+    """Altro.jl's stopping tolerances end the pendulum well above its optimum; ALTRO's own tests accept that
+    point, the certificate does not. The defaults reach the optimum, which it accepts."""
+    problem = problems.get("pendulum")
+    fast = tt.solve(problem, method="altro", options=tt.ALTROOptions.fast())
+    assert fast.status.item() == tt.Status.STALLED
+    assert float(fast.kkt["stationarity"]) > 1e-6
+    default = tt.solve(problem, method="altro")
+    assert default.status.item() == tt.Status.CONVERGED
+    assert float(fast.cost) > 1.05 * float(default.cost)
+
+
+def test_ilqr_with_its_paper_tolerances_stops_short_and_says_so():
+    problem = problems.get("pendulum_unconstrained")
+    fast = tt.solve(problem, method="ilqr", options=tt.ILQROptions.fast())
+    default = tt.solve(problem, method="ilqr")
+    assert fast.status.item() == tt.Status.STALLED and default.status.item() == tt.Status.CONVERGED
+    assert float(default.kkt["stationarity"]) < 1e-6 < float(fast.kkt["stationarity"])
+
+
+def test_the_tolerances_follow_the_dtype():
+    single, double = certificate.Tolerances.for_dtype(torch.float32), certificate.Tolerances.for_dtype(F64)
+    assert single.stationarity > double.stationarity and double.stationarity == 1e-6
