@@ -93,6 +93,8 @@ def test_car_escape_from_waypoints_ends_at_goal_without_collision():
     assert float(rolled.X[0, :, 0].max()) < 5.0 or float(rolled.max_violation[0]) > 1e-3
 
 
+@pytest.mark.slow  # about a minute of ALTRO iterations at the certificate's accuracy; the default run keeps the
+# transform's test_time_penalized_initial_state_of_a_batch
 def test_time_penalized_pendulum_is_shorter_and_feasible():
     tp, sol, _ = solve_time_penalized("pendulum")
     assert sol.status[0] == tt.Status.CONVERGED

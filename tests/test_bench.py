@@ -70,7 +70,9 @@ def test_a_failing_row_is_reported_and_the_run_goes_on(monkeypatch):
     (failed,) = rows_of(text, "car_escape")
     assert failed[:5] == ["car_escape", "ilqr", "2", "ERROR", "ValueError:"]
     (row,) = rows_of(text, "pendulum_unconstrained")
-    assert row[-2:] == ["converged", "2"]
+    # the next row ran to the end: both instances have a final status (LOOSE's tolerances stop short of the
+    # KKT certificate, hence stalled)
+    assert row[-2:] == ["stalled", "2"]
 
 
 @pytest.mark.skipif(not HAS_CASADI, reason="casadi is not installed")

@@ -75,10 +75,13 @@ def test_instances_that_converge_still_get_one_multiplier_update():
     mpc._warm[:] = True
     mpc(x)
     sol = mpc.solution
-    assert (sol.status == tt.Status.CONVERGED).all() and (sol.multipliers["u_upper"] == 0.5).all()  # ALTRO: none
+    # ALTRO's own (fast) tolerances met: CONVERGED, or STALLED where the KKT certificate asks for more
+    assert ((sol.status == tt.Status.CONVERGED) | (sol.status == tt.Status.STALLED)).all()
     _, duals = mpc.warm_start()
     for name, c in (("u_upper", sol.U - 3.0), ("u_lower", -3.0 - sol.U)):  # eq. (17) by hand, mu = 1
         expected = (0.5 + c).clamp_min(0.0)
+        # a finished step reports eq. (17)'s update as its multiplier estimate, and hands it on shifted
+        torch.testing.assert_close(sol.multipliers[name], expected, rtol=0, atol=1e-12)
         torch.testing.assert_close(duals["multipliers"][name][:, :-1], expected[:, 1:], rtol=0, atol=1e-12)
         assert (duals["multipliers"][name] < 0.5).all()
 

@@ -95,13 +95,16 @@ def solve(
 def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str) -> Solution:
     declared = solver.kkt_problem(problem, opts)  # the problem whose KKT point it is, where that is another one
     if not implicit.requires_gradients(batch.x0, batch.params):
-        return _certified(solver, problem if declared is None else declared, batch,
+        return _certified(solver, problem if declared is None else declared, batch, opts,
                           solver.solve(problem, batch.for_solver(), opts))
     if not solver.kkt_point:
         raise ValueError(f"method {solver.name!r} returns no KKT point to differentiate; solve without gradients "
                          f"(torch.no_grad, or detached x0 and params) or use {_declaring('kkt_point')}")
+    if not solver.fixes_initial_state(opts):
+        raise ValueError(f"{solver.name}: a solution with a free initial state is not differentiated (the implicit "
+                         "layer holds x0 fixed); solve it without gradients")
     # a differentiable solve: the method runs on detached inputs, gradients come from its KKT point
-    solution = _certified(solver, problem if declared is None else declared, batch,
+    solution = _certified(solver, problem if declared is None else declared, batch, opts,
                           solver.solve(problem, batch.for_solver(detach=True), opts))
     out = implicit.attach_gradients(problem if declared is None else declared, batch.x0, batch.params, solution,
                                     gradients=gradients, cuda_graphs=graphs_used(opts, batch.x0.device),
@@ -113,7 +116,7 @@ def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str)
     return dataclasses.replace(out, cost=cost)
 
 
-def _certified(solver: Solver, problem: Problem, batch: Batch, solution: Solution) -> Solution:
+def _certified(solver: Solver, problem: Problem, batch: Batch, opts, solution: Solution) -> Solution:
     """``solution`` with its KKT residuals, and ``CONVERGED`` only where they are within the certificate's
     tolerances (:mod:`torchtraj.kkt.certificate`): the KKT conditions of ``problem`` with its constraints where the
     method handles them, without them where it ignores them."""
@@ -121,8 +124,10 @@ def _certified(solver: Solver, problem: Problem, batch: Batch, solution: Solutio
         return solution
     constraints = Constraints.of(problem, ignored=not solver.handles_constraints)
     params = {k: v.detach() for k, v in batch.params.items()}
+    # a free start (eILQR's free_initial_state) has no initial defect; its own rows are the method's to meet
+    x0 = batch.x0.detach() if solver.fixes_initial_state(opts) else None
     status, residuals = certificate.certify(problem, solution.status, solution.X, solution.U, solution.multipliers,
-                                            params, batch.x0.detach(), constraints)
+                                            params, x0, constraints)
     return dataclasses.replace(solution, status=status, kkt=residuals.as_dict())
 
 

@@ -19,8 +19,8 @@ Each iteration, for every instance still running:
 An instance converges when an accepted step changes the cost by less than
 ``cost_tolerance`` and the scaled control step ``mean_k max_i |d_ki| / (|u_ki| + 1)`` is below
 ``gradient_tolerance``, or when the model predicts a decrease below ``expected_decrease_tolerance``. Each
-tolerance is met at the dtype's resolution where it lies below it (float32: a cost change or predicted decrease of
-ten rounding errors of the cost, a scaled step of √eps), so that a float32 solve stops where float32 can tell no
+tolerance is met at the dtype's resolution where it lies below it (float32: a cost change of ten rounding errors of
+the cost, a predicted decrease of one, a scaled step of √eps), so that a float32 solve stops where float32 can tell no
 more instead of raising its regularisation until it fails. Converged and failed instances are frozen by masks; the
 batch stops when no instance is running.
 """
@@ -229,10 +229,10 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
 def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions, backward,
                cost_tolerance) -> Step:
     K, k, dV1, dV2, ok = _backward_pass(objective, backward, X, U, params, rho)
-    # tolerances below what the dtype resolves are met at its resolution (float32: the cost to ~10 rounding errors,
-    # the scaled step to √eps), not iterated after until the regularisation runs away
+    # tolerances below what the dtype resolves are met at its resolution (module docstring), not iterated after until
+    # the line search fails and the regularisation runs away
     eps = torch.finfo(J.dtype).eps
-    stationary = (-dV1 < opts.expected_decrease_tolerance) | (-dV1 <= 10 * eps * J.abs())
+    stationary = (-dV1 < opts.expected_decrease_tolerance) | (-dV1 <= eps * J.abs())
     Xn, Un, Jn, alpha, found = _line_search(problem, objective, params, x0, X, U, J, K, k, dV1, dV2, active & ok, opts)
     success = ok & found
     take = active & success & ~stationary

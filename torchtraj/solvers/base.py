@@ -98,6 +98,11 @@ class Solver(abc.ABC):
         ``problem`` (constrained or not as :attr:`handles_constraints` says); ``None``: it does not differ."""
         return None
 
+    def fixes_initial_state(self, options) -> bool:
+        """Whether a solution with ``options`` starts at the given ``x0`` (the KKT certificate then counts the
+        initial defect, and the implicit layer, which holds ``x0`` fixed, can differentiate it)."""
+        return True
+
     # ------------------------------------------------------------------ one control step (torchtraj.control.mpc)
     def step_defaults(self):
         """The options of a control step whose controller names none."""

@@ -42,10 +42,10 @@ class EILQR(Solver):
         """``problem`` with its inequalities as the soft barriers of ``options``: what a converged solution is a KKT
         point of (a fixed initial state; with ``free_initial_state`` the start's stationarity holds as well)."""
         opts = self.options(options)
-        if opts.free_initial_state is not False:
-            raise ValueError("eilqr: a solution with a free initial state is not differentiated (the implicit layer "
-                             "holds x0 fixed); solve it without gradients")
         return soft_problem(problem, opts.barrier_weight, opts.barrier_relaxation)
+
+    def fixes_initial_state(self, options) -> bool:
+        return self.options(options).free_initial_state is False
 
 
 __all__ = ["EILQR", "EILQROptions"]
