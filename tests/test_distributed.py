@@ -20,12 +20,11 @@ import warnings
 from pathlib import Path
 
 import pytest
+import ranks
 import torch
 
 import torchtraj as tt
 from torchtraj import distributed
-
-import ranks
 
 WORLD = 2
 COUNT = 8

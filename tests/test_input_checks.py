@@ -188,7 +188,7 @@ def test_the_default_method_respects_the_constraints():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no "ignores the constraints"
         sol = tt.solve(prob)
-    assert sol.method == "altro" and bool(sol.converged.all()) and float(sol.max_violation.max()) < 1e-6
+    assert sol.method == "ipm" and bool(sol.converged.all()) and float(sol.max_violation.max()) < 1e-6
     with pytest.warns(UserWarning, match="ignores the constraints"):
         unconstrained = tt.solve(prob, method="ilqr")
     assert float(sol.U.abs().max()) <= 0.5 + 1e-6 and float(unconstrained.U.abs().max()) > 0.5

@@ -11,7 +11,6 @@ import math
 
 import torch
 
-
 import torchtraj as tt
 
 F64 = torch.float64

@@ -80,7 +80,7 @@ def shard(count: int, rank: int, size: int) -> slice:
     return slice(start, start + base + (rank < extra))
 
 
-def solve(problem: Problem, x0=None, method="ilqr", U0=None, X0=None, options=None, duals: Optional[dict] = None,
+def solve(problem: Problem, x0=None, method=None, U0=None, X0=None, options=None, duals: Optional[dict] = None,
           gather: Union[str, int] = "all") -> Optional[Solution]:
     """Solve a batch across the ranks of the default process group; every rank calls it with the same arguments.
 

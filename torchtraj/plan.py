@@ -41,7 +41,7 @@ from . import distributed, problems, solvers
 from .core.progress import Progress
 from .core.solution import Solution
 from .core.status import Status
-from .solve import solve
+from .solve import default_method, solve
 
 #: Test hook: exit hard (``os._exit``) after this many chunks were written by this run, as a kill would.
 EXIT_AFTER_ENV = "_TORCHTRAJ_PLAN_EXIT_AFTER_CHUNKS"
@@ -55,7 +55,8 @@ def parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--problem", required=True, choices=problems.names(), help="a problem of the problem set")
     p.add_argument("--count", type=int, required=True, help="number of instances")
-    p.add_argument("--method", default="ilqr", choices=solvers.names(), help="torchtraj method")
+    p.add_argument("--method", default=None, choices=solvers.names(),
+                   help="torchtraj method (default: tt.solve's rule, ipm for a constrained problem, else ilqr)")
     p.add_argument("--out", required=True, help="output file (torch.save dict); chunks go to OUT.parts/")
     p.add_argument("--seed", type=int, default=0, help="seed of torchtraj.problems.sample_x0")
     p.add_argument("--x0", metavar="FILE", help="read the (count, nx) initial states from FILE (torch.load) instead")
@@ -282,6 +283,8 @@ def finish(parts: Path, all_chunks: list, settings: dict, out: Path, args, size:
 def main(argv: Optional[list] = None) -> int:
     p = parser()
     args = p.parse_args(argv)
+    if args.method is None:
+        args.method = default_method(problems.get(args.problem))
     if args.count < 1 or args.chunk_size < 1:
         p.error(f"--count and --chunk-size must be >= 1, got {args.count}, {args.chunk_size}")
     launched = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1

@@ -53,14 +53,12 @@ def solve(
             :class:`~torchtraj.solvers.base.Solver` object. ``None`` picks one that respects the problem
             (:func:`default_method`): the method of ``options``' class where an options object is given (the first
             registered: ``"altro"`` for :class:`~torchtraj.ALTROOptions`); else ``"ilqr"`` where the problem has no
-            constraints (no constraint function, no finite bound) and ``"altro"`` where it has some. ALTRO is the
-            constrained default because, with its default options, it ends feasible on every problem of the set
-            measured (from each problem's own guess: the pendulum and the car with obstacles ``CONVERGED``; the
-            cart-pole, 1.1e-7 below IPOPT's cost, and the 2-D quadrotor, at a lower local optimum, ``STALLED`` short
-            of the KKT certificate; violations at most 4e-13), where the interior-point method, more accurate and
-            faster where it converges (pendulum, cart-pole), stops at ``MAX_REGULARIZATION`` with violations of 2.6
-            and 5.8 on the car with obstacles and the quadrotor (it has no restoration phase yet). Name a method to
-            choose otherwise.
+            constraints (no constraint function, no finite bound) and ``"ipm"`` where it has some. The interior
+            point is the constrained default because, with its default options and each problem's own guesses, it
+            reaches IPOPT's optimum (or a lower local optimum IPOPT keeps) on every problem of the set measured (all
+            but ``car_escape``), the obstacle problems through its restoration phase, in 13 to 143 iterations;
+            ALTRO's defaults take up to 902 (the cart-pole) and stop ``STALLED`` on the 2-D quadrotor
+            (``docs/benchmarks.md``, "Default options"). Name a method to choose otherwise.
         U0: initial control guess ``(N, nu)`` or ``(B, N, nu)``; ``None`` uses ``problem.u_init``.
         X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one
             (``takes_state_guess``); for ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B).
@@ -134,13 +132,13 @@ def _certified(solver: Solver, problem: Problem, batch: Batch, opts, solution: S
 def default_method(problem: Problem, options=None) -> str:
     """The method ``tt.solve`` uses when none is named (:func:`solve`'s ``method``): the first registered method
     whose options class ``options`` is an instance of; else ``"ilqr"`` for a problem without constraints and
-    ``"altro"`` for one with some."""
+    ``"ipm"`` for one with some."""
     if not isinstance(problem, Problem):
         raise TypeError(f"problem must be a torchtraj.Problem, got {type(problem).__name__}")
     named = [n for n in solvers.names() if options is not None and type(options) is solvers.get(n).options_class]
     if named:
         return named[0]
-    return "altro" if problem.has_constraints else "ilqr"
+    return "ipm" if problem.has_constraints else "ilqr"
 
 
 def check_problem_and_method(problem, method: Union[str, Method, Solver]) -> Solver:

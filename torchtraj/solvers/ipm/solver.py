@@ -51,9 +51,9 @@ from .barrier import average_complementarity, mehrotra_step, monotone_update
 from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
 from .expansion import Base, expand, initial_iterate, kkt_error
-from .kernels import kernel_of, uses_graphs
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
+from .kernels import kernel_of, uses_graphs
 from .line_search import line_search
 from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
