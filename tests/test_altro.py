@@ -6,8 +6,8 @@ from kkt import kkt_residuals
 
 import torchtraj as tt
 
-FAST = ["double_integrator", "pendulum", "parallel_park"]
-SLOW = ["cartpole", "car_3obs", "quadrotor2d", "car_escape"]
+FAST = ["double_integrator", "pendulum"]
+SLOW = ["parallel_park", "cartpole", "car_3obs", "quadrotor2d", "car_escape"]
 #: Problems where ALTRO, from the problem set's guess, finds another local optimum than IPOPT; each is checked to
 #: be a KKT point and confirmed by IPOPT warm-started there. car_3obs: ALTRO (9.43375) passes the three circles
 #: below the diagonal, IPOPT (12.04034) above it. car_escape (0.3316056 against 0.3316544): the same route, but
@@ -113,6 +113,7 @@ def test_al_ilqr_stops_at_the_coarse_tolerance():
     assert torch.allclose(coarse.U, fine.U, atol=1e-2)  # a projection, not a different solution
 
 
+@pytest.mark.slow  # two full pendulum solves; MPC's warm starts are tested by tests/test_mpc.py
 def test_warm_started_duals_resolve_in_few_iterations():
     problem = tt.problems.get("pendulum")
     opts = tt.problems.altro_options("pendulum")

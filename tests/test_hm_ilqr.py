@@ -110,7 +110,7 @@ def test_problem_at_another_horizon_keeps_tf_and_rescales_the_weights():
 
 
 # ---------------------------------------------------------------------------------------------- optima
-@pytest.mark.parametrize("name", ["double_integrator", "pendulum"])
+@pytest.mark.parametrize("name", ["double_integrator", pytest.param("pendulum", marks=pytest.mark.slow)])
 def test_reaches_ipopts_optimum_from_the_interpolated_guess(reference, name):
     """From the paper's start (nodes on the line from x0 to the goal, M = 10), float64: violation and defects
     ≤ 1e-7, the cost within 1e-5 of IPOPT's, both stages run, and the gains are those of the final point."""

@@ -65,6 +65,7 @@ def test_cartpole_unconstrained_from_problem_guess_matches_ipopt(reference):
     assert abs(sol.cost[0].item() - ipopt) / ipopt < 1e-6
 
 
+@pytest.mark.slow  # the contract test checks a batch against its instances on short problems
 def test_batch_of_64_pendulums_all_converge_to_stationary_points():
     prob = tt.problems.get("pendulum_unconstrained")
     x0 = tt.problems.sample_x0("pendulum_unconstrained", 64, seed=0)

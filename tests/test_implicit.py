@@ -437,6 +437,7 @@ def _pendulum_mass_solve(rows, options, mass=1.2):
     return sol, leaf, (sol.U ** 2).flatten(1).sum(-1)
 
 
+@pytest.mark.slow  # central differences of full pendulum re-solves
 def test_pendulum_instances_refined_from_reference_accuracy_match_central_differences():
     """Instances 0 and 4 of seed 0 at mass 1.2: reference-accuracy ALTRO stops 0.13 (in U) short of the
     KKT point (a Newton step of 0.12 that refinement used to reject as too large, leaving gradients 7 %

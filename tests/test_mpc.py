@@ -241,6 +241,7 @@ def test_cartpole_swings_up_without_leaving_the_rail():
         assert not episode.terminated and error[0] > 3.0 and (error[-10:] <= 0.1).all()  # up from steps 88, 87
 
 
+@pytest.mark.slow  # a 3-obstacle car episode; the pendulum episodes stay in the default run
 def test_car_reaches_the_goal_without_collision():
     venv = gym.make_vec("torchtraj/Car-v0", num_envs=2)
     run = bench.run_episodes(venv, bench.controller("car", venv), seed=1)  # seed 1: an obstacle right ahead

@@ -222,7 +222,12 @@ def test_undeclared_arguments_are_refused_by_name(method):
 
 
 # ---------------------------------------------------------------------------------------------- closed loop
-@pytest.mark.parametrize("method", CONSTRAINED)
+#: the closed loop of the methods MPC is mostly run with in the default run; the others' under -m slow
+MPC_DEFAULT_RUN = ("altro", "ipm")
+
+
+@pytest.mark.parametrize("method", [m if m in MPC_DEFAULT_RUN else pytest.param(m, marks=pytest.mark.slow)
+                                    for m in CONSTRAINED])
 def test_mpc_swings_the_pendulum_up(method):
     """3 iterations per control step, as tests/test_mpc.py; seed 1 (ALTRO upright from step 46 there, the IPM from
     step 41; AL-iLQR as ALTRO, which MPC runs without its projection anyway)."""
