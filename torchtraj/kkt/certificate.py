@@ -35,6 +35,7 @@ from ..core.constraints import Constraints, stack_blocks
 from ..core.derivatives import stage_jacobian
 from ..core.problem import Problem
 from ..core.status import Status
+from ..riccati.sweep import costate_stages
 from .merit import largest_violation
 from .model import total_cost
 
@@ -102,10 +103,7 @@ def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params,
         gx, gu = torch.autograd.grad(lagrangian.sum(), (Xg, Ug))
     jacobian = stage_jacobian(problem.dynamics, X[:, :-1], U, params)[1]
     A, Bu = jacobian[..., :nx], jacobian[..., nx:]
-    costate = [gx[:, -1]]
-    for k in range(problem.N - 1, 0, -1):
-        costate.append(gx[:, k] + (A[:, k].mT @ costate[-1].unsqueeze(-1)).squeeze(-1))
-    lam = torch.stack(costate[::-1], 1)  # λ_1 .. λ_N
+    lam = costate_stages(A, gx[:, :-1], gx[:, -1])[:, 1:]  # λ_1 .. λ_N (the recursion's λ_0 is not a costate)
     reduced = gu + (Bu.mT @ lam.unsqueeze(-1)).squeeze(-1)
 
     z_on = torch.where(applies, z, torch.zeros_like(z))
