@@ -97,3 +97,23 @@ def test_ilqr_with_its_paper_tolerances_stops_short_and_says_so():
 def test_the_tolerances_follow_the_dtype():
     single, double = certificate.Tolerances.for_dtype(torch.float32), certificate.Tolerances.for_dtype(F64)
     assert single.stationarity > double.stationarity and double.stationarity == 1e-6
+
+
+def test_the_history_records_the_stationarity_of_every_iterate():
+    """iLQR's first history row is at the guess: its stationarity is autograd's ∇_U J(rollout(U0)); every method
+    but HM-iLQR (whose held rows' multipliers the expansion's residual lacks) records one per iteration, and it
+    falls to the certificate's tolerance where the solve converged."""
+    problem = problems.get("pendulum_unconstrained").replace(horizon=12, u_init=torch.full((1,), 0.3, dtype=F64))
+    x0 = problems.sample_x0("pendulum_unconstrained", 2, seed=1)
+    sol = tt.solve(problem, x0, method="ilqr")
+    params = problem.batched_params(2)
+    Ug = problem.u_init.expand(2, 12, 1).clone().requires_grad_(True)
+    cost = tt.kkt.total_cost(problem, rollout(problem.dynamics, x0, Ug, params), Ug, params).sum()
+    (gradient,) = torch.autograd.grad(cost, Ug)
+    torch.testing.assert_close(sol.history.extra["stationarity"][:, 0], gradient.abs().flatten(1).amax(1),
+                               rtol=1e-10, atol=1e-14)
+    for method in ("altro", "al-ilqr", "ipm", "eilqr"):
+        sol = tt.solve(problems.get("double_integrator"), method=method)
+        history = sol.history.extra["stationarity"]
+        assert history.shape == sol.history.cost.shape and sol.status[0] == tt.Status.CONVERGED, method
+        assert float(history[0, 0]) > 1e-3 and float(history[0, -1]) < 1e-4, (method, history[0, [0, -1]])

@@ -16,7 +16,10 @@ from .status import Status
 class History:
     """Per-iteration record of a batched solve; every field is ``(B, T)`` for T iterations.
 
-    Entries after an instance stopped repeat its final values (its status says why it stopped).
+    Entries after an instance stopped repeat its final values (its status says why it stopped). Besides the four
+    fields every method records, ``extra["stationarity"]`` holds the KKT conditions' stationarity residual at each
+    iterate as the method measures it (the Lagrangian's gradient, unscaled except for the IPM's IPOPT scaling);
+    ``max_violation`` is their feasibility residual, and the IPM's ``kkt_error`` their largest residual.
     """
 
     cost: Tensor

@@ -40,6 +40,7 @@ from ..core.problem import Problem
 from ..core.status import Status
 from ..globalization.line_search import Accepted, backtrack
 from ..globalization.regularization import rho_schedule
+from ..kkt.certificate import expansion_stationarity
 from ..kkt.model import cost_model, total_cost
 from ..riccati import factorize
 
@@ -181,15 +182,16 @@ class Step:
     alpha: Tensor
     K: Tensor
     dJ: Tensor
+    stationarity: Tensor  # at the iterate the step started from (kkt.certificate.expansion_stationarity)
 
 
 def _backward_pass(objective, backward, X: Tensor, U: Tensor, params, rho: Tensor):
     """Expansion and Riccati sweep: gains ``K``, feedforward ``k``, the expected decrease
-    terms ``dV1``, ``dV2`` and the factorisation's ``ok``."""
+    terms ``dV1``, ``dV2``, the factorisation's ``ok`` and the iterate's stationarity residual."""
     lqr, rhs = objective.expand(X, U, params)
     factor = backward(lqr, rho)
     step = factor.solve(rhs, forward=False)
-    return factor.K, step.k, step.dV1, step.dV2, factor.ok
+    return factor.K, step.k, step.dV1, step.dV2, factor.ok, expansion_stationarity(lqr, rhs)
 
 
 def _factorize_parallel(lqr, rho):
@@ -228,7 +230,7 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
 
 def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions, backward,
                cost_tolerance) -> Step:
-    K, k, dV1, dV2, ok = _backward_pass(objective, backward, X, U, params, rho)
+    K, k, dV1, dV2, ok, residual = _backward_pass(objective, backward, X, U, params, rho)
     # tolerances below what the dtype resolves are met at its resolution (module docstring), not iterated after until
     # the line search fails and the regularisation runs away
     eps = torch.finfo(J.dtype).eps
@@ -247,7 +249,7 @@ def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts:
     converged = active & ok & (stationary | (take & settled & small))
     blown = active & ~converged & (rho > opts.regularization_max)
     alpha = torch.where(take, alpha, torch.zeros_like(alpha))
-    return Step(X, U, J, rho, drho, take, converged, blown, alpha, K, torch.where(take, dJ, 0.0))
+    return Step(X, U, J, rho, drho, take, converged, blown, alpha, K, torch.where(take, dJ, 0.0), residual)
 
 
 def start_status(x0: Tensor, X: Tensor, J: Tensor, opts: ILQROptions) -> Tensor:

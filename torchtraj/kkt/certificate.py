@@ -140,3 +140,17 @@ def certify(problem: Problem, status: Tensor, X: Tensor, U: Tensor, multipliers:
     res = residuals(problem, X, U, multipliers, params, x0, constraints)
     stalled = (status == int(Status.CONVERGED)) & ~res.within(tol)
     return torch.where(stalled, torch.full_like(status, int(Status.STALLED)), status), res
+
+
+def expansion_stationarity(lqr, rhs) -> Tensor:
+    """``max_k ‖r_k + B_kᵀ λ_{k+1}‖_∞`` ``(B,)``: the objective's gradient in the controls of the rolled-out
+    trajectory, with the costates ``λ_N = q_N``, ``λ_k = q_k + A_kᵀ λ_{k+1}`` of the expansion ``(lqr, rhs)``.
+
+    For the problem's own cost it is the stationarity residual of the KKT conditions; for an augmented-Lagrangian
+    objective (ALTRO), that of the Lagrangian at the multiplier estimate ``max(0, λ + μ c)``
+    (ALTRO eq. 17). Not for an expansion with held rows (their multipliers would enter the residual).
+    Unscaled: the methods' histories record it per iteration; :func:`certify` scales the final one as IPOPT does.
+    """
+    lam = costate_stages(lqr.A, rhs.q, rhs.qN)[:, 1:]
+    reduced = rhs.r + (lqr.B.mT @ lam.unsqueeze(-1)).squeeze(-1)
+    return reduced.abs().flatten(1).amax(-1)

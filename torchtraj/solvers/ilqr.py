@@ -69,7 +69,7 @@ def solve_ilqr(problem: Problem, batch: Batch, options: Optional[ILQROptions] = 
         active = status == Status.RUNNING
         rows.append({
             "cost": J, "max_violation": constraints.max_violation(X, U, params),
-            "step_size": s.alpha, "regularization": rho,
+            "step_size": s.alpha, "regularization": rho, "stationarity": s.stationarity,
         })
         if opts.verbose:
             log_iteration("ilqr", it, J, rho, active)

@@ -107,7 +107,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         inner_count = torch.where(update, 0, inner_count)
         running = (status == Status.RUNNING) & ~al_done
         rows.append({"cost": J, "max_violation": violation, "step_size": s.alpha, "regularization": rho,
-                     "penalty": _largest_penalty(al.duals),
+                     "stationarity": s.stationarity, "penalty": _largest_penalty(al.duals),
                      "outer_iteration": outer_count.to(J.dtype),
                      # which limit a MAX_ITERATIONS instance hit (Solution.summary): the outer loop's
                      "outer_limit": (outer_limit | exhausted).to(J.dtype)})

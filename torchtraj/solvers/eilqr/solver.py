@@ -63,7 +63,8 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     The history has a row per iteration (at the iterate the step starts from): ``cost`` (the barrier-augmented cost
     the iteration minimises), ``max_violation`` (the largest defect, equality or initial-row residual),
     ``step_size`` (``α``, 0 where refused), ``regularization`` (``ε_reg``) and in ``extra`` ``defects``,
-    ``equality`` (``‖h, h_N‖∞``), ``merit``, ``gamma`` and ``kkt_error``. ``Solution.cost`` is the problem's own
+    ``equality`` (``‖h, h_N‖∞``), ``merit``, ``gamma``, ``stationarity`` (the Lagrangian's, ``model.dual``) and
+    ``kkt_error``. ``Solution.cost`` is the problem's own
     cost; ``multipliers`` hold the equalities' (``stage_eq``, ``terminal_eq``), the barrier's implied ones under the
     inequality blocks' names and, with a free start, ``initial``."""
     opts = options or EILQROptions()
@@ -122,7 +123,8 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         iterations = iterations + running.long()
         rows.append(dict(cost=model.J, max_violation=model.primal, step_size=torch.where(take, ls.alpha, 0.0),
                          regularization=eps, defects=model.defects.abs().flatten(1).amax(-1),
-                         equality=_equality(model), merit=merit0, gamma=gamma, kkt_error=model.error))
+                         equality=_equality(model), merit=merit0, gamma=gamma, kkt_error=model.error,
+                         stationarity=model.dual))
         if opts.verbose:
             logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  gamma %.1e  running %d", method, step,
                         model.J.min().item(), model.J.max().item(), model.error.max().item(),

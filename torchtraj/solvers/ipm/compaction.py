@@ -74,7 +74,8 @@ class Final:
 def history_row(model: Model, step_size: Tensor, regularization: Tensor, mu: Tensor, error: Tensor) -> dict:
     """One iteration's entry of the history, ``(B,)`` each."""
     return {"cost": model.J, "max_violation": model.violation, "step_size": step_size,
-            "regularization": regularization, "barrier": mu, "kkt_error": error}
+            "regularization": regularization, "barrier": mu, "kkt_error": error,
+            "stationarity": model.dual_error}
 
 
 def full_history(records: list) -> History:
