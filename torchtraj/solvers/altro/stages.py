@@ -19,7 +19,7 @@ from ...iterations.ilqr import ilqr_step, log_iteration, riccati_backward, start
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
 from ...riccati.square_root import factorize_sqrt
-from .augmented_lagrangian import AugmentedLagrangian, Duals
+from .augmented_lagrangian import AugmentedLagrangian, Duals, penalty_limit, resolution_floor
 from .options import ALTROOptions
 from .projection import project
 
@@ -92,9 +92,13 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         K = torch.where(running.reshape(B, 1, 1, 1), s.K, K)
         iterations = iterations + running.long()
         inner_count = inner_count + running.long()
-        violation, new_duals, J_updated = measures(al, X, U, params, opts)
+        violation, complementarity, new_duals, J_updated = measures(al, X, U, params, opts)
         inner_done = running & (s.converged | (inner_count >= opts.iterations_inner))
-        finished = inner_done & s.converged & (violation < opts.constraint_tolerance)
+        # met: feasible and complementary with the multiplier estimate λ + I_μ c, the KKT point the certificate asks
+        # for (at the inner optimum that estimate makes the Lagrangian stationary); a violation of 1e-6 alone left
+        # products λ c of 3e-6 on bounds with multipliers of 3 to 7. Both to the dtype's resolution at least.
+        satisfied = resolution_floor(X, U).clamp_min(opts.constraint_tolerance)
+        finished = inner_done & s.converged & (violation <= satisfied) & (complementarity <= satisfied)
         update = inner_done & ~finished
         status = torch.where(s.blown & ~finished, int(Status.MAX_REGULARIZATION), status)
         exhausted = update & (outer_count + 1 >= opts.iterations_outer)
@@ -119,11 +123,13 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
 
 
 def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTROOptions):
-    """At ``(X, U)``: the largest violation, the duals of eqs. (17)-(18) and ``L_A`` under those duals (every
+    """At ``(X, U)``: the largest violation, the complementarity of the multiplier estimate, the duals of eqs. (17)-(18) and ``L_A`` under those duals (every
     instance; the loop keeps the updates of the instances it updates). One compiled kernel."""
-    duals = al.updated_duals(X, U, params, opts.penalty_scaling, opts.penalty_max, opts.dual_max)
+    duals = al.updated_duals(X, U, params, opts.penalty_scaling, penalty_limit(opts.penalty_max, X.dtype),
+                             opts.dual_max)
     updated = AugmentedLagrangian(al.constraints, duals, al.square_root).value(X, U, params)
-    return al.violation(X, U, params), duals, updated
+    # the updated multipliers are the estimate λ + I_μ c whatever the penalty: its complementarity
+    return al.violation(X, U, params), al.complementarity(duals, X, U, params), duals, updated
 
 
 def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):
