@@ -181,6 +181,23 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
             stepping = take & (v > tolerance) & (rate > opts.convergence_rate)
     stage_active, terminal_active = _active_rows(al, X, U, params, opts)
     _, _, _, _, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
+    costate, stage, terminal, K = multipliers(al, params, X, U, opts, stage_active, terminal_active)
+    converged = mask & (v <= tolerance)
+    return Projected(X=X, U=U, violation=v, converged=converged, costate=costate, stage=stage, terminal=terminal,
+                     K=K)
+
+
+def multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, opts: ProjectionOptions,
+                stage_active: Optional[Tensor] = None, terminal_active: Optional[Tensor] = None):
+    """The least-squares multipliers of the held rows at ``(X, U)``: ``(costate (B, N+1, nx), stage (B, N, m),
+    terminal (B, mN), K)``, the rows held by ALTRO's rule (or ``stage_active``, ``terminal_active``), the others
+    zero, and the gains of the held-rows system."""
+    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    reg = X.new_full((B,), opts.regularization)
+    eps = torch.finfo(X.dtype).eps
+    rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
+    if stage_active is None:
+        stage_active, terminal_active = _active_rows(al, X, U, params, opts)
     duals, factor = None, None
     for _ in range(opts.multiplier_passes):
         lqr, lz, lNx = _held_lqr(al, params, X, U, stage_active, terminal_active)
@@ -197,6 +214,4 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
             break
         stage_active = stage_active * (~wrong).to(X.dtype)
         terminal_active = terminal_active * (~wrongN).to(X.dtype)
-    converged = mask & (v <= tolerance)
-    return Projected(X=X, U=U, violation=v, converged=converged, costate=duals.costate,
-                     stage=duals.nu * stage_active, terminal=duals.nuN * terminal_active, K=factor.K)
+    return duals.costate, duals.nu * stage_active, duals.nuN * terminal_active, factor.K
