@@ -21,8 +21,11 @@ An instance converges when an accepted step changes the cost by less than
 ``gradient_tolerance``, or when the model predicts a decrease below ``expected_decrease_tolerance``. Each
 tolerance is met at the dtype's resolution where it lies below it (float32: a cost change of ten rounding errors of
 the cost, a predicted decrease of one, a scaled step of √eps), so that a float32 solve stops where float32 can tell no
-more instead of raising its regularisation until it fails. Converged and failed instances are frozen by masks; the
-batch stops when no instance is running.
+more instead of raising its regularisation until it fails. A step whose predicted decrease lies below the cost's
+resolution is still taken before the instance stops, where it raises the cost by no more than ten rounding errors (the
+line search compares values as IPOPT does, up to ``10 ε |J|``): its model comes from derivatives and is exact to
+rounding where the value is not. Converged and failed instances are frozen by masks; the batch stops when no
+instance is running.
 """
 
 from __future__ import annotations
@@ -136,10 +139,14 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
         Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
         Jc = objective.value(Xc, Uc, params)  # (B, l)
         expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
-        ratio = (J.unsqueeze(1) - Jc) / expected
+        actual = J.unsqueeze(1) - Jc
+        # the ratio test compared as IPOPT compares values, up to ten rounding errors of the cost: a step whose
+        # predicted decrease the cost cannot resolve is judged by whether it leaves the cost where it was
+        slack = 10 * torch.finfo(J.dtype).eps * J.abs().unsqueeze(1)
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
         accept = (torch.isfinite(Jc) & bounded & (expected > 0)
-                  & (ratio > opts.line_search_lower) & (ratio < opts.line_search_upper))
+                  & (actual > opts.line_search_lower * expected - slack)
+                  & (actual < opts.line_search_upper * expected + slack))
         return accept, (Xc, Uc, Jc)
 
     # no host synchronisation before the first round: a compiled iteration stays one graph while it takes one round
@@ -234,10 +241,14 @@ def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts:
     # tolerances below what the dtype resolves are met at its resolution (module docstring), not iterated after until
     # the line search fails and the regularisation runs away
     eps = torch.finfo(J.dtype).eps
-    stationary = (-dV1 < opts.expected_decrease_tolerance) | (-dV1 <= eps * J.abs())
+    exact = -dV1 < opts.expected_decrease_tolerance
+    stationary = exact | (-dV1 <= eps * J.abs())
     Xn, Un, Jn, alpha, found = _line_search(problem, objective, params, x0, X, U, J, K, k, dV1, dV2, active & ok, opts)
     success = ok & found
-    take = active & success & ~stationary
+    # a step whose predicted decrease is below the cost's resolution is still taken (the model, from derivatives, is
+    # exact to rounding there, the value is not): in float32 skipping it left an augmented Lagrangian's violation
+    # where a multiplier update had moved the inner optimum by less than the cost resolves
+    take = active & success & ~exact
     dJ = J - Jn
     grad = _scaled_step(k, U)
     X, U, J = where_rows(take, Xn, X), where_rows(take, Un, U), torch.where(take, Jn, J)

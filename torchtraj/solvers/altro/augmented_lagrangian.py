@@ -63,6 +63,38 @@ class Duals:
                      torch.where(m2, self.terminal_penalty, other.terminal_penalty))
 
 
+#: Rounding errors of the trajectory's magnitude that a residual is allowed (:func:`resolution_floor`).
+ROUNDING_ERRORS = 10.0
+
+
+def resolution_floor(X: Tensor, U: Tensor) -> Tensor:
+    """``(B,)``: the smallest violation the dtype resolves at ``(X, U)``, ``10 ε max(1, |X|∞, |U|∞)``.
+
+    A defect ``f(x_k, u_k) − x_{k+1}`` or a constraint value is a difference of numbers of the trajectory's
+    magnitude, each rounded to ``ε`` of it: in float32 (``ε = 1.2e-7``) a state of order one has defects of 6e-8
+    however exactly it was projected, and a tolerance of 1e-8 is never met (the Newton steps stop reducing ``v`` and
+    the instance would end ``MAX_ITERATIONS`` at a KKT point). Ten rounding errors, as IPOPT compares values
+    (``10 ε |φ|``); in float64 the floor lies far below the default tolerance."""
+    scale = torch.cat([X.abs().flatten(1), U.abs().flatten(1), X.new_ones(X.shape[0], 1)], 1).amax(1)
+    return ROUNDING_ERRORS * torch.finfo(X.dtype).eps * scale
+
+
+#: The multiplier update's tolerated error, relative to the trajectory's magnitude (:func:`penalty_limit`).
+MULTIPLIER_RESOLUTION = 1e-4
+
+
+def penalty_limit(penalty_max: float, dtype: torch.dtype) -> float:
+    """The largest penalty in ``dtype``: ``penalty_max``, or ``MULTIPLIER_RESOLUTION / ε`` where that is smaller.
+
+    Eq. (17)'s update ``λ + μ c`` carries ``μ`` times the rounding error of ``c``, ``ε`` of the trajectory's
+    magnitude, into the multipliers, which AL-iLQR returns as its multiplier estimate. At Altro.jl's cap of 1e8 that
+    is 6 in float32 (``ε = 1.2e-7``: a double integrator's estimates were off by 0.2 to 6 at μ = 1e5 to 1e8, its
+    stationarity residual as large); capped at 1e-4 / ε ≈ 840 the error stays ten times below float32's certified
+    stationarity (1e-3), and the multiplier updates, not the penalty, drive the violation down. In float64 the
+    limit (4.5e11) lies above the default ``penalty_max``."""
+    return min(penalty_max, MULTIPLIER_RESOLUTION / torch.finfo(dtype).eps)
+
+
 def _lift(t: Tensor, extra: int) -> Tensor:
     """``(B, ...)`` → ``(B, 1, ..., 1, ...)`` with ``extra`` singleton dimensions after B."""
     return t.reshape(t.shape[0], *([1] * extra), *t.shape[1:])
@@ -83,6 +115,8 @@ class AugmentedLagrangian:
         self.knot_mask = torch.cat([c.ineq_knot_mask, ones], -1)
         self.is_ineq = torch.arange(c.mi + c.me, device=self.problem.device) < c.mi
         self.is_ineqN = torch.arange(c.miN + c.meN, device=self.problem.device) < c.miN
+        #: number of inequality rows that apply (the mean multiplier of :meth:`complementarity`)
+        self.ineq_rows = int((self.knot_mask * self.is_ineq).sum()) + c.miN
 
     # the stacked per-instance constraint functions
     def stage_fn(self, x: Tensor, u: Tensor, p) -> Tensor:
@@ -172,6 +206,21 @@ class AugmentedLagrangian:
             cN = self.terminal_values(X, params)
             parts.append(torch.where(self.is_ineqN, cN.clamp_min(0), cN.abs()))
         return torch.cat(parts, -1).amax(-1)
+
+    def complementarity(self, duals: "Duals", X: Tensor, U: Tensor, params) -> Tensor:
+        """``(B,)``: the largest ``|λ_i c_i|`` of the inequality rows with the multipliers of ``duals``, over
+        ``s_c = max(100, mean λ_i) / 100`` as :mod:`torchtraj.kkt.certificate` scales it."""
+        parts, sums = [X.new_zeros(X.shape[0], 1)], X.new_zeros(X.shape[0])
+        if self.m:
+            lam = duals.stage * self.is_ineq * self.knot_mask
+            parts.append((lam * self.stage_values(X, U, params)).abs().flatten(1))
+            sums = sums + lam.flatten(1).sum(1)
+        if self.mN:
+            lamN = duals.terminal * self.is_ineqN
+            parts.append((lamN * self.terminal_values(X, params)).abs())
+            sums = sums + lamN.sum(1)
+        scale = (sums / max(self.ineq_rows, 1)).clamp_min(100.0) / 100.0
+        return torch.cat(parts, -1).amax(-1) / scale
 
     def updated_duals(self, X: Tensor, U: Tensor, params, scaling: float, penalty_max: float,
                       dual_max: float) -> Duals:

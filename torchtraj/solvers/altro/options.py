@@ -22,14 +22,17 @@ class ALTROOptions:
     #: Options of the inner iLQR (its ``iterations`` is unused: see ``iterations_inner``; its ``cost_tolerance``
     #: neither: the two below replace it).
     ilqr: ILQROptions = field(default_factory=ILQROptions)
-    #: The AL stage stops once the largest violation is below this (``constraint_tolerance``).
+    #: The AL stage stops once the largest violation, and the complementarity ``|λ c|`` of the multiplier estimate,
+    #: are below this (``constraint_tolerance``), or below ten rounding errors of the trajectory where that is larger
+    #: (:func:`~torchtraj.solvers.altro.augmented_lagrangian.resolution_floor`).
     constraint_tolerance: float = 1e-6
     #: Inner convergence on the cost change while the constraints are not met (``cost_tolerance_intermediate``;
     #: Altro.jl: 1e-4),
     cost_tolerance_intermediate: float = 1e-6
     #: ... and once they are (``cost_tolerance``; Altro.jl: 1e-4).
     cost_tolerance: float = 1e-12
-    #: Initial penalty ``μ`` (``penalty_initial``), its scaling ``φ`` (``penalty_scaling``) and cap.
+    #: Initial penalty ``μ`` (``penalty_initial``), its scaling ``φ`` (``penalty_scaling``) and cap (in float32 the
+    #: cap is 840: :func:`~torchtraj.solvers.altro.augmented_lagrangian.penalty_limit`).
     penalty_initial: float = 1.0
     penalty_scaling: float = 10.0
     penalty_max: float = 1e8

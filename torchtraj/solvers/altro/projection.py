@@ -38,14 +38,15 @@ from ...globalization.line_search import Accepted, backtrack
 from ...kkt import activity
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import factorize
-from .augmented_lagrangian import AugmentedLagrangian
+from .augmented_lagrangian import AugmentedLagrangian, resolution_floor
 
 
 @dataclass
 class ProjectionOptions:
     """Options of :func:`project` (Altro.jl ``SolverOptions`` where it has them)."""
 
-    #: Target largest violation of the active constraints and the dynamics.
+    #: Target largest violation of the active constraints and the dynamics; met at the dtype's resolution where it
+    #: lies below it (:func:`resolution_floor`).
     tolerance: float = 1e-8
     #: Inequalities with ``g > −active_tolerance`` (or a positive multiplier) are held as equalities.
     active_tolerance: float = 1e-6
@@ -145,10 +146,11 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
     rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
     alphas = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
     v = X.new_full((B,), float("inf"))
+    tolerance = resolution_floor(X, U).clamp_min(opts.tolerance)
     for _ in range(opts.iterations):
         stage_active, terminal_active = _active_rows(al, X, U, params, opts)
         defect, init, c, cN, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
-        pending = mask & (v > opts.tolerance)
+        pending = mask & (v > tolerance)
         if not bool(pending.any()):
             break
         lqr, _, _ = _held_lqr(al, params, X, U, stage_active, terminal_active)
@@ -176,9 +178,26 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
             rate = torch.log(v_new) / torch.log(v)
             v = v_new
             # reuse the factorisation only while convergence stays fast (Algorithm 2, line 8)
-            stepping = take & (v > opts.tolerance) & (rate > opts.convergence_rate)
+            stepping = take & (v > tolerance) & (rate > opts.convergence_rate)
     stage_active, terminal_active = _active_rows(al, X, U, params, opts)
     _, _, _, _, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
+    costate, stage, terminal, K = multipliers(al, params, X, U, opts, stage_active, terminal_active)
+    converged = mask & (v <= tolerance)
+    return Projected(X=X, U=U, violation=v, converged=converged, costate=costate, stage=stage, terminal=terminal,
+                     K=K)
+
+
+def multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, opts: ProjectionOptions,
+                stage_active: Optional[Tensor] = None, terminal_active: Optional[Tensor] = None):
+    """The least-squares multipliers of the held rows at ``(X, U)``: ``(costate (B, N+1, nx), stage (B, N, m),
+    terminal (B, mN), K)``, the rows held by ALTRO's rule (or ``stage_active``, ``terminal_active``), the others
+    zero, and the gains of the held-rows system."""
+    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    reg = X.new_full((B,), opts.regularization)
+    eps = torch.finfo(X.dtype).eps
+    rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
+    if stage_active is None:
+        stage_active, terminal_active = _active_rows(al, X, U, params, opts)
     duals, factor = None, None
     for _ in range(opts.multiplier_passes):
         lqr, lz, lNx = _held_lqr(al, params, X, U, stage_active, terminal_active)
@@ -195,6 +214,4 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
             break
         stage_active = stage_active * (~wrong).to(X.dtype)
         terminal_active = terminal_active * (~wrongN).to(X.dtype)
-    converged = mask & (v <= opts.tolerance)
-    return Projected(X=X, U=U, violation=v, converged=converged, costate=duals.costate,
-                     stage=duals.nu * stage_active, terminal=duals.nuN * terminal_active, K=factor.K)
+    return duals.costate, duals.nu * stage_active, duals.nuN * terminal_active, factor.K

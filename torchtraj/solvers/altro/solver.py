@@ -8,11 +8,17 @@ r"""ALTRO for batches of constrained problems (Howell et al. 2019, Algorithm 4).
    iteration per pass and is at its own place in its own outer loop, so a fast instance never waits for
    a slow one's inner solve; instances that finished are frozen by masks.
 2. **Projection** (§III-D, :mod:`torchtraj.solvers.altro.projection`) of the coarse solution onto the active
-   constraints to ``projection.tolerance`` (1e-8). It also takes the instances whose inner solve converged
+   constraints to ``projection.tolerance`` (1e-8, or ten rounding errors of the trajectory where that is larger:
+   float32 resolves defects of 6e-8 on states of order one). It also takes the instances whose inner solve converged
    but which spent ``iterations_outer`` dual updates above ``constraint_tolerance``: at large penalties
    iLQR's steps on the ill-conditioned augmented Lagrangian barely move the last violations, which is the
    case the projection's Newton steps are made for (a minimum-time parallel park stalls at 2e-5). Such
    an instance is ``CONVERGED`` if the projection meets its tolerance, ``MAX_ITERATIONS`` otherwise.
+
+In float32 every tolerance is met at the dtype's resolution, the penalty is capped where its product with the
+rounding of the constraints would spoil the multipliers, and AL-iLQR's multipliers are the least-squares ones of the
+held rows (:func:`~torchtraj.solvers.altro.stages.finish`); the inner iLQR takes steps below the cost's resolution
+(:mod:`torchtraj.iterations.ilqr`).
 
 Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem
 (:mod:`torchtraj.solvers.altro.infeasible`, :mod:`torchtraj.time_penalty`); the square-root backward pass (§III-A)
