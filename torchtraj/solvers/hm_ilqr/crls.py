@@ -65,6 +65,7 @@ class Trial:
     K: Tensor
     decrease: Tensor  # the model's predicted decrease of the merit at α = 1 (B,)
     residual: Tensor  # the stationarity residual at the start point (B,), :func:`~.shooting.stationarity`
+    weight: Tensor  # the defect weight of the accepted step (B,); 0 where none was accepted
 
 
 def regularized(lqr, mu_V: Tensor):
@@ -76,7 +77,8 @@ def regularized(lqr, mu_V: Tensor):
                                W=None, H=None)
 
 
-def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu_V, active, retry, opts) -> Trial:
+def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu_V, active, retry, opts,
+            weight_floor=None) -> Trial:
     """One iteration on the instances of ``active (B,)`` from the expansion ``(lqr, rhs, rows)`` at ``(X, U)``; those of
     ``retry (B,)`` use CRLS (their ``mu_V`` is the start ``μ_V^0``), the others plain LS."""
     B = X.shape[0]
@@ -87,6 +89,7 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
     accepted = Accepted(found=zero, alpha=torch.zeros_like(J), values=(X, U, J, D))
     stationary, searched = zero, zero
     decrease = torch.zeros_like(J)
+    used = torch.zeros_like(J)
     K = lqr.A.new_zeros(B, *lqr.B.shape[1:2], lqr.B.shape[-1], lqr.A.shape[-1])
     starts = segments.starts
     per_round = max(1, min(len(steps), 8192 // max(B, 1)))  # step sizes simulated together, as iLQR's search
@@ -101,6 +104,8 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
             residual = stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), sol.nu, sol.nuN)
         dV1, dV2 = model_change(lqr, rhs, sol.dx, sol.du)
         weight = merit_weight(dV1, dV2, D, opts.defect_weight)
+        if weight_floor is not None:  # never below the weight of an earlier iteration (no cycling between merits)
+            weight = torch.maximum(weight, weight_floor)
         merit = J + weight * D
         rounding = ROUNDING * torch.finfo(J.dtype).eps * merit.abs()
         ok = factor.ok & torch.isfinite(dV1) & torch.isfinite(dV2)
@@ -132,6 +137,7 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
         start = Accepted(found=accepted.found | ~search, alpha=accepted.alpha, values=accepted.values)
         step = backtrack(steps, per_round, ratio_test, search, start)
         new = step.found & search
+        used = torch.where(new, weight, used)
         stationary = stationary | (pending & ok & still & ~new)  # no step, and the model predicts none
         accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, step.alpha, accepted.alpha),
                             values=tuple(where_rows(new, a, b) for a, b in zip(step.values, accepted.values)))
@@ -142,4 +148,4 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
     Xa, Ua, Ja, Da = accepted.values
     took = active & accepted.found
     failed = active & ~took & ~stationary
-    return Trial(Xa, Ua, Ja, Da, took, active & stationary, failed, accepted.alpha, mu_V, K, decrease, residual)
+    return Trial(Xa, Ua, Ja, Da, took, active & stationary, failed, accepted.alpha, mu_V, K, decrease, residual, used)

@@ -22,7 +22,9 @@ simulated in the same batched rollout.
 ``J_[·] + w Σ dᵀd`` by ``ΔV(α) = α ΔV_1 + α²/2 ΔV_2 − w (1 − (1 − α)²) Σ dᵀd``: the defect term of the paper,
 taken as the decrease of the merit's defect part that the model predicts. Where closing the defects costs more
 objective than ``w Σ dᵀd`` pays for, ``w`` is raised for the iteration to ``w + max(0, ΔV_1 + ΔV_2/2) / Σ dᵀd``
-(the penalty-parameter rule of SQP merit functions), so that the model always predicts a decrease. A step is
+(the penalty-parameter rule of SQP merit functions), so that the model always predicts a decrease; with
+``monotone_defect_weight`` it is never lowered again within a stage (a merit that changes from one iteration to
+the next lets the iterates cycle, :class:`~torchtraj.solvers.hm_ilqr.options.HMILQROptions`). A step is
 accepted where the ratio of the actual to the expected change lies in ``[z_lo, z_hi]``.
 """
 

@@ -101,6 +101,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
     status = torch.where((status == Status.RUNNING) & ~finite_start, int(Status.INFEASIBLE_START), status)
     mu_V = like.new_full((B,), opts.regularization_initial)
+    defect_weight = like.new_full((B,), opts.defect_weight)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     al_iterations = torch.zeros_like(iterations)
     last_violation = constraints.max_violation(X, U, params)
@@ -116,7 +117,9 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         rhs.c = defects(f, X, segments)
         crls = s.rlb & opts.crls
         start_mu_V = torch.where(crls, torch.full_like(mu_V, opts.regularization_initial), mu_V)
-        t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts)
+        t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
+                    defect_weight if opts.monotone_defect_weight else None)
+        defect_weight = torch.where(active & t.took, torch.maximum(defect_weight, t.weight), defect_weight)
         # converged: the start point is a KKT point of the problem (with the multipliers z⁺) at the barrier's
         # final weight; its step, a Newton step on the barrier problem, is taken all the same (the solution then
         # follows the barrier's minimiser smoothly in x0 and the parameters, as a re-solve from a perturbed start
@@ -155,6 +158,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         handover = active & ~s.rlb & ((update_al & (violation <= opts.constraint_tolerance_al))
                                       | (al_iterations >= opts.al_iterations))
         new.rlb = s.rlb | handover
+        defect_weight = torch.where(handover, opts.defect_weight, defect_weight)
         held_before = objective.equality_residual(X, U, params)
         objective = HybridObjective(constraints, new)
         J = torch.where(active, objective.value(X, U, params), J)  # the objective of the new parameters
