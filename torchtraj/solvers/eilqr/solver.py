@@ -15,6 +15,15 @@ inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrie
    below ``short_step`` raises the next iteration's regularisation (a shorter, more gradient-like step), a full one
    lowers it (the paper's Fig. 5: adaptive ``α`` and ``ε_reg``; :class:`EILQROptions`).
 
+An instance has converged where the KKT error is below the tolerance, or where a full Newton step changes no
+variable by more than ten rounding errors of the iterate: the dtype can resolve no further step, and the error left
+is the rounding of the model. That is the float32 case of a barrier-augmented cost: an active row's barrier has the
+curvature ``z*² / w`` (``1e6`` for a multiplier ``z* = 10`` at ``w = 1e-4``), so its gradient at the float32 point
+nearest the optimum is off by that curvature times the rounding of the row (``6e-8`` for a bound of ``0.5``), and
+the KKT error stays at ``6e-3`` on the double integrator of ``tests/test_float32_barrier_methods.py`` while full
+steps of two rounding errors repeat until the iteration limit. ``tt.solve``'s certificate then reports such an
+instance ``STALLED`` wherever that error exceeds its float32 tolerance.
+
 Every decision is a mask on the batch: an instance that stops keeps its iterate and never changes another.
 """
 
@@ -43,6 +52,10 @@ from .newton import direction, empty_multipliers, multiplier_size, regularized_d
 from .options import EILQROptions
 
 logger = logging.getLogger("torchtraj")
+
+#: A full Newton step of at most this many rounding errors of the iterate (``ε (1 + max(|X|∞, |U|∞))``) ends the
+#: solve as converged at the dtype's resolution (module docstring).
+RESOLVED = 10.0
 
 
 def _step(it: Iterate, d, alpha, take) -> Iterate:
@@ -107,7 +120,11 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         d, ls, merit0 = globalized_step(soft, cons, params, model, it, x0, initial, d, eps, gamma, l1, factored,
                                         opts)
         take = factored & ls.found
+        # a full step below the dtype's resolution of the iterate: it cannot move any further in this dtype
+        unresolved = take & (ls.alpha == 1.0) & (_largest(d.dX, d.dU) <= RESOLVED * torch.finfo(x0.dtype).eps
+                                                   * (1 + _largest(it.X, it.U)))
         it = _step(it, d, ls.alpha, take)
+        status = torch.where(unresolved & (status == Status.RUNNING), int(Status.CONVERGED), status)
         K = where_rows(take, d.K, K)
         last = torch.where(take & (eps > 0), eps, last)
         # Fig. 5's adaptive ε_reg: a step the merit refuses or cuts short asks for more regularisation (a shorter,
@@ -131,6 +148,11 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                         gamma.max().item(), running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
     return _solution(problem, soft, it, K, status, iterations, rows, x0, params, initial, opts, method)
+
+
+def _largest(X: torch.Tensor, U: torch.Tensor) -> torch.Tensor:
+    """``max(|X|∞, |U|∞)`` per instance ``(B,)``."""
+    return torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
 
 
 def _equality(model) -> torch.Tensor:

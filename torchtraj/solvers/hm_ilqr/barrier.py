@@ -42,7 +42,8 @@ def relaxed_log_barrier(g: Tensor, psi: Tensor, delta: Tensor) -> tuple:
     return psi * value, psi * d1, psi * d2
 
 
-def updated_barrier(psi: Tensor, delta: Tensor, opts) -> tuple:
-    """Eqs. (18a-b): ``(ψ, δ) ← (max(ψ_min, ω_1 ψ), max(δ_min, ω_2 δ))``."""
-    return ((psi * opts.barrier_decrease).clamp_min(opts.barrier_min),
-            (delta * opts.relaxation_decrease).clamp_min(opts.relaxation_min))
+def updated_barrier(psi: Tensor, delta: Tensor, opts, tol) -> tuple:
+    """Eqs. (18a-b): ``(ψ, δ) ← (max(ψ_min, ω_1 ψ), max(δ_min, ω_2 δ))``, the floors ``tol.barrier``,
+    ``tol.relaxation`` of the dtype (:meth:`~torchtraj.solvers.hm_ilqr.options.HMILQROptions.tolerances`)."""
+    return ((psi * opts.barrier_decrease).clamp_min(tol.barrier),
+            (delta * opts.relaxation_decrease).clamp_min(tol.relaxation))

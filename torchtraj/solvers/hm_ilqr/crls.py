@@ -17,6 +17,14 @@ not positive definite) or the line search finds no step down to ``α_min``, the 
 pass with ``μ_V ← min(σ μ_V, μ_V^max)`` (eq. 22) instead of ending, until a step is accepted or ``μ_V^max`` is
 reached. The expansion is not repeated: only the factorisation and the line search. On a batch each instance
 leaves the loop on its own (masks); a further round runs while any instance is still searching.
+
+**Round-off.** The ratio test compares the actual change of the merit with the model's; where both lie below
+``10 ε |merit|`` (``ε`` the dtype's resolution) the actual change is rounding noise and the ratio says nothing, so
+the step is accepted as the model predicts it (Wächter & Biegler 2006, §3.9, relax IPOPT's Armijo test by the same
+amount). Without this, a step whose decrease float32 cannot resolve (an AL subproblem nearly solved, a barrier
+problem whose active rows have curvature ``ψ/z²``) is refused at every ``α``: plain LS raises ``μ_V`` to its
+maximum (``MAX_REGULARIZATION``), and the last Newton steps that make the barrier's multipliers consistent, which
+change the objective by ``|r|²/(ψ/z²)`` for a stationarity residual ``r``, are never taken even in float64.
 """
 
 from __future__ import annotations
@@ -31,7 +39,12 @@ from torch import Tensor
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
 from ...riccati import factorize
-from .shooting import expected_change, merit_weight, model_change, rollout_segments
+from .multipliers import stepped_multipliers, with_multipliers
+from .shooting import expected_change, merit_weight, model_change, rollout_segments, stationarity
+
+#: Changes of the merit below this many rounding errors of its value are not resolved (Wächter & Biegler 2006,
+#: §3.9: IPOPT relaxes its Armijo test by ``10 ε_mach |φ|``).
+ROUNDING = 10.0
 
 
 @dataclass
@@ -51,6 +64,8 @@ class Trial:
     mu_V: Tensor
     K: Tensor
     decrease: Tensor  # the model's predicted decrease of the merit at α = 1 (B,)
+    residual: Tensor  # the stationarity residual at the start point (B,), :func:`~.shooting.stationarity`
+    weight: Tensor  # the defect weight of the accepted step (B,); 0 where none was accepted
 
 
 def regularized(lqr, mu_V: Tensor):
@@ -62,8 +77,9 @@ def regularized(lqr, mu_V: Tensor):
                                W=None, H=None)
 
 
-def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, mu_V, active, retry, opts) -> Trial:
-    """One iteration on the instances of ``active (B,)`` from the expansion ``(lqr, rhs)`` at ``(X, U)``; those of
+def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu_V, active, retry, opts,
+            weight_floor=None) -> Trial:
+    """One iteration on the instances of ``active (B,)`` from the expansion ``(lqr, rhs, rows)`` at ``(X, U)``; those of
     ``retry (B,)`` use CRLS (their ``mu_V`` is the start ``μ_V^0``), the others plain LS."""
     B = X.shape[0]
     steps = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
@@ -73,6 +89,7 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, mu_V, ac
     accepted = Accepted(found=zero, alpha=torch.zeros_like(J), values=(X, U, J, D))
     stationary, searched = zero, zero
     decrease = torch.zeros_like(J)
+    used = torch.zeros_like(J)
     K = lqr.A.new_zeros(B, *lqr.B.shape[1:2], lqr.B.shape[-1], lqr.A.shape[-1])
     starts = segments.starts
     per_round = max(1, min(len(steps), 8192 // max(B, 1)))  # step sizes simulated together, as iLQR's search
@@ -81,16 +98,21 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, mu_V, ac
         if not bool(pending.any()):  # the round's host synchronisation
             break
         factor = factorize(regularized(lqr, mu_V))
-        sol = factor.solve(rhs)
+        sol = factor.solve(rhs, multipliers=r == 0)
+        if r == 0:  # the KKT residual at the start point, with the multipliers of the first (least regularised) step
+            z, zN = stepped_multipliers(rows, sol.dx, sol.du, objective.params.rlb)
+            residual = stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), sol.nu, sol.nuN)
         dV1, dV2 = model_change(lqr, rhs, sol.dx, sol.du)
         weight = merit_weight(dV1, dV2, D, opts.defect_weight)
+        if weight_floor is not None:  # never below the weight of an earlier iteration (no cycling between merits)
+            weight = torch.maximum(weight, weight_floor)
         merit = J + weight * D
+        rounding = ROUNDING * torch.finfo(J.dtype).eps * merit.abs()
         ok = factor.ok & torch.isfinite(dV1) & torch.isfinite(dV2)
         full = -expected_change(steps[:1], dV1, dV2, D, weight)[:, 0]
         decrease = torch.where(pending, full, decrease)
         still = ok & (full < opts.expected_decrease_tolerance)
-        stationary = stationary | (pending & still)
-        search = pending & ok & ~still
+        search = pending & ok
         K = where_rows(pending, factor.K, K)
 
         def ratio_test(alphas, sol=sol, factor=factor, dV1=dV1, dV2=dV2, weight=weight, merit=merit):
@@ -102,22 +124,28 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, mu_V, ac
             Dc = Dc + objective.equality_residual(Xc, Uc, params)
             Jc = objective.value(Xc, Uc, params)
             expected = expected_change(alphas, dV1, dV2, D, weight)
-            ratio = (Jc + weight.unsqueeze(1) * Dc - merit.unsqueeze(1)) / expected
+            change = Jc + weight.unsqueeze(1) * Dc - merit.unsqueeze(1)
+            ratio = change / expected
             bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
+            # a change the merit cannot resolve (module docstring, "Round-off") is accepted as the model says
+            unresolved = rounding.unsqueeze(1)
+            below = (-expected <= unresolved) & (change <= unresolved)
             accept = (torch.isfinite(Jc) & torch.isfinite(Dc) & bounded & (expected < 0)
-                      & (ratio > opts.line_search_lower) & (ratio < opts.line_search_upper))
+                      & (((ratio > opts.line_search_lower) & (ratio < opts.line_search_upper)) | below))
             return accept, (Xc, Uc, Jc, Dc)
 
         start = Accepted(found=accepted.found | ~search, alpha=accepted.alpha, values=accepted.values)
         step = backtrack(steps, per_round, ratio_test, search, start)
         new = step.found & search
+        used = torch.where(new, weight, used)
+        stationary = stationary | (pending & ok & still & ~new)  # no step, and the model predicts none
         accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, step.alpha, accepted.alpha),
                             values=tuple(where_rows(new, a, b) for a, b in zip(step.values, accepted.values)))
         searched = searched | pending
-        grow = pending & ~new & retry & (mu_V < opts.regularization_max)
+        grow = pending & ~new & ~stationary & retry & (mu_V < opts.regularization_max)
         mu_V = torch.where(grow, (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max), mu_V)
         retry = retry & grow | retry & ~pending
     Xa, Ua, Ja, Da = accepted.values
     took = active & accepted.found
     failed = active & ~took & ~stationary
-    return Trial(Xa, Ua, Ja, Da, took, active & stationary, failed, accepted.alpha, mu_V, K, decrease)
+    return Trial(Xa, Ua, Ja, Da, took, active & stationary, failed, accepted.alpha, mu_V, K, decrease, residual, used)

@@ -26,6 +26,7 @@ search's merit as the defects do: ``Σ hᵀh`` beside ``Σ dᵀd``, predicted to
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -53,6 +54,20 @@ class StageParameters:
     mu: Tensor
     psi: Tensor
     delta: Tensor
+
+
+@dataclass
+class InequalityRows:
+    """The inequality rows of an expansion: Jacobians ``Cz (B, N, mi, nx+nu)`` and ``CN (B, miN, nx)`` (``None``
+    without rows; zero where a row does not apply) and the penalty's ``P'``, ``P''`` (``d1``, ``d2``, ``d1N``,
+    ``d2N``) at the expansion point."""
+
+    Cz: Optional[Tensor] = None
+    d1: Optional[Tensor] = None
+    d2: Optional[Tensor] = None
+    CN: Optional[Tensor] = None
+    d1N: Optional[Tensor] = None
+    d2N: Optional[Tensor] = None
 
 
 def _lift(t: Tensor, like: Tensor) -> Tensor:
@@ -142,25 +157,28 @@ class HybridObjective:
 
     # ------------------------------------------------------------------ the LQR model
     def expand(self, X: Tensor, U: Tensor, params):
-        """The LQR model of ``J_[·]`` around ``(X, U)`` (eqs. 5, 10, 14), the equality rows by stage, and the
-        dynamics ``f(x_k, u_k) (B, N, nx)``; the defects ``c`` of the right-hand side are left to the caller."""
+        """The LQR model of ``J_[·]`` around ``(X, U)`` (eqs. 5, 10, 14), the equality rows by stage, the
+        dynamics ``f(x_k, u_k) (B, N, nx)`` and the :class:`InequalityRows`; the defects ``c`` of the right-hand
+        side are left to the caller."""
         nx = X.shape[-1]
         f, A, Bm = linearize_dynamics(self.problem.dynamics, X, U, params)
         cost = quadratize_cost(self.problem.stage_cost, self.problem.terminal_cost, X, U, params)
         H, g = cost.hessian, cost.gradient
         HN, gN = cost.terminal_hessian, cost.terminal_gradient
-        rows = {}
+        rows, ineq = {}, InequalityRows()
         if self.mi:
             c, Cz = stage_jacobian(self.constraints.stage_ineq, X, U, params)
             c, Cz = c * self.knot_mask, Cz * self.knot_mask.unsqueeze(-1)
             _, d1, d2 = self.penalty(c, self.params.lam, self.knot_mask)
             H = H + Cz.transpose(-1, -2) @ (d2.unsqueeze(-1) * Cz)
             g = g + (Cz.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+            ineq.Cz, ineq.d1, ineq.d2 = Cz, d1, d2
         if self.miN:
             cN, CN = terminal_jacobian(self.constraints.terminal_ineq, X[:, -1], params)
             _, d1, d2 = self.penalty(cN, self.params.lamN)
             HN = HN + CN.transpose(-1, -2) @ (d2.unsqueeze(-1) * CN)
             gN = gN + (CN.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
+            ineq.CN, ineq.d1N, ineq.d2N = CN, d1, d2
         e = eN = None
         held = self.params.rlb.to(X.dtype)
         if self.me:  # AL terms (AL stage) or held rows (RLB stage), per instance
@@ -185,4 +203,4 @@ class HybridObjective:
         lqr = LQR(A=A, B=Bm, Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=HN, **rows)
         rhs = LQRVectors(q=g[..., :nx], r=g[..., nx:], qN=gN, c=torch.zeros_like(X[:, 1:]),
                          x0=torch.zeros_like(X[:, 0]), e=e, eN=eN)
-        return lqr, rhs, f
+        return lqr, rhs, f, ineq

@@ -3,14 +3,30 @@ with A Hybrid Multiple-shooting iLQR").
 
 The paper fixes the exit criteria (§IV-C): ``ε_v = 1e-3`` on the objective reduction, ``c_min^rlb = 1e-7`` on the
 constraint violation and ``MaxIter = 100`` (:meth:`HMILQROptions.fast`). Its ``ε_v`` ends the double integrator
-at a point whose stationarity is 9e-3, no KKT point, so the defaults here stop at ``ε_v = 1e-12`` within 300
-iterations (6e-10 there, in 45 iterations instead of 41). It leaves the other constants open; the defaults below
-were chosen on the problem set (``tests/test_hm_ilqr.py`` and ``docs/benchmarks.md``), see each field.
+at a point whose stationarity is 9e-3, no KKT point. No reduction of the objective tells a KKT point either: near
+the end the active rows' curvature ``ψ / z²`` (``1e8`` at ``ψ = 1e-8``) makes the last Newton steps change the
+objective by ``|r|² z² / ψ`` for a stationarity residual ``r``, below the rounding of the objective in float64 with
+``r = 4e-6`` (16 of 32 double integrators stopped there by ``ε_v = 1e-12``). So the defaults stop on the KKT
+residual itself, within 300 iterations: ``ε_v = 0`` (off) and an RLB instance at ``ψ_min`` and ``c_min^rlb`` has
+converged where the stationarity residual with the multipliers ``z⁺`` (:mod:`~torchtraj.solvers.hm_ilqr.
+multipliers`) is below ``stationarity_tolerance``.
+
+**Resolution of the dtype** (:meth:`HMILQROptions.tolerances`). Tolerances below what the dtype resolves are met
+at its resolution: ``c_min^rlb`` at ``100 ε`` (the defects of a float32 rollout are about ``1e-7``), ``ψ_min`` and
+``δ_min`` at ``ε``. An active row's slack is ``z = ψ / λ``; below ``ψ = ε`` it falls under the resolution ``ε |g|``
+of a row of unit scale, and the barrier's point and its multipliers are rounding noise (float32, ``ψ_min = 1e-8``:
+one of the 32 double integrators of ``tests/test_hm_ilqr.py`` stalls; at ``ε`` all 32 are KKT points, with costs
+within 3e-7 of float64's). A larger ``ψ_min`` moves the cost off the optimum by about ``ψ`` per active row
+(``ε^{3/4}``: 2.2e-5 relative on the pendulum). It leaves the other constants open; the defaults below were chosen
+on the problem set (``tests/test_hm_ilqr.py`` and ``docs/benchmarks.md``), see each field.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
+
+import torch
 
 
 @dataclass
@@ -20,10 +36,15 @@ class HMILQROptions:
     #: ``MaxIter``: iterations of both stages together (paper §IV-C: 100).
     iterations: int = 300
     #: ``ε_v``: an RLB iteration ends the solve once it changes the objective by less than this and the other exit
-    #: tests hold (paper §IV-C: 1e-3).
-    cost_tolerance: float = 1e-12
-    #: ``c_min^rlb``: the largest constraint violation and defect of a converged solve (paper §IV-C).
+    #: tests hold (paper §IV-C: 1e-3; 0: off, the solve ends on the KKT residual, module docstring).
+    cost_tolerance: float = 0.0
+    #: ``c_min^rlb``: the largest constraint violation and defect of a converged solve (paper §IV-C); at least
+    #: ``100 ε`` of the dtype.
     constraint_tolerance: float = 1e-7
+    #: The largest stationarity residual of the objective's Lagrangian in the controls (``|∂L/∂u|∞`` with the
+    #: costates of its stationarity in the states, as the KKT certificate measures it) at which an RLB instance at
+    #: ``ψ_min`` has converged; ``None``: a tenth of the certificate's tolerance of the dtype (1e-7 in float64).
+    stationarity_tolerance: Optional[float] = None
     #: ``c_min^al``: the AL stage hands over to the RLB stage below this violation (Algorithm 2).
     constraint_tolerance_al: float = 1e-2
     #: The AL stage hands over after this many iterations even above ``c_min^al`` (the relaxed barrier accepts
@@ -55,13 +76,13 @@ class HMILQROptions:
     #: merit was below ``κ ψ`` (the barrier problem of that ψ nearly solved; IPOPT's rule in the iLQR model's terms).
     barrier_update: float = 1.0
     #: ``ψ_min``: the barrier weight stops decreasing here; a converged solve has reached it (the complementarity
-    #: of its log-branch rows is ``ψ``).
+    #: of its log-branch rows is ``ψ``). At least ``ε`` of the dtype (module docstring).
     barrier_min: float = 1e-8
     #: ``δ_0``: relaxation at the start of the RLB stage.
     relaxation_initial: float = 1e-2
     #: ``ω_2``: relaxation decrease of eq. (18b).
     relaxation_decrease: float = 0.1
-    #: ``δ_min`` of eq. (18b).
+    #: ``δ_min`` of eq. (18b); at least ``ε`` of the dtype.
     relaxation_min: float = 1e-12
     #: ``μ_V^0``: state-value regularisation at the start of each CRLS iteration (eq. 21).
     regularization_initial: float = 1e-6
@@ -81,6 +102,12 @@ class HMILQROptions:
     #: ``w``: weight of the defect term ``w Σ dᵀd`` of the expected change (§III-C-1); raised per iteration where
     #: the model would otherwise predict no decrease (module :mod:`~torchtraj.solvers.hm_ilqr.shooting`).
     defect_weight: float = 1.0
+    #: The raised defect weight never decreases within a stage (per instance; it restarts at ``w`` at the hand-over):
+    #: recomputed from ``w`` at every iteration, the merit changes from one iteration to the next and the iterates
+    #: can cycle between merits (Nocedal & Wright 2006 §18.3's reason for a monotone penalty parameter). Measured on
+    #: the cart-pole, N = 100, M = 20: without it the RLB stage repeats steps of ``α = 0.5`` at violation 9e-3 until
+    #: the iteration limit; with it the solve converges (253 iterations, IPOPT's cost to 4e-8).
+    monotone_defect_weight: bool = True
     #: Converged (no step needed) when the predicted decrease is below this.
     expected_decrease_tolerance: float = 1e-16
     #: Divergence limits on the objective and on |x|.
@@ -96,3 +123,23 @@ class HMILQROptions:
         """The paper's exit criteria (``ε_v = 1e-3``, ``MaxIter = 100``): fewer iterations, a point short of the
         optimum that ``tt.solve`` reports ``STALLED`` unless it is a KKT point."""
         return cls(**{"cost_tolerance": 1e-3, "iterations": 100, **changes})
+
+    def tolerances(self, dtype: torch.dtype) -> "Tolerances":
+        """The exit tolerances and the barrier's floors in ``dtype`` (:class:`Tolerances`)."""
+        eps = torch.finfo(dtype).eps
+        stationarity = self.stationarity_tolerance
+        if stationarity is None:
+            stationarity = 0.5 * (1e-6 if dtype == torch.float64 else 1e-3)
+        return Tolerances(constraint=max(self.constraint_tolerance, 100 * eps), stationarity=stationarity,
+                          barrier=max(self.barrier_min, eps), relaxation=max(self.relaxation_min, eps))
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """The tolerances of a solve in its dtype: ``c_min^rlb``, the stationarity residual, ``ψ_min`` and ``δ_min``
+    (:meth:`HMILQROptions.tolerances`)."""
+
+    constraint: float
+    stationarity: float
+    barrier: float
+    relaxation: float

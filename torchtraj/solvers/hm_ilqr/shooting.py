@@ -22,7 +22,9 @@ simulated in the same batched rollout.
 ``J_[·] + w Σ dᵀd`` by ``ΔV(α) = α ΔV_1 + α²/2 ΔV_2 − w (1 − (1 − α)²) Σ dᵀd``: the defect term of the paper,
 taken as the decrease of the merit's defect part that the model predicts. Where closing the defects costs more
 objective than ``w Σ dᵀd`` pays for, ``w`` is raised for the iteration to ``w + max(0, ΔV_1 + ΔV_2/2) / Σ dᵀd``
-(the penalty-parameter rule of SQP merit functions), so that the model always predicts a decrease. A step is
+(the penalty-parameter rule of SQP merit functions), so that the model always predicts a decrease; with
+``monotone_defect_weight`` it is never lowered again within a stage (a merit that changes from one iteration to
+the next lets the iterates cycle, :class:`~torchtraj.solvers.hm_ilqr.options.HMILQROptions`). A step is
 accepted where the ratio of the actual to the expected change lies in ``[z_lo, z_hi]``.
 """
 
@@ -36,6 +38,7 @@ from torch import Tensor
 
 from ...core.batching import map_stage
 from ...core.compiled import matvec
+from ...riccati.sweep import costate_stages
 
 
 @dataclass(frozen=True)
@@ -129,3 +132,20 @@ def expected_change(alphas: Tensor, dV1: Tensor, dV2: Tensor, D: Tensor, weight:
     a = alphas.unsqueeze(0)
     closed = 1 - (1 - a) ** 2
     return a * dV1.unsqueeze(1) + 0.5 * a * a * dV2.unsqueeze(1) - closed * (weight * D).unsqueeze(1)
+
+
+def stationarity(lqr, rhs, nu=None, nuN=None) -> Tensor:
+    """``max_k |r_k + B_kᵀ λ_{k+1} + D_kᵀ ν_k|∞`` ``(B,)``: the residual of the objective's Lagrangian in the
+    controls at the expansion point, with the costates of its stationarity in the states, ``λ_N = q_N + C_Nᵀ ν_N``,
+    ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k`` (the KKT certificate's, :mod:`torchtraj.kkt.certificate`, for the
+    multipliers ``P'`` that ``q``, ``r`` hold), and the held rows' multipliers ``ν``, ``ν_N`` of an LQR step."""
+    last, local, reduced = rhs.qN, rhs.q, rhs.r
+    if nuN is not None and lqr.CN is not None and nuN.shape[-1]:
+        last = last + matvec((lqr.CN * lqr.maskN.unsqueeze(-1)).transpose(-1, -2), nuN)
+    if nu is not None and lqr.C is not None and nu.shape[-1]:
+        held = nu * lqr.mask
+        local = local + matvec(lqr.C.transpose(-1, -2), held)
+        reduced = reduced + matvec(lqr.D.transpose(-1, -2), held)
+    lam = costate_stages(lqr.A, local, last)
+    reduced = reduced + matvec(lqr.B.transpose(-1, -2), lam[:, 1:])
+    return reduced.abs().flatten(1).amax(-1)

@@ -11,8 +11,12 @@ Every instance runs the paper's two stages on the multiple-shooting M-iLQR itera
 2. **RLB stage** (Algorithm 3): M-iLQR iterations on ``J_2`` with CRLS (:mod:`~torchtraj.solvers.hm_ilqr.crls`),
    ``ψ, δ`` follow (18a-b) after a step whose predicted decrease was below ``κ ψ`` (the barrier problem of that
    ``ψ`` nearly solved);
-3. **done** when an RLB iteration changes the objective by less than ``ε_v`` (or the model predicts no decrease),
-   the violation of the constraints and the defects is at most ``c_min^rlb`` and ``ψ`` has reached ``ψ_min``.
+3. **done** where ``ψ`` has reached ``ψ_min``, the violation of the constraints and the defects is at most
+   ``c_min^rlb`` and the stationarity residual at the iterate, with the inequality multipliers ``z⁺`` of its Newton
+   step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), is below ``stationarity_tolerance`` (that step is still
+   taken); or where an RLB iteration changes the objective by less than ``ε_v`` (the paper's test; off by default,
+   :mod:`~torchtraj.solvers.hm_ilqr.options` says why) or the model predicts no decrease and no step is found. The
+   tolerances are met at the dtype's resolution where they lie below it.
 
 The stage of each instance is a mask; no instance waits on another, and the only host synchronisations are the
 batch-wide "anything still running" test of each iteration and those of the line search and CRLS rounds. The start
@@ -21,7 +25,8 @@ problem's ``X_init``, else the paper's linear interpolation from ``x_0`` to the 
 name one (``params["goal"]``, as the problem set's do), else the rollout of ``U0``.
 
 The solution carries the multipliers of every block: on the inequality rows the barrier's implied multipliers
-``B' = ψ / (−g)`` (log branch; the AL estimates ``max(0, λ + μ g)`` for an instance still in the AL stage), on the
+``B' = ψ / (−g)`` corrected along the Newton step at the final point (``z⁺``; the AL estimates
+``max(0, λ + μ g)`` for an instance still in the AL stage), on the
 equality rows the Riccati core's ``ν`` (RLB stage) or ``λ + μ h`` (AL stage), the costates of the expanded
 objective and the gains of a backward pass at the final point; a converged solve is a KKT point of the problem up to ``ψ_min``, which the
 implicit layer refines (``kkt_point``).
@@ -37,6 +42,7 @@ from torch import Tensor
 from ...core.batch import Batch
 from ...core.batching import map_stage, rollout
 from ...core.constraints import Constraints, multiplier_blocks
+from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
@@ -45,6 +51,7 @@ from ...riccati import factorize
 from .augmented_lagrangian import increased_penalty, updated_multipliers
 from .barrier import updated_barrier
 from .crls import iterate, regularized
+from .multipliers import stepped_multipliers, with_multipliers
 from .objective import HybridObjective, StageParameters
 from .options import HMILQROptions
 from .shooting import Segments, defects, rollout_segments
@@ -94,20 +101,31 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
     status = torch.where((status == Status.RUNNING) & ~finite_start, int(Status.INFEASIBLE_START), status)
     mu_V = like.new_full((B,), opts.regularization_initial)
+    defect_weight = like.new_full((B,), opts.defect_weight)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     al_iterations = torch.zeros_like(iterations)
     last_violation = constraints.max_violation(X, U, params)
+    violation = torch.maximum(last_violation, _max_defect(X, U, problem, params, segments))
+    tol = opts.tolerances(x0.dtype)
     rows = []
     for it in range(opts.iterations):
         active = status == Status.RUNNING
         if not bool(active.any()):  # the iteration's host synchronisation
             break
         s = objective.params
-        lqr, rhs, f = objective.expand(X, U, params)
+        lqr, rhs, f, ineq = objective.expand(X, U, params)
         rhs.c = defects(f, X, segments)
         crls = s.rlb & opts.crls
         start_mu_V = torch.where(crls, torch.full_like(mu_V, opts.regularization_initial), mu_V)
-        t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, start_mu_V, active, crls, opts)
+        t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
+                    defect_weight if opts.monotone_defect_weight else None)
+        defect_weight = torch.where(active & t.took, torch.maximum(defect_weight, t.weight), defect_weight)
+        # converged: the start point is a KKT point of the problem (with the multipliers z⁺) at the barrier's
+        # final weight; its step, a Newton step on the barrier problem, is taken all the same (the solution then
+        # follows the barrier's minimiser smoothly in x0 and the parameters, as a re-solve from a perturbed start
+        # does: central differences of re-solves stopped a step short differed from the gradient by 6e-4)
+        kkt = (active & s.rlb & (violation <= tol.constraint) & (s.psi <= tol.barrier * (1 + 1e-9))
+               & (t.residual <= tol.stationarity))
         dJ = J - t.J
         X, U, J, D = t.X, t.U, t.J, t.D
         iterations = iterations + active.long()
@@ -118,11 +136,12 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         rows_violation = constraints.max_violation(X, U, params)
         violation = torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments))
         moved = t.took | t.stationary
-        # the exit test of an RLB instance, before its parameters move (its multipliers are those of this ψ)
-        done = (active & s.rlb & moved & (violation <= opts.constraint_tolerance)
-                & (s.psi <= opts.barrier_min * (1 + 1e-9))
-                & (t.stationary | (dJ.abs() < opts.cost_tolerance)))
-        failed = active & t.failed & (crls | (mu_V >= opts.regularization_max))
+        # the exit tests of an RLB instance, before its parameters move (its multipliers are those of this ψ): the
+        # stationarity residual at the start point (above), or no step left, or the paper's ε_v
+        done = kkt | (active & s.rlb & moved & (violation <= tol.constraint)
+                      & (s.psi <= tol.barrier * (1 + 1e-9))
+                      & (t.stationary | (dJ.abs() < opts.cost_tolerance)))
+        failed = active & t.failed & (crls | (mu_V >= opts.regularization_max)) & ~kkt
         # AL stage: multipliers and penalty after every iteration (eqs. 15-16); RLB stage: ψ, δ (18) and the
         # equality rows' AL terms after every accepted step
         # Algorithm 2's "if update": the multipliers move once the inner M-iLQR has nearly converged on J_1 (a
@@ -133,12 +152,13 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         update_rlb = active & s.rlb & moved & ~done & (t.decrease <= opts.barrier_update * s.psi)
         # eq. (16)'s penalty increase where the violation of the rows did not shrink enough
         grow = rows_violation > opts.penalty_trigger * last_violation
-        new = _updated(objective, X, U, params, s, update_al, update_rlb, grow, opts)
+        new = _updated(objective, X, U, params, s, update_al, update_rlb, grow, opts, tol)
         last_violation = torch.where(update_al | update_rlb, rows_violation, last_violation)
         al_iterations = al_iterations + (active & ~s.rlb).long()
         handover = active & ~s.rlb & ((update_al & (violation <= opts.constraint_tolerance_al))
                                       | (al_iterations >= opts.al_iterations))
         new.rlb = s.rlb | handover
+        defect_weight = torch.where(handover, opts.defect_weight, defect_weight)
         held_before = objective.equality_residual(X, U, params)
         objective = HybridObjective(constraints, new)
         J = torch.where(active, objective.value(X, U, params), J)  # the objective of the new parameters
@@ -148,7 +168,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         rows.append({
             "cost": total_cost(problem, X, U, params), "max_violation": violation, "step_size": t.alpha,
             "regularization": mu_V, "stage": s.rlb.long(), "defect_norm": D.sqrt(), "barrier": s.psi,
-            "relaxation": s.delta, "penalty": s.mu,
+            "relaxation": s.delta, "penalty": s.mu, "stationarity": t.residual,
         })
         if opts.verbose:
             logger.info("hm-ilqr %4d  cost %.10g  violation %.2e  rlb %d  running %d", it,
@@ -166,7 +186,7 @@ def _max_defect(X, U, problem, params, segments) -> Tensor:
     return (f - X[:, k + 1]).abs().flatten(1).amax(-1)
 
 
-def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb, grow, opts) -> StageParameters:
+def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb, grow, opts, tol) -> StageParameters:
     """The stage parameters after an iteration: eq. (15) and, where ``grow``, (16) where ``update_al``; (18) where
     ``update_rlb``."""
     lam, lamN = s.lam, s.lamN
@@ -184,7 +204,7 @@ def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb,
         lamEN = torch.where(update_al.reshape(-1, 1), s.lamEN + s.mu.reshape(-1, 1) * objective.terminal_eq(
             X, params), s.lamEN).clamp(-opts.dual_max, opts.dual_max)
     mu = torch.where(update_al & grow, increased_penalty(s.mu, opts.penalty_scaling, opts.penalty_max), s.mu)
-    psi, delta = updated_barrier(s.psi, s.delta, opts)
+    psi, delta = updated_barrier(s.psi, s.delta, opts, tol)
     return StageParameters(rlb=s.rlb, lam=lam, lamN=lamN, lamE=lamE, lamEN=lamEN, mu=mu,
                            psi=torch.where(update_rlb, psi, s.psi), delta=torch.where(update_rlb, delta, s.delta))
 
@@ -192,14 +212,18 @@ def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb,
 def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method):
     """Gains, costates and multipliers at the final point (one more expansion and LQR solve), and the
     :class:`Solution`."""
-    lqr, rhs, f = objective.expand(X, U, params)
+    lqr, rhs, f, ineq_rows = objective.expand(X, U, params)
     rhs.c = defects(f, X, segments)
     factor = factorize(regularized(lqr, torch.zeros_like(mu_V)))
     # the equality rows' multipliers ν of the LQR step at the final point; the costates from the Lagrangian's
     # stationarity in the states, λ_N = q_N + C_Nᵀ ν_N, λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k (q holds the inequality
     # rows' P'), which at a converged point is the Riccati costate without its step terms
     step = factor.solve(rhs, multipliers=True)
+    # the inequality rows' multipliers corrected along that step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`)
     ineq, ineqN = objective.multipliers(X, U, params)
+    z, zN = stepped_multipliers(ineq_rows, step.dx, step.du, objective.params.rlb)
+    ineq, ineqN = ineq if z is None else z, ineqN if zN is None else zN
+    rhs = with_multipliers(rhs, ineq_rows, X.shape[-1], z, zN)
     B = X.shape[0]
     # the equality rows: the core's ν where they are held (RLB stage), the AL estimate λ + μ h elsewhere
     s = objective.params
