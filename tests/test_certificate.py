@@ -101,8 +101,7 @@ def test_the_tolerances_follow_the_dtype():
 
 def test_the_history_records_the_stationarity_of_every_iterate():
     """iLQR's first history row is at the guess: its stationarity is autograd's ∇_U J(rollout(U0)); every method
-    but HM-iLQR (whose held rows' multipliers the expansion's residual lacks) records one per iteration, and it
-    falls to the certificate's tolerance where the solve converged."""
+    records one per iteration, and it falls to the certificate's tolerance where the solve converged."""
     problem = problems.get("pendulum_unconstrained").replace(horizon=12, u_init=torch.full((1,), 0.3, dtype=F64))
     x0 = problems.sample_x0("pendulum_unconstrained", 2, seed=1)
     sol = tt.solve(problem, x0, method="ilqr")
@@ -112,7 +111,7 @@ def test_the_history_records_the_stationarity_of_every_iterate():
     (gradient,) = torch.autograd.grad(cost, Ug)
     torch.testing.assert_close(sol.history.extra["stationarity"][:, 0], gradient.abs().flatten(1).amax(1),
                                rtol=1e-10, atol=1e-14)
-    for method in ("altro", "al-ilqr", "ipm", "eilqr"):
+    for method in ("altro", "al-ilqr", "ipm", "eilqr", "hm-ilqr"):
         sol = tt.solve(problems.get("double_integrator"), method=method)
         history = sol.history.extra["stationarity"]
         assert history.shape == sol.history.cost.shape and sol.status[0] == tt.Status.CONVERGED, method
