@@ -14,7 +14,9 @@ Each problem is, with ``Δt = T / N`` and ``F`` the RK4 step of a model in :mod:
 * ``quadrotor_p2p``: FATROP's "quadrotor point-to-point" on the planar quadrotor — hover at one point to hover
   at another (six terminal equalities), the problem set's thrust and tilt bounds; K = 25 intervals.
 
-The numbers are the problem set's where it has them (:mod:`torchtraj.problems`: the cart-pole's force bound,
+The total time is bounded by ``T_g / 10 ≤ T ≤ 10 T_g``, inactive at the optima: FATROP's ``T ≥ 0`` lets the
+augmented-Lagrangian methods, whose early iterates violate bounds, reach ``T < 0``, where the dynamics run
+backwards, and stay there. The numbers are the problem set's where it has them (:mod:`torchtraj.problems`: the cart-pole's force bound,
 the quadrotor's thrust and tilt bounds and its start and goal positions). ``R`` is zero: the objective is the
 total time alone, as in FATROP's benchmark. :func:`get` builds the :class:`~torchtraj.MinimumTime` transform;
 :mod:`torchtraj.bench.minimum_time_reference` transcribes the same spec for IPOPT and FATROP.
@@ -79,12 +81,14 @@ SPECS = {
     "cartpole_swing": MinimumTimeSpec(
         name="cartpole_swing", model="cartpole", N=100, x0=(0.0, 0.0, 0.0, 0.0), goal=(0.0, math.pi, 0.0, 0.0),
         terminal=(1, 2, 3), u_lower=(-3.0,), u_upper=(3.0,),
-        x_lower=(-1.0, -_INF, -2.0, -_INF), x_upper=(1.0, _INF, 2.0, _INF), time_guess=5.0, u_init=(0.0,)),
+        x_lower=(-1.0, -_INF, -2.0, -_INF), x_upper=(1.0, _INF, 2.0, _INF), time_guess=5.0, time_bounds=(0.5, 50.0),
+        u_init=(0.0,)),
     "quadrotor_p2p": MinimumTimeSpec(
         name="quadrotor_p2p", model="quadrotor2d", N=25, x0=(4.5, 2.5, 0.0, 0.0, 0.0, 0.0),
         goal=(1.0, 1.5, 0.0, 0.0, 0.0, 0.0), terminal=(0, 1, 2, 3, 4, 5), u_lower=(0.0, 0.0), u_upper=(15.0, 15.0),
         x_lower=(-_INF, -_INF, -math.pi / 6, -_INF, -_INF, -_INF),
-        x_upper=(_INF, _INF, math.pi / 6, _INF, _INF, _INF), time_guess=6.0, u_init=(9.81 / 2, 9.81 / 2)),
+        x_upper=(_INF, _INF, math.pi / 6, _INF, _INF, _INF), time_guess=6.0, time_bounds=(0.6, 60.0),
+        u_init=(9.81 / 2, 9.81 / 2)),
 }
 
 

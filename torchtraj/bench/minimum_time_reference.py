@@ -27,7 +27,7 @@ import numpy as np
 from . import casadi_models
 from .casadi_models import import_casadi
 from .minimum_time_problems import MinimumTimeSpec, spec as get_spec
-from .reference import SOLVERS, ReferenceResult, _status
+from .reference import IPOPT_WARM_START, SOLVERS, ReferenceResult, _status
 
 
 @dataclass
@@ -88,13 +88,40 @@ class MinimumTimeReference:
         self._lbg, self._ubg = np.concatenate(lower), np.concatenate(upper)
         g = ca.vertcat(*rows)
         nlp = {"x": w, "f": cost, "g": g}
+        self._nlp, self._tol, self._warm_solver = nlp, tol, None
         if solver == "ipopt":
-            opts = {"ipopt": {"tol": tol, "print_level": 0, "sb": "yes"}, "print_time": False}
+            opts = self._ipopt_options()
         else:
             opts = {"fatrop": {"tol": tol, "print_level": 0}, "structure_detection": "auto",
                     "equality": (self._lbg == self._ubg).tolist(), "print_time": False}
         self._solver = ca.nlpsol(f"{s.name}_{solver}", solver, nlp, opts)
         self._g = ca.Function("g", [w], [g])
+
+    def _ipopt_options(self, **changes) -> dict:
+        return {"ipopt": {"tol": self._tol, "print_level": 0, "sb": "yes", **changes}, "print_time": False}
+
+    def _solver_for(self, warm_start: bool):
+        if not warm_start:
+            return self._solver
+        if self.solver_name != "ipopt":
+            raise ValueError(f"warm_start is implemented for IPOPT only, not {self.solver_name!r}")
+        if self._warm_solver is None:
+            ca = import_casadi()
+            self._warm_solver = ca.nlpsol(f"{self.spec.name}_ipopt_warm", "ipopt", self._nlp,
+                                          self._ipopt_options(**IPOPT_WARM_START))
+        return self._warm_solver
+
+    def pack(self, X: np.ndarray, U: np.ndarray, duration: float) -> np.ndarray:
+        """``w`` of states ``X (N+1, nx)``, controls ``U (N, nu)`` and total time ``duration``."""
+        s = self.spec
+        X, U = np.asarray(X, dtype=float), np.asarray(U, dtype=float)
+        stages = [np.concatenate([X[k], [duration], U[k]]) for k in range(s.N)]
+        return np.concatenate(stages + [X[-1], [duration]])
+
+    def violation(self, w: np.ndarray) -> float:
+        """Largest violation of any constraint row (bounds included) at ``w``."""
+        g = np.asarray(self._g(w)).ravel()
+        return float(np.maximum(np.maximum(self._lbg - g, g - self._ubg), 0.0).max(initial=0.0))
 
     def initial_guess(self) -> np.ndarray:
         """``w`` of the rollout of ``u_init`` from ``x0`` over the guessed total time ``T_g``."""
@@ -103,23 +130,24 @@ class MinimumTimeReference:
         X0 = [s.array("x0")]
         for k in range(s.N):
             X0.append(np.asarray(self._step(X0[-1], U0[k], s.time_guess)).ravel())
-        stages = [np.concatenate([X0[k], [s.time_guess], U0[k]]) for k in range(s.N)]
-        return np.concatenate(stages + [X0[-1], [s.time_guess]])
+        return self.pack(np.stack(X0), U0, s.time_guess)
 
-    def solve(self) -> MinimumTimeResult:
+    def solve(self, guess=None, warm_start: bool = False) -> MinimumTimeResult:
+        """Solve from ``guess = (X, U, T)`` (default: :meth:`initial_guess`); ``warm_start=True`` (IPOPT only)
+        keeps a guess at a local optimum as :meth:`torchtraj.bench.reference.ReferenceSolver.solve` does."""
         s = self.spec
+        w0 = self.initial_guess() if guess is None else self.pack(*guess)
+        solver = self._solver_for(warm_start)
         start = time.perf_counter()
-        sol = self._solver(x0=self.initial_guess(), lbg=self._lbg, ubg=self._ubg)
+        sol = solver(x0=w0, lbg=self._lbg, ubg=self._ubg)
         seconds = time.perf_counter() - start
-        stats = self._solver.stats()
+        stats = solver.stats()
         w = np.asarray(sol["x"]).ravel()
-        g = np.asarray(self._g(w)).ravel()
-        violation = np.maximum(np.maximum(self._lbg - g, g - self._ubg), 0.0)
         width = s.nx + 1 + s.nu
         stages = w[: s.N * width].reshape(s.N, width)
         return MinimumTimeResult(
             ok=bool(stats.get("success", False)), cost=float(sol["f"]),
-            iterations=int(stats.get("iter_count", -1)), max_violation=float(violation.max(initial=0.0)),
+            iterations=int(stats.get("iter_count", -1)), max_violation=self.violation(w),
             seconds=seconds, X=np.vstack([stages[:, : s.nx], w[None, -s.nx - 1: -1]]),
             U=stages[:, s.nx + 1:].copy(), status=_status(stats), duration=float(w[-1]),
         )
