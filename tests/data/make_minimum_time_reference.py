@@ -5,8 +5,9 @@ with a free ``T_0``: :mod:`torchtraj.bench.minimum_time_reference`), plus the do
 
 Per problem: ``ipopt`` and ``fatrop`` from the rollout guess (``duration``, ``cost``, ``iterations``,
 ``max_violation``); ``ipopt_warm``: IPOPT warm-started (small barrier, no push off the bounds) at the interior point's
-solution of the transformed problem — the local optimum of the same NLP next to the point torchtraj reaches (on the
-cart-pendulum swing it differs from the one IPOPT reaches from the rollout). Run from the repository root:
+solution of the transformed problem — the local optimum of the same NLP next to the point torchtraj reaches, for a
+test to compare with should the interior point end at another local optimum than IPOPT's cold start (on both
+problems it now ends at the same one). Run from the repository root:
 ``python tests/data/make_minimum_time_reference.py``.
 """
 
