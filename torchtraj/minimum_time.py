@@ -9,13 +9,14 @@ The state becomes ``z = (x, T, ε)``, the control ``v = (u, s)``, with ``ε`` th
 
 .. math::
 
-    T_{k+1} = T_k + (1 - \varepsilon_k)\, s_k, \qquad
+    T_{k+1} = T_k + \sigma_k s_k, \qquad
     x_{k+1} = F\big(x_k, u_k;\ \Delta t = T_{k+1} / N\big), \qquad \varepsilon_{k+1} = 1,
+    \qquad \sigma_k = \mathbb{1}[\varepsilon_k < \tfrac12] = \mathbb{1}[k = 0],
 
 .. math::
 
     \min\ w_T\, T_N + \ell_N(x_N) + \sum_{k<N} \Big[ \ell(x_k, u_k)\, \frac{T_{k+1}}{N\,\Delta t_0}
-        + \tfrac{\rho}{2}\, \varepsilon_k s_k^2 \Big]
+        + \tfrac{\rho}{2}\, (1 - \sigma_k)\, s_k^2 \Big]
     \quad \text{s.t.}\quad T_{\min} - T_g \le s_k \le T_{\max} - T_g,
 
 with ``T_0 = T_g`` (the guess of the total time, ``N Δt_0`` by default) in the initial state. So
@@ -26,7 +27,11 @@ Why this form and not an equality ``s_k = 0`` for ``k ≥ 1``: a stage equality 
 (``ε_k s_k = 0``) is an identically zero constraint row there, a rank-deficient Jacobian that the
 interior point must regularise. Here the later ``s_k`` enter nothing but ``ρ/2 s_k²`` (the flag gates
 them out of the dynamics), so their minimiser is exactly ``s_k = 0``, their Hessian block is ``ρ > 0``,
-and the transformed problem has the same optimum as FATROP's NLP, with no constraint added. The bound
+and the transformed problem has the same optimum as FATROP's NLP, with no constraint added. The gate
+``σ_k`` is a step in ``ε``, flat where ``ε`` lives (0 or 1), not the smooth ``1 − ε_k``: on multiple
+shooting the states are iterates, and a step that moves ``ε`` off 1 (the IPM's restoration phase relaxes
+every defect) would turn the later ``s_k`` into levers on ``T`` through ``(1 − ε_k) s_k`` — measured on
+the cart-pendulum swing, ``T`` then drifted along the horizon and the solve ended ``MAX_REGULARIZATION``. The bound
 on ``T`` is a control bound on ``s``: at stage 0 it is ``T_min ≤ T_1 ≤ T_max``; at ``k ≥ 1`` it is
 inactive at ``s_k = 0`` because ``T_g`` lies inside ``[T_min, T_max]``. A control bound suits every method
 that takes constraints (ipm, altro, al-ilqr, eilqr, hm-ilqr); none needs a free initial state.
