@@ -20,11 +20,12 @@ from .solvers.altro.projection import ProjectionOptions
 from .solvers.eilqr.options import EILQROptions
 from .solvers.hm_ilqr.options import HMILQROptions
 from .solvers.ipm.options import IPOptions
+from .minimum_time import MinimumTime, minimum_time
 from .time_penalty import TimePenalized, time_penalized
 
 __all__ = ["ALTROOptions", "EILQROptions", "HMILQROptions", "History", "ILQROptions", "IPOptions", "MPC",
-           "ProjectionOptions", "Method", "Problem", "Solution", "Solver", "Status", "TimePenalized", "euler", "rk4",
-           "solve", "time_penalized"]
+           "ProjectionOptions", "Method", "MinimumTime", "Problem", "Solution", "Solver", "Status", "TimePenalized",
+           "euler", "minimum_time", "rk4", "solve", "time_penalized"]
 __version__ = "0.1.0"
 
 #: Submodules imported on first use (``tt.problems``, ...): they cost import time most programs do not need.

@@ -97,6 +97,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--scale-out", action="store_true",
                    help="time one batch on 1, 2, ... local processes instead (torchtraj.bench.scale_out, with options "
                         "of its own: python -m torchtraj.bench --scale-out --help)")
+    p.add_argument("--minimum-time", action="store_true",
+                   help="run FATROP's minimum-time benchmark in kind instead (torchtraj.bench.minimum_time, with "
+                        "options of its own: python -m torchtraj.bench --minimum-time --help)")
     p.add_argument("--ops", action="store_true",
                    help="report eager torch operator calls per solve and per iteration instead (torchtraj.bench.ops: "
                         "B = 1, each method's default options, so the tolerance and --iterations flags do not apply; "
@@ -198,6 +201,9 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if "--scale-out" in argv:
         from . import scale_out
         return scale_out.main([a for a in argv if a != "--scale-out"], out)
+    if "--minimum-time" in argv:
+        from . import minimum_time
+        return minimum_time.main([a for a in argv if a != "--minimum-time"], out)
     p = parser()
     args = p.parse_args(argv)
     if args.compile:
