@@ -116,8 +116,13 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     switching = (slope < 0) & (alphas * (-slope).clamp_min(0) ** opts.switching_phi_power
                                > opts.switching * theta ** opts.switching_theta_power)
     f_type = switching & (theta <= theta_min.unsqueeze(1))
-    armijo = phi_c <= phi + opts.armijo * alphas * slope
-    decrease = (theta_c <= (1.0 - opts.filter_theta) * theta) | (phi_c <= phi - opts.filter_phi * theta)
+    # compared up to ten rounding errors of the reference value (IPOPT's and FATROP's ``compare_le``): near a
+    # solution in float32 the predicted decrease falls below one rounding error of φ and the exact tests would
+    # refuse every step
+    eps = 10 * torch.finfo(phi.dtype).eps
+    armijo = phi_c - (phi + opts.armijo * alphas * slope) <= eps * phi.abs()
+    decrease = (theta_c - (1.0 - opts.filter_theta) * theta <= eps * theta) \
+        | (phi_c - (phi - opts.filter_phi * theta) <= eps * phi.abs())
     finite = torch.isfinite(theta_c) & torch.isfinite(phi_c)
     accept = finite & (theta_c <= theta_max.unsqueeze(1)) & filt.acceptable(theta_c, phi_c) \
         & torch.where(f_type, armijo, decrease)

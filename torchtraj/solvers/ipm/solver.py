@@ -201,9 +201,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         K = where_rows(take, d.K, K)
         last = torch.where(take & (delta > 0), delta, last)
         missed = factored & ~ls.found
-        # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance (steps
-        # at round-off: those keep the larger-δ_w path)
-        entering = missed & (model.theta > tol) if restoring else None
+        # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance of the
+        # convergence test, ‖c‖_∞ (steps at round-off: those keep the larger-δ_w path)
+        entering = missed & (model.primal_error > tol) if restoring else None
         if entering is not None and bool(entering.any()):
             back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, entering, budget - iterations,
                            tol, opts, run)
