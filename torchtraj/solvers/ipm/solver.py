@@ -59,6 +59,7 @@ from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
 from .soc import second_order_correction
+from .watchdog import Watchdog, count_steps, merge_steps, watched_step
 
 logger = logging.getLogger("torchtraj")
 
@@ -108,6 +109,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
     status = torch.where((status == Status.RUNNING) & ~start_ok, int(Status.INFEASIBLE_START), status)
     filt = Filter.empty(B, opts.filter_size, x0)
+    wd = Watchdog.start(it)  # W&B §3.2: the watchdog and the filter reset's counts
     last = torch.zeros_like(mu)  # last nonzero δ_w that gave a positive definite system
     floor = torch.zeros_like(mu)  # smallest δ_w of the next attempt (raised after a failed line search)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
@@ -167,6 +169,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             index = keep if index is None else index[keep]
             it, model, filt, base = gather_rows(it, keep), gather_rows(model, keep), gather_rows(filt, keep), \
                 None if base is None else gather_rows(base, keep)
+            wd = gather_rows(wd, keep)
             mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running, ceiling, budget = (
                 v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running,
                                   ceiling, budget))
@@ -174,7 +177,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
         else:
+            updated = mu
             mu, filt = monotone_update(cons, model, it, mu, running, filt, tol, opts)
+            wd = wd.stop(mu != updated)  # its reference φ^W belongs to the old μ
             target_mu = mu
         lqr, rhs = newton_lqr(model, it, target_mu, x0, nx)
 
@@ -193,8 +198,19 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                                theta_min, need, a_max, first, lqr, delta, x0, opts)
 
-            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts,
+            watching = factored & (wd.running() | (wd.shortened >= opts.watchdog_trigger)) \
+                if opts.watchdog_trigger > 0 else None
+            watched = watching is not None and bool(watching.any())
+            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
+                             factored & ~watching if watched else factored, opts,
                              correct if opts.second_order_corrections > 0 else None)
+            if watched:
+                watch, wd, returned = watched_step(problem, cons, params, it, d, model, mu, filt, theta_max,
+                                                   theta_min, wd, watching, last, opts)
+                ls = merge_steps(watching, watch, ls)
+                last = torch.where(returned, wd.last, last)
+            wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
+                factored), ls.filter, opts)
         take = factored & ls.found
         it = pick(take, ls.it, it)
         filt = pick(take, ls.filter, filt)
@@ -211,6 +227,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             status = torch.where(entering & ~back.returned, back.status, status)
             iterations = iterations + back.iterations
             floor = torch.where(back.returned, 0.0, floor)
+            wd = wd.stop(entering)
             missed = missed & ~entering  # back, or ended with the restoration's status: no larger δ_w
             budgeted = True
         floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
