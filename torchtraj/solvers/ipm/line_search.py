@@ -156,7 +156,7 @@ class Step:
     found ``(B,)``, and the filter after it; for the watchdog (:mod:`~torchtraj.solvers.ipm.watchdog`), ``shortened
     (B,)``: the first trial point was rejected and the step taken is a shorter one of the same direction; for the
     filter reset heuristic, ``blocked (B,)``: the last trial point rejected before the step taken was rejected by
-    the filter alone."""
+    the filter alone; ``tiny (B,)``: the step was at round-off (IPOPT's tiny step, taken whole)."""
 
     it: Iterate
     alpha: Tensor
@@ -164,6 +164,7 @@ class Step:
     filter: Filter
     shortened: Optional[Tensor] = None
     blocked: Optional[Tensor] = None
+    tiny: Optional[Tensor] = None
 
 
 def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
@@ -214,4 +215,4 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     new_it = kernel_of(advance, opts, it.X.device)(it, d, alpha, a_dual, mu, model.knots, opts)
     if corrected is not None:
         new_it = pick(corrected.found, corrected.it, new_it)
-    return Step(new_it, alpha, found, filt, shortened=shortened, blocked=found & blocked)
+    return Step(new_it, alpha, found, filt, shortened=shortened, blocked=found & blocked, tiny=pending & tiny)

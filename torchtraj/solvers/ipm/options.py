@@ -130,6 +130,10 @@ class IPOptions:
     #: at most ``filter_resets`` times per instance (``max_filter_resets``; 0: never).
     filter_reset_trigger: int = 5
     filter_resets: int = 5
+    #: Very small search directions (W&B 2006 §3.9, :mod:`~torchtraj.solvers.ipm.barrier`): after two successive
+    #: primal steps at round-off with a multiplier step below this (``tiny_step_y_tol``), ``μ`` is decreased, or,
+    #: at its floor, the instance stops ``STALLED``.
+    tiny_step_dual: float = 1e-2  # 0: never
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,

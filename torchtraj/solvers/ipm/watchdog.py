@@ -96,7 +96,8 @@ def watched_step(problem: Problem, cons, params, it: Iterate, d: Direction, mode
     new_it = pick(give_up, wd.it, moved)
     wd = replace(wd, trials=torch.where(watching, trials, wd.trials)).stop(accepted | give_up)
     step = Step(new_it, torch.where(watching & ~give_up, a_max, 0.0), watching, filt,
-                shortened=torch.zeros_like(watching), blocked=torch.zeros_like(watching))
+                shortened=torch.zeros_like(watching), blocked=torch.zeros_like(watching),
+                tiny=torch.zeros_like(watching))
     return step, wd, give_up
 
 
@@ -116,4 +117,4 @@ def merge_steps(mask: Tensor, a: Step, b: Step) -> Step:
     """The :class:`Step` ``a`` where ``mask (B,)``, else ``b``."""
     return Step(pick(mask, a.it, b.it), torch.where(mask, a.alpha, b.alpha), torch.where(mask, a.found, b.found),
                 pick(mask, a.filter, b.filter), shortened=torch.where(mask, a.shortened, b.shortened),
-                blocked=torch.where(mask, a.blocked, b.blocked))
+                blocked=torch.where(mask, a.blocked, b.blocked), tiny=torch.where(mask, a.tiny, b.tiny))
