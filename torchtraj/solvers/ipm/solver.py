@@ -222,9 +222,11 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
                 factored), ls.filter, opts)
         take = factored & ls.found
-        if ls.tiny is not None:
+        if ls.tiny is not None and bool(ls.tiny.any()):
             small = ls.tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
             tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)
+        elif ls.tiny is not None:
+            tiny_steps = torch.where(take, 0, tiny_steps)
         it = pick(take, ls.it, it)
         filt = pick(take, ls.filter, filt)
         K = where_rows(take, d.K, K)
