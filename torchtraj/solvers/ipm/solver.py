@@ -200,6 +200,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
 
         d, delta = regularized_direction(attempt, floor, last, running, opts)
         factored = running & d.ok
+        lost = torch.zeros_like(running)
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
             mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
@@ -208,6 +209,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                                theta_min, need, a_max, first, lqr, delta, x0, opts)
 
+            lost = running & ~d.ok & wd.running()  # a watchdog's full steps led where no step is found: back
+            if bool(lost.any()):
+                it, last, wd = pick(lost, wd.it, it), torch.where(lost, wd.last, last), wd.stop(lost)
             watching = factored & (wd.running() | (wd.shortened >= opts.watchdog_trigger)) \
                 if opts.watchdog_trigger > 0 else None
             watched = watching is not None and bool(watching.any())
@@ -247,7 +251,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             budgeted = True
         floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
                                                 min=opts.regularization_first), torch.where(take, 0.0, floor))
-        blown = running & (~d.ok | (floor > opts.regularization_max))
+        blown = running & (~d.ok | (floor > opts.regularization_max)) & ~lost
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         iterations = iterations + running.long()
         records.append((index, history_row(model, torch.where(take, ls.alpha, 0.0), delta, mu, error), True))

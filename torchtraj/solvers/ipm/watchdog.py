@@ -12,7 +12,9 @@ the step is accepted as a regular one (the filter is augmented with ``w^W``'s en
 the watchdog ends. Where none of them passes, the iterate returns to ``w^W``, whose next iteration backtracks along
 its direction (recomputed there: it is the stored one but for ``δ_w``, which may have moved; IPOPT backtracks
 within the same iteration). A barrier update ends a watchdog where it stands (its reference ``φ^W`` belongs to the
-old ``μ``), as does a trial point that is not finite (back to ``w^W``).
+old ``μ``), as does a trial point that is not finite, or one where no Newton step is found (back to ``w^W``: the
+full steps of a swing-up can run off in three iterations, cartpole_unconstrained from one of its ``sample_x0``
+starts).
 
 **Filter reset heuristic** (W&B §3.2's companion in IPOPT: ``filter_reset_trigger`` = 5, ``max_filter_resets``
 = 5): where, in ``filter_reset_trigger`` successive iterations, the last trial point rejected before the step
