@@ -5,7 +5,12 @@ r"""The barrier parameter ``μ``: IPOPT's monotone update, or Mehrotra's predict
 
 .. math::  μ ← \max\big(\text{tol}/10,\ \min(κ_μ μ,\ μ^{θ_μ})\big),
 
-repeatedly within one iteration, and the instance's filter is reset.
+repeatedly within one iteration, and the instance's filter is reset. **Very small search directions** (W&B §3.9):
+where the primal step was at round-off (IPOPT's tiny step, :mod:`~torchtraj.solvers.ipm.line_search`) in two
+successive iterations and the multiplier step is below ``tiny_step_dual`` (``tiny_step_y_tol``), the Newton steps
+cannot improve the barrier problem any further in this precision: ``μ`` is decreased even though ``E_μ > κ_ε μ``;
+where ``μ`` is already at its floor the search direction is too small to go on (IPOPT's
+``Search_Direction_Becomes_Too_Small``) and the instance stops, ``STALLED``.
 
 **Mehrotra's predictor-corrector** (``barrier_strategy="mehrotra"``; IPOPT's ``mehrotra_algorithm``, for LPs and
 convex QPs): each iteration solves the factorised system twice, first for the affine-scaling step (``S z = 0``),
@@ -18,6 +23,8 @@ globalisation, 80 against 28, and one instance ends at another local optimum: it
 """
 
 from __future__ import annotations
+
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -33,14 +40,18 @@ from .options import IPOptions
 
 
 def monotone_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, running: Tensor, filt: Filter,
-                    tol: float, opts: IPOptions) -> tuple:
-    """Monotone barrier update of ``mu (B,)``, repeated while the barrier problem is already solved; resets the
-    filter of the instances it updates. Returns ``(μ, filter)``."""
+                    tol: float, opts: IPOptions, forced: Optional[Tensor] = None) -> tuple:
+    """Monotone barrier update of ``mu (B,)``, repeated while the barrier problem is already solved, and once where
+    ``forced (B,)`` (very small search directions); resets the filter of the instances it updates. Returns ``(μ,
+    filter)``."""
     floor = tol / 10.0
     for _ in range(4):
         error = torch.maximum(torch.maximum(model.dual_error, model.primal_error),
                               complementarity_error(cons, it, mu, opts))
-        update = running & (error <= opts.barrier_tolerance_factor * mu) & (mu > floor)
+        solved = error <= opts.barrier_tolerance_factor * mu
+        if forced is not None:
+            solved, forced = solved | forced, None
+        update = running & solved & (mu > floor)
         smaller = torch.clamp(torch.minimum(opts.barrier_decrease * mu, mu ** opts.barrier_power), min=floor)
         mu = torch.where(update, smaller, mu)
         filt = filt.reset(update)

@@ -17,7 +17,10 @@ error of the barrier problem
 
 .. math::  E_μ = \max\big(‖∇\mathcal L‖_∞ / s_d,\; ‖(\text{defects}, h, g + s)‖_∞,\; ‖S z − μ‖_∞ / s_c\big),
 
-with the scalings ``s_d``, ``s_c`` of the multipliers' size; ``E_0 ≤ tol`` is convergence.
+with the scalings ``s_d``, ``s_c`` of the multipliers' size; ``E_0 ≤ tol`` is convergence. ``‖∇\mathcal L‖_∞``
+counts above its round-off, ``10 ε`` times its largest term ``‖∇_z (J + λ^T f + …)‖_∞``: the terms of a
+stationarity residual cancel, and in float32 with multipliers in the hundreds what is left is noise of a few 1e-6,
+above the default ``tol`` (IPOPT, in double precision, needs no such floor; in float64 it is ~1e-13).
 
 A linear-quadratic problem (``Problem.linear_quadratic``) is expanded once, at its first iterate (where every
 multiplier is zero, :class:`Base`): its Jacobians and Hessians are constants, taken once per instance and
@@ -202,7 +205,11 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
         U[0].numel() + X[0].numel()
     s_d = torch.clamp(multipliers / count, min=s_max) / s_max
     slack_grad = (it.y - it.z) * knots  # stationarity in s
-    dual_error = flat_abs(grad_x, e.Lz[:, :, nx:], grad_N, slack_grad, it.yN - it.zN).amax(-1) / s_d
+    # the stationarity counts above its round-off: ten rounding errors of the largest gradient term (in float32 a
+    # multiplier of 150 leaves ~2e-6 of noise in ∇L, above tol = 1e-6: the iteration would go on at random)
+    roundoff = 10 * torch.finfo(X.dtype).eps * flat_abs(e.Lz, e.LNx).amax(-1)
+    dual_error = torch.clamp(flat_abs(grad_x, e.Lz[:, :, nx:], grad_N, slack_grad, it.yN - it.zN).amax(-1)
+                             - roundoff, min=0.0) / s_d
     if base is None:
         finite = all_finite([e.Lz, e.Lzz, e.LNxx, e.fz, r.Gz, r.Hz, r.GN, r.HN, J.unsqueeze(1), theta.unsqueeze(1)])
     else:  # the constant derivatives were checked with the first expansion

@@ -92,13 +92,15 @@ def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPO
 
 def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
           phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, alphas: Tensor,
-          opts: IPOptions):
+          opts: IPOptions, test_alphas: Optional[Tensor] = None):
     """The filter tests (module docstring) at the step sizes ``alphas (B, l)``, all evaluated at once, from the
-    current barrier objective ``phi`` and its slope ``slope`` (:func:`step_measures`).
+    reference barrier objective ``phi``, its slope ``slope`` (:func:`step_measures`) and ``model.theta``; the
+    switching and Armijo conditions take ``test_alphas (B, l)`` where given (the watchdog's stored step size).
 
     Returns ``accept (B, l)``, ``f_type (B, l)``: the step is an f-type step that met the Armijo condition
-    (no filter entry is added for those), the candidates' ``θ (B, l)`` and their residuals ``(defects, h, hN,
-    g + s, gN + sN)`` (``(B, l, ...)`` each; a second-order correction starts from them)."""
+    (no filter entry is added for those), ``blocked (B, l)``: rejected by the filter alone (the filter reset
+    heuristic counts those), the candidates' ``θ (B, l)`` and their residuals ``(defects, h, hN, g + s, gN + sN)``
+    (``(B, l, ...)`` each; a second-order correction starts from them)."""
     B, L = alphas.shape
     knots = model.knots
     a4 = alphas.reshape(B, L, 1, 1)
@@ -113,15 +115,21 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     theta_c = torch.cat([p.reshape(B, L, -1).abs() for p in parts], -1).sum(-1)
     phi_c = Jc - mu.unsqueeze(1) * log_barrier(sc, sNc, knots)
     theta, phi, slope = model.theta.unsqueeze(1), phi.unsqueeze(1), slope.unsqueeze(1)
-    switching = (slope < 0) & (alphas * (-slope).clamp_min(0) ** opts.switching_phi_power
+    tested = alphas if test_alphas is None else test_alphas
+    switching = (slope < 0) & (tested * (-slope).clamp_min(0) ** opts.switching_phi_power
                                > opts.switching * theta ** opts.switching_theta_power)
     f_type = switching & (theta <= theta_min.unsqueeze(1))
-    armijo = phi_c <= phi + opts.armijo * alphas * slope
-    decrease = (theta_c <= (1.0 - opts.filter_theta) * theta) | (phi_c <= phi - opts.filter_phi * theta)
+    # compared up to ten rounding errors of the reference value (IPOPT's and FATROP's ``compare_le``): near a
+    # solution in float32 the predicted decrease falls below one rounding error of φ and the exact tests would
+    # refuse every step
+    eps = 10 * torch.finfo(phi.dtype).eps
+    armijo = phi_c - (phi + opts.armijo * tested * slope) <= eps * phi.abs()
+    decrease = (theta_c - (1.0 - opts.filter_theta) * theta <= eps * theta) \
+        | (phi_c - (phi - opts.filter_phi * theta) <= eps * phi.abs())
     finite = torch.isfinite(theta_c) & torch.isfinite(phi_c)
-    accept = finite & (theta_c <= theta_max.unsqueeze(1)) & filt.acceptable(theta_c, phi_c) \
-        & torch.where(f_type, armijo, decrease)
-    return accept, f_type & armijo, theta_c, parts
+    sufficient = finite & (theta_c <= theta_max.unsqueeze(1)) & torch.where(f_type, armijo, decrease)
+    acceptable = filt.acceptable(theta_c, phi_c)
+    return sufficient & acceptable, f_type & armijo, sufficient & ~acceptable, theta_c, parts
 
 
 def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor, knots: Tensor,
@@ -145,12 +153,18 @@ def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor
 @dataclass
 class Step:
     """The outcome of a line search: the new iterate ``it``, the primal step size ``alpha (B,)``, whether one was
-    found ``(B,)``, and the filter after it."""
+    found ``(B,)``, and the filter after it; for the watchdog (:mod:`~torchtraj.solvers.ipm.watchdog`), ``shortened
+    (B,)``: the first trial point was rejected and the step taken is a shorter one of the same direction; for the
+    filter reset heuristic, ``blocked (B,)``: the last trial point rejected before the step taken was rejected by
+    the filter alone; ``tiny (B,)``: the step was at round-off (IPOPT's tiny step, taken whole)."""
 
     it: Iterate
     alpha: Tensor
     found: Tensor
     filter: Filter
+    shortened: Optional[Tensor] = None
+    blocked: Optional[Tensor] = None
+    tiny: Optional[Tensor] = None
 
 
 def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
@@ -169,30 +183,36 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     filter_test = kernel_of(trial, opts, it.X.device)
 
     first = []  # the first round's rejected full steps, for the second-order correction
+    previous = [torch.zeros_like(pending)]  # was the last candidate of the previous round blocked by the filter
 
     def acceptable(alphas):
-        accept, f_ok, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi, slope, filt,
-                                                   theta_max, theta_min, alphas, opts)
+        accept, f_ok, blocked, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi, slope,
+                                                            filt, theta_max, theta_min, alphas, opts)
         if not first:
-            first.append((accept[:, 0], theta_c[:, 0], parts))
-        return accept, (f_ok,)
+            first.append((accept[:, 0], theta_c[:, 0], parts, blocked[:, 0]))
+        before = torch.cat([previous[0].unsqueeze(1), blocked[:, :-1]], 1)  # each candidate's predecessor
+        previous[0] = blocked[:, -1]
+        return accept, (f_ok, before)
 
-    start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny,))
+    start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
     steps = backtrack(a_max.unsqueeze(1) * powers, max(1, opts.line_search_parallel), acceptable, pending, start,
                       sync_first=True)
-    found, alpha, (f_type,) = steps.found, steps.alpha, steps.values
+    found, alpha, (f_type, blocked) = steps.found, steps.alpha, steps.values
+    shortened = found & ~tiny & (alpha < a_max)
     corrected = None
     if correct is not None and first:
-        accepted, theta_first, parts = first[0]
+        accepted, theta_first, parts, blocked_first = first[0]
         need = pending & ~tiny & ~accepted & (theta_first >= model.theta)
         if bool(need.any()):
             corrected = correct(need, a_max, phi, slope, parts)
             alpha = torch.where(corrected.found, corrected.alpha, alpha)
             f_type = torch.where(corrected.found, corrected.f_type, f_type)
+            blocked = torch.where(corrected.found, blocked_first, blocked)
+            shortened = shortened & ~corrected.found
             found = found | corrected.found
     filt = filt.add(found & ~f_type, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
     new_it = kernel_of(advance, opts, it.X.device)(it, d, alpha, a_dual, mu, model.knots, opts)
     if corrected is not None:
         new_it = pick(corrected.found, corrected.it, new_it)
-    return Step(new_it, alpha, found, filt)
+    return Step(new_it, alpha, found, filt, shortened=shortened, blocked=found & blocked, tiny=pending & tiny)

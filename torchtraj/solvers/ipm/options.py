@@ -120,6 +120,20 @@ class IPOptions:
     #: After a restoration phase, inequality multipliers above this are reset to 1 (``bound_mult_reset_threshold``);
     #: the costates and equality multipliers restart at zero (``constr_mult_reset_threshold`` = 0).
     restoration_multiplier_reset: float = 1000.0
+    #: The watchdog (W&B 2006 §3.2, :mod:`~torchtraj.solvers.ipm.watchdog`): started after this many successive
+    #: iterations whose first trial point the line search rejected (``watchdog_shortened_iter_trigger``; 0: never),
+    #: it takes up to ``watchdog_trials`` full steps without a line search (``watchdog_trial_iter_max``).
+    watchdog_trigger: int = 10
+    watchdog_trials: int = 3
+    #: The filter reset heuristic (:mod:`~torchtraj.solvers.ipm.watchdog`): the filter is emptied after this many
+    #: successive iterations whose last rejected trial point the filter alone refused (``filter_reset_trigger``),
+    #: at most ``filter_resets`` times per instance (``max_filter_resets``; 0: never).
+    filter_reset_trigger: int = 5
+    filter_resets: int = 5
+    #: Very small search directions (W&B 2006 §3.9, :mod:`~torchtraj.solvers.ipm.barrier`): after two successive
+    #: primal steps at round-off with a multiplier step below this (``tiny_step_y_tol``), ``μ`` is decreased, or,
+    #: at its floor, the instance stops ``STALLED``.
+    tiny_step_dual: float = 1e-2  # 0: never
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,

@@ -77,7 +77,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
                                         gN=gsN - it.sN)
         step = direction(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, factor=factor)
         a_soc, a_dual_soc = fraction_to_boundary(it, step, tau)
-        accept, f_ok, theta_c, parts = trial(problem, cons, params, it, step, model, mu, phi, slope, filt, theta_max,
+        accept, f_ok, _, theta_c, parts = trial(problem, cons, params, it, step, model, mu, phi, slope, filt, theta_max,
                                              theta_min, a_soc.unsqueeze(1), opts)
         new = active & accept[:, 0] & step.ok
         found = found | new

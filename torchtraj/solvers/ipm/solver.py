@@ -15,7 +15,7 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
    (:mod:`~torchtraj.solvers.ipm.newton`, :mod:`torchtraj.globalization.regularization`);
 5. the filter line search with the fraction-to-boundary rule and second-order corrections
    (:mod:`~torchtraj.solvers.ipm.line_search`, :mod:`~torchtraj.solvers.ipm.soc`, :mod:`torchtraj.globalization`),
-   or Mehrotra's corrector taken whole;
+   or the watchdog's full steps (:mod:`~torchtraj.solvers.ipm.watchdog`), or Mehrotra's corrector taken whole;
 6. where no step was found, the feasibility restoration phase of those instances, gathered
    (:mod:`~torchtraj.solvers.ipm.restoration`, W&B §3.3): back with a point the filter accepts, or
    ``LOCALLY_INFEASIBLE``;
@@ -24,11 +24,16 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 The defaults are IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), in :class:`IPOptions`, but for the
 restoration phase's penalty ``ρ`` (see there).
 
-Left out: the watchdog (W&B §3.2), the filter reset heuristic, the tiny-step rule's multiplier test (§3.9) and
-the perturbation ``δ_c`` for degenerate constraint Jacobians (§3.1). With ``IPOptions(restoration=False)`` an
-instance whose line search finds no acceptable step keeps its iterate and retries with a larger ``δ_w`` (a
-shorter, more gradient-like step); past ``regularization_max`` its status is ``MAX_REGULARIZATION``; so does a
-restoration phase whose own line search fails. The filter holds the last ``filter_size`` entries of each instance.
+Also from IPOPT: the watchdog and the filter reset heuristic (W&B §3.2, :mod:`~torchtraj.solvers.ipm.watchdog`)
+and very small search directions (§3.9, :mod:`~torchtraj.solvers.ipm.barrier`). The perturbation ``δ_c`` of the
+constraint block (§3.1) for degenerate constraint Jacobians has no counterpart here: the Riccati core eliminates
+the equality rows by a rank-revealing SVD (:mod:`torchtraj.riccati.propagation`), so that linearly dependent rows
+are dropped as round-off instead of making the system singular, and its step is the ``δ_c → 0`` limit of IPOPT's
+(``tests/test_ipm_watchdog.py`` solves problems with duplicated and dependent equality rows). With
+``IPOptions(restoration=False)`` an instance whose line search finds no acceptable step keeps its iterate and
+retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regularization_max`` its status is
+``MAX_REGULARIZATION``; so does a restoration phase whose own line search fails. The filter holds the last
+``filter_size`` entries of each instance.
 """
 
 from __future__ import annotations
@@ -50,7 +55,7 @@ from ...globalization.filter import Filter
 from .barrier import average_complementarity, mehrotra_step, monotone_update
 from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
-from .expansion import Base, expand, initial_iterate, kkt_error
+from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import kernel_of, uses_graphs
@@ -59,6 +64,7 @@ from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
 from .soc import second_order_correction
+from .watchdog import Watchdog, count_steps, merge_steps, watched_step
 
 logger = logging.getLogger("torchtraj")
 
@@ -108,6 +114,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
     status = torch.where((status == Status.RUNNING) & ~start_ok, int(Status.INFEASIBLE_START), status)
     filt = Filter.empty(B, opts.filter_size, x0)
+    wd = Watchdog.start(it)  # W&B §3.2: the watchdog and the filter reset's counts
+    tiny_steps = torch.zeros(B, dtype=torch.long, device=x0.device)  # W&B §3.9: successive steps at round-off
     last = torch.zeros_like(mu)  # last nonzero δ_w that gave a positive definite system
     floor = torch.zeros_like(mu)  # smallest δ_w of the next attempt (raised after a failed line search)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
@@ -167,14 +175,21 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             index = keep if index is None else index[keep]
             it, model, filt, base = gather_rows(it, keep), gather_rows(model, keep), gather_rows(filt, keep), \
                 None if base is None else gather_rows(base, keep)
-            mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running, ceiling, budget = (
-                v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running,
-                                  ceiling, budget))
+            wd = gather_rows(wd, keep)
+            mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running, ceiling, budget, \
+                tiny_steps = (v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0,
+                                                error, running, ceiling, budget, tiny_steps))
             params = param_rows(params, keep)
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
         else:
-            mu, filt = monotone_update(cons, model, it, mu, running, filt, tol, opts)
+            updated, forced = mu, running & (tiny_steps >= 2)  # W&B §3.9: μ decreased, or at its floor, stop
+            stuck = forced & (mu <= tol / 10.0)
+            status = torch.where(stuck, int(Status.STALLED), status)
+            running = running & ~stuck
+            mu, filt = monotone_update(cons, model, it, mu, running, filt, tol, opts, forced & running)
+            tiny_steps = torch.where(forced, 0, tiny_steps)
+            wd = wd.stop(mu != updated)  # its reference φ^W belongs to the old μ
             target_mu = mu
         lqr, rhs = newton_lqr(model, it, target_mu, x0, nx)
 
@@ -185,6 +200,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
 
         d, delta = regularized_direction(attempt, floor, last, running, opts)
         factored = running & d.ok
+        lost = torch.zeros_like(running)
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
             mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
@@ -193,17 +209,36 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                                theta_min, need, a_max, first, lqr, delta, x0, opts)
 
-            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, opts,
+            lost = running & ~d.ok & wd.running()  # a watchdog's full steps led where no step is found: back
+            if bool(lost.any()):
+                it, last, wd = pick(lost, wd.it, it), torch.where(lost, wd.last, last), wd.stop(lost)
+            watching = factored & (wd.running() | (wd.shortened >= opts.watchdog_trigger)) \
+                if opts.watchdog_trigger > 0 else None
+            watched = watching is not None and bool(watching.any())
+            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
+                             factored & ~watching if watched else factored, opts,
                              correct if opts.second_order_corrections > 0 else None)
+            if watched:
+                watch, wd, returned = watched_step(problem, cons, params, it, d, model, mu, filt, theta_max,
+                                                   theta_min, wd, watching, last, opts)
+                ls = merge_steps(watching, watch, ls)
+                last = torch.where(returned, wd.last, last)
+            wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
+                factored), ls.filter, opts)
         take = factored & ls.found
+        if ls.tiny is not None and bool(ls.tiny.any()):
+            small = ls.tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
+            tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)
+        elif ls.tiny is not None:
+            tiny_steps = torch.where(take, 0, tiny_steps)
         it = pick(take, ls.it, it)
         filt = pick(take, ls.filter, filt)
         K = where_rows(take, d.K, K)
         last = torch.where(take & (delta > 0), delta, last)
         missed = factored & ~ls.found
-        # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance (steps
-        # at round-off: those keep the larger-δ_w path)
-        entering = missed & (model.theta > tol) if restoring else None
+        # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance of the
+        # convergence test, ‖c‖_∞ (steps at round-off: those keep the larger-δ_w path)
+        entering = missed & (model.primal_error > tol) if restoring else None
         if entering is not None and bool(entering.any()):
             back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, entering, budget - iterations,
                            tol, opts, run)
@@ -211,11 +246,12 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             status = torch.where(entering & ~back.returned, back.status, status)
             iterations = iterations + back.iterations
             floor = torch.where(back.returned, 0.0, floor)
+            wd = wd.stop(entering)
             missed = missed & ~entering  # back, or ended with the restoration's status: no larger δ_w
             budgeted = True
         floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
                                                 min=opts.regularization_first), torch.where(take, 0.0, floor))
-        blown = running & (~d.ok | (floor > opts.regularization_max))
+        blown = running & (~d.ok | (floor > opts.regularization_max)) & ~lost
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         iterations = iterations + running.long()
         records.append((index, history_row(model, torch.where(take, ls.alpha, 0.0), delta, mu, error), True))

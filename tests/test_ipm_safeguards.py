@@ -1,0 +1,136 @@
+"""The interior-point method's safeguards from IPOPT (Wächter & Biegler 2006): the watchdog and the filter reset
+heuristic (§3.2), very small search directions (§3.9), and dependent equality rows (§3.1's ``δ_c``).
+
+**Watchdog.** Powell's Maratos example on the unit circle as a one-stage problem: ``x_1 = x_0 + u`` with
+``|x_1|² = 1``, cost ``10⁻³|u|² + 2(|x_1|² − 1) − x_{1,1}``, from ``x_0`` on the circle at the angle 3 (nearly
+opposite the optimum) and without second-order corrections, so that the filter keeps cutting the Newton steps.
+Triggered after one shortened step, the watchdog takes ``watchdog_trials`` = 3 full steps without a line search;
+none of them is acceptable to the stored point's tests here, so it returns to the stored point, whose next step is
+the one the line search takes there without the watchdog (the same direction: the restored ``δ_w``). Both runs end
+at the optimum on the circle, from a scalar minimisation over the angle (scipy).
+
+**Filter reset.** :func:`~torchtraj.solvers.ipm.watchdog.count_steps` on a batch of two: the instance whose last
+rejected trial point the filter alone refused in ``filter_reset_trigger`` successive iterations has its filter
+emptied, the other keeps its own, and no instance is reset more than ``filter_resets`` times.
+
+**Very small search directions.** A tolerance below round-off (1e-20 in float64) cannot be met: the Newton steps
+fall to round-off while ``E_μ > κ_ε μ``, so the monotone rule alone never lowers ``μ`` and the solve ran to its
+iteration limit (60 here). With the rule, ``μ`` is forced down to its floor ``tol/10`` and the instance stops
+``STALLED`` within a few dozen iterations, at the same solution as a regular solve (a dense check: the KKT
+residuals by autograd, ``tests/kkt.py``).
+
+**Dependent equality rows** (the case of IPOPT's ``δ_c``): a terminal row stated twice, and two stage rows whose
+Jacobians coincide at the solution and whose linearisations disagree elsewhere (``u = 0.5`` and ``u² = 0.25``).
+IPOPT, on a duplicated row, perturbs the constraint block; the Riccati core's rank-revealing elimination drops the
+dependent row instead. Both converge, with the cost of the problem stated once, and pass the KKT check.
+"""
+
+import math
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj.globalization.filter import Filter
+from torchtraj.solvers.ipm.line_search import Step
+from torchtraj.solvers.ipm.watchdog import Watchdog, count_steps
+
+from kkt import kkt_residuals
+
+F64 = torch.float64
+ANGLE = 3.0
+
+
+def powell() -> tt.Problem:
+    return tt.Problem(
+        dynamics=lambda x, u, p: x + u,
+        stage_cost=lambda x, u, p: 1e-3 * (u * u).sum(),
+        terminal_cost=lambda x, p: 2.0 * ((x * x).sum() - 1.0) - x[0],
+        terminal_eq=lambda x, p: ((x * x).sum() - 1.0).reshape(1),
+        x0=torch.tensor([math.cos(ANGLE), math.sin(ANGLE)], dtype=F64), horizon=1, nu=2)
+
+
+def test_the_watchdog_takes_full_steps_and_returns_to_the_stored_point():
+    scipy = pytest.importorskip("scipy.optimize")
+    best = scipy.minimize_scalar(lambda a: 1e-3 * (2 - 2 * math.cos(a - ANGLE)) - math.cos(a), bounds=(-1, 1),
+                                 method="bounded", options={"xatol": 1e-12})
+    problem = powell()
+    solve = lambda trigger: tt.solve(problem, method="ipm", options=tt.IPOptions(  # noqa: E731
+        second_order_corrections=0, watchdog_trigger=trigger))
+    watched, plain = solve(1), solve(0)
+    for sol in (watched, plain):
+        assert sol.status.tolist() == [tt.Status.CONVERGED]
+        assert abs(float(sol.cost[0]) - best.fun) < 1e-9
+        torch.testing.assert_close(sol.X[0, -1], torch.tensor([math.cos(best.x), math.sin(best.x)], dtype=F64),
+                                   rtol=0, atol=1e-6)
+    a, b = watched.history.step_size[0].tolist(), plain.history.step_size[0].tolist()
+    # the first time the line search cuts two steps in a row (iterations 8 and 9), the watchdog starts instead
+    k = next(i for i in range(1, len(b)) if b[i - 1] < 1 and b[i] < 1)
+    assert a[:k] == b[:k]
+    assert a[k:k + 3] == [1.0, 1.0, 1.0]  # three full steps without a line search
+    assert a[k + 3] == 0.0  # none acceptable: back to the stored point
+    assert a[k + 4] == b[k]  # whose step is the line search's there
+
+
+def test_the_filter_is_reset_after_successive_steps_it_blocked():
+    opts = tt.IPOptions()
+    it_like = torch.zeros(2, 1, dtype=F64)
+    filt = Filter.empty(2, 4, it_like).add(torch.tensor([True, True]), torch.tensor([1.0, 1.0], dtype=F64),
+                                           torch.tensor([2.0, 2.0], dtype=F64))
+    wd = Watchdog(shortened=torch.zeros(2, dtype=torch.long), trials=torch.zeros(2, dtype=torch.long), it=None,
+                  phi=it_like[:, 0], slope=it_like[:, 0], theta=it_like[:, 0], alpha=it_like[:, 0],
+                  last=it_like[:, 0], blocked=torch.zeros(2, dtype=torch.long),
+                  resets=torch.zeros(2, dtype=torch.long))
+    taken, watching = torch.tensor([True, True]), torch.tensor([False, False])
+    step = Step(it=None, alpha=it_like[:, 0] + 1, found=taken, filter=filt,
+                shortened=torch.tensor([True, True]), blocked=torch.tensor([True, False]))
+    resets = []
+    for _ in range(opts.filter_reset_trigger * (opts.filter_resets + 2)):
+        wd, after = count_steps(wd, taken, step, watching, filt, opts)
+        resets.append(torch.isinf(after.entries).all(-1).all(-1).tolist())
+    assert resets[opts.filter_reset_trigger - 2] == [False, False]
+    assert resets[opts.filter_reset_trigger - 1] == [True, False]  # the fifth successive blocked step
+    assert sum(r[0] for r in resets) == opts.filter_resets and not any(r[1] for r in resets)
+    assert wd.resets.tolist() == [opts.filter_resets, 0]
+    off = tt.IPOptions(filter_resets=0)
+    assert not bool(torch.isinf(count_steps(wd, taken, step, watching, filt, off)[1].entries).all())
+
+
+def double_integrator(**rows) -> tt.Problem:
+    goal = torch.tensor([1.0, 0.0], dtype=F64)
+    return tt.Problem(
+        dynamics=tt.rk4(lambda x, u, p: torch.stack([x[1], u[0]]), 0.1),
+        stage_cost=lambda x, u, p: 0.1 * (u ** 2).sum() + ((x - goal) ** 2).sum(),
+        terminal_cost=lambda x, p: 10.0 * ((x - goal) ** 2).sum(),
+        u_lower=torch.tensor([-1.0], dtype=F64), u_upper=torch.tensor([1.0], dtype=F64),
+        x0=torch.tensor([0.3, 0.1], dtype=F64), horizon=20, nu=1, **rows)
+
+
+def _kkt_ok(problem, sol):
+    stationarity, dual_min, complementarity = kkt_residuals(problem, sol)
+    return stationarity < 1e-6 and dual_min >= 0 and complementarity < 1e-6
+
+
+def test_very_small_search_directions_lower_mu_and_stop():
+    problem = double_integrator(state_ineq=lambda x, p: x[1:] - 0.5)
+    solve = lambda y: tt.solve(problem, method="ipm", options=tt.IPOptions(  # noqa: E731
+        tolerance=1e-20, iterations=60, tiny_step_dual=y))
+    ruled, plain, regular = solve(1e-2), solve(0.0), tt.solve(problem, method="ipm")
+    assert plain.status.tolist() == [tt.Status.MAX_ITERATIONS]
+    assert float(plain.history.extra["barrier"][0, -1]) > 1e-21  # μ stuck above its floor
+    assert ruled.status.tolist() == [tt.Status.STALLED] and int(ruled.iterations[0]) < 30
+    assert float(ruled.history.extra["barrier"][0, -1]) == pytest.approx(1e-21)
+    assert regular.status.tolist() == [tt.Status.CONVERGED] and _kkt_ok(problem, ruled)
+    assert abs(float(ruled.cost[0]) - float(regular.cost[0])) < 1e-8 * float(regular.cost[0])  # regular: tol 1e-8
+
+
+def test_dependent_equality_rows_are_dropped_not_singular():
+    once = tt.solve(double_integrator(terminal_eq=lambda x, p: torch.stack([x[0] - 1, x[1]])), method="ipm")
+    twice_problem = double_integrator(terminal_eq=lambda x, p: torch.stack([x[0] - 1, x[0] - 1, x[1]]))
+    twice = tt.solve(twice_problem, method="ipm")
+    assert once.status.tolist() == twice.status.tolist() == [tt.Status.CONVERGED]
+    assert abs(float(twice.cost[0]) - float(once.cost[0])) < 1e-9 and _kkt_ok(twice_problem, twice)
+    pinned = double_integrator(stage_eq=lambda x, u, p: torch.stack([u[0] - 0.5, u[0] ** 2 - 0.25]))
+    sol = tt.solve(pinned, method="ipm")
+    assert sol.status.tolist() == [tt.Status.CONVERGED] and _kkt_ok(pinned, sol)
+    torch.testing.assert_close(sol.U[0], torch.full_like(sol.U[0], 0.5), rtol=0, atol=1e-8)
