@@ -58,18 +58,20 @@ def solve_ilqr(problem: Problem, batch: Batch, options: Optional[ILQROptions] = 
     drho = torch.zeros_like(rho)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     rows = []
+    stationarity = torch.zeros_like(rho)  # the last running iterate's: a stopped instance's history repeats it
     for it in range(opts.iterations):
         if not bool(active.any()):  # the only host synchronisation of an iteration
             break
         s = ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts)
         X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
+        stationarity = torch.where(active, s.stationarity, stationarity)
         iterations = iterations + active.long()
         status = torch.where(s.converged, int(Status.CONVERGED), status)
         status = torch.where(s.blown, int(Status.MAX_REGULARIZATION), status)
         active = status == Status.RUNNING
         rows.append({
             "cost": J, "max_violation": constraints.max_violation(X, U, params),
-            "step_size": s.alpha, "regularization": rho, "stationarity": s.stationarity,
+            "step_size": s.alpha, "regularization": rho, "stationarity": stationarity,
         })
         if opts.verbose:
             log_iteration("ilqr", it, J, rho, active)

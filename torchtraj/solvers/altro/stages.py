@@ -83,6 +83,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     outer_count = torch.zeros_like(iterations)
     K = x0.new_zeros(B, problem.N, U.shape[-1], x0.shape[-1])
     rows = []
+    stationarity = torch.zeros_like(rho)  # the last running iterate's: a stopped instance's history repeats it
     for it in range(opts.iterations_outer * opts.iterations_inner):
         if not bool(running.any()):
             break
@@ -90,6 +91,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         s = ilqr_step(problem, al, params, x0, X, U, J, rho, drho, running, inner, backward, tol)
         X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
         K = torch.where(running.reshape(B, 1, 1, 1), s.K, K)
+        stationarity = torch.where(running, s.stationarity, stationarity)
         iterations = iterations + running.long()
         inner_count = inner_count + running.long()
         violation, complementarity, new_duals, J_updated = measures(al, X, U, params, opts)
@@ -111,7 +113,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         inner_count = torch.where(update, 0, inner_count)
         running = (status == Status.RUNNING) & ~al_done
         rows.append({"cost": J, "max_violation": violation, "step_size": s.alpha, "regularization": rho,
-                     "stationarity": s.stationarity, "penalty": _largest_penalty(al.duals),
+                     "stationarity": stationarity, "penalty": _largest_penalty(al.duals),
                      "outer_iteration": outer_count.to(J.dtype),
                      # which limit a MAX_ITERATIONS instance hit (Solution.summary): the outer loop's
                      "outer_limit": (outer_limit | exhausted).to(J.dtype)})

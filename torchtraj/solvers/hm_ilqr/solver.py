@@ -108,6 +108,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     violation = torch.maximum(last_violation, _max_defect(X, U, problem, params, segments))
     tol = opts.tolerances(x0.dtype)
     rows = []
+    stationarity = torch.zeros_like(mu_V)  # the last running iterate's: a stopped instance's history repeats it
     for it in range(opts.iterations):
         active = status == Status.RUNNING
         if not bool(active.any()):  # the iteration's host synchronisation
@@ -120,6 +121,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
                     defect_weight if opts.monotone_defect_weight else None)
         defect_weight = torch.where(active & t.took, torch.maximum(defect_weight, t.weight), defect_weight)
+        stationarity = torch.where(active, t.residual, stationarity)
         # converged: the start point is a KKT point of the problem (with the multipliers z⁺) at the barrier's
         # final weight; its step, a Newton step on the barrier problem, is taken all the same (the solution then
         # follows the barrier's minimiser smoothly in x0 and the parameters, as a re-solve from a perturbed start
@@ -168,7 +170,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         rows.append({
             "cost": total_cost(problem, X, U, params), "max_violation": violation, "step_size": t.alpha,
             "regularization": mu_V, "stage": s.rlb.long(), "defect_norm": D.sqrt(), "barrier": s.psi,
-            "relaxation": s.delta, "penalty": s.mu, "stationarity": t.residual,
+            "relaxation": s.delta, "penalty": s.mu, "stationarity": stationarity,
         })
         if opts.verbose:
             logger.info("hm-ilqr %4d  cost %.10g  violation %.2e  rlb %d  running %d", it,
