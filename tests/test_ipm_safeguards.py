@@ -29,13 +29,12 @@ import math
 
 import pytest
 import torch
+from kkt import kkt_residuals
 
 import torchtraj as tt
 from torchtraj.globalization.filter import Filter
 from torchtraj.solvers.ipm.line_search import Step
 from torchtraj.solvers.ipm.watchdog import Watchdog, count_steps
-
-from kkt import kkt_residuals
 
 F64 = torch.float64
 ANGLE = 3.0

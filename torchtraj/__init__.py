@@ -12,6 +12,7 @@ from .core.solution import History, Solution
 from .core.status import Status
 from .integrators import euler, rk4
 from .iterations.ilqr import ILQROptions
+from .minimum_time import MinimumTime, minimum_time
 from .registration import register as _register_environments
 from .solve import Method, solve
 from .solvers import Solver
@@ -20,7 +21,6 @@ from .solvers.altro.projection import ProjectionOptions
 from .solvers.eilqr.options import EILQROptions
 from .solvers.hm_ilqr.options import HMILQROptions
 from .solvers.ipm.options import IPOptions
-from .minimum_time import MinimumTime, minimum_time
 from .time_penalty import TimePenalized, time_penalized
 
 __all__ = ["ALTROOptions", "EILQROptions", "HMILQROptions", "History", "ILQROptions", "IPOptions", "MPC",

@@ -26,7 +26,8 @@ import numpy as np
 
 from . import casadi_models
 from .casadi_models import import_casadi
-from .minimum_time_problems import MinimumTimeSpec, spec as get_spec
+from .minimum_time_problems import MinimumTimeSpec
+from .minimum_time_problems import spec as get_spec
 from .reference import IPOPT_WARM_START, SOLVERS, ReferenceResult, _status
 
 

@@ -42,7 +42,6 @@ from torch import Tensor
 from ...core.batch import Batch
 from ...core.batching import map_stage, rollout
 from ...core.constraints import Constraints, multiplier_blocks
-from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
