@@ -84,6 +84,7 @@ def test_nan_instance_is_isolated():
         assert torch.equal(batch.cost[i], alone.cost[0])
 
 
+@pytest.mark.slow  # a full solve of the pendulum besides the capped one; the contract test covers the blocks
 def test_status_max_iterations_and_multiplier_blocks():
     problem = tt.problems.get("pendulum")
     sol = tt.solve(problem, method="altro", options=tt.problems.altro_options("pendulum", iterations_outer=1,

@@ -74,6 +74,7 @@ def test_complementarity_and_feasibility_are_measured():
     assert float(res.feasibility) >= 0.25 - 1e-12
 
 
+@pytest.mark.slow  # two full ALTRO solves of the pendulum; iLQR's test below checks the same in the default run
 def test_altro_with_its_paper_tolerances_stops_short_and_says_so():
     """Altro.jl's stopping tolerances end the pendulum well above its optimum; ALTRO's own tests accept that
     point, the certificate does not. The defaults reach the optimum, which it accepts."""
