@@ -28,7 +28,7 @@ from . import casadi_models
 from .casadi_models import import_casadi
 from .minimum_time_problems import MinimumTimeSpec
 from .minimum_time_problems import spec as get_spec
-from .reference import IPOPT_WARM_START, SOLVERS, ReferenceResult, _status
+from .reference import SOLVERS, ReferenceResult, WarmStartable, _status
 
 
 @dataclass
@@ -38,7 +38,7 @@ class MinimumTimeResult(ReferenceResult):
     duration: float = float("nan")
 
 
-class MinimumTimeReference:
+class MinimumTimeReference(WarmStartable):
     """IPOPT or FATROP on the NLP of the module docstring.
 
     Args:
@@ -97,20 +97,6 @@ class MinimumTimeReference:
                     "equality": (self._lbg == self._ubg).tolist(), "print_time": False}
         self._solver = ca.nlpsol(f"{s.name}_{solver}", solver, nlp, opts)
         self._g = ca.Function("g", [w], [g])
-
-    def _ipopt_options(self, **changes) -> dict:
-        return {"ipopt": {"tol": self._tol, "print_level": 0, "sb": "yes", **changes}, "print_time": False}
-
-    def _solver_for(self, warm_start: bool):
-        if not warm_start:
-            return self._solver
-        if self.solver_name != "ipopt":
-            raise ValueError(f"warm_start is implemented for IPOPT only, not {self.solver_name!r}")
-        if self._warm_solver is None:
-            ca = import_casadi()
-            self._warm_solver = ca.nlpsol(f"{self.spec.name}_ipopt_warm", "ipopt", self._nlp,
-                                          self._ipopt_options(**IPOPT_WARM_START))
-        return self._warm_solver
 
     def pack(self, X: np.ndarray, U: np.ndarray, duration: float) -> np.ndarray:
         """``w`` of states ``X (N+1, nx)``, controls ``U (N, nu)`` and total time ``duration``."""

@@ -68,7 +68,26 @@ class ReferenceResult:
     status: str
 
 
-class ReferenceSolver:
+class WarmStartable:
+    """The IPOPT options and the warm-started IPOPT solver of a CasADi reference (built on the first warm start),
+    for a class that sets ``spec``, ``solver_name``, ``_solver``, ``_nlp``, ``_tol`` and ``_warm_solver``."""
+
+    def _ipopt_options(self, **changes) -> dict:
+        return {"ipopt": {"tol": self._tol, "print_level": 0, "sb": "yes", **changes}, "print_time": False}
+
+    def _solver_for(self, warm_start: bool):
+        if not warm_start:
+            return self._solver
+        if self.solver_name != "ipopt":
+            raise ValueError(f"warm_start is implemented for IPOPT only, not {self.solver_name!r}")
+        if self._warm_solver is None:
+            ca = import_casadi()
+            self._warm_solver = ca.nlpsol(f"{self.spec.name}_ipopt_warm", "ipopt", self._nlp,
+                                          self._ipopt_options(**IPOPT_WARM_START))
+        return self._warm_solver
+
+
+class ReferenceSolver(WarmStartable):
     """IPOPT or FATROP on the multiple-shooting NLP of a benchmark problem (module docstring).
 
     Args:
@@ -151,20 +170,6 @@ class ReferenceSolver:
             }
         self._solver = ca.nlpsol(f"{s.name}_{solver}", solver, nlp, opts)
         self._g = ca.Function("g", [w, x0], [g])
-
-    def _ipopt_options(self, **changes) -> dict:
-        return {"ipopt": {"tol": self._tol, "print_level": 0, "sb": "yes", **changes}, "print_time": False}
-
-    def _solver_for(self, warm_start: bool):
-        if not warm_start:
-            return self._solver
-        if self.solver_name != "ipopt":
-            raise ValueError(f"warm_start is implemented for IPOPT only, not {self.solver_name!r}")
-        if self._warm_solver is None:
-            ca = import_casadi()
-            self._warm_solver = ca.nlpsol(f"{self.spec.name}_ipopt_warm", "ipopt", self._nlp,
-                                          self._ipopt_options(**IPOPT_WARM_START))
-        return self._warm_solver
 
     def initial_guess(self, x0: np.ndarray, U0: Optional[np.ndarray] = None, X0: Optional[np.ndarray] = None):
         """The problem set's guess: ``u_init`` held constant, states rolled out from ``x0``, unless the spec
