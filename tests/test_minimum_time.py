@@ -112,29 +112,28 @@ def test_augmented_lagrangian_methods_with_a_time_floor(method):
     assert float(mt.duration(sol.X)[0]) == pytest.approx(2.0 * math.sqrt(DISTANCE), rel=1e-6)
 
 
-def test_quadrotor_point_to_point_at_ipopts_optimum():
-    ref = REFERENCE["quadrotor_p2p"]["ipopt"]
-    mt = mtp.get("quadrotor_p2p")
+def assert_ipm_at_ipopts_optimum(name: str) -> None:
+    """The interior point's solve of benchmark problem ``name``: converged at IPOPT's T and cost (1e-6 relative),
+    feasible to 1e-8, in at most 1.5× IPOPT's iterations."""
+    ref = REFERENCE[name]["ipopt"]
+    mt = mtp.get(name)
     sol = tt.solve(mt.problem, method="ipm")
     assert tt.Status(int(sol.status[0])) == tt.Status.CONVERGED
     assert float(mt.duration(sol.X)[0]) == pytest.approx(ref["duration"], rel=1e-6)
     assert float(sol.cost[0]) == pytest.approx(ref["cost"], rel=1e-6)
     assert float(sol.max_violation[0]) < 1e-8
     assert int(sol.iterations[0]) <= 1.5 * ref["iterations"]
+
+
+def test_quadrotor_point_to_point_at_ipopts_optimum():
+    assert_ipm_at_ipopts_optimum("quadrotor_p2p")
 
 
 @pytest.mark.slow
 def test_cartpole_swing_at_ipopts_optimum():
     """FATROP's cart-pendulum swing in kind: IPOPT's optimum of the same discretisation (T = 4.0135 s), in a number of
     iterations within 1.5× of IPOPT's (measured: 94 against 83)."""
-    ref = REFERENCE["cartpole_swing"]["ipopt"]
-    mt = mtp.get("cartpole_swing")
-    sol = tt.solve(mt.problem, method="ipm")
-    assert tt.Status(int(sol.status[0])) == tt.Status.CONVERGED
-    assert float(mt.duration(sol.X)[0]) == pytest.approx(ref["duration"], rel=1e-6)
-    assert float(sol.cost[0]) == pytest.approx(ref["cost"], rel=1e-6)
-    assert float(sol.max_violation[0]) < 1e-8
-    assert int(sol.iterations[0]) <= 1.5 * ref["iterations"]
+    assert_ipm_at_ipopts_optimum("cartpole_swing")
 
 
 @pytest.mark.slow
