@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchtraj.bench.casadi_models import import_casadi
+from torchtraj.bench.casadi_models import double_integrator, import_casadi, rk4_step
 
 OUT = Path(__file__).with_name("float32_di_reference.json")
 N, DT, GOAL = 40, 0.1, np.array([1.0, 0.0])
@@ -31,12 +31,7 @@ def x0_batch(count: int = 32) -> np.ndarray:
 def build():
     ca = import_casadi()
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
-    f = ca.Function("f", [x, u], [ca.vertcat(x[1], u[0])])
-    k1 = f(x, u)
-    k2 = f(x + DT / 2 * k1, u)
-    k3 = f(x + DT / 2 * k2, u)
-    k4 = f(x + DT * k3, u)
-    step = ca.Function("step", [x, u], [x + DT / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    step = ca.Function("step", [x, u], [rk4_step(double_integrator, DT, {})(x, u)])
     X = [ca.SX.sym(f"x{k}", 2) for k in range(N + 1)]
     U = [ca.SX.sym(f"u{k}", 1) for k in range(N)]
     p = ca.SX.sym("p", 2)

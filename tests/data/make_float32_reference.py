@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchtraj.bench.casadi_models import double_integrator, rk4_step
+
 OUT = Path(__file__).with_name("float32_reference.json")
 N, DT, B, H = 40, 0.1, 8, 1e-4
 
@@ -29,12 +31,7 @@ def starts() -> np.ndarray:
 def solver():
     import casadi as ca
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
-    f = ca.Function("f", [x, u], [ca.vertcat(x[1], u[0])])
-    k1 = f(x, u)
-    k2 = f(x + DT / 2 * k1, u)
-    k3 = f(x + DT / 2 * k2, u)
-    k4 = f(x + DT * k3, u)
-    F = ca.Function("F", [x, u], [x + DT / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+    F = ca.Function("F", [x, u], [rk4_step(double_integrator, DT, {})(x, u)])
     opti = ca.Opti()
     X, U, p = opti.variable(2, N + 1), opti.variable(1, N), opti.parameter(2)
     goal = ca.DM([1.0, 0.0])
