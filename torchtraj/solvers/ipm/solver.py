@@ -101,6 +101,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         it = hooks.start(it)
     expand_k = kernel_of(expand, opts, x0.device)
     direction_k = kernel_of(direction, opts, x0.device)
+    eager = direction_k is direction
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
         else hooks.barrier.clone()
     budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
@@ -196,7 +197,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         def attempt(delta):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels: no kwargs)
             if mehrotra:
                 return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True, sweep=opts.sweep)
-            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, False, opts.sweep)
+            # eager, the factorisation is kept for the second-order corrections (they solve the same system)
+            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, eager, opts.sweep)
 
         d, delta = regularized_direction(attempt, floor, last, running, opts)
         factored = running & d.ok
