@@ -196,9 +196,11 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
 
         def attempt(delta):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels: no kwargs)
             if mehrotra:
-                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True, sweep=opts.sweep)
+                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True, sweep=opts.sweep,
+                                 terminal_rows=opts.terminal_rows)
             # eager, the factorisation is kept for the second-order corrections (they solve the same system)
-            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, eager, opts.sweep)
+            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, eager, opts.sweep,
+                               opts.terminal_rows)
 
         d, delta = regularized_direction(attempt, floor, last, running, opts)
         factored = running & d.ok
