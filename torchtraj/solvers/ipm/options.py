@@ -137,8 +137,8 @@ class IPOptions:
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
-    #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; only for problems without equality rows, whose
-    #: back-propagation is sequential) or ``"auto"`` (parallel where it applies and pays, by
+    #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; for problems without stage equality rows, whose
+    #: back-propagation is sequential, and terminal rows with ``terminal_rows="range-space"``) or ``"auto"`` (parallel where it applies and pays, by
     #: :func:`~torchtraj.riccati.parallel.choose_sweep`).
     sweep: str = "sequential"
     #: How the Newton steps hold terminal equality rows (:func:`~torchtraj.riccati.factorize`):
