@@ -30,6 +30,7 @@ import math
 import pytest
 import torch
 from kkt import kkt_residuals
+from small_problems import powell_circle
 
 import torchtraj as tt
 from torchtraj.globalization.filter import Filter
@@ -40,20 +41,11 @@ F64 = torch.float64
 ANGLE = 3.0
 
 
-def powell() -> tt.Problem:
-    return tt.Problem(
-        dynamics=lambda x, u, p: x + u,
-        stage_cost=lambda x, u, p: 1e-3 * (u * u).sum(),
-        terminal_cost=lambda x, p: 2.0 * ((x * x).sum() - 1.0) - x[0],
-        terminal_eq=lambda x, p: ((x * x).sum() - 1.0).reshape(1),
-        x0=torch.tensor([math.cos(ANGLE), math.sin(ANGLE)], dtype=F64), horizon=1, nu=2)
-
-
 def test_the_watchdog_takes_full_steps_and_returns_to_the_stored_point():
     scipy = pytest.importorskip("scipy.optimize")
     best = scipy.minimize_scalar(lambda a: 1e-3 * (2 - 2 * math.cos(a - ANGLE)) - math.cos(a), bounds=(-1, 1),
                                  method="bounded", options={"xatol": 1e-12})
-    problem = powell()
+    problem = powell_circle([math.cos(ANGLE), math.sin(ANGLE)])
     solve = lambda trigger: tt.solve(problem, method="ipm", options=tt.IPOptions(  # noqa: E731
         second_order_corrections=0, watchdog_trigger=trigger))
     watched, plain = solve(1), solve(0)
