@@ -38,6 +38,7 @@ retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regu
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Optional
 
@@ -72,8 +73,13 @@ logger = logging.getLogger("torchtraj")
 def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOptions] = None,
                          method: str = "ipm") -> Solution:
     """Solve the ``batch`` of instances of ``problem``: from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
-    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting starts from defects; without it the
-    controls are rolled out), with the parameters batched to B."""
+    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting starts from defects), with the parameters
+    batched to B. Without ``X0`` the states start at the problem's own guess ``Problem.X_init`` where it has one
+    (as IPOPT's reference does: car_escape's waypoints; from the rollout of its controls, which drives through
+    the walls, IPOPT itself ends ``Infeasible_Problem_Detected`` after 487 iterations), else at the rollout of
+    ``U0``."""
+    if batch.X0 is None and problem.X_init is not None:
+        batch = dataclasses.replace(batch, X0=problem.X_init.to(batch.x0).expand(batch.B, *problem.X_init.shape))
     out, cons, records = run(problem, batch, options or IPOptions(), method=method)
     knots = cons.ineq_knot_mask
     multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
