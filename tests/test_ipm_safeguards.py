@@ -125,3 +125,33 @@ def test_dependent_equality_rows_are_dropped_not_singular():
     sol = tt.solve(pinned, method="ipm")
     assert sol.status.tolist() == [tt.Status.CONVERGED] and _kkt_ok(pinned, sol)
     torch.testing.assert_close(sol.U[0], torch.full_like(sol.U[0], 0.5), rtol=0, atol=1e-8)
+
+
+def test_one_host_synchronisation_per_iteration_in_the_loop(monkeypatch):
+    """The loop of :func:`~torchtraj.solvers.ipm.solver.run` asks the host twice per iteration: how many instances
+    still run, and, at once, whether any enters a restoration phase, took a tiny step, or has a watchdog running
+    or about to start (before: a test of its own for each). Counted on Powell's example with the watchdog active
+    (trigger 1); the line search's and the inertia correction's own tests are elsewhere and not counted here."""
+    import sys
+
+    import torchtraj.solvers.ipm.solver as loop
+
+    calls = []
+
+    def counting(name):
+        original = getattr(torch.Tensor, name)
+
+        def wrapper(self, *args, **kwargs):
+            if sys._getframe(1).f_code.co_filename == loop.__file__:
+                calls.append(name)
+            return original(self, *args, **kwargs)
+        return wrapper
+
+    for name in ("__bool__", "__int__", "__float__", "item", "tolist"):
+        monkeypatch.setattr(torch.Tensor, name, counting(name))
+    problem = powell_circle([math.cos(ANGLE), math.sin(ANGLE)])
+    sol = tt.solve(problem, method="ipm", options=tt.IPOptions(second_order_corrections=0, watchdog_trigger=1))
+    monkeypatch.undo()
+    steps = int(sol.iterations[0])
+    assert sol.status.tolist() == [tt.Status.CONVERGED]
+    assert len(calls) == 2 * steps + 1, (len(calls), steps)  # the last pass only counts the running instances

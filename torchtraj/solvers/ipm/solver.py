@@ -137,6 +137,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     # IPOPT's mu_max: its factor times the initial average complementarity
     ceiling = opts.mehrotra_mu_max_factor * average_complementarity(it.s, it.sN, it.z, it.zN, cons.ineq_knot_mask)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
+    may_return = may_watch = False  # a watchdog runs / may start (known at the last iteration's synchronisation)
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
@@ -216,11 +217,13 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                                                theta_min, need, a_max, first, lqr, delta, x0, opts)
 
             lost = running & ~d.ok & wd.running()  # a watchdog's full steps led where no step is found: back
-            if bool(lost.any()):
+            if may_return:  # a watchdog ran at the last synchronisation: no host test of `lost` itself
                 it, last, wd = pick(lost, wd.it, it), torch.where(lost, wd.last, last), wd.stop(lost)
             watching = factored & (wd.running() | (wd.shortened >= opts.watchdog_trigger)) \
                 if opts.watchdog_trigger > 0 else None
-            watched = watching is not None and bool(watching.any())
+            # a superset of the instances watched now, known at the last synchronisation (watched_step on an empty
+            # mask changes nothing)
+            watched = watching is not None and may_watch
             ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
                              factored & ~watching if watched else factored, opts,
                              correct if opts.second_order_corrections > 0 else None)
@@ -232,11 +235,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
                 factored), ls.filter, opts)
         take = factored & ls.found
-        if ls.tiny is not None and bool(ls.tiny.any()):
-            small = ls.tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
-            tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)
-        elif ls.tiny is not None:
-            tiny_steps = torch.where(take, 0, tiny_steps)
+        tiny = ls.tiny
         it = pick(take, ls.it, it)
         filt = pick(take, ls.filter, filt)
         K = where_rows(take, d.K, K)
@@ -245,7 +244,19 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance of the
         # convergence test, ‖c‖_∞ (steps at round-off: those keep the larger-δ_w path)
         entering = missed & (model.primal_error > tol) if restoring else None
-        if entering is not None and bool(entering.any()):
+        # the iteration's one synchronisation with the host: restoration entries, tiny steps, and for the next
+        # iteration whether a watchdog runs (its return) or may start (the restoration and the barrier update only
+        # stop watchdogs, so these stay supersets)
+        never = torch.zeros((), dtype=torch.bool, device=x0.device)
+        enter_any, tiny_any, may_return, may_watch = torch.stack([
+            never if entering is None else entering.any(), never if tiny is None else tiny.any(),
+            wd.running().any(), (wd.running() | (wd.shortened >= opts.watchdog_trigger)).any()]).tolist()
+        if tiny_any:
+            small = tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
+            tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)
+        elif tiny is not None:
+            tiny_steps = torch.where(take, 0, tiny_steps)
+        if enter_any:
             back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, entering, budget - iterations,
                            tol, opts, run)
             it, filt = back.it, back.filter
