@@ -22,10 +22,18 @@ residuals by autograd, ``tests/kkt.py``).
 **Dependent equality rows** (the case of IPOPT's ``δ_c``): a terminal row stated twice, and two stage rows whose
 Jacobians coincide at the solution and whose linearisations disagree elsewhere (``u = 0.5`` and ``u² = 0.25``).
 IPOPT, on a duplicated row, perturbs the constraint block; the Riccati core's rank-revealing elimination drops the
-dependent row instead. Both converge, with the cost of the problem stated once, and pass the KKT check.
+dependent row instead. Both converge, with the cost of the problem stated once, and pass the KKT check. A row
+whose gradient vanishes where it holds (``(x_{N,0} − 1)² = 0``, slow) is no case for ``δ_c``: IPOPT never perturbs
+the constraint block there (the Jacobian is small, not singular) and ends ``Error_In_Step_Computation`` at a
+violation of 1.1e-16; the IPM takes the same iterates and ends there too, ``MAX_REGULARIZATION``.
+
+**Host synchronisations.** The loop asks the host twice per iteration (the running count, and one read of the
+restoration gate, the tiny steps and the watchdog's state), counted on Powell's example.
 """
 
+import json
 import math
+import pathlib
 
 import pytest
 import torch
@@ -155,3 +163,19 @@ def test_one_host_synchronisation_per_iteration_in_the_loop(monkeypatch):
     steps = int(sol.iterations[0])
     assert sol.status.tolist() == [tt.Status.CONVERGED]
     assert len(calls) == 2 * steps + 1, (len(calls), steps)  # the last pass only counts the running instances
+
+
+@pytest.mark.slow
+def test_a_row_whose_gradient_vanishes_where_it_holds_ends_as_ipopt_does():
+    """The terminal row ``(x_{N,0} − 1)² = 0`` (its gradient vanishes where it holds: no multiplier exists there).
+    IPOPT (tests/data/ipm_degenerate_row.json) takes full steps that halve the distance to 1, so the violation falls
+    by 4 per iteration to 1.1e-16, where no step is acceptable and it ends ``Error_In_Step_Computation`` after 26
+    iterations; its ``δ_c`` (W&B §3.1) never acts, the Jacobian row ``2(x − 1)`` being small but never singular.
+    The IPM takes the same iterates (the same violations) and ends where IPOPT does, ``MAX_REGULARIZATION``."""
+    ipopt = json.loads((pathlib.Path(__file__).parent / "data" / "ipm_degenerate_row.json").read_text())
+    sol = tt.solve(double_integrator(terminal_eq=lambda x, p: ((x[0] - 1) ** 2).reshape(1)), method="ipm")
+    assert ipopt["status"] == "Error_In_Step_Computation"
+    assert sol.status.tolist() == [tt.Status.MAX_REGULARIZATION]
+    torch.testing.assert_close(sol.history.max_violation[0, :len(ipopt["violation"])],
+                               torch.tensor(ipopt["violation"], dtype=F64), rtol=1e-9, atol=0)
+    assert abs(float(sol.cost[0]) - ipopt["objective"][-1]) < 1e-8 * ipopt["objective"][-1]
