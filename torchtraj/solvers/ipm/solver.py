@@ -16,6 +16,8 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 5. the filter line search with the fraction-to-boundary rule and second-order corrections
    (:mod:`~torchtraj.solvers.ipm.line_search`, :mod:`~torchtraj.solvers.ipm.soc`, :mod:`torchtraj.globalization`),
    or the watchdog's full steps (:mod:`~torchtraj.solvers.ipm.watchdog`), or Mehrotra's corrector taken whole;
+   then the iteration's one read back to the host (besides the running count): whether an instance enters
+   restoration or took a tiny step, and whether a watchdog runs or may start at the next iteration;
 6. where no step was found, the feasibility restoration phase of those instances, gathered
    (:mod:`~torchtraj.solvers.ipm.restoration`, W&B §3.3): back with a point the filter accepts, or
    ``LOCALLY_INFEASIBLE``;
@@ -29,7 +31,14 @@ and very small search directions (§3.9, :mod:`~torchtraj.solvers.ipm.barrier`).
 constraint block (§3.1) for degenerate constraint Jacobians has no counterpart here: the Riccati core eliminates
 the equality rows by a rank-revealing SVD (:mod:`torchtraj.riccati.propagation`), so that linearly dependent rows
 are dropped as round-off instead of making the system singular, and its step is the ``δ_c → 0`` limit of IPOPT's
-(``tests/test_ipm_watchdog.py`` solves problems with duplicated and dependent equality rows). With
+(``tests/test_ipm_safeguards.py`` solves problems with duplicated and dependent equality rows). A row whose
+gradient vanishes where it holds, ``(x − 1)² = 0``, is no case for it either: its Jacobian is small, never singular,
+IPOPT never perturbs it and ends ``Error_In_Step_Computation`` at a violation of 1e-16, and so does this iteration
+(``MAX_REGULARIZATION``) after the same iterates. IPOPT's ``δ_c`` proper, ``δ̄_c μ^{κ_c}`` on every equality row
+once a factorisation reports a singular system, would need the Riccati core to report the rank it dropped and to
+take a ``(2,2)`` block ``−δ_c I``: on the stage rows ``M w + h = δ_c ν`` (a penalty ``MᵀM/δ_c`` on the stage
+Hessian, ``ν = (M w + h)/δ_c``), on the dynamics ``x_{k+1} = A x_k + B u_k + c_k − δ_c λ_{k+1}`` (the cost-to-go
+``P ← P (I + δ_c P)^{-1}`` before each stage's elimination). With
 ``IPOptions(restoration=False)`` an instance whose line search finds no acceptable step keeps its iterate and
 retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regularization_max`` its status is
 ``MAX_REGULARIZATION``; so does a restoration phase whose own line search fails. The filter holds the last
