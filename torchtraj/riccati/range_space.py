@@ -164,16 +164,41 @@ def _forward_chain(Phi: Tensor, drive: Tensor, parallel: bool) -> Tensor:
     return torch.stack(out, 1)
 
 
+def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
+    """The pseudo-inverse of the symmetric positive semidefinite ``M (..., m, m)``: its eigenvalues above ``tol``
+    times the largest inverted, the others dropped."""
+    w, V = torch.linalg.eigh(M)
+    keep = w > (tol * w.amax(-1, keepdim=True)).clamp_min(torch.finfo(w.dtype).tiny)
+    inverse_w = torch.where(keep, w.reciprocal(), torch.zeros_like(w))
+    return (V * inverse_w.unsqueeze(-2)) @ _mT(V)
+
+
 def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     """The pseudo-inverse of the symmetric positive semidefinite ``negative (..., m, m)`` at the relative ``tol``
     of its largest eigenvalue, and whether it was finite (a non-finite matrix gets the identity's: no instance's
-    failure reaches the batched eigensolver of the others)."""
+    failure reaches the batched eigensolver of the others).
+
+    A batched eigensolver of many tiny matrices costs several times a Cholesky factorisation, and most of these
+    matrices (every stage but the last few, whose controls cannot reach every row) are well conditioned. So all
+    are factorised, and those whose factor proves ``λ_min > tol λ_max`` are inverted with it: with the pivots
+    ``p_i = L_ii²`` and the largest diagonal entry ``d``, ``λ_max ≤ m d`` and ``λ_min ≥ Π p_i / λ_max^{m−1}``, so
+    ``Π p_i > tol (m d)^m`` suffices. The others (gathered, one read of their count by the host) take the
+    eigen-decomposition; while a CUDA graph is captured or torch.compile traces, every matrix does."""
     finite = torch.isfinite(negative).flatten(-2).all(-1)
-    eye = torch.eye(negative.shape[-1], dtype=negative.dtype, device=negative.device)
-    w, V = torch.linalg.eigh(torch.where(finite.unsqueeze(-1).unsqueeze(-1), _sym(negative), eye))
-    keep = w > (tol * w.amax(-1, keepdim=True)).clamp_min(torch.finfo(w.dtype).tiny)
-    inverse_w = torch.where(keep, w.reciprocal(), torch.zeros_like(w))
-    return (V * inverse_w.unsqueeze(-2)) @ _mT(V), finite
+    m = negative.shape[-1]
+    eye = torch.eye(m, dtype=negative.dtype, device=negative.device)
+    M = torch.where(finite.unsqueeze(-1).unsqueeze(-1), _sym(negative), eye)
+    if torch.compiler.is_compiling() or (M.is_cuda and torch.cuda.is_current_stream_capturing()):
+        return _eigen_inverse(M, tol), finite
+    L, info = torch.linalg.cholesky_ex(M)
+    pivots = L.diagonal(dim1=-2, dim2=-1).square().prod(-1)
+    largest = M.diagonal(dim1=-2, dim2=-1).amax(-1)
+    easy = (info == 0) & (pivots > tol * (m * largest) ** m)
+    inverse = torch.cholesky_solve(eye.expand_as(M), torch.where(easy.unsqueeze(-1).unsqueeze(-1), L, eye))
+    hard = (~easy).nonzero(as_tuple=True)
+    if hard[0].numel():
+        inverse = inverse.index_put(hard, _eigen_inverse(M[hard], tol))
+    return inverse, finite
 
 
 def penalty(lqr: LQR, C: Tensor, tol: float) -> tuple:
