@@ -22,6 +22,9 @@ import torch
 from kkt import kkt_residuals
 
 import torchtraj as tt
+from torchtraj.core.batch import Batch
+from torchtraj.core.batching import rollout
+from torchtraj.solvers.ipm.solver import state_guess
 
 F64 = torch.float64
 DATA = json.loads((pathlib.Path(__file__).parent / "data" / "ipm_restoration_reference.json").read_text())
@@ -81,6 +84,20 @@ def test_the_problem_state_guess_is_the_start():
     history = tt.solve(tt.problems.get("car_escape"), method="ipm", options=tt.IPOptions(iterations=1)).history
     assert abs(float(history.cost[0, 0]) - start["start_cost"]) < 1e-12 * start["start_cost"]
     assert abs(float(history.max_violation[0, 0]) - start["start_violation"]) < 1e-12
+
+
+def test_the_state_guess_goes_with_the_problems_own_controls():
+    """X_init is the start of the instances whose controls are the problem's u_init; other controls (a control
+    step's shifted ones) start from their own rollout, instance by instance."""
+    problem = tt.problems.get("car_escape")
+    other = problem.u_init + 0.1
+    U0 = torch.stack([problem.u_init, other])
+    batch = Batch.build(problem, U0=U0)
+    X0 = state_guess(problem, batch)
+    assert torch.equal(X0[0], problem.X_init)
+    torch.testing.assert_close(X0[1], rollout(problem.dynamics, problem.x0[None], other[None], batch.params)[0])
+    assert state_guess(problem, Batch.build(problem, U0=other)) is None
+    assert torch.equal(state_guess(problem, Batch.build(problem))[0], problem.X_init)
 
 
 #: IPOPT's iterations from the problem set's guess (tests/data/reference.json) times this bounds the IPM's.

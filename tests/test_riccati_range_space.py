@@ -4,11 +4,10 @@ import dataclasses
 
 import pytest
 import torch
+from test_riccati import dense_kkt, random_lqr
 
 from torchtraj.riccati import factorize
 from torchtraj.riccati.range_space import RangeSpaceFactor
-
-from test_riccati import dense_kkt, random_lqr
 
 
 @pytest.mark.parametrize("sweep", ["sequential", "parallel"])

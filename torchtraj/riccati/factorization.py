@@ -20,7 +20,6 @@ swapped for a benign problem first (:mod:`~torchtraj.riccati.sanitize`): neither
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Optional
 
 import torch
@@ -32,7 +31,7 @@ from .linalg import _time_major
 from .lqr import LQR, LQRSolution, LQRVectors
 from .parallel import choose_sweep, factorize_parallel
 from .propagation import _stage_rows, _terminal_constraint, default_rank_tolerance
-from .range_space import TERMINAL_ROWS, applies, factorize_range_space
+from .range_space import TERMINAL_ROWS, applies, factorize_range_space, penalised
 from .rows import factorize_rows
 from .sanitize import _sanitize_stacked
 from .sweep import factorize_stages, finish_single
@@ -63,7 +62,8 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         raise ValueError(f"terminal_rows must be one of {TERMINAL_ROWS}, not {terminal_rows!r}")
     if terminal_rows == "range-space" and applies(lqr, regularization):
         tol = default_rank_tolerance(lqr.A.dtype) if rank_tolerance is None else rank_tolerance
-        return factorize_range_space(lqr, shift, sweep, tol)
+        unconstrained, correction = penalised(lqr, tol)
+        return factorize_range_space(factorize(unconstrained, shift=shift, sweep=sweep), lqr, correction, tol)
     if sweep != "sequential" and choose_sweep(lqr, sweep) == "parallel":
         return factorize_parallel(lqr, regularization, shift)
     exact = regularization is None and not lqr.propagated

@@ -72,11 +72,12 @@ def applies(lqr: LQR, regularization: Optional[Tensor]) -> bool:
 class RangeSpaceFactor:
     """The factorisation of an LQR problem with terminal rows by the range-space method (module docstring).
 
-    ``inner`` the unconstrained factorisation, ``lqr`` the (shifted) problem with its rows, ``K (B, N, nu, nx)``
-    the constrained feedback gains, ``P`` the unconstrained value function's Hessians, ``ok (B,)``; the
-    homogeneous columns (last dimension ``mN``): ``Pi (B, N+1, nx, mN)``, ``kh (B, N, nu, mN)``,
-    ``dxh (B, N+1, nx, mN)``, ``duh (B, N, nu, mN)``, ``lamh (B, N+1, nx, mN)``; ``inverse (B, mN, mN)`` the
-    pseudo-inverse of ``−Σ``."""
+    ``inner`` the factorisation of the penalised unconstrained problem, ``lqr`` the shifted problem with its rows
+    (its ``Q_N`` with the penalty), ``K (B, N, nu, nx)`` the constrained feedback gains, ``P`` the unconstrained
+    value function's Hessians, ``ok (B,)``; the homogeneous columns (last dimension ``mN``):
+    ``Pi (B, N+1, nx, mN)``, ``kh (B, N, nu, mN)``, ``dxh (B, N+1, nx, mN)``, ``duh (B, N, nu, mN)``,
+    ``lamh (B, N+1, nx, mN)``; ``inverse (B, mN, mN)`` the pseudo-inverse of ``−Σ``; ``penalty (B, mN, nx)`` the
+    penalty's share of the rows' multipliers, ``ρ C⁺ᵀ``."""
 
     inner: RiccatiFactor
     lqr: LQR
@@ -212,16 +213,20 @@ def penalty(lqr: LQR, C: Tensor, tol: float) -> tuple:
     return rho, pinv @ C.nan_to_num(), pinv
 
 
-def factorize_range_space(lqr: LQR, shift: Optional[Tensor], sweep: str, tol: float) -> RangeSpaceFactor:
-    """The range-space factorisation (module docstring) of ``lqr`` (terminal rows ``CN``, ``maskN`` only) shifted
-    by ``shift`` (:func:`~torchtraj.riccati.factorize`), with the unconstrained ``sweep``, at the rank tolerance
-    ``tol``."""
-    from .factorization import factorize  # the unconstrained sweeps' entry point, which dispatches here
-
+def penalised(lqr: LQR, tol: float) -> tuple:
+    """The unconstrained problem that :func:`factorize_range_space` factorises: ``lqr`` without its terminal rows
+    and with the penalty ``Q_N + ρ Π`` (module docstring), and the multipliers' correction ``ρ C⁺ᵀ (B, mN, nx)``."""
     C = lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.maskN is not None else lqr.CN
     rho, projector, pinv = penalty(lqr, C, tol)
-    QN = lqr.QN + rho.reshape(-1, 1, 1) * projector
-    inner = factorize(dataclasses.replace(lqr, CN=None, maskN=None, QN=QN), shift=shift, sweep=sweep)
+    rho = rho.reshape(-1, 1, 1)
+    return dataclasses.replace(lqr, CN=None, maskN=None, QN=lqr.QN + rho * projector), rho * _mT(pinv)
+
+
+def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, tol: float) -> RangeSpaceFactor:
+    """The range-space factorisation (module docstring) of ``lqr`` (terminal rows ``CN``, ``maskN`` only) from the
+    factorisation ``inner`` (either sweep, shifted as ``lqr`` is to be) of its :func:`penalised` problem and that
+    problem's multiplier ``correction``, at the rank tolerance ``tol``."""
+    C = lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.maskN is not None else lqr.CN
     lqr = dataclasses.replace(inner.lqr, CN=lqr.CN, maskN=lqr.maskN)
     A, Bu = lqr.A, lqr.B
     parallel = isinstance(inner, ParallelRiccatiFactor)
@@ -238,4 +243,4 @@ def factorize_range_space(lqr: LQR, shift: Optional[Tensor], sweep: str, tol: fl
     K = inner.K + kh @ (inverses @ _mT(Pi[:, :-1]))
     ok = inner.ok & finite.all(-1) & all_finite([K, dxh])
     return RangeSpaceFactor(inner=inner, lqr=lqr, K=K, P=inner.P, ok=ok, Pi=Pi, kh=kh, dxh=dxh, duh=duh,
-                            lamh=lamh, inverse=inverses[:, 0], penalty=rho.reshape(-1, 1, 1) * _mT(pinv))
+                            lamh=lamh, inverse=inverses[:, 0], penalty=correction)

@@ -7,7 +7,7 @@ is one (car_escape's waypoints, IPOPT's start too), else at the rollout of the c
 duals: its multipliers start from the barrier's initial values (``bound_push``, ``dual_initial``) at every solve.
 A control step with a budget of ``n`` iterations runs at most ``n`` interior-point iterations; it starts from the
 shifted controls alone, whose rollout from the measured state reproduces the shifted states up to the last knot
-when the model is the plant's (on a problem with an ``X_init``, from that guess instead).
+when the model is the plant's (the problem's ``X_init`` goes with its own controls only: a cold step).
 """
 
 from __future__ import annotations

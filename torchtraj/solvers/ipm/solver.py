@@ -84,11 +84,10 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     """Solve the ``batch`` of instances of ``problem``: from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
     optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting starts from defects), with the parameters
     batched to B. Without ``X0`` the states start at the problem's own guess ``Problem.X_init`` where it has one
-    (as IPOPT's reference does: car_escape's waypoints; from the rollout of its controls, which drives through
-    the walls, IPOPT itself ends ``Infeasible_Problem_Detected`` after 487 iterations), else at the rollout of
-    ``U0``."""
-    if batch.X0 is None and problem.X_init is not None:
-        batch = dataclasses.replace(batch, X0=problem.X_init.to(batch.x0).expand(batch.B, *problem.X_init.shape))
+    and the controls are the problem's own (as IPOPT's reference does: car_escape's waypoints; from the rollout of
+    its controls, which drives through the walls, IPOPT itself ends ``Infeasible_Problem_Detected`` after 487
+    iterations), else at the rollout of ``U0`` (:func:`state_guess`)."""
+    batch = dataclasses.replace(batch, X0=state_guess(problem, batch))
     out, cons, records = run(problem, batch, options or IPOptions(), method=method)
     knots = cons.ineq_knot_mask
     multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
@@ -97,6 +96,22 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
         iterations=out.iterations, history=full_history(records), costate=out.lam, multipliers=multipliers,
         method=method,
     )
+
+
+def state_guess(problem: Problem, batch: Batch):
+    """The states a solve starts from: the caller's ``X0``; else, where the problem has a state guess
+    ``X_init``, that guess for the instances that start from the problem's own controls ``u_init`` (the two go
+    together: a control step's shifted controls go with their rollout, not with the problem's waypoints) and the
+    rollout of ``U0`` for the others; else ``None`` (the rollout of ``U0``)."""
+    if batch.X0 is not None or problem.X_init is None:
+        return batch.X0
+    own = (batch.U0 == problem.u_init.to(batch.U0)).flatten(1).all(-1)
+    guess = problem.X_init.to(batch.x0).expand(batch.B, *problem.X_init.shape)
+    if bool(own.all()):
+        return guess
+    if not bool(own.any()):
+        return None
+    return where_rows(own, guess, rollout(problem.dynamics, batch.x0, batch.U0, batch.params))
 
 
 def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] = None, method: str = "ipm"):
