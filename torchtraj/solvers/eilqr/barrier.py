@@ -24,8 +24,6 @@ which adds a constant where ``x_0`` is fixed and keeps a free ``x_0`` (``free_in
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
@@ -34,16 +32,28 @@ from ...core.constraints import Constraints
 from ...core.problem import Problem
 
 
-def relaxed_log(t: Tensor, delta: float) -> Tensor:
-    """``β(t)`` elementwise (module docstring)."""
-    safe = torch.clamp(t, min=delta)  # the log's branch never sees t < δ, so its gradient stays finite there
-    quadratic = 0.5 * ((t - 2.0 * delta) / delta) ** 2 - 0.5 - math.log(delta)
+def _delta(t: Tensor, delta) -> Tensor:
+    return torch.as_tensor(delta, dtype=t.dtype, device=t.device)
+
+
+def relaxed_log(t: Tensor, delta) -> Tensor:
+    """``β(t)`` elementwise (module docstring); ``delta`` a float or a tensor broadcast against ``t``."""
+    delta = _delta(t, delta)
+    safe = torch.maximum(t, delta)  # the log's branch never sees t < δ, so its gradient stays finite there
+    quadratic = 0.5 * ((t - 2.0 * delta) / delta) ** 2 - 0.5 - torch.log(delta)
     return torch.where(t >= delta, -torch.log(safe), quadratic)
 
 
-def relaxed_log_slope(t: Tensor, delta: float) -> Tensor:
+def relaxed_log_slope(t: Tensor, delta) -> Tensor:
     """``β'(t)`` elementwise: ``−1/t`` for ``t ≥ δ``, ``(t − 2δ)/δ²`` below."""
-    return torch.where(t >= delta, -1.0 / torch.clamp(t, min=delta), (t - 2.0 * delta) / delta ** 2)
+    delta = _delta(t, delta)
+    return torch.where(t >= delta, -1.0 / torch.maximum(t, delta), (t - 2.0 * delta) / delta ** 2)
+
+
+def relaxed_log_curvature(t: Tensor, delta) -> Tensor:
+    """``β''(t)`` elementwise: ``1/t²`` for ``t ≥ δ``, ``1/δ²`` below."""
+    delta = _delta(t, delta)
+    return torch.where(t >= delta, 1.0 / torch.maximum(t, delta) ** 2, 1.0 / delta ** 2)
 
 
 def soft_problem(problem: Problem, weight: float, delta: float) -> Problem:

@@ -27,11 +27,23 @@ class EILQROptions:
             the dynamics defects, the equality rows and the initial-state rows (``∞``-norms, unscaled);
             ``None``: 1e-9 in float64, 1e-5 in float32.
         barrier_weight: ``w`` of the soft barrier ``w Σ β(−g)`` of every inequality row and bound
-            (:mod:`~torchtraj.solvers.eilqr.barrier`); the solution's cost is above the hard-constrained optimum by
-            a gap about linear in ``w`` (the pendulum: +44 % at 1e-3, +6.2 % at 1e-4, +0.8 % at 1e-5, with more
+            (:mod:`~torchtraj.solvers.eilqr.barrier`): the first stage's weight with ``barrier_continuation``, the
+            fixed weight without it. A fixed weight's solution costs more than the hard-constrained optimum by a gap
+            about linear in ``w`` (the pendulum: +44 % at 1e-3, +6.2 % at 1e-4, +0.8 % at 1e-5, with more
             iterations as ``w`` falls).
         barrier_relaxation: ``δ`` of the relaxed log barrier: ``−log t`` for ``t ≥ δ``, its C² quadratic
-            extension below (an infeasible start stays finite).
+            extension below (an infeasible start stays finite); with continuation ``δ`` follows ``w`` in the
+            ratio ``barrier_relaxation / barrier_weight``.
+        barrier_continuation: decrease the weight between Newton stages down to ``barrier_weight_final``, so that
+            a converged point is the hard-constrained problem's KKT point (an extension beyond the paper:
+            :mod:`~torchtraj.solvers.eilqr.continuation`); ``False``: the paper's fixed weight, whose converged
+            point is the KKT point of :meth:`EILQR.kkt_problem` (the soft problem).
+        barrier_weight_final: the last stage's weight ``w_min``; ``None``: ``tol / 10`` of the dtype's tolerance
+            (1e-10 in float64, 1e-6 in float32).
+        barrier_decrease, barrier_superlinear: ``κ_w``, ``θ_w`` of ``w ← max(w_min, min(κ_w w, w^θ_w))``
+            (IPOPT's ``κ_μ = 0.2``, ``θ_μ = 1.5``, Wächter & Biegler 2006 eq. (7)).
+        barrier_error_factor: ``κ_ε``: a stage ends where the KKT error of its weight is below ``κ_ε w`` (IPOPT's
+            ``κ_ε = 10``).
         merit_factor, merit_floor: the ℓ1 merit's weight ``γ = merit_factor · max|y⁺| + merit_floor`` from the
             Newton step's multiplier estimates ``y⁺`` (Horizon eq. 9 with a margin of 50 %; the floor keeps ``γ > 0``
             where every multiplier vanishes). It is exact above ``max|y*|`` and the step is a descent direction of
@@ -70,6 +82,11 @@ class EILQROptions:
     tolerance: Optional[float] = None
     barrier_weight: float = 1e-4
     barrier_relaxation: float = 1e-5
+    barrier_continuation: bool = True
+    barrier_weight_final: Optional[float] = None
+    barrier_decrease: float = 0.2
+    barrier_superlinear: float = 1.5
+    barrier_error_factor: float = 10.0
     merit_factor: float = 1.5
     merit_floor: float = 1e-6
     merit_monotone: bool = False
@@ -97,6 +114,11 @@ class EILQROptions:
         if self.barrier_weight <= 0 or self.barrier_relaxation <= 0:
             raise ValueError(f"barrier_weight and barrier_relaxation must be positive, got {self.barrier_weight} "
                              f"and {self.barrier_relaxation}")
+        if self.barrier_weight_final is not None and self.barrier_weight_final <= 0:
+            raise ValueError(f"barrier_weight_final must be positive, got {self.barrier_weight_final}")
+        if not 0 < self.barrier_decrease < 1 or self.barrier_superlinear <= 1 or self.barrier_error_factor <= 0:
+            raise ValueError("barrier_decrease must lie in (0, 1), barrier_superlinear exceed 1 and "
+                             "barrier_error_factor be positive")
         if not 0 < self.backtracking < 1:
             raise ValueError(f"backtracking must lie in (0, 1), got {self.backtracking}")
         if self.initial_eq is not None and self.free_initial_state is False:
