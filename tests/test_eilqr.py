@@ -13,6 +13,7 @@ import torchtraj as tt
 from torchtraj import problems
 from torchtraj.core.batching import map_stage, map_state
 from torchtraj.core.constraints import Constraints
+from torchtraj.solvers.eilqr.continuation import Weights
 from torchtraj.solvers.eilqr.initial_state import InitialState
 from torchtraj.solvers.eilqr.model import Iterate, expand
 from torchtraj.solvers.eilqr.newton import direction
@@ -21,6 +22,7 @@ F64 = torch.float64
 DATA = Path(__file__).parent / "data"
 REFERENCE = json.loads((DATA / "eilqr_reference.json").read_text())
 HARD = json.loads((DATA / "reference.json").read_text())
+NO_BARRIER = Weights(torch.ones(1, dtype=F64), torch.ones(1, dtype=F64))  # the bound-free problems have no rows
 
 
 def bound_free(name: str, **changes) -> tt.Problem:
@@ -113,8 +115,9 @@ def test_the_newton_step_is_the_dense_kkt_solve(case):
     nu[:, 10:11] = torch.randn(1, 1, cons.me, dtype=F64)  # the waypoint's rows are zero at the other knots
     it = Iterate(X, torch.randn(1, N, 1, dtype=F64), torch.randn(1, N + 1, nx, dtype=F64), nu,
                  torch.randn(1, cons.meN, dtype=F64),
-                 torch.randn(1, 1 if initial is not None else 0, dtype=F64))
-    model = expand(problem, cons, problem.batched_params(1), it, x0, initial)
+                 torch.randn(1, 1 if initial is not None else 0, dtype=F64), torch.zeros(1, N, 0, dtype=F64),
+                 torch.zeros(1, 0, dtype=F64))
+    model = expand(problem, cons, problem.batched_params(1), it, x0, initial, NO_BARRIER)
     d = direction(model, it, x0, torch.zeros(1, dtype=F64))
     dX, dU, y = dense_newton_step(problem, it.X, it.U, it.lam, it.nu, it.nuN, it.mu0, x0, initial)
     # (random multipliers may leave the reduced Hessian indefinite: d.ok is not the point here, the step is)
@@ -145,8 +148,8 @@ def test_the_kkt_error_falls_quadratically_near_the_pendulum_optimum():
     assert sol.status[0] == tt.Status.CONVERGED and (sol.history.step_size[0] == 1.0).all()
     cons = Constraints.of(problem)
     final = Iterate(sol.X, sol.U, sol.costate, sol.X.new_zeros(1, problem.N, 0), sol.multipliers["terminal_eq"],
-                    sol.X.new_zeros(1, 0))
-    last = expand(problem, cons, problem.batched_params(1), final, problem.x0.unsqueeze(0), None).error
+                    sol.X.new_zeros(1, 0), sol.X.new_zeros(1, problem.N, 0), sol.X.new_zeros(1, 0))
+    last = expand(problem, cons, problem.batched_params(1), final, problem.x0.unsqueeze(0), None, NO_BARRIER).error
     e = torch.cat([sol.history.extra["kkt_error"][0], last])
     assert e[-1] < 1e-13 and len(e) >= 4, e
     tail = e[-3:]  # the last iterations: two Newton steps
@@ -213,18 +216,37 @@ def test_free_components_keep_the_others_at_the_given_start():
 
 # ---------------------------------------------------------------------------------------------- soft barriers
 def test_the_barriers_gap_to_the_hard_optimum_shrinks_with_its_weight():
-    """double_integrator with its control and velocity bounds as barriers: the gap to IPOPT's hard-constrained
+    """The paper's fixed weight (``barrier_continuation=False``): double_integrator with its control and velocity bounds as barriers: the gap to IPOPT's hard-constrained
     optimum falls with the weight w (measured: 3.6e-2, 1.0e-2, 1.4e-3 relative for w = 1e-2, 1e-3, 1e-4, the
     relaxation δ = w / 10: about linearly in w, each active row costing about w)."""
     hard = HARD["double_integrator"]["ipopt"]["cost"]
     gaps = []
     for weight in (1e-2, 1e-3, 1e-4):
         sol = tt.solve(problems.get("double_integrator"), method="eilqr",
-                       options=tt.EILQROptions(barrier_weight=weight, barrier_relaxation=weight / 10))
+                       options=tt.EILQROptions(barrier_weight=weight, barrier_relaxation=weight / 10,
+                                               barrier_continuation=False))
         assert sol.status[0] == tt.Status.CONVERGED
         gaps.append((float(sol.cost[0]) - hard) / hard)
     assert 0 < gaps[2] < gaps[1] < gaps[0] < 0.05, gaps
     assert gaps[2] < 2e-3, gaps
+
+
+def test_the_barrier_continuation_reaches_ipopts_hard_optimum_by_default():
+    """Default options (the continuation, an extension beyond the paper): the weight falls from 1e-4 to 1e-10 and
+    the point is IPOPT's hard-constrained optimum (the fixed weight 1e-4 stopped 1.0e-3 above it), a KKT point of the
+    problem with hard bounds: nonnegative multipliers, complementarity at the last weight, certified CONVERGED."""
+    problem = problems.get("double_integrator")
+    sol = tt.solve(problem, method="eilqr")
+    hard = HARD["double_integrator"]["ipopt"]["cost"]
+    assert sol.status[0] == tt.Status.CONVERGED
+    assert abs(float(sol.cost[0]) - hard) / hard < 1e-6
+    assert float(sol.max_violation[0]) <= 1e-8
+    weights = sol.history.extra["barrier_weight"][0]
+    assert float(weights[0]) == 1e-4 and float(weights[-1]) == pytest.approx(1e-10)
+    z = torch.cat([sol.multipliers[k].flatten(1) for k in ("u_upper", "u_lower", "x_upper", "x_lower")], -1)
+    assert float(z.min()) >= 0 and float(z.max()) > 1e-2  # some bound active, with a multiplier
+    assert float(sol.kkt["complementarity"][0]) <= 1e-9
+    assert float(sol.kkt["stationarity"][0]) <= 1e-8
 
 
 # ---------------------------------------------------------------------------------------------- globalisation

@@ -14,7 +14,8 @@ decreases between Newton stages as an interior point's barrier parameter ``μ`` 
 per instance (``w (B,)``), with ``E_w`` the KKT error of the current weight (stationarity with the inequality
 multipliers ``z``, the defects and equalities, and the complementarity ``|t (z − w s(t))|``, ``t = −g``,
 ``s = −β'``) and ``w_min`` tied to the tolerance (``tol / 10``: the last stage's barrier gap, about ``w`` per active
-row, is then below what the tolerance resolves). The relaxation follows the weight, ``δ = (δ_0 / w_0) w``. At
+row, is then below what the tolerance resolves; ``tol / 100`` in float32, :func:`final_weight`). The relaxation
+follows the weight, ``δ = (δ_0 / w_0) w``. At
 ``w_min`` an instance has converged where ``E_w ≤ tol``: a KKT point of the problem with *hard* inequalities to
 ``tol`` (complementarity ``z_i (−g_i) = w_min``), which the certificate of :mod:`torchtraj.kkt.certificate` checks.
 
@@ -138,13 +139,17 @@ def safeguarded(z: Tensor, barrier: Tensor) -> Tensor:
     return torch.minimum(torch.maximum(z, barrier / KAPPA_SIGMA), barrier * KAPPA_SIGMA)
 
 
-def final_weight(opts, tolerance: float) -> float:
-    """``w_min``: ``barrier_weight_final`` or ``tol / 10`` (the weight itself without continuation)."""
+def final_weight(opts, tolerance: float, dtype: torch.dtype) -> float:
+    """``w_min``: ``barrier_weight_final``, or ``tol / 10`` in float64 (1e-10) and ``tol / 100`` in float32
+    (1e-7); without continuation the weight itself. The last stage's gap to the hard optimum is about ``w`` per
+    active row: float32's tolerance (1e-5) is set by its resolution of the residuals, and ``tol / 10`` left the
+    contract test's pendulum 3.9e-6 above its float64 optimum, ``tol / 100`` within float32's resolution of the
+    cost."""
     if not opts.barrier_continuation:
         return opts.barrier_weight
     if opts.barrier_weight_final is not None:
         return min(opts.barrier_weight_final, opts.barrier_weight)
-    return min(tolerance / 10.0, opts.barrier_weight)
+    return min(tolerance / (10.0 if dtype == torch.float64 else 100.0), opts.barrier_weight)
 
 
 def next_weight(weight: Tensor, final: float, opts) -> Tensor:

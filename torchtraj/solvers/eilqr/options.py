@@ -38,8 +38,8 @@ class EILQROptions:
             a converged point is the hard-constrained problem's KKT point (an extension beyond the paper:
             :mod:`~torchtraj.solvers.eilqr.continuation`); ``False``: the paper's fixed weight, whose converged
             point is the KKT point of :meth:`EILQR.kkt_problem` (the soft problem).
-        barrier_weight_final: the last stage's weight ``w_min``; ``None``: ``tol / 10`` of the dtype's tolerance
-            (1e-10 in float64, 1e-6 in float32).
+        barrier_weight_final: the last stage's weight ``w_min``; ``None``: ``tol / 10`` of the dtype's tolerance in
+            float64 (1e-10), ``tol / 100`` in float32 (1e-7; :func:`~torchtraj.solvers.eilqr.continuation.final_weight`).
         barrier_decrease, barrier_superlinear: ``κ_w``, ``θ_w`` of ``w ← max(w_min, min(κ_w w, w^θ_w))``
             (IPOPT's ``κ_μ = 0.2``, ``θ_μ = 1.5``, Wächter & Biegler 2006 eq. (7)).
         barrier_error_factor: ``κ_ε``: a stage ends where the KKT error of its weight is below ``κ_ε w`` (IPOPT's

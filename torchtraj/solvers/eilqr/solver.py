@@ -87,7 +87,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     B = x0.shape[0]
     cons = Constraints.of(problem)
     tol = opts.tolerance_for(x0.dtype)
-    final = final_weight(opts, tol)
+    final = final_weight(opts, tol, x0.dtype)
     # the barrier's weight per instance: the first stage's, or the last's where there is no inequality row
     weight = x0.new_full((B,), opts.barrier_weight if cons.mi + cons.miN else final)
     weights = weights_for(weight, opts)
