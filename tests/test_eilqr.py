@@ -232,7 +232,7 @@ def test_the_barriers_gap_to_the_hard_optimum_shrinks_with_its_weight():
 
 
 def test_the_barrier_continuation_reaches_ipopts_hard_optimum_by_default():
-    """Default options (the continuation, an extension beyond the paper): the weight falls from 1e-4 to 1e-10 and
+    """Default options (the continuation, an extension beyond the paper): the weight falls from 1e-2 to 1e-10 and
     the point is IPOPT's hard-constrained optimum (the fixed weight 1e-4 stopped 1.0e-3 above it), a KKT point of the
     problem with hard bounds: nonnegative multipliers, complementarity at the last weight, certified CONVERGED."""
     problem = problems.get("double_integrator")
@@ -242,7 +242,7 @@ def test_the_barrier_continuation_reaches_ipopts_hard_optimum_by_default():
     assert abs(float(sol.cost[0]) - hard) / hard < 1e-6
     assert float(sol.max_violation[0]) <= 1e-8
     weights = sol.history.extra["barrier_weight"][0]
-    assert float(weights[0]) == 1e-4 and float(weights[-1]) == pytest.approx(1e-10)
+    assert float(weights[0]) == 1e-2 and float(weights[-1]) == pytest.approx(1e-10)
     z = torch.cat([sol.multipliers[k].flatten(1) for k in ("u_upper", "u_lower", "x_upper", "x_lower")], -1)
     assert float(z.min()) >= 0 and float(z.max()) > 1e-2  # some bound active, with a multiplier
     assert float(sol.kkt["complementarity"][0]) <= 1e-9
@@ -265,20 +265,20 @@ def test_the_full_newton_step_fails_where_the_globalised_one_converges(pendulum_
 # ---------------------------------------------------------------------------------------------- the problem set
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [n for n in problems.names() if n in HARD])
-def test_every_problem_with_soft_barriers_ends_with_a_status_and_a_cost_next_to_ipopts(name):
-    """Every problem of the set, its inequalities and bounds as barriers (w = 1e-4, δ = 1e-5, the defaults), from the set's own
-    guess (car_escape's state guess included): a final status per instance, and where converged a cost above IPOPT's
-    hard-constrained optimum by the barrier's gap or at another local optimum (printed; the README quotes them)."""
+def test_every_problem_with_default_options_reaches_ipopts_optimum_or_a_lower_kkt_point(name):
+    """Every problem of the set with default options and no state guess (issue 23; ``docs/benchmarks.md``, "Default
+    options"): certified CONVERGED, the hard constraints met to 1e-8 and the cost at IPOPT's optimum to 1e-6 relative
+    or below it (another local optimum: the benchmark checks that IPOPT warm-started there keeps it)."""
     problem = problems.get(name)
-    sol = tt.solve(problem, method="eilqr", X0=problem.X_init, options=tt.EILQROptions(iterations=300))
-    status = tt.Status(int(sol.status[0]))
-    assert status != tt.Status.RUNNING
+    sol = tt.solve(problem, method="eilqr")
     hard = HARD[name]["ipopt"]["cost"]
-    print(f"{name}: {status.name.lower()} after {int(sol.iterations[0])} iterations, cost {float(sol.cost[0]):.10g}"
-          f" (IPOPT {hard:.10g}, relative {(float(sol.cost[0]) - hard) / hard:+.2e}), max violation "
+    relative = (float(sol.cost[0]) - hard) / hard
+    print(f"{name}: {tt.Status(int(sol.status[0])).name.lower()} after {int(sol.iterations[0])} iterations, cost "
+          f"{float(sol.cost[0]):.10g} (IPOPT {hard:.10g}, relative {relative:+.2e}), max violation "
           f"{float(sol.max_violation[0]):.2e}")
-    if status == tt.Status.CONVERGED:
-        assert torch.isfinite(sol.cost).all() and float(sol.max_violation[0]) < 1e-2
+    assert sol.status[0] == tt.Status.CONVERGED
+    assert float(sol.max_violation[0]) <= 1e-8
+    assert relative <= 1e-6
 
 
 # ---------------------------------------------------------------------------------------------- gradients

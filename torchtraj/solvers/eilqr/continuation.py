@@ -15,7 +15,7 @@ per instance (``w (B,)``), with ``E_w`` the KKT error of the current weight (sta
 multipliers ``z``, the defects and equalities, and the complementarity ``|t (z − w s(t))|``, ``t = −g``,
 ``s = −β'``) and ``w_min`` tied to the tolerance (``tol / 10``: the last stage's barrier gap, about ``w`` per active
 row, is then below what the tolerance resolves; ``tol / 100`` in float32, :func:`final_weight`). The relaxation
-follows the weight, ``δ = (δ_0 / w_0) w``. At
+follows the weight, ``δ = w / 10`` (the options' ``barrier_relaxation / barrier_weight``). At
 ``w_min`` an instance has converged where ``E_w ≤ tol``: a KKT point of the problem with *hard* inequalities to
 ``tol`` (complementarity ``z_i (−g_i) = w_min``), which the certificate of :mod:`torchtraj.kkt.certificate` checks.
 
@@ -33,8 +33,11 @@ primal-dual form; ``w/δ²`` on relaxed rows, ``t < δ``) instead of the primal 
   multipliers make the Lagrangian stationary to the dtype's accuracy; ``w s(t)`` equals them to the complementarity
   tolerance.
 
-Each ``z`` is kept in ``[w s(t) / κ_Σ, κ_Σ w s(t)]`` (IPOPT's safeguard, ``κ_Σ = 1e10``, §3.7) so that ``σ`` stays
-within a factor of the primal curvature. ``barrier_continuation=False`` keeps the paper's fixed weight (the same
+Each ``z`` is kept in ``[w s(t) / κ_Σ, κ_Σ w s(t)]`` (IPOPT's safeguard, §3.7) so that ``σ`` stays within a factor
+of the primal curvature. IPOPT's ``κ_Σ = 1e10`` let the cart-pole's first steps, which cross the control bounds into
+the relaxed rows (``σ = w/δ² = 1e6``), set multipliers ``1e10`` times the barrier's (a complementarity error of
+``3e6``, the merit's ``γ`` at ``1e7``, 30 iterations to recover); ``κ_Σ = 1e4`` still keeps the largest ratio a
+decrease of ``w`` makes (``w_old / w_new = 1e3``). ``barrier_continuation=False`` keeps the paper's fixed weight (the same
 primal-dual steps converge to the soft problem's KKT point, whose multipliers are ``w s(t)``).
 
 The state rows apply from knot 1 as in the hard problem (:attr:`~torchtraj.core.constraints.Constraints.ineq_knot_mask`).
@@ -51,8 +54,9 @@ from ...core.constraints import Constraints
 from ...core.derivatives import stage_jacobian, terminal_jacobian
 from .barrier import relaxed_log, relaxed_log_curvature, relaxed_log_slope
 
-#: IPOPT's ``κ_Σ``: how far a multiplier may stray from the barrier's ``w s(t)`` (Wächter & Biegler 2006, §3.7).
-KAPPA_SIGMA = 1e10
+#: ``κ_Σ``: how far a multiplier may stray from the barrier's ``w s(t)`` (Wächter & Biegler 2006, §3.7, where it is
+#: 1e10; module docstring).
+KAPPA_SIGMA = 1e4
 
 
 @dataclass
@@ -148,8 +152,8 @@ def final_weight(opts, tolerance: float, dtype: torch.dtype) -> float:
     if not opts.barrier_continuation:
         return opts.barrier_weight
     if opts.barrier_weight_final is not None:
-        return min(opts.barrier_weight_final, opts.barrier_weight)
-    return min(tolerance / (10.0 if dtype == torch.float64 else 100.0), opts.barrier_weight)
+        return min(opts.barrier_weight_final, opts.barrier_weight_initial)
+    return min(tolerance / (10.0 if dtype == torch.float64 else 100.0), opts.barrier_weight_initial)
 
 
 def next_weight(weight: Tensor, final: float, opts) -> Tensor:
@@ -162,10 +166,15 @@ def stage_done(error: Tensor, weight: Tensor, opts) -> Tensor:
     return error <= opts.barrier_error_factor * weight
 
 
+def first_weight(opts) -> float:
+    """The first stage's weight: ``barrier_weight_initial`` with continuation, else the fixed ``barrier_weight``."""
+    return opts.barrier_weight_initial if opts.barrier_continuation else opts.barrier_weight
+
+
 def weights_for(weight: Tensor, opts) -> Weights:
-    """The :class:`Weights` of ``weight (B,)``, the relaxation in the options' ratio ``δ_0 / w_0``."""
+    """The :class:`Weights` of ``weight (B,)``, the relaxation in the options' ratio ``δ / w``."""
     return Weights(weight=weight, delta=weight * (opts.barrier_relaxation / opts.barrier_weight))
 
 
 __all__ = ["Weights", "Rows", "rows_at", "barrier_cost", "barrier_multipliers", "barrier_value", "curvatures", "safeguarded",
-           "final_weight", "next_weight", "stage_done", "weights_for", "KAPPA_SIGMA"]
+           "final_weight", "first_weight", "next_weight", "stage_done", "weights_for", "KAPPA_SIGMA"]

@@ -44,7 +44,8 @@ from ...core.solution import History, Solution
 from ...core.status import Status
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
-from .continuation import (barrier_multipliers, final_weight, next_weight, rows_at, stage_done, weights_for)
+from .continuation import (barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done,
+                           weights_for)
 from .globalization import globalized_step
 from .initial_state import InitialState
 from .merit import model_infeasibility, penalty
@@ -89,7 +90,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     tol = opts.tolerance_for(x0.dtype)
     final = final_weight(opts, tol, x0.dtype)
     # the barrier's weight per instance: the first stage's, or the last's where there is no inequality row
-    weight = x0.new_full((B,), opts.barrier_weight if cons.mi + cons.miN else final)
+    weight = x0.new_full((B,), first_weight(opts) if cons.mi + cons.miN else final)
     weights = weights_for(weight, opts)
     initial = InitialState(opts.free_initial_state, opts.initial_eq, x0) \
         if opts.free_initial_state is not False else None
