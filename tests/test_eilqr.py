@@ -281,6 +281,30 @@ def test_every_problem_with_default_options_reaches_ipopts_optimum_or_a_lower_kk
     assert relative <= 1e-6
 
 
+@pytest.mark.slow
+def test_the_cartpole_without_bounds_is_not_held_back_by_carried_regularisation():
+    """A cut step used to raise the next iteration's regularisation (``short_step`` 0.1), which every later partial step
+    then carried: 219 iterations at ``α = 0.125`` and ``ε = 2.7e-4``, past the old limit of 200. A step cut below 0.05
+    raises it now (measured: 33 iterations)."""
+    sol = tt.solve(problems.get("cartpole_unconstrained"), method="eilqr")
+    hard = HARD["cartpole_unconstrained"]["ipopt"]["cost"]
+    assert sol.status[0] == tt.Status.CONVERGED and int(sol.iterations[0]) <= 60, sol.iterations
+    assert abs(float(sol.cost[0]) - hard) / hard < 1e-6
+
+
+@pytest.mark.slow
+def test_the_cartpole_continuation_keeps_its_multipliers_near_the_barriers():
+    """The cart-pole's first steps cross its control bounds into the relaxed rows (``σ = w/δ²``); multipliers allowed
+    1e10 times the barrier's (IPOPT's ``κ_Σ``) reached a complementarity error of 3e6 and ``γ = 1e7``, and from the first
+    weight 1e-4 the solve took 263 iterations (336 before both). Measured now: 68, at IPOPT's optimum."""
+    sol = tt.solve(problems.get("cartpole"), method="eilqr")
+    hard = HARD["cartpole"]["ipopt"]["cost"]
+    assert sol.status[0] == tt.Status.CONVERGED and int(sol.iterations[0]) <= 100, sol.iterations
+    assert abs(float(sol.cost[0]) - hard) / hard < 1e-6
+    assert float(sol.history.extra["complementarity"][0].max()) < 1.0
+    assert float(sol.history.extra["gamma"][0].max()) < 1e3
+
+
 # ---------------------------------------------------------------------------------------------- gradients
 def test_the_implicit_layer_differentiates_the_barrier_problems_kkt_point():
     """``tt.solve`` differentiates eILQR's solution as a KKT point of ``EILQR.kkt_problem`` (bounds as barriers, the
