@@ -22,8 +22,8 @@ class EILQROptions:
     """Options of :func:`~torchtraj.solvers.eilqr.solver.solve_eilqr`.
 
     Attributes:
-        iterations: most Newton iterations (300: the pendulum's default solve takes 232, its continuation's
-            stage at ``w = 3.2e-5`` crawling at ``α ≈ 1/32`` for about 190 of them).
+        iterations: most Newton iterations (300: the pendulum's default solve takes 176, most of them in its
+            continuation's stage at ``w = 3.2e-5``, where the steps are cut to ``α ≈ 1/16`` to ``1/32``).
         tolerance: the KKT error at which an instance has converged, the largest of the Lagrangian's gradient,
             the dynamics defects, the equality rows and the initial-state rows (``∞``-norms, unscaled);
             ``None``: 1e-9 in float64, 1e-5 in float32.
@@ -39,9 +39,10 @@ class EILQROptions:
             a converged point is the hard-constrained problem's KKT point (an extension beyond the paper:
             :mod:`~torchtraj.solvers.eilqr.continuation`); ``False``: the paper's fixed weight, whose converged
             point is the KKT point of :meth:`EILQR.kkt_problem` (the soft problem).
-        barrier_weight_initial: the continuation's first weight. From 1e-4 the cart-pole's first stage crawled
-            (263 iterations in all, steps of 0.002 to 0.03 against its stiff barrier), from 1e-2 it takes 68, from
-            1e-1 107.
+        barrier_weight_initial: the continuation's first weight (IPOPT starts its ``μ`` at 1e-1). Measured on the
+            cart-pole with ``short_step`` 0: from 1e-4 its first stage crawled (263 iterations in all, steps of 0.002
+            to 0.03 against its stiff barrier), from 1e-3 85, from 1e-2 68, from 1e-1 107; the pendulum took 110,
+            223, 232 from 1e-4, 1e-3, 1e-2 (176 from 1e-2 with the default ``short_step``).
         barrier_weight_final: the last stage's weight ``w_min``; ``None``: ``tol / 10`` of the dtype's tolerance in
             float64 (1e-10), ``tol / 100`` in float32 (1e-7; :func:`~torchtraj.solvers.eilqr.continuation.final_weight`).
         barrier_decrease, barrier_superlinear: ``κ_w``, ``θ_w`` of ``w ← max(w_min, min(κ_w w, w^θ_w))``
