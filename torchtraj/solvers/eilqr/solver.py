@@ -4,8 +4,10 @@ Newton's method on the KKT conditions (§II-A, eqs. 2-4) of the problem with its
 inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrier`). Each iteration of
 :func:`solve_eilqr`, for every instance still running:
 
-1. the KKT model at the multiple-shooting iterate ``(X, U, λ, ν, ν_N, μ_0)`` (:mod:`~torchtraj.solvers.eilqr.model`);
-   converged where the KKT error is below the tolerance;
+1. the KKT model at the multiple-shooting iterate ``(X, U, λ, ν, ν_N, μ_0, z, z_N)``
+   (:mod:`~torchtraj.solvers.eilqr.model`); converged where the barrier's weight is the last one and the KKT error is
+   below the tolerance; where the error is below ``κ_ε w`` at an earlier weight, the weight falls (the barrier
+   continuation, an extension beyond the paper: :mod:`~torchtraj.solvers.eilqr.continuation`);
 2. the Newton step by the shared Riccati core with constraint back-propagation, with the initial state optimised
    where asked (:mod:`~torchtraj.solvers.eilqr.newton`, :mod:`~torchtraj.solvers.eilqr.initial_state`),
    regularised until the reduced Hessians are positive definite;
@@ -15,14 +17,14 @@ inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrie
    below ``short_step`` raises the next iteration's regularisation (a shorter, more gradient-like step), a full one
    lowers it (the paper's Fig. 5: adaptive ``α`` and ``ε_reg``; :class:`EILQROptions`).
 
-An instance has converged where the KKT error is below the tolerance, or where a full Newton step changes no
-variable by more than ten rounding errors of the iterate: the dtype can resolve no further step, and the error left
-is the rounding of the model. That is the float32 case of a barrier-augmented cost: an active row's barrier has the
-curvature ``z*² / w`` (``1e6`` for a multiplier ``z* = 10`` at ``w = 1e-4``), so its gradient at the float32 point
-nearest the optimum is off by that curvature times the rounding of the row (``6e-8`` for a bound of ``0.5``), and
-the KKT error stays at ``6e-3`` on the double integrator of ``tests/test_float32_barrier_methods.py`` while full
-steps of two rounding errors repeat until the iteration limit. ``tt.solve``'s certificate then reports such an
-instance ``STALLED`` wherever that error exceeds its float32 tolerance.
+An instance has converged where, at the last weight, the KKT error is below the tolerance or a full Newton step
+changes no variable by more than ten rounding errors of the iterate (the dtype can resolve no further step, and the
+error left is the rounding of the model); such a step at an earlier weight ends that stage. With the paper's fixed
+weight and the multipliers read off the barrier, that was the float32 case of the double integrator of
+``tests/test_float32_barrier_methods.py``: an active row's barrier has the curvature ``z*² / w`` (``1e6`` for
+``z* = 10`` at ``w = 1e-4``), so its gradient at the float32 point nearest the optimum is off by that curvature times
+the rounding of the row, a stationarity error up to ``5e-3`` that ``tt.solve``'s certificate reports ``STALLED``. The
+primal-dual multipliers of the continuation module make the Lagrangian stationary to float32's accuracy instead.
 
 Every decision is a mask on the batch: an instance that stops keeps its iterate and never changes another.
 """
