@@ -309,9 +309,10 @@ def test_the_cartpole_continuation_keeps_its_multipliers_near_the_barriers():
 
 
 # ---------------------------------------------------------------------------------------------- gradients
-def test_the_implicit_layer_differentiates_the_barrier_problems_kkt_point():
-    """``tt.solve`` differentiates eILQR's solution as a KKT point of ``EILQR.kkt_problem`` (bounds as barriers, the
-    goal equality exact): the cost's gradient in x0 against central differences of solves at 1e-12."""
+def test_the_implicit_layer_differentiates_the_hard_problems_kkt_point():
+    """``tt.solve`` differentiates eILQR's default solution (the barrier continuation's) as a KKT point of the problem
+    with hard bounds and the goal equality: the cost's gradient in x0 against central differences of solves at
+    1e-12."""
     problem = problems.get("double_integrator")
     x0 = torch.tensor([0.1, 0.0], dtype=F64, requires_grad=True)
     sol = tt.solve(problem, x0, "eilqr")
