@@ -65,6 +65,10 @@ class HMILQROptions:
     #: from its waypoint guess: with ``μ_0 = 1`` the first five AL iterations cut the path through a wall of circles
     #: (cost 0.13, below the optimum's 0.33, violation 0.24), and neither stage gets it out again (violation 0.250
     #: after 300 iterations; 0.249 with ``μ_0 = 10``); with 100 it converges to IPOPT's optimum (162 iterations).
+    #: With 100 every problem of the set converges from its own guess (docs/benchmarks.md, "Default options"; the
+    #: cart-pole at a local optimum IPOPT keeps, 1.789, where ``μ_0 = 1`` crawled toward IPOPT's 1.486); its price:
+    #: from a guess far outside the bounds (the paper's coarse cart-pole guess, controls 3 beyond them) the AL stage
+    #: stalls and the solve takes 486 iterations instead of 84 (N = 50).
     penalty_initial: float = 100.0
     #: ``φ``: the penalty scaling of eq. (16), applied after every iteration (one inner iteration per update).
     penalty_scaling: float = 10.0
