@@ -232,6 +232,25 @@ def test_every_other_problem_solves(reference, name, changes):
     _at_ipopts_optimum_or_a_confirmed_one(prob, sol, reference[name]["ipopt"]["cost"], prob.N, name)
 
 
+def test_the_papers_pure_line_search_ends_the_solve_where_crls_raises_the_regularisation():
+    """``failed_search_stops`` (the paper's pure LS of Fig. 5): the first failed line search of the RLB stage ends the
+    solve, ``STALLED``, ``μ_V`` never raised; CRLS at the same iterate returns to the backward pass with ``σ μ_V``
+    (eq. 22) up to ``μ_V^max`` before it gives up. The double integrator in the RLB stage from the start with
+    ``α ∈ {1, 1/2}``: measured, both searches fail at the sixth iteration (violation 3.1e-3), where no ``μ_V``
+    gives an accepted step either, so here CRLS buys nothing."""
+    prob = problems.get("double_integrator")
+    ends = {}
+    for crls in (False, True):
+        opts = tt.HMILQROptions(crls=crls, failed_search_stops=True, line_search_steps=2, al_iterations=0)
+        ends[crls] = tt.solve(prob, method="hm-ilqr", options=opts)
+    plain, crls = ends[False], ends[True]
+    assert plain.status.item() == tt.Status.STALLED and crls.status.item() == tt.Status.MAX_REGULARIZATION
+    assert int(plain.iterations) == int(crls.iterations) == 6
+    torch.testing.assert_close(plain.X, crls.X, rtol=0, atol=0)
+    assert float(plain.history.regularization.max()) <= 10 * tt.HMILQROptions().regularization_initial
+    assert float(crls.history.regularization[0, -1]) == tt.HMILQROptions().regularization_max
+
+
 @pytest.mark.slow
 def test_what_crls_buys_on_the_constrained_cartpole(reference):
     """The paper's Fig. 5(b-c): the RLB stage with the paper's pure LS (a failed line search ends the solve,
