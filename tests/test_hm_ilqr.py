@@ -185,6 +185,20 @@ PAPER = [  # (problem, N, M, zero controls): the paper's Tables II-IV at this pr
     ("quadrotor2d", 300, 30, False),
 ]
 
+@pytest.mark.slow
+@pytest.mark.parametrize("name,N,M,zero_controls", PAPER)
+def test_the_papers_comparisons(reference, name, N, M, zero_controls):
+    """The paper's starts: the nodes on the line from x0 to the goal (dynamically inconsistent), zero controls for
+    the car, the problem set's hover controls for the quadrotor; default options but M (docs/benchmarks.md,
+    "HM-iLQR", has the measured rows)."""
+    prob = _problem(name, N)
+    U0 = torch.zeros(N, prob.nu, dtype=F64) if zero_controls else None
+    sol = tt.solve(prob, method="hm-ilqr", U0=U0, options=tt.HMILQROptions(segments=M))
+    assert sol.status.item() == tt.Status.CONVERGED, sol.status
+    assert float(sol.max_violation) <= 1e-7
+    _at_ipopts_optimum_or_a_confirmed_one(prob, sol, _ipopt_cost(reference, name, N), N, name)
+
+
 def _coarse_cartpole_guess(N: int):
     """The paper's kind of start for the cart-pole (§IV-A: the nodes and controls of a low-resolution DIRCOL run that
     is not yet feasible): the interior point's point on the cart-pole at N = 10 (dt = 0.5 s, where it ends
