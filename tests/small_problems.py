@@ -42,3 +42,15 @@ def oscillator(**changes):
     )
     base.update(changes)
     return tt.Problem(**base)
+
+
+def powell_circle(x0, N=1):
+    """Powell's Maratos example on the unit circle as a problem over N stages: ``x_{k+1} = x_k + u_k`` with
+    ``|x_N|² = 1``, cost ``10⁻³ Σ|u_k|² + 2(|x_N|² − 1) − x_{N,1}``, from ``x0`` (a list of two numbers); the optimum
+    on the circle is near ``(1, 0)``."""
+    return tt.Problem(
+        dynamics=lambda x, u, p: x + u,
+        stage_cost=lambda x, u, p: 1e-3 * (u * u).sum(),
+        terminal_cost=lambda x, p: 2.0 * ((x * x).sum() - 1.0) - x[0],
+        terminal_eq=lambda x, p: ((x * x).sum() - 1.0).reshape(1),
+        x0=torch.tensor(x0, dtype=F64), horizon=N, nu=2)

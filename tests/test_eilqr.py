@@ -13,6 +13,7 @@ import torchtraj as tt
 from torchtraj import problems
 from torchtraj.core.batching import map_stage, map_state
 from torchtraj.core.constraints import Constraints
+from torchtraj.solvers.eilqr.continuation import Weights
 from torchtraj.solvers.eilqr.initial_state import InitialState
 from torchtraj.solvers.eilqr.model import Iterate, expand
 from torchtraj.solvers.eilqr.newton import direction
@@ -21,6 +22,7 @@ F64 = torch.float64
 DATA = Path(__file__).parent / "data"
 REFERENCE = json.loads((DATA / "eilqr_reference.json").read_text())
 HARD = json.loads((DATA / "reference.json").read_text())
+NO_BARRIER = Weights(torch.ones(1, dtype=F64), torch.ones(1, dtype=F64))  # the bound-free problems have no rows
 
 
 def bound_free(name: str, **changes) -> tt.Problem:
@@ -113,8 +115,9 @@ def test_the_newton_step_is_the_dense_kkt_solve(case):
     nu[:, 10:11] = torch.randn(1, 1, cons.me, dtype=F64)  # the waypoint's rows are zero at the other knots
     it = Iterate(X, torch.randn(1, N, 1, dtype=F64), torch.randn(1, N + 1, nx, dtype=F64), nu,
                  torch.randn(1, cons.meN, dtype=F64),
-                 torch.randn(1, 1 if initial is not None else 0, dtype=F64))
-    model = expand(problem, cons, problem.batched_params(1), it, x0, initial)
+                 torch.randn(1, 1 if initial is not None else 0, dtype=F64), torch.zeros(1, N, 0, dtype=F64),
+                 torch.zeros(1, 0, dtype=F64))
+    model = expand(problem, cons, problem.batched_params(1), it, x0, initial, NO_BARRIER)
     d = direction(model, it, x0, torch.zeros(1, dtype=F64))
     dX, dU, y = dense_newton_step(problem, it.X, it.U, it.lam, it.nu, it.nuN, it.mu0, x0, initial)
     # (random multipliers may leave the reduced Hessian indefinite: d.ok is not the point here, the step is)
@@ -145,8 +148,8 @@ def test_the_kkt_error_falls_quadratically_near_the_pendulum_optimum():
     assert sol.status[0] == tt.Status.CONVERGED and (sol.history.step_size[0] == 1.0).all()
     cons = Constraints.of(problem)
     final = Iterate(sol.X, sol.U, sol.costate, sol.X.new_zeros(1, problem.N, 0), sol.multipliers["terminal_eq"],
-                    sol.X.new_zeros(1, 0))
-    last = expand(problem, cons, problem.batched_params(1), final, problem.x0.unsqueeze(0), None).error
+                    sol.X.new_zeros(1, 0), sol.X.new_zeros(1, problem.N, 0), sol.X.new_zeros(1, 0))
+    last = expand(problem, cons, problem.batched_params(1), final, problem.x0.unsqueeze(0), None, NO_BARRIER).error
     e = torch.cat([sol.history.extra["kkt_error"][0], last])
     assert e[-1] < 1e-13 and len(e) >= 4, e
     tail = e[-3:]  # the last iterations: two Newton steps
@@ -213,18 +216,37 @@ def test_free_components_keep_the_others_at_the_given_start():
 
 # ---------------------------------------------------------------------------------------------- soft barriers
 def test_the_barriers_gap_to_the_hard_optimum_shrinks_with_its_weight():
-    """double_integrator with its control and velocity bounds as barriers: the gap to IPOPT's hard-constrained
+    """The paper's fixed weight (``barrier_continuation=False``): double_integrator with its control and velocity bounds as barriers: the gap to IPOPT's hard-constrained
     optimum falls with the weight w (measured: 3.6e-2, 1.0e-2, 1.4e-3 relative for w = 1e-2, 1e-3, 1e-4, the
     relaxation δ = w / 10: about linearly in w, each active row costing about w)."""
     hard = HARD["double_integrator"]["ipopt"]["cost"]
     gaps = []
     for weight in (1e-2, 1e-3, 1e-4):
         sol = tt.solve(problems.get("double_integrator"), method="eilqr",
-                       options=tt.EILQROptions(barrier_weight=weight, barrier_relaxation=weight / 10))
+                       options=tt.EILQROptions(barrier_weight=weight, barrier_relaxation=weight / 10,
+                                               barrier_continuation=False))
         assert sol.status[0] == tt.Status.CONVERGED
         gaps.append((float(sol.cost[0]) - hard) / hard)
     assert 0 < gaps[2] < gaps[1] < gaps[0] < 0.05, gaps
     assert gaps[2] < 2e-3, gaps
+
+
+def test_the_barrier_continuation_reaches_ipopts_hard_optimum_by_default():
+    """Default options (the continuation, an extension beyond the paper): the weight falls from 1e-2 to 1e-10 and
+    the point is IPOPT's hard-constrained optimum (the fixed weight 1e-4 stopped 1.0e-3 above it), a KKT point of the
+    problem with hard bounds: nonnegative multipliers, complementarity at the last weight, certified CONVERGED."""
+    problem = problems.get("double_integrator")
+    sol = tt.solve(problem, method="eilqr")
+    hard = HARD["double_integrator"]["ipopt"]["cost"]
+    assert sol.status[0] == tt.Status.CONVERGED
+    assert abs(float(sol.cost[0]) - hard) / hard < 1e-6
+    assert float(sol.max_violation[0]) <= 1e-8
+    weights = sol.history.extra["barrier_weight"][0]
+    assert float(weights[0]) == 1e-2 and float(weights[-1]) == pytest.approx(1e-10)
+    z = torch.cat([sol.multipliers[k].flatten(1) for k in ("u_upper", "u_lower", "x_upper", "x_lower")], -1)
+    assert float(z.min()) >= 0 and float(z.max()) > 1e-2  # some bound active, with a multiplier
+    assert float(sol.kkt["complementarity"][0]) <= 1e-9
+    assert float(sol.kkt["stationarity"][0]) <= 1e-8
 
 
 # ---------------------------------------------------------------------------------------------- globalisation
@@ -242,27 +264,55 @@ def test_the_full_newton_step_fails_where_the_globalised_one_converges(pendulum_
 
 # ---------------------------------------------------------------------------------------------- the problem set
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [n for n in problems.names() if n in HARD])
-def test_every_problem_with_soft_barriers_ends_with_a_status_and_a_cost_next_to_ipopts(name):
-    """Every problem of the set, its inequalities and bounds as barriers (w = 1e-4, δ = 1e-5, the defaults), from the set's own
-    guess (car_escape's state guess included): a final status per instance, and where converged a cost above IPOPT's
-    hard-constrained optimum by the barrier's gap or at another local optimum (printed; the README quotes them)."""
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="measured: 300 iterations, MAX_ITERATIONS, from the "
+                                            "problem's own x0 inside the walls and no state guess"))
+    if n == "car_escape" else n for n in problems.names() if n in HARD])
+def test_every_problem_with_default_options_reaches_ipopts_optimum_or_a_lower_kkt_point(name):
+    """Every problem of the set with default options and no state guess (issue 23; ``docs/benchmarks.md``, "Default
+    options"): certified CONVERGED, the hard constraints met to 1e-8 and the cost at IPOPT's optimum to 1e-6 relative
+    or below it (another local optimum: the benchmark checks that IPOPT warm-started there keeps it)."""
     problem = problems.get(name)
-    sol = tt.solve(problem, method="eilqr", X0=problem.X_init, options=tt.EILQROptions(iterations=300))
-    status = tt.Status(int(sol.status[0]))
-    assert status != tt.Status.RUNNING
+    sol = tt.solve(problem, method="eilqr")
     hard = HARD[name]["ipopt"]["cost"]
-    print(f"{name}: {status.name.lower()} after {int(sol.iterations[0])} iterations, cost {float(sol.cost[0]):.10g}"
-          f" (IPOPT {hard:.10g}, relative {(float(sol.cost[0]) - hard) / hard:+.2e}), max violation "
+    relative = (float(sol.cost[0]) - hard) / hard
+    print(f"{name}: {tt.Status(int(sol.status[0])).name.lower()} after {int(sol.iterations[0])} iterations, cost "
+          f"{float(sol.cost[0]):.10g} (IPOPT {hard:.10g}, relative {relative:+.2e}), max violation "
           f"{float(sol.max_violation[0]):.2e}")
-    if status == tt.Status.CONVERGED:
-        assert torch.isfinite(sol.cost).all() and float(sol.max_violation[0]) < 1e-2
+    assert sol.status[0] == tt.Status.CONVERGED
+    assert float(sol.max_violation[0]) <= 1e-8
+    assert relative <= 1e-6
+
+
+@pytest.mark.slow
+def test_the_cartpole_without_bounds_is_not_held_back_by_carried_regularisation():
+    """A cut step used to raise the next iteration's regularisation (``short_step`` 0.1), which every later partial step
+    then carried: 219 iterations at ``α = 0.125`` and ``ε = 2.7e-4``, past the old limit of 200. A step cut below 0.05
+    raises it now (measured: 33 iterations)."""
+    sol = tt.solve(problems.get("cartpole_unconstrained"), method="eilqr")
+    hard = HARD["cartpole_unconstrained"]["ipopt"]["cost"]
+    assert sol.status[0] == tt.Status.CONVERGED and int(sol.iterations[0]) <= 60, sol.iterations
+    assert abs(float(sol.cost[0]) - hard) / hard < 1e-6
+
+
+@pytest.mark.slow
+def test_the_cartpole_continuation_keeps_its_multipliers_near_the_barriers():
+    """The cart-pole's first steps cross its control bounds into the relaxed rows (``σ = w/δ²``); multipliers allowed
+    1e10 times the barrier's (IPOPT's ``κ_Σ``) reached a complementarity error of 3e6 and ``γ = 1e7``, and from the first
+    weight 1e-4 the solve took 263 iterations (336 before both). Measured now: 50, at IPOPT's optimum."""
+    sol = tt.solve(problems.get("cartpole"), method="eilqr")
+    hard = HARD["cartpole"]["ipopt"]["cost"]
+    assert sol.status[0] == tt.Status.CONVERGED and int(sol.iterations[0]) <= 100, sol.iterations
+    assert abs(float(sol.cost[0]) - hard) / hard < 1e-6
+    assert float(sol.history.extra["complementarity"][0].max()) < 1.0
+    assert float(sol.history.extra["gamma"][0].max()) < 1e3
 
 
 # ---------------------------------------------------------------------------------------------- gradients
-def test_the_implicit_layer_differentiates_the_barrier_problems_kkt_point():
-    """``tt.solve`` differentiates eILQR's solution as a KKT point of ``EILQR.kkt_problem`` (bounds as barriers, the
-    goal equality exact): the cost's gradient in x0 against central differences of solves at 1e-12."""
+def test_the_implicit_layer_differentiates_the_hard_problems_kkt_point():
+    """``tt.solve`` differentiates eILQR's default solution (the barrier continuation's) as a KKT point of the problem
+    with hard bounds and the goal equality: the cost's gradient in x0 against central differences of solves at
+    1e-12."""
     problem = problems.get("double_integrator")
     x0 = torch.tensor([0.1, 0.0], dtype=F64, requires_grad=True)
     sol = tt.solve(problem, x0, "eilqr")

@@ -579,8 +579,9 @@ def test_mehrotra_ends_an_infeasible_instance_with_a_status():
 
 def test_the_parallel_in_time_sweep_takes_the_same_steps():
     """``IPOptions.sweep = "parallel"``: the Newton steps by the associative-scan Riccati sweep, on a problem without
-    equality rows (bounds as barriers), give the sequential sweep's iterates to round-off; with a goal equality the
-    rows need the sequential back-propagation, which "parallel" refuses by name and "auto" takes."""
+    equality rows (bounds as barriers), give the sequential sweep's iterates to round-off; a goal equality takes the
+    range-space method on either sweep (the same steps to round-off), while its back-propagation is sequential and
+    "parallel" refuses it by name."""
     problem = tt.problems.get("pendulum").replace(horizon=12, u_init=torch.zeros(1, dtype=torch.float64),
                                                  terminal_eq=None)
     x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
@@ -590,10 +591,16 @@ def test_the_parallel_in_time_sweep_takes_the_same_steps():
     assert torch.equal(parallel.status, sequential.status) and torch.equal(parallel.iterations, sequential.iterations)
     torch.testing.assert_close(parallel.U, sequential.U, rtol=0, atol=1e-9)
     torch.testing.assert_close(parallel.costate, sequential.costate, rtol=0, atol=1e-8)
-    goal = tt.problems.get("pendulum").replace(horizon=12, u_init=torch.zeros(1, dtype=torch.float64))
+    goal = tt.problems.get("double_integrator")  # its goal is a terminal equality
+    x0 = torch.stack([goal.x0, 0.5 * goal.x0])  # feasible starts (some of sample_x0's are not)
+    sequential = tt.solve(goal, x0, "ipm")
+    parallel = tt.solve(goal, x0, "ipm", options=tt.IPOptions(sweep="parallel"))
+    assert (sequential.status == tt.Status.CONVERGED).all()
+    assert torch.equal(parallel.status, sequential.status) and torch.equal(parallel.iterations, sequential.iterations)
+    torch.testing.assert_close(parallel.U, sequential.U, rtol=0, atol=1e-9)
     with pytest.raises(ValueError, match="parallel"):
-        tt.solve(goal, x0, "ipm", options=tt.IPOptions(sweep="parallel"))
+        tt.solve(goal, x0, "ipm", options=tt.IPOptions(sweep="parallel", terminal_rows="back-propagation"))
     auto = tt.solve(goal, x0, "ipm", options=tt.IPOptions(sweep="auto"))
-    assert torch.equal(auto.U, tt.solve(goal, x0, "ipm").U)
+    assert torch.equal(auto.U, parallel.U)  # a batch this small takes the parallel sweep
     with pytest.raises(ValueError, match="sweep"):
         tt.IPOptions(sweep="scan")

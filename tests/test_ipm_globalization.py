@@ -10,23 +10,15 @@ analytic optimum ``x_N = (1, 0)``, ``u_k = (1/2, 0)``, cost ``−1 + 10⁻³ · 
 import math
 
 import torch
+from small_problems import powell_circle
 
 import torchtraj as tt
 
 F64 = torch.float64
 
 
-def circle_problem() -> tt.Problem:
-    return tt.Problem(
-        dynamics=lambda x, u, p: x + u,
-        stage_cost=lambda x, u, p: 1e-3 * (u * u).sum(),
-        terminal_cost=lambda x, p: 2.0 * ((x * x).sum() - 1.0) - x[0],
-        terminal_eq=lambda x, p: ((x * x).sum() - 1.0).reshape(1),
-        x0=torch.zeros(2, dtype=F64), horizon=2, nu=2)
-
-
 def test_second_order_correction_rescues_the_full_step_on_a_curved_constraint():
-    problem = circle_problem()
+    problem = powell_circle([0.0, 0.0], N=2)
     xN = torch.tensor([math.cos(0.5), math.sin(0.5)], dtype=F64)
     X0, U0 = torch.stack([torch.zeros(2, dtype=F64), xN / 2, xN]), torch.stack([xN / 2, xN / 2])
     solve = lambda soc: tt.solve(problem, method="ipm", X0=X0, U0=U0,  # noqa: E731

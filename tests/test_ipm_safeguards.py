@@ -22,14 +22,23 @@ residuals by autograd, ``tests/kkt.py``).
 **Dependent equality rows** (the case of IPOPT's ``δ_c``): a terminal row stated twice, and two stage rows whose
 Jacobians coincide at the solution and whose linearisations disagree elsewhere (``u = 0.5`` and ``u² = 0.25``).
 IPOPT, on a duplicated row, perturbs the constraint block; the Riccati core's rank-revealing elimination drops the
-dependent row instead. Both converge, with the cost of the problem stated once, and pass the KKT check.
+dependent row instead. Both converge, with the cost of the problem stated once, and pass the KKT check. A row
+whose gradient vanishes where it holds (``(x_{N,0} − 1)² = 0``, slow) is no case for ``δ_c``: IPOPT never perturbs
+the constraint block there (the Jacobian is small, not singular) and ends ``Error_In_Step_Computation`` at a
+violation of 1.1e-16; the IPM takes the same iterates and ends there too, ``MAX_REGULARIZATION``.
+
+**Host synchronisations.** The loop asks the host twice per iteration (the running count, and one read of the
+restoration gate, the tiny steps and the watchdog's state), counted on Powell's example.
 """
 
+import json
 import math
+import pathlib
 
 import pytest
 import torch
 from kkt import kkt_residuals
+from small_problems import powell_circle
 
 import torchtraj as tt
 from torchtraj.globalization.filter import Filter
@@ -40,20 +49,11 @@ F64 = torch.float64
 ANGLE = 3.0
 
 
-def powell() -> tt.Problem:
-    return tt.Problem(
-        dynamics=lambda x, u, p: x + u,
-        stage_cost=lambda x, u, p: 1e-3 * (u * u).sum(),
-        terminal_cost=lambda x, p: 2.0 * ((x * x).sum() - 1.0) - x[0],
-        terminal_eq=lambda x, p: ((x * x).sum() - 1.0).reshape(1),
-        x0=torch.tensor([math.cos(ANGLE), math.sin(ANGLE)], dtype=F64), horizon=1, nu=2)
-
-
 def test_the_watchdog_takes_full_steps_and_returns_to_the_stored_point():
     scipy = pytest.importorskip("scipy.optimize")
     best = scipy.minimize_scalar(lambda a: 1e-3 * (2 - 2 * math.cos(a - ANGLE)) - math.cos(a), bounds=(-1, 1),
                                  method="bounded", options={"xatol": 1e-12})
-    problem = powell()
+    problem = powell_circle([math.cos(ANGLE), math.sin(ANGLE)])
     solve = lambda trigger: tt.solve(problem, method="ipm", options=tt.IPOptions(  # noqa: E731
         second_order_corrections=0, watchdog_trigger=trigger))
     watched, plain = solve(1), solve(0)
@@ -133,3 +133,49 @@ def test_dependent_equality_rows_are_dropped_not_singular():
     sol = tt.solve(pinned, method="ipm")
     assert sol.status.tolist() == [tt.Status.CONVERGED] and _kkt_ok(pinned, sol)
     torch.testing.assert_close(sol.U[0], torch.full_like(sol.U[0], 0.5), rtol=0, atol=1e-8)
+
+
+def test_one_host_synchronisation_per_iteration_in_the_loop(monkeypatch):
+    """The loop of :func:`~torchtraj.solvers.ipm.solver.run` asks the host twice per iteration: how many instances
+    still run, and, at once, whether any enters a restoration phase, took a tiny step, or has a watchdog running
+    or about to start (before: a test of its own for each). Counted on Powell's example with the watchdog active
+    (trigger 1); the line search's and the inertia correction's own tests are elsewhere and not counted here."""
+    import sys
+
+    import torchtraj.solvers.ipm.solver as loop
+
+    calls = []
+
+    def counting(name):
+        original = getattr(torch.Tensor, name)
+
+        def wrapper(self, *args, **kwargs):
+            if sys._getframe(1).f_code.co_filename == loop.__file__:
+                calls.append(name)
+            return original(self, *args, **kwargs)
+        return wrapper
+
+    for name in ("__bool__", "__int__", "__float__", "item", "tolist"):
+        monkeypatch.setattr(torch.Tensor, name, counting(name))
+    problem = powell_circle([math.cos(ANGLE), math.sin(ANGLE)])
+    sol = tt.solve(problem, method="ipm", options=tt.IPOptions(second_order_corrections=0, watchdog_trigger=1))
+    monkeypatch.undo()
+    steps = int(sol.iterations[0])
+    assert sol.status.tolist() == [tt.Status.CONVERGED]
+    assert len(calls) == 2 * steps + 1, (len(calls), steps)  # the last pass only counts the running instances
+
+
+@pytest.mark.slow
+def test_a_row_whose_gradient_vanishes_where_it_holds_ends_as_ipopt_does():
+    """The terminal row ``(x_{N,0} − 1)² = 0`` (its gradient vanishes where it holds: no multiplier exists there).
+    IPOPT (tests/data/ipm_degenerate_row.json) takes full steps that halve the distance to 1, so the violation falls
+    by 4 per iteration to 1.1e-16, where no step is acceptable and it ends ``Error_In_Step_Computation`` after 26
+    iterations; its ``δ_c`` (W&B §3.1) never acts, the Jacobian row ``2(x − 1)`` being small but never singular.
+    The IPM takes the same iterates (the same violations) and ends where IPOPT does, ``MAX_REGULARIZATION``."""
+    ipopt = json.loads((pathlib.Path(__file__).parent / "data" / "ipm_degenerate_row.json").read_text())
+    sol = tt.solve(double_integrator(terminal_eq=lambda x, p: ((x[0] - 1) ** 2).reshape(1)), method="ipm")
+    assert ipopt["status"] == "Error_In_Step_Computation"
+    assert sol.status.tolist() == [tt.Status.MAX_REGULARIZATION]
+    torch.testing.assert_close(sol.history.max_violation[0, :len(ipopt["violation"])],
+                               torch.tensor(ipopt["violation"], dtype=F64), rtol=1e-9, atol=0)
+    assert abs(float(sol.cost[0]) - ipopt["objective"][-1]) < 1e-8 * ipopt["objective"][-1]

@@ -92,12 +92,16 @@ def test_time_floor_active():
     assert float(sol.max_violation[0]) < 1e-8
 
 
-def test_eilqr_soft_barrier_near_the_minimum_time():
-    """eILQR's inequalities are soft log barriers, so its T sits above 2√d by the barrier's bias (measured 7e-4)."""
+def test_eilqr_reaches_the_minimum_time_and_its_fixed_barrier_stays_above():
+    """eILQR's default barrier continuation reaches 2√d; with the paper's fixed soft barrier
+    (``barrier_continuation=False``) T sits above it by the barrier's bias (measured 7e-4)."""
     mt = transform()
     sol = tt.solve(mt.problem, method="eilqr")
     assert tt.Status(int(sol.status[0])) == tt.Status.CONVERGED
-    T = float(mt.duration(sol.X)[0])
+    assert float(mt.duration(sol.X)[0]) == pytest.approx(2.0 * math.sqrt(DISTANCE), rel=1e-7)
+    soft = tt.solve(mt.problem, method="eilqr", options=tt.EILQROptions(barrier_continuation=False))
+    assert tt.Status(int(soft.status[0])) == tt.Status.CONVERGED
+    T = float(mt.duration(soft.X)[0])
     assert 2.0 * math.sqrt(DISTANCE) <= T <= 2.0 * math.sqrt(DISTANCE) * (1 + 2e-3)
 
 

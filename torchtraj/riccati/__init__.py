@@ -39,7 +39,9 @@ The files, in the order they build on each other (``torchtraj.riccati.<file>``):
 - ``factorization``: :func:`factorize`, the backward sweep over the matrices, and :func:`solve_lqr`;
 - ``square_root``: ALTRO's square-root backward pass, giving the same :class:`RiccatiFactor`;
 - ``parallel_scan``, ``parallel``: the parallel-in-time sweep (``factorize(..., sweep="parallel")``), associative
-  scans over the stages, O(log N) deep, for problems without back-propagated rows.
+  scans over the stages, O(log N) deep, for problems without back-propagated rows;
+- ``range_space``: terminal rows by their Schur complement on either unconstrained sweep
+  (``factorize(..., terminal_rows="range-space")``), the interior point's default.
 """
 
 from .factor import RiccatiFactor

@@ -31,13 +31,15 @@ from .linalg import _time_major
 from .lqr import LQR, LQRSolution, LQRVectors
 from .parallel import choose_sweep, factorize_parallel
 from .propagation import _stage_rows, _terminal_constraint, default_rank_tolerance
+from .range_space import TERMINAL_ROWS, applies, factorize_range_space, penalised
 from .rows import factorize_rows
 from .sanitize import _sanitize_stacked
 from .sweep import factorize_stages, finish_single
 
 
 def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance: Optional[float] = None,
-              shift: Optional[Tensor] = None, sweep: str = "sequential") -> RiccatiFactor:
+              shift: Optional[Tensor] = None, sweep: str = "sequential",
+              terminal_rows: str = "back-propagation") -> RiccatiFactor:
     """Backward Riccati sweep over the matrices of ``lqr``.
 
     Args:
@@ -51,7 +53,17 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         sweep: ``"sequential"`` (this backward sweep), ``"parallel"`` (the associative-scan sweep of
             :mod:`~torchtraj.riccati.parallel`, O(log N) deep; no back-propagated rows) or ``"auto"``
             (:func:`~torchtraj.riccati.parallel.choose_sweep`).
+        terminal_rows: ``"back-propagation"`` (the rows take the constraint back-propagation) or
+            ``"range-space"``: where the only rows are terminal ones and there is no ``regularization``, the
+            unconstrained ``sweep`` and the Schur complement of the rows
+            (:mod:`~torchtraj.riccati.range_space`), a :class:`~torchtraj.riccati.range_space.RangeSpaceFactor`.
     """
+    if terminal_rows not in TERMINAL_ROWS:
+        raise ValueError(f"terminal_rows must be one of {TERMINAL_ROWS}, not {terminal_rows!r}")
+    if terminal_rows == "range-space" and applies(lqr, regularization):
+        tol = default_rank_tolerance(lqr.A.dtype) if rank_tolerance is None else rank_tolerance
+        unconstrained, correction = penalised(lqr, tol)
+        return factorize_range_space(factorize(unconstrained, shift=shift, sweep=sweep), lqr, correction, tol)
     if sweep != "sequential" and choose_sweep(lqr, sweep) == "parallel":
         return factorize_parallel(lqr, regularization, shift)
     exact = regularization is None and not lqr.propagated

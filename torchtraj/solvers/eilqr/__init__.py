@@ -3,13 +3,18 @@
 
 Horizon's equality-constrained iLQR (Laurenzi, Ruscelli & Tsagarakis): Newton's method on the KKT conditions with
 multipliers, constraint back-propagation, an optional free initial state and an exact ℓ1 merit. Its equalities are
-exact; its inequalities and bounds are soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrier`), so a
-converged solution is a KKT point of :meth:`EILQR.kkt_problem` (the barrier-augmented, equality-constrained
-problem), not of the hard-inequality one: the contract test and the implicit layer check and differentiate that
-problem. It takes a state guess ``X0`` (multiple shooting) and no warm-started duals.
+exact; its inequalities and bounds are soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrier`). By
+default their weight decreases between Newton stages down to a tolerance-sized one, with primal-dual steps (an
+extension beyond the paper, :mod:`~torchtraj.solvers.eilqr.continuation`), so that a converged solution is a KKT
+point of the problem with hard inequalities. With ``barrier_continuation=False`` (the paper's fixed weight) it is a
+KKT point of :meth:`EILQR.kkt_problem` (the barrier-augmented, equality-constrained problem): the certificate, the
+contract test and the implicit layer then check and differentiate that problem. It takes a state guess ``X0``
+(multiple shooting) and no warm-started duals.
 """
 
 from __future__ import annotations
+
+from typing import Optional
 
 from ...core.batch import Batch
 from ...core.problem import Problem
@@ -33,15 +38,19 @@ class EILQR(Solver):
         return solve_eilqr(problem, batch, options, method=self.name)
 
     def step_defaults(self) -> EILQROptions:
-        """A control step's options: a barrier ten times stiffer than a solve's (``w = 1e-3``, ``δ = 1e-4``). A few
-        warm-started iterations a step then track the moving optimum; with the solve's ``w = 1e-4`` three iterations
-        a step did not swing the contract test's pendulum up."""
-        return EILQROptions(barrier_weight=1e-3, barrier_relaxation=1e-4)
+        """A control step's options: the paper's fixed weight (a few warm-started iterations a step track the moving
+        optimum, no continuation), ten times stiffer than a solve's first (``w = 1e-3``, ``δ = 1e-4``); with
+        ``w = 1e-4`` three iterations a step did not swing the contract test's pendulum up."""
+        return EILQROptions(barrier_weight=1e-3, barrier_relaxation=1e-4, barrier_continuation=False)
 
-    def kkt_problem(self, problem: Problem, options) -> Problem:
-        """``problem`` with its inequalities as the soft barriers of ``options``: what a converged solution is a KKT
-        point of (a fixed initial state; with ``free_initial_state`` the start's stationarity holds as well)."""
+    def kkt_problem(self, problem: Problem, options) -> Optional[Problem]:
+        """With a fixed weight (``barrier_continuation=False``), ``problem`` with its inequalities as the soft
+        barriers of ``options``: what a converged solution is a KKT point of (a fixed initial state; with
+        ``free_initial_state`` the start's stationarity holds as well). With continuation ``None``: the problem
+        itself, inequalities hard."""
         opts = self.options(options)
+        if opts.barrier_continuation:
+            return None
         return soft_problem(problem, opts.barrier_weight, opts.barrier_relaxation)
 
     def fixes_initial_state(self, options) -> bool:

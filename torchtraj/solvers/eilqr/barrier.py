@@ -15,35 +15,48 @@ the relaxed logarithmic barrier (Hauser & Saccon 2006; Feller & Ebenbauer 2017) 
 value, slope and curvature at ``t = δ`` (C²), so the barrier is finite at an infeasible guess and its Newton steps
 are defined everywhere. At a solution, an active row sits at ``t ≈ w / z*`` from its bound (``z*`` the hard
 problem's multiplier) and costs about ``w`` above the hard-constrained optimum; inactive rows pull the solution by
-``w / t``. The gap to the hard optimum shrinks with ``w`` (``tests/test_eilqr.py`` measures it), and the row's
-implied multiplier ``w β'(−g) ≥ 0`` is reported in ``Solution.multipliers`` under the block's name.
+``w / t``. The gap to the hard optimum shrinks with ``w`` (``tests/test_eilqr.py`` measures it). The rows'
+multipliers, reported in ``Solution.multipliers`` under the blocks' names, are the primal-dual iterates ``z`` of
+:mod:`~torchtraj.solvers.eilqr.continuation`, equal to the implied ``−w β'(−g) ≥ 0`` at a converged point to the
+complementarity tolerance. By default (an extension beyond the paper, the same module) the weight falls between
+Newton stages to a tolerance-sized one, so that the point is the hard-constrained optimum.
 
-The state rows are switched off at knot 0 in the hard problem (``x_0`` is given); here they apply at every knot,
-which adds a constant where ``x_0`` is fixed and keeps a free ``x_0`` (``free_initial_state``) inside its bounds.
+The state rows are switched off at knot 0 in the hard problem (``x_0`` is given); in :func:`soft_problem` (the problem
+a fixed weight's point is a KKT point of) they apply at every knot, which adds a constant where ``x_0`` is fixed; the
+solver's barrier follows the hard problem's layout (from knot 1).
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, map_state
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 
 
-def relaxed_log(t: Tensor, delta: float) -> Tensor:
-    """``β(t)`` elementwise (module docstring)."""
-    safe = torch.clamp(t, min=delta)  # the log's branch never sees t < δ, so its gradient stays finite there
-    quadratic = 0.5 * ((t - 2.0 * delta) / delta) ** 2 - 0.5 - math.log(delta)
+def _delta(t: Tensor, delta) -> Tensor:
+    return torch.as_tensor(delta, dtype=t.dtype, device=t.device)
+
+
+def relaxed_log(t: Tensor, delta) -> Tensor:
+    """``β(t)`` elementwise (module docstring); ``delta`` a float or a tensor broadcast against ``t``."""
+    delta = _delta(t, delta)
+    safe = torch.maximum(t, delta)  # the log's branch never sees t < δ, so its gradient stays finite there
+    quadratic = 0.5 * ((t - 2.0 * delta) / delta) ** 2 - 0.5 - torch.log(delta)
     return torch.where(t >= delta, -torch.log(safe), quadratic)
 
 
-def relaxed_log_slope(t: Tensor, delta: float) -> Tensor:
+def relaxed_log_slope(t: Tensor, delta) -> Tensor:
     """``β'(t)`` elementwise: ``−1/t`` for ``t ≥ δ``, ``(t − 2δ)/δ²`` below."""
-    return torch.where(t >= delta, -1.0 / torch.clamp(t, min=delta), (t - 2.0 * delta) / delta ** 2)
+    delta = _delta(t, delta)
+    return torch.where(t >= delta, -1.0 / torch.maximum(t, delta), (t - 2.0 * delta) / delta ** 2)
+
+
+def relaxed_log_curvature(t: Tensor, delta) -> Tensor:
+    """``β''(t)`` elementwise: ``1/t²`` for ``t ≥ δ``, ``1/δ²`` below."""
+    delta = _delta(t, delta)
+    return torch.where(t >= delta, 1.0 / torch.maximum(t, delta) ** 2, 1.0 / delta ** 2)
 
 
 def soft_problem(problem: Problem, weight: float, delta: float) -> Problem:
@@ -76,18 +89,3 @@ def _soft_problem(problem: Problem, weight: float, delta: float) -> Problem:
     return problem.replace(stage_cost=soft_stage_cost, terminal_cost=soft_terminal_cost, stage_ineq=None,
                            state_ineq=None, terminal_ineq=None, u_lower=None, u_upper=None, x_lower=None,
                            x_upper=None, linear_quadratic=False, name=f"{problem.name} (soft barrier)")
-
-
-def implied_multipliers(problem: Problem, X: Tensor, U: Tensor, params, weight: float, delta: float) -> tuple:
-    """The inequality rows' multipliers that the barrier implies, ``z = −w β'(−g) ≥ 0``: stage ``(B, N, mi)``
-    (zero on rows off at a knot, as the hard problem lays them out) and terminal ``(B, miN)``."""
-    cons = Constraints.of(problem)
-    B, N = U.shape[0], U.shape[1]
-    z = X.new_zeros(B, N, cons.mi)
-    zN = X.new_zeros(B, cons.miN)
-    if cons.mi:
-        g = map_stage(cons.stage_ineq, X[:, :-1], U, params)
-        z = -weight * relaxed_log_slope(-g, delta) * cons.ineq_knot_mask
-    if cons.miN:
-        zN = -weight * relaxed_log_slope(-map_state(cons.terminal_ineq, X[:, -1], params), delta)
-    return z, zN

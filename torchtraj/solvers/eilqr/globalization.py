@@ -22,24 +22,24 @@ from .merit import armijo_bound, constraint_values, line_search, merit_at, slope
 from .newton import direction, pick_direction, resolve
 
 
-def globalized_step(soft, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts):
+def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts, weights):
     """The accepted step of the ``pending (B,)`` instances from the direction ``d`` (computed with ``eps (B,)``):
     ``(direction, Accepted, merit0 (B,))``, the direction replaced by its correction where that was taken."""
     merit0 = model.J + gamma * l1
     derivative = slope(model, d, gamma, l1)
     steps = trial_steps(opts, merit0)
-    ls = line_search(soft, cons, params, it.X, it.U, x0, initial, d, merit0, derivative, gamma, pending, steps[:1],
-                     opts)
+    ls = line_search(problem, cons, params, it.X, it.U, x0, initial, d, merit0, derivative, gamma, pending,
+                     steps[:1], opts, weights)
     refused = pending & ~ls.found
     if opts.globalization and opts.second_order_correction and bool(refused.any()):
-        defects, h, hN, c0 = constraint_values(soft, cons, params, it.X + d.dX, it.U + d.dU, x0, initial)
+        defects, h, hN, c0 = constraint_values(problem, cons, params, it.X + d.dX, it.U + d.dU, x0, initial)
         corrected = dataclasses.replace(
             model, defects=model.defects + defects, h=model.h if h is None else model.h + h,
             hN=model.hN if hN is None else model.hN + hN,
             initial=None if model.initial is None else InitialRows(e0=model.initial.e0 + c0, E0=model.initial.E0))
         # the same factorisation, one vector solve, where every instance's step came from one
         soc = resolve(d, corrected, it, x0) if d.factor is not None else direction(corrected, it, x0, eps)
-        m = merit_at(soft, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma)
+        m = merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights)
         bound = armijo_bound(merit0, derivative, steps[:1], opts)[:, 0]
         taken = refused & soc.ok & torch.isfinite(m) & (m <= bound)
         d = pick_direction(taken, soc, d)
@@ -47,8 +47,8 @@ def globalized_step(soft, cons, params, model, it, x0, initial, d, eps, gamma, l
                       values=(torch.where(taken, m, ls.values[0]),))
     refused = pending & ~ls.found
     if steps.shape[0] > 1 and bool(refused.any()):
-        rest = line_search(soft, cons, params, it.X, it.U, x0, initial, d, merit0, derivative, gamma, refused,
-                           steps[1:], opts)
+        rest = line_search(problem, cons, params, it.X, it.U, x0, initial, d, merit0, derivative, gamma, refused,
+                           steps[1:], opts, weights)
         ls = Accepted(found=ls.found | rest.found, alpha=torch.where(ls.found, ls.alpha, rest.alpha),
                       values=(torch.where(ls.found, ls.values[0], rest.values[0]),))
     return d, ls, merit0

@@ -7,7 +7,7 @@ The merit (Horizon eq. 8; Nocedal & Wright 2006 §15.4) of a multiple-shooting p
     m(w) = J(w) + γ \|C(w)\|_1,\qquad
     \|C\|_1 = \sum_k \|f(x_k, u_k) − x_{k+1}\|_1 + \sum_k \|h_k\|_1 + \|h_N\|_1 + \|c_0\|_1,
 
-``J`` the barrier-augmented cost and ``c_0`` the initial rows (``x̄_0 − x_0``, or ``h_0(x_0)`` and the fixed
+``J`` the barrier-augmented cost (the cost and ``Σ w β(−g)``, :mod:`~torchtraj.solvers.eilqr.continuation`) and ``c_0`` the initial rows (``x̄_0 − x_0``, or ``h_0(x_0)`` and the fixed
 components of a free start). It is exact where ``γ`` exceeds every multiplier (eq. 9), so :func:`penalty` sets
 ``γ = κ max|y⁺| + γ_0`` from the Newton step's own estimates ``y⁺`` (``κ = merit_factor`` the margin,
 ``γ_0 = merit_floor``; with ``merit_monotone`` never lowered).
@@ -34,17 +34,18 @@ from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.line_search import Accepted, backtrack
 from ...kkt.model import total_cost
+from .continuation import Weights, barrier_cost
 from .initial_state import InitialState
 from .model import Model
 from .newton import Direction
 from .options import EILQROptions
 
 
-def constraint_values(soft: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
+def constraint_values(problem: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
                       initial: Optional[InitialState]) -> tuple:
     """The constraints at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: defects ``(B, *E, N, nx)``, ``h`` (or
     ``None``), ``h_N`` (or ``None``) and the initial rows ``c_0 (B, *E, m_0)``."""
-    defects = map_stage(soft.dynamics, X[..., :-1, :], U, params) - X[..., 1:, :]
+    defects = map_stage(problem.dynamics, X[..., :-1, :], U, params) - X[..., 1:, :]
     h = map_stage(cons.stage_eq, X[..., :-1, :], U, params) if cons.me else None
     hN = map_state(cons.terminal_eq, X[..., -1, :], params) if cons.meN else None
     if initial is not None:
@@ -97,16 +98,17 @@ def armijo_bound(merit0: Tensor, derivative: Tensor, alphas: Tensor, opts: EILQR
     return (merit0 + slack).unsqueeze(-1) + opts.armijo * alphas.unsqueeze(0) * derivative.unsqueeze(-1)
 
 
-def merit_at(soft: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
-             initial: Optional[InitialState], gamma: Tensor) -> Tensor:
-    """``m = J + γ ‖C‖₁`` at ``X (B, *E, N+1, nx)``, ``U``: ``(B, *E)``."""
+def merit_at(problem: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
+             initial: Optional[InitialState], gamma: Tensor, weights: Weights) -> Tensor:
+    """``m = J + γ ‖C‖₁`` at ``X (B, *E, N+1, nx)``, ``U``: ``(B, *E)``, with the barrier of ``weights``."""
     g = gamma.reshape(-1, *([1] * (X.dim() - 3)))
-    return total_cost(soft, X, U, params) + g * l1_norm(constraint_values(soft, cons, params, X, U, x0, initial))
+    J = total_cost(problem, X, U, params) + barrier_cost(cons, X, U, params, weights)
+    return J + g * l1_norm(constraint_values(problem, cons, params, X, U, x0, initial))
 
 
-def line_search(soft: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
+def line_search(problem: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
                 initial: Optional[InitialState], d: Direction, merit0: Tensor, derivative: Tensor, gamma: Tensor,
-                pending: Tensor, steps: Tensor, opts: EILQROptions) -> Accepted:
+                pending: Tensor, steps: Tensor, opts: EILQROptions, weights: Weights) -> Accepted:
     """Backtracking over ``steps (L,)`` on the merit from ``merit0 (B,)`` with slope ``derivative (B,)``, for the
     ``pending (B,)`` instances; all trial points of a round in one batched evaluation. Returns
     :class:`~torchtraj.globalization.line_search.Accepted` with ``values = (merit (B,),)``."""
@@ -115,7 +117,7 @@ def line_search(soft: Problem, cons: Constraints, params, X: Tensor, U: Tensor, 
         a = alphas.reshape(1, -1, 1, 1)
         Xa = X.unsqueeze(1) + a * d.dX.unsqueeze(1)
         Ua = U.unsqueeze(1) + a * d.dU.unsqueeze(1)
-        m = merit_at(soft, cons, params, Xa, Ua, x0, initial, gamma)
+        m = merit_at(problem, cons, params, Xa, Ua, x0, initial, gamma, weights)
         accept = torch.isfinite(m) & (m <= armijo_bound(merit0, derivative, alphas, opts))
         if not opts.globalization:
             accept = torch.ones_like(accept)

@@ -2,24 +2,28 @@ r"""The iterate of eILQR and its KKT model: the Lagrangian's derivatives and the
 
 The iterate is a multiple-shooting point ``w = (X, U)`` with the multipliers of the dynamics ``λ`` (costates,
 ``λ_{k+1}`` of ``f(x_k, u_k) − x_{k+1} = 0``), of the stage and terminal equalities ``ν``, ``ν_N`` and, with a free
-initial state, of its rows ``μ_0`` (:mod:`~torchtraj.solvers.eilqr.initial_state`). With the Lagrangian
-(Horizon eq. 2, on the barrier-augmented costs of :mod:`~torchtraj.solvers.eilqr.barrier`)
+initial state, of its rows ``μ_0`` (:mod:`~torchtraj.solvers.eilqr.initial_state`), and of the inequality rows
+``z`` (an extension beyond the paper: :mod:`~torchtraj.solvers.eilqr.continuation`). With the Lagrangian
+(Horizon eq. 2, with the inequality rows ``g ≤ 0`` of :class:`~torchtraj.core.constraints.Constraints`)
 
 .. math::
 
-    L = \sum_k \big[\ell_k + ν_k^T h_k + λ_{k+1}^T (f(x_k, u_k) − x_{k+1})\big] + \ell_N + ν_N^T h_N
-        \ (+\ μ_0^T h_0(x_0)),
+    L = \sum_k \big[\ell_k + ν_k^T h_k + z_k^T g_k + λ_{k+1}^T (f(x_k, u_k) − x_{k+1})\big] + \ell_N + ν_N^T h_N
+        + z_N^T g_N \ (+\ μ_0^T h_0(x_0)),
 
 the KKT conditions (eqs. 3a-3d, 4a-4b) are ``∂L/∂x_k = 0`` (k ≥ 1; also k = 0 with a free ``x_0``),
 ``∂L/∂u_k = 0``, the defects ``f(x_k, u_k) − x_{k+1} = 0``, ``h = 0``, ``h_N = 0`` and the initial rows
-(``x̄_0 − x_0 = 0``, or ``h_0 = 0`` on a free ``x_0``). :func:`expand` takes every derivative an iteration needs at
+(``x̄_0 − x_0 = 0``, or ``h_0 = 0`` on a free ``x_0``), with the barrier's complementarity
+``z (−g) = w`` for the inequalities. :func:`expand` takes every derivative an iteration needs at
 once with ``torch.func`` (:func:`~torchtraj.core.derivatives.problem_lagrangian_expansion`): the Lagrangian's
-Hessian is the Newton matrix, and the *cost* gradient its right-hand side, so that the Riccati core's
+Hessian with the barrier's primal-dual curvature is the Newton matrix, and the *cost* gradient with the
+barrier's (:func:`with_weight`) its right-hand side, so that the Riccati core's
 multipliers are the new estimates ``λ⁺``, ``ν⁺`` themselves (:func:`~torchtraj.kkt.newton.newton_rhs`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -31,6 +35,7 @@ from ...core.derivatives import problem_lagrangian_expansion, stage_jacobian, te
 from ...core.problem import Problem
 from ...kkt.model import total_cost
 from ...riccati import all_finite
+from .continuation import Rows, Weights, barrier_multipliers, barrier_value, curvatures, rows_at, safeguarded
 from .initial_state import InitialRows
 
 
@@ -45,6 +50,8 @@ class Iterate:
     nu: Tensor
     nuN: Tensor
     mu0: Tensor
+    z: Tensor
+    zN: Tensor
 
 
 @dataclass
@@ -53,7 +60,10 @@ class Model:
     Lagrangian Hessians ``Lzz (B, N, nz, nz)``, ``LNxx (B, nx, nx)``; dynamics ``f (B, N, nx)``, ``fz``;
     equalities ``h (B, N, me)``, ``Hz``, ``hN (B, meN)``, ``HN``; the initial rows ``initial`` (values ``e0 (B, m0)``
     and Jacobian ``E0 (B, m0, nx)``, or the fixed start's defect ``x̄_0 − x_0``); the residuals ``dual (B,)``,
-    ``primal (B,)`` (``∞``-norms) and ``error = max(dual, primal)``; ``finite (B,)``."""
+    ``primal (B,)`` (``∞``-norms) and ``error = max(dual, primal, complementarity)``; ``finite (B,)``. The barrier
+    (:mod:`~torchtraj.solvers.eilqr.continuation`): the rows ``rows``, the safeguarded multipliers ``z``, ``zN``, the
+    barrier's ``zw = w s(t)``, ``zwN``, the curvatures ``sigma``, ``sigmaN``, ``complementarity (B,)``, the
+    problem's own ``cost (B,)`` (``J`` adds the barrier) and ``base``: the weight-free ``(lz, lNx, Lzz, LNxx)``."""
 
     J: Tensor
     lz: Tensor
@@ -72,6 +82,16 @@ class Model:
     primal: Tensor
     error: Tensor
     finite: Tensor
+    rows: Rows = None
+    z: Tensor = None
+    zN: Tensor = None
+    zw: Tensor = None
+    zwN: Tensor = None
+    sigma: Tensor = None
+    sigmaN: Tensor = None
+    complementarity: Tensor = None
+    cost: Tensor = None
+    base: tuple = None
 
 
 def _amax(*parts: Tensor) -> Tensor:
@@ -80,14 +100,17 @@ def _amax(*parts: Tensor) -> Tensor:
     return torch.cat([p.reshape(B, -1).abs() for p in parts] + [parts[0].new_zeros(B, 1)], -1).amax(-1)
 
 
-def expand(soft: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows) -> Model:
-    """Everything an iteration needs at ``it`` (module docstring); ``soft`` is the barrier-augmented problem and
-    ``cons`` its (equality-only) constraints, ``x0 (B, nx)`` the given initial states, ``rows`` the free initial
-    state's :class:`~torchtraj.solvers.eilqr.initial_state.InitialState` or ``None``."""
+def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows, weights: Weights) -> Model:
+    """Everything an iteration needs at ``it`` (module docstring): ``cons`` the problem's constraints, ``x0 (B, nx)``
+    the given initial states, ``rows`` the free initial state's
+    :class:`~torchtraj.solvers.eilqr.initial_state.InitialState` or ``None``, ``weights`` the barrier's."""
     X, U = it.X, it.U
     nx = X.shape[-1]
-    e = problem_lagrangian_expansion(soft, cons, X, U, params, it.lam, it.nu, None, it.nuN, None)
-    f, fz = stage_jacobian(soft.dynamics, X[:, :-1], U, params)
+    ineq = rows_at(cons, X, U, params)
+    zw, zwN = barrier_multipliers(ineq, weights)
+    z, zN = safeguarded(it.z, zw) * ineq.mask, safeguarded(it.zN, zwN)
+    e = problem_lagrangian_expansion(problem, cons, X, U, params, it.lam, it.nu, z, it.nuN, zN)
+    f, fz = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
     B, N = U.shape[0], U.shape[1]
     nz = fz.shape[-1]
     if cons.me:
@@ -98,9 +121,11 @@ def expand(soft: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, ro
         hN, HN = terminal_jacobian(cons.terminal_eq, X[:, -1], params)
     else:
         hN, HN = X.new_zeros(B, 0), X.new_zeros(B, 0, nx)
-    # the cost gradient: the Lagrangian's less its multiplier terms (the right-hand side whose solve gives λ⁺, ν⁺)
-    lz = e.gradient - _mv(fz.transpose(-1, -2), it.lam[:, 1:]) - _mv(Hz.transpose(-1, -2), it.nu)
-    lNx = e.terminal_gradient - _mv(HN.transpose(-1, -2), it.nuN)
+    # the cost gradient: the Lagrangian's less its multiplier terms (the right-hand side whose solve gives λ⁺, ν⁺;
+    # the barrier's gradient is added by with_weight)
+    lz = (e.gradient - _mv(fz.transpose(-1, -2), it.lam[:, 1:]) - _mv(Hz.transpose(-1, -2), it.nu)
+          - _mv(ineq.G.transpose(-1, -2), z))
+    lNx = e.terminal_gradient - _mv(HN.transpose(-1, -2), it.nuN) - _mv(ineq.GN.transpose(-1, -2), zN)
     initial = rows.evaluate(X[:, 0], params, jacobian=True) if rows is not None else None
     Lzz = e.hessian
     curvature = rows.curvature(X[:, 0], it.mu0, params) if rows is not None else None
@@ -118,9 +143,28 @@ def expand(soft: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, ro
         start = x0 - X[:, 0]
     dual = _amax(*parts)
     primal = _amax(defects, h, hN, start)
-    J = total_cost(soft, X, U, params)
-    finite = all_finite([e.gradient, e.hessian, e.terminal_hessian, fz, Hz, HN, J.unsqueeze(1), primal.unsqueeze(1)])
-    return Model(J=J, lz=lz, lNx=lNx, Lzz=Lzz, LNxx=e.terminal_hessian, f=f, fz=fz, h=h, Hz=Hz, hN=hN, HN=HN,
-                 initial=initial, defects=defects, dual=dual, primal=primal, error=torch.maximum(dual, primal),
-                 finite=finite)
+    cost = total_cost(problem, X, U, params)
+    finite = all_finite([e.gradient, e.hessian, e.terminal_hessian, fz, Hz, HN, cost.unsqueeze(1),
+                         primal.unsqueeze(1), ineq.G.flatten(1), ineq.GN.flatten(1), ineq.t.flatten(1)])
+    model = Model(J=cost, lz=lz, lNx=lNx, Lzz=Lzz, LNxx=e.terminal_hessian, f=f, fz=fz, h=h, Hz=Hz, hN=hN, HN=HN,
+                  initial=initial, defects=defects, dual=dual, primal=primal, error=torch.maximum(dual, primal),
+                  finite=finite, rows=ineq, z=z, zN=zN, cost=cost, base=(lz, lNx, Lzz, e.terminal_hessian))
+    return with_weight(model, weights)
 
+
+def with_weight(model: Model, weights: Weights) -> Model:
+    """``model`` with the barrier of ``weights``: its gradient ``Gᵀ w s(t)`` in the cost gradient, its primal-dual
+    curvature ``Gᵀ diag(σ) G`` in the Hessian, its value in ``J``, the complementarity ``|t (z − w s(t))|`` in the
+    error (the rest does not depend on the weight: a decrease of ``w`` needs no new expansion)."""
+    ineq, (lz, lNx, Lzz, LNxx) = model.rows, model.base
+    zw, zwN = barrier_multipliers(ineq, weights)
+    sigma, sigmaN = curvatures(ineq, model.z, model.zN, weights)
+    lz = lz + _mv(ineq.G.transpose(-1, -2), zw)
+    lNx = lNx + _mv(ineq.GN.transpose(-1, -2), zwN)
+    Lzz = Lzz + torch.einsum("bnki,bnk,bnkj->bnij", ineq.G, sigma, ineq.G)
+    LNxx = LNxx + torch.einsum("bki,bk,bkj->bij", ineq.GN, sigmaN, ineq.GN)
+    complementarity = _amax(ineq.t * (model.z - zw), ineq.tN * (model.zN - zwN))
+    error = torch.maximum(torch.maximum(model.dual, model.primal), complementarity)
+    J = model.cost + barrier_value(ineq, weights)
+    return dataclasses.replace(model, J=J, lz=lz, lNx=lNx, Lzz=Lzz, LNxx=LNxx, zw=zw, zwN=zwN, sigma=sigma,
+                               sigmaN=sigmaN, complementarity=complementarity, error=error)

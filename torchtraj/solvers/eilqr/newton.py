@@ -41,7 +41,7 @@ from .options import EILQROptions
 @dataclass
 class Direction:
     """The step ``dX (B, N+1, nx)``, ``dU (B, N, nu)``, the new multiplier estimates ``lam``, ``nu``, ``nuN``,
-    ``mu0`` (shaped as the :class:`~torchtraj.solvers.eilqr.model.Iterate`'s), the gains ``K (B, N, nu, nx)`` and
+    ``mu0``, ``z``, ``zN`` (shaped as the :class:`~torchtraj.solvers.eilqr.model.Iterate`'s), the gains ``K (B, N, nu, nx)`` and
     ``ok (B,)``: positive definite reduced Hessians and a finite step."""
 
     dX: Tensor
@@ -50,6 +50,8 @@ class Direction:
     nu: Tensor
     nuN: Tensor
     mu0: Tensor
+    z: Tensor
+    zN: Tensor
     K: Tensor
     ok: Tensor
     #: the factorisation every instance's step came from (``None`` where the instances' steps come from several)
@@ -95,8 +97,13 @@ def _completed(factor, rhs, step, model: Model, it: Iterate) -> Direction:
     nu = step.nu if step.nu is not None else it.nu
     nuN = step.nuN if step.nuN is not None else it.nuN
     ok = ok & all_finite([step.dx, step.du, step.costate])
-    return Direction(dX=step.dx, dU=step.du, lam=step.costate, nu=nu, nuN=nuN, mu0=mu0, K=factor.K, ok=ok,
-                     factor=factor)
+    # the inequality rows' new multipliers, z⁺ = w s(t) + σ G δz (the primal-dual step: continuation module)
+    ineq = model.rows
+    dz = torch.cat([step.dx[:, :-1], step.du], -1)
+    z = (model.zw + model.sigma * (ineq.G @ dz.unsqueeze(-1)).squeeze(-1)) * ineq.mask
+    zN = model.zwN + model.sigmaN * (ineq.GN @ step.dx[:, -1].unsqueeze(-1)).squeeze(-1)
+    return Direction(dX=step.dx, dU=step.du, lam=step.costate, nu=nu, nuN=nuN, mu0=mu0, z=z, zN=zN, K=factor.K,
+                     ok=ok, factor=factor)
 
 
 def pick_direction(mask: Tensor, new: Direction, old: Direction) -> Direction:
@@ -124,6 +131,7 @@ def multiplier_size(d: Direction, free: bool) -> Tensor:
 
 
 def empty_multipliers(X: Tensor, me: int, meN: int, m0: Optional[int]) -> tuple:
-    """Zero ``λ (B, N+1, nx)``, ``ν (B, N, me)``, ``ν_N (B, meN)``, ``μ_0 (B, m0)``: the start of every solve."""
+    """Zero ``λ (B, N+1, nx)``, ``ν (B, N, me)``, ``ν_N (B, meN)``, ``μ_0 (B, m0)``: the start of every solve (the
+    inequality rows' start at the barrier's own, :func:`~torchtraj.solvers.eilqr.continuation.barrier_multipliers`)."""
     B, N1, nx = X.shape
     return (X.new_zeros(B, N1, nx), X.new_zeros(B, N1 - 1, me), X.new_zeros(B, meN), X.new_zeros(B, m0 or 0))

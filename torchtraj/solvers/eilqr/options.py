@@ -22,16 +22,33 @@ class EILQROptions:
     """Options of :func:`~torchtraj.solvers.eilqr.solver.solve_eilqr`.
 
     Attributes:
-        iterations: most Newton iterations.
+        iterations: most Newton iterations (300: the pendulum's default solve takes 176, most of them in its
+            continuation's stage at ``w = 3.2e-5``, where the steps are cut to ``α ≈ 1/16`` to ``1/32``).
         tolerance: the KKT error at which an instance has converged, the largest of the Lagrangian's gradient,
             the dynamics defects, the equality rows and the initial-state rows (``∞``-norms, unscaled);
             ``None``: 1e-9 in float64, 1e-5 in float32.
         barrier_weight: ``w`` of the soft barrier ``w Σ β(−g)`` of every inequality row and bound
-            (:mod:`~torchtraj.solvers.eilqr.barrier`); the solution's cost is above the hard-constrained optimum by
-            a gap about linear in ``w`` (the pendulum: +44 % at 1e-3, +6.2 % at 1e-4, +0.8 % at 1e-5, with more
+            (:mod:`~torchtraj.solvers.eilqr.barrier`) without ``barrier_continuation`` (the paper's fixed weight);
+            with it, ``barrier_weight_initial`` is the first stage's. A fixed weight's solution costs more than the hard-constrained optimum by a gap
+            about linear in ``w`` (the pendulum: +44 % at 1e-3, +6.2 % at 1e-4, +0.8 % at 1e-5, with more
             iterations as ``w`` falls).
         barrier_relaxation: ``δ`` of the relaxed log barrier: ``−log t`` for ``t ≥ δ``, its C² quadratic
-            extension below (an infeasible start stays finite).
+            extension below (an infeasible start stays finite); with continuation ``δ`` follows ``w`` in the
+            ratio ``barrier_relaxation / barrier_weight`` (1/10).
+        barrier_continuation: decrease the weight between Newton stages down to ``barrier_weight_final``, so that
+            a converged point is the hard-constrained problem's KKT point (an extension beyond the paper:
+            :mod:`~torchtraj.solvers.eilqr.continuation`); ``False``: the paper's fixed weight, whose converged
+            point is the KKT point of :meth:`EILQR.kkt_problem` (the soft problem).
+        barrier_weight_initial: the continuation's first weight (IPOPT starts its ``μ`` at 1e-1). Measured on the
+            cart-pole with ``short_step`` 0: from 1e-4 its first stage crawled (263 iterations in all, steps of 0.002
+            to 0.03 against its stiff barrier), from 1e-3 85, from 1e-2 68, from 1e-1 107; the pendulum took 110,
+            223, 232 from 1e-4, 1e-3, 1e-2 (176 from 1e-2 with the default ``short_step``).
+        barrier_weight_final: the last stage's weight ``w_min``; ``None``: ``tol / 10`` of the dtype's tolerance in
+            float64 (1e-10), ``tol / 100`` in float32 (1e-7; :func:`~torchtraj.solvers.eilqr.continuation.final_weight`).
+        barrier_decrease, barrier_superlinear: ``κ_w``, ``θ_w`` of ``w ← max(w_min, min(κ_w w, w^θ_w))``
+            (IPOPT's ``κ_μ = 0.2``, ``θ_μ = 1.5``, Wächter & Biegler 2006 eq. (7)).
+        barrier_error_factor: ``κ_ε``: a stage ends where the KKT error of its weight is below ``κ_ε w`` (IPOPT's
+            ``κ_ε = 10``).
         merit_factor, merit_floor: the ℓ1 merit's weight ``γ = merit_factor · max|y⁺| + merit_floor`` from the
             Newton step's multiplier estimates ``y⁺`` (Horizon eq. 9 with a margin of 50 %; the floor keeps ``γ > 0``
             where every multiplier vanishes). It is exact above ``max|y*|`` and the step is a descent direction of
@@ -53,7 +70,10 @@ class EILQROptions:
             ``×κ_w^-`` after a full step (zero below ``regularization_min``), kept otherwise; past
             ``regularization_max`` the status is ``MAX_REGULARIZATION``.
         short_step: the step size below which the next iteration is regularised more (a shorter, more
-            gradient-like step where the Newton model was poor).
+            gradient-like step where the Newton model was poor). At 0.1 the regularisation that an early cut step
+            raised was carried by every later partial step: the cart-pole without bounds took 219 iterations at
+            ``α = 0.125`` and ``ε = 2.7e-4`` (33 at 0.05 or 0); at 0 the pendulum without bounds never got the
+            regularisation it needs (more than 300 iterations; 57 at 0.1, 62 at 0.05).
         second_order_correction: correct a refused full step once before backtracking
             (:mod:`~torchtraj.solvers.eilqr.globalization`).
         globalization: ``False`` takes the full Newton step with no line search and no regularisation (the
@@ -66,10 +86,16 @@ class EILQROptions:
         verbose: log one line per iteration.
     """
 
-    iterations: int = 200
+    iterations: int = 300
     tolerance: Optional[float] = None
     barrier_weight: float = 1e-4
     barrier_relaxation: float = 1e-5
+    barrier_continuation: bool = True
+    barrier_weight_initial: float = 1e-2
+    barrier_weight_final: Optional[float] = None
+    barrier_decrease: float = 0.2
+    barrier_superlinear: float = 1.5
+    barrier_error_factor: float = 10.0
     merit_factor: float = 1.5
     merit_floor: float = 1e-6
     merit_monotone: bool = False
@@ -84,7 +110,7 @@ class EILQROptions:
     regularization_increase_first: float = 100.0
     regularization_increase: float = 8.0
     regularization_attempts: int = 12
-    short_step: float = 0.1
+    short_step: float = 0.05
     second_order_correction: bool = True
     globalization: bool = True
     free_initial_state: Union[bool, Sequence[int]] = False
@@ -97,6 +123,13 @@ class EILQROptions:
         if self.barrier_weight <= 0 or self.barrier_relaxation <= 0:
             raise ValueError(f"barrier_weight and barrier_relaxation must be positive, got {self.barrier_weight} "
                              f"and {self.barrier_relaxation}")
+        if self.barrier_weight_initial <= 0:
+            raise ValueError(f"barrier_weight_initial must be positive, got {self.barrier_weight_initial}")
+        if self.barrier_weight_final is not None and self.barrier_weight_final <= 0:
+            raise ValueError(f"barrier_weight_final must be positive, got {self.barrier_weight_final}")
+        if not 0 < self.barrier_decrease < 1 or self.barrier_superlinear <= 1 or self.barrier_error_factor <= 0:
+            raise ValueError("barrier_decrease must lie in (0, 1), barrier_superlinear exceed 1 and "
+                             "barrier_error_factor be positive")
         if not 0 < self.backtracking < 1:
             raise ValueError(f"backtracking must lie in (0, 1), got {self.backtracking}")
         if self.initial_eq is not None and self.free_initial_state is False:

@@ -4,8 +4,10 @@ Newton's method on the KKT conditions (§II-A, eqs. 2-4) of the problem with its
 inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrier`). Each iteration of
 :func:`solve_eilqr`, for every instance still running:
 
-1. the KKT model at the multiple-shooting iterate ``(X, U, λ, ν, ν_N, μ_0)`` (:mod:`~torchtraj.solvers.eilqr.model`);
-   converged where the KKT error is below the tolerance;
+1. the KKT model at the multiple-shooting iterate ``(X, U, λ, ν, ν_N, μ_0, z, z_N)``
+   (:mod:`~torchtraj.solvers.eilqr.model`); converged where the barrier's weight is the last one and the KKT error is
+   below the tolerance; where the error is below ``κ_ε w`` at an earlier weight, the weight falls (the barrier
+   continuation, an extension beyond the paper: :mod:`~torchtraj.solvers.eilqr.continuation`);
 2. the Newton step by the shared Riccati core with constraint back-propagation, with the initial state optimised
    where asked (:mod:`~torchtraj.solvers.eilqr.newton`, :mod:`~torchtraj.solvers.eilqr.initial_state`),
    regularised until the reduced Hessians are positive definite;
@@ -15,20 +17,21 @@ inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrie
    below ``short_step`` raises the next iteration's regularisation (a shorter, more gradient-like step), a full one
    lowers it (the paper's Fig. 5: adaptive ``α`` and ``ε_reg``; :class:`EILQROptions`).
 
-An instance has converged where the KKT error is below the tolerance, or where a full Newton step changes no
-variable by more than ten rounding errors of the iterate: the dtype can resolve no further step, and the error left
-is the rounding of the model. That is the float32 case of a barrier-augmented cost: an active row's barrier has the
-curvature ``z*² / w`` (``1e6`` for a multiplier ``z* = 10`` at ``w = 1e-4``), so its gradient at the float32 point
-nearest the optimum is off by that curvature times the rounding of the row (``6e-8`` for a bound of ``0.5``), and
-the KKT error stays at ``6e-3`` on the double integrator of ``tests/test_float32_barrier_methods.py`` while full
-steps of two rounding errors repeat until the iteration limit. ``tt.solve``'s certificate then reports such an
-instance ``STALLED`` wherever that error exceeds its float32 tolerance.
+An instance has converged where, at the last weight, the KKT error is below the tolerance or a full Newton step
+changes no variable by more than ten rounding errors of the iterate (the dtype can resolve no further step, and the
+error left is the rounding of the model); such a step at an earlier weight ends that stage. With the paper's fixed
+weight and the multipliers read off the barrier, that was the float32 case of the double integrator of
+``tests/test_float32_barrier_methods.py``: an active row's barrier has the curvature ``z*² / w`` (``1e6`` for
+``z* = 10`` at ``w = 1e-4``), so its gradient at the float32 point nearest the optimum is off by that curvature times
+the rounding of the row, a stationarity error up to ``5e-3`` that ``tt.solve``'s certificate reports ``STALLED``. The
+primal-dual multipliers of the continuation module make the Lagrangian stationary to float32's accuracy instead.
 
 Every decision is a mask on the batch: an instance that stops keeps its iterate and never changes another.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Optional
 
@@ -43,11 +46,12 @@ from ...core.solution import History, Solution
 from ...core.status import Status
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
-from .barrier import implied_multipliers, soft_problem
+from .continuation import (barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done,
+                           weights_for)
 from .globalization import globalized_step
 from .initial_state import InitialState
 from .merit import model_infeasibility, penalty
-from .model import Iterate, expand
+from .model import Iterate, expand, with_weight
 from .newton import direction, empty_multipliers, multiplier_size, regularized_direction
 from .options import EILQROptions
 
@@ -64,7 +68,8 @@ def _step(it: Iterate, d, alpha, take) -> Iterate:
         return where_rows(take, x + alpha.reshape(-1, *([1] * (x.dim() - 1))) * dx, x)
 
     return Iterate(X=move(it.X, d.dX), U=move(it.U, d.dU), lam=move(it.lam, d.lam - it.lam),
-                   nu=move(it.nu, d.nu - it.nu), nuN=move(it.nuN, d.nuN - it.nuN), mu0=move(it.mu0, d.mu0 - it.mu0))
+                   nu=move(it.nu, d.nu - it.nu), nuN=move(it.nuN, d.nuN - it.nuN), mu0=move(it.mu0, d.mu0 - it.mu0),
+                   z=move(it.z, d.z - it.z), zN=move(it.zN, d.zN - it.zN))
 
 
 def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] = None,
@@ -83,16 +88,20 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     opts = options or EILQROptions()
     x0, params = batch.x0, batch.params
     B = x0.shape[0]
-    soft = soft_problem(problem, opts.barrier_weight, opts.barrier_relaxation)
-    cons = Constraints.of(soft)
+    cons = Constraints.of(problem)
     tol = opts.tolerance_for(x0.dtype)
+    final = final_weight(opts, tol, x0.dtype)
+    # the barrier's weight per instance: the first stage's, or the last's where there is no inequality row
+    weight = x0.new_full((B,), first_weight(opts) if cons.mi + cons.miN else final)
+    weights = weights_for(weight, opts)
     initial = InitialState(opts.free_initial_state, opts.initial_eq, x0) \
         if opts.free_initial_state is not False else None
     X = rollout(problem.dynamics, x0, batch.U0, params) if batch.X0 is None else batch.X0.clone()
     if batch.X0 is not None and initial is None:
         X[:, 0] = x0  # a fixed start: the guess's first state is the given one
     m0 = initial.evaluate(X[:, 0], params).e0.shape[-1] if initial is not None else 0
-    it = Iterate(X, batch.U0.clone(), *empty_multipliers(X, cons.me, cons.meN, m0))
+    z, zN = barrier_multipliers(rows_at(cons, X, batch.U0, params), weights)
+    it = Iterate(X, batch.U0.clone(), *empty_multipliers(X, cons.me, cons.meN, m0), z=z, zN=zN)
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
     start_ok = torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(it.U).flatten(1).all(-1)
     status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
@@ -101,12 +110,23 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     floor, last = torch.zeros_like(gamma), torch.zeros_like(gamma)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     K = x0.new_zeros(B, problem.N, problem.nu, problem.nx)
+    unresolved = torch.zeros(B, dtype=torch.bool, device=x0.device)
     rows = []
     for step in range(opts.iterations + 1):
-        model = expand(soft, cons, params, it, x0, initial)
+        model = expand(problem, cons, params, it, x0, initial, weights)
+        it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
         running = status == Status.RUNNING
         status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
-        status = torch.where(running & model.finite & (model.error <= tol), int(Status.CONVERGED), status)
+        last_stage = weights.weight <= final
+        status = torch.where(running & model.finite & last_stage & ((model.error <= tol) | unresolved),
+                             int(Status.CONVERGED), status)
+        # the barrier continuation: a stage whose KKT error is within κ_ε w (or whose step the dtype no longer
+        # resolves) ends, the next weight's model differs only in the barrier's terms
+        advance = running & model.finite & ~last_stage & (stage_done(model.error, weights.weight, opts) | unresolved)
+        if bool(advance.any()):
+            weights = weights_for(torch.where(advance, next_weight(weights.weight, final, opts), weights.weight),
+                                  opts)
+            model = with_weight(model, weights)
         diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
         status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
         running = status == Status.RUNNING
@@ -117,14 +137,13 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                                        regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
         gamma = torch.where(factored, penalty(gamma, multiplier_size(d, initial is not None), opts), gamma)
-        d, ls, merit0 = globalized_step(soft, cons, params, model, it, x0, initial, d, eps, gamma, l1, factored,
-                                        opts)
+        d, ls, merit0 = globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, factored,
+                                        opts, weights)
         take = factored & ls.found
         # a full step below the dtype's resolution of the iterate: it cannot move any further in this dtype
         unresolved = take & (ls.alpha == 1.0) & (_largest(d.dX, d.dU) <= RESOLVED * torch.finfo(x0.dtype).eps
                                                    * (1 + _largest(it.X, it.U)))
         it = _step(it, d, ls.alpha, take)
-        status = torch.where(unresolved & (status == Status.RUNNING), int(Status.CONVERGED), status)
         K = where_rows(take, d.K, K)
         last = torch.where(take & (eps > 0), eps, last)
         # Fig. 5's adaptive ε_reg: a step the merit refuses or cuts short asks for more regularisation (a shorter,
@@ -141,13 +160,14 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         rows.append(dict(cost=model.J, max_violation=model.primal, step_size=torch.where(take, ls.alpha, 0.0),
                          regularization=eps, defects=model.defects.abs().flatten(1).amax(-1),
                          equality=_equality(model), merit=merit0, gamma=gamma, kkt_error=model.error,
-                         stationarity=model.dual))
+                         stationarity=model.dual, complementarity=model.complementarity,
+                         barrier_weight=weights.weight))
         if opts.verbose:
             logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  gamma %.1e  running %d", method, step,
                         model.J.min().item(), model.J.max().item(), model.error.max().item(),
                         gamma.max().item(), running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    return _solution(problem, soft, it, K, status, iterations, rows, x0, params, initial, opts, method)
+    return _solution(problem, it, K, status, iterations, rows, x0, params, initial, method)
 
 
 def _largest(X: torch.Tensor, U: torch.Tensor) -> torch.Tensor:
@@ -161,13 +181,13 @@ def _equality(model) -> torch.Tensor:
     return torch.cat([model.h.reshape(B, -1).abs(), model.hN.abs(), model.J.new_zeros(B, 1)], -1).amax(-1)
 
 
-def _solution(problem, soft, it, K, status, iterations, rows, x0, params, initial, opts, method) -> Solution:
+def _solution(problem, it, K, status, iterations, rows, x0, params, initial, method) -> Solution:
     """The shared :class:`~torchtraj.Solution`: the problem's own cost and violation (the barrier's are not the
-    problem's), the costates, the equalities' multipliers and the barrier's implied inequality multipliers."""
+    problem's), the costates, the equalities' multipliers and the inequality rows' (the primal-dual iterates,
+    ``w s(t)`` to the complementarity tolerance)."""
     cons = Constraints.of(problem)
-    z, zN = implied_multipliers(problem, it.X, it.U, params, opts.barrier_weight, opts.barrier_relaxation)
-    stage = torch.cat([z, it.nu], -1)
-    terminal = torch.cat([zN, it.nuN], -1)
+    stage = torch.cat([it.z, it.nu], -1)
+    terminal = torch.cat([it.zN, it.nuN], -1)
     multipliers = multiplier_blocks(cons, stage, terminal)
     if initial is not None:
         multipliers["initial"] = it.mu0

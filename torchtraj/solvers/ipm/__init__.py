@@ -2,10 +2,12 @@ r"""The interior-point method (method ``"ipm"``) as a :class:`~torchtraj.solvers
 is :mod:`torchtraj.solvers.ipm.solver`.
 
 It handles the constraints and takes a state guess ``X0`` (multiple shooting starts from the defects
-``f(x_k, u_k) − x_{k+1}``). It takes no warm-started duals: its multipliers start from the barrier's initial
-values (``bound_push``, ``dual_initial``) at every solve. A control step with a budget of ``n`` iterations runs at
-most ``n`` interior-point iterations; it starts from the shifted controls alone, whose rollout from the measured
-state reproduces the shifted states up to the last knot when the model is the plant's.
+``f(x_k, u_k) − x_{k+1}``); without one it starts at the problem's own state guess ``Problem.X_init`` where there
+is one (car_escape's waypoints, IPOPT's start too), else at the rollout of the controls. It takes no warm-started
+duals: its multipliers start from the barrier's initial values (``bound_push``, ``dual_initial``) at every solve.
+A control step with a budget of ``n`` iterations runs at most ``n`` interior-point iterations; it starts from the
+shifted controls alone, whose rollout from the measured state reproduces the shifted states up to the last knot
+when the model is the plant's (the problem's ``X_init`` goes with its own controls only: a cold step).
 """
 
 from __future__ import annotations

@@ -82,7 +82,8 @@ def mehrotra_step(model: Model, it: Iterate, predictor: Direction, lqr: LQR, del
     mu = torch.maximum(torch.minimum(sigma * average, ceiling), torch.full_like(ceiling, floor))
     target = (mu.reshape(-1, 1, 1) - predictor.ds * predictor.dz, mu.unsqueeze(-1) - predictor.dsN * predictor.dzN)
     rhs = newton_rhs(model, it, mu, x0, it.X.shape[-1], target)
-    factor = predictor.factor if predictor.factor is not None else factorize(lqr, shift=delta, sweep=opts.sweep)
+    factor = predictor.factor if predictor.factor is not None else factorize(lqr, shift=delta, sweep=opts.sweep,
+                                                                                 terminal_rows=opts.terminal_rows)
     d = direction(lqr, rhs, delta, model, it, mu, target, factor=factor)
     a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
     size, round_off = step_and_round_off(it, d)

@@ -100,11 +100,12 @@ class Direction:
 
 def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterate, mu: Tensor,
               target: Optional[tuple] = None, factor: Optional[RiccatiFactor] = None,
-              keep_factor: bool = False, sweep: str = "sequential") -> Direction:
+              keep_factor: bool = False, sweep: str = "sequential",
+              terminal_rows: str = "back-propagation") -> Direction:
     """Factorise the system regularised by ``δ_w I`` (``delta (B,)``; or take its ``factor``) with the Riccati
-    ``sweep`` (``IPOptions.sweep``), solve it and recover ``Δs``, ``Δz`` (FATROP eq. 8) for the complementarity
+    ``sweep`` and ``terminal_rows`` (``IPOptions``), solve it and recover ``Δs``, ``Δz`` (FATROP eq. 8) for the complementarity
     ``μ`` or ``target`` (:func:`newton_rhs`)."""
-    factor = factorize(lqr, shift=delta, sweep=sweep) if factor is None else factor
+    factor = factorize(lqr, shift=delta, sweep=sweep, terminal_rows=terminal_rows) if factor is None else factor
     sol = factor.solve(rhs, multipliers=True)
     dX, dU = sol.dx, sol.du
     dw = torch.cat([dX[:, :-1], dU], -1)

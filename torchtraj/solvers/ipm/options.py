@@ -137,14 +137,24 @@ class IPOptions:
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
-    #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; only for problems without equality rows, whose
-    #: back-propagation is sequential) or ``"auto"`` (parallel where it applies and pays, by
+    #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; for problems without stage equality rows, whose
+    #: back-propagation is sequential, and terminal rows with ``terminal_rows="range-space"``) or ``"auto"`` (parallel where it applies and pays, by
     #: :func:`~torchtraj.riccati.parallel.choose_sweep`).
     sweep: str = "sequential"
+    #: How the Newton steps hold terminal equality rows (:func:`~torchtraj.riccati.factorize`):
+    #: ``"range-space"``, the unconstrained ``sweep`` and the rows' Schur complement
+    #: (:mod:`~torchtraj.riccati.range_space`: a few calls a stage, and the parallel sweep applies), where the
+    #: problem has no stage equality rows; ``"back-propagation"``, the constraint back-propagation (two SVDs a
+    #: stage) always. Both solve the same Newton system; the range-space method asks the inertia test for a
+    #: positive definite ``Q_uu`` at every stage, where the back-propagation asks it on the controls the rows leave
+    #: free, so its ``δ_w`` can differ on a nonconvex problem.
+    terminal_rows: str = "range-space"
 
     def __post_init__(self):
         if self.sweep not in ("sequential", "parallel", "auto"):
             raise ValueError(f"sweep must be 'sequential', 'parallel' or 'auto', not {self.sweep!r}")
+        if self.terminal_rows not in ("range-space", "back-propagation"):
+            raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {self.terminal_rows!r}")
         if self.barrier_strategy not in ("monotone", "mehrotra"):
             raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
         if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:

@@ -21,9 +21,11 @@ Newton step is zero; it picks ``w_R`` at its knot by a one-hot weight, whose der
 problem is a :class:`~torchtraj.core.problem.Problem` of its own (made once per problem), solved by
 :func:`~torchtraj.solvers.ipm.solver.run` on the instances that need it, gathered; the others never see it (their
 answers are unchanged; they wait for it). Its cost: each relaxed row adds two controls, so a problem with many
-path rows pays for them in every restoration iteration (car_escape's 170 circles: 346 extra controls; its solve
-from the problem set's guess did not finish within 25 minutes). W&B eliminate ``p, n`` from the linear system
-instead, which would make a restoration iteration cost a main one: not done here.
+path rows pays for them in every restoration iteration (car_escape's 170 circles: 346 extra controls, so that
+from the rollout of its controls, which runs through the walls, a restoration iteration costs some twenty main
+ones; from its waypoint guess, the start the IPM takes, it needs no restoration phase). W&B eliminate ``p, n``
+from the linear system instead, which would make a restoration iteration cost a main one: not done here (for the
+defects it needs a dynamics row with a diagonal ``(2,2)`` block in the Riccati core).
 
 **Start** (W&B §3.3): ``μ_R = max(μ, ‖c(w_R)‖_∞)``; ``p, n`` at the minimiser of the penalty and barrier along
 ``p − n = c`` (W&B eq. 33), ``n = (μ_R − ρc)/(2ρ) + \sqrt{((μ_R − ρc)/(2ρ))^2 + μ_R c/(2ρ)}``, ``p = c + n``; the

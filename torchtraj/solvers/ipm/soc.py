@@ -15,8 +15,8 @@ to the boundary ``α^{soc}`` is tried with the filter test of the line search; a
 (``IPOptions.second_order_corrections``, IPOPT's ``max_soc`` = 4), stopped once
 ``θ(w + α^{soc} Δw^{soc}) > κ_soc θ`` of the previous trial (``soc_decrease`` κ_soc = 0.99). An accepted corrected
 step is taken instead of any shorter step of the original direction. The Armijo test of a corrected step uses its
-own ``α^{soc}`` times the original slope (W&B use ``α_max``); the system is factorised again (the line search keeps
-no factor), which is paid only by the iterations that correct.
+own ``α^{soc}`` times the original slope (W&B use ``α_max``); the corrections reuse the step's factorisation where
+the step kept it (eager solves), else the system is factorised again.
 """
 
 from __future__ import annotations
@@ -64,7 +64,8 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
     c_soc = tuple(_scaled(a_max, c) + t[:, 0] for c, t in zip(current, first))
     theta_old = torch.cat([t[:, 0].reshape(t.shape[0], -1).abs() for t in first], -1).sum(-1)
-    factor = factorize(lqr, shift=delta, sweep=opts.sweep)
+    factor = d.factor if d.factor is not None else factorize(lqr, shift=delta, sweep=opts.sweep,
+                                                                     terminal_rows=opts.terminal_rows)
     found = torch.zeros_like(need)
     alpha, f_type, best = torch.zeros_like(mu), torch.zeros_like(need), d
     a_dual = torch.zeros_like(mu)

@@ -16,6 +16,8 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 5. the filter line search with the fraction-to-boundary rule and second-order corrections
    (:mod:`~torchtraj.solvers.ipm.line_search`, :mod:`~torchtraj.solvers.ipm.soc`, :mod:`torchtraj.globalization`),
    or the watchdog's full steps (:mod:`~torchtraj.solvers.ipm.watchdog`), or Mehrotra's corrector taken whole;
+   then the iteration's one read back to the host (besides the running count): whether an instance enters
+   restoration or took a tiny step, and whether a watchdog runs or may start at the next iteration;
 6. where no step was found, the feasibility restoration phase of those instances, gathered
    (:mod:`~torchtraj.solvers.ipm.restoration`, W&B §3.3): back with a point the filter accepts, or
    ``LOCALLY_INFEASIBLE``;
@@ -29,7 +31,14 @@ and very small search directions (§3.9, :mod:`~torchtraj.solvers.ipm.barrier`).
 constraint block (§3.1) for degenerate constraint Jacobians has no counterpart here: the Riccati core eliminates
 the equality rows by a rank-revealing SVD (:mod:`torchtraj.riccati.propagation`), so that linearly dependent rows
 are dropped as round-off instead of making the system singular, and its step is the ``δ_c → 0`` limit of IPOPT's
-(``tests/test_ipm_watchdog.py`` solves problems with duplicated and dependent equality rows). With
+(``tests/test_ipm_safeguards.py`` solves problems with duplicated and dependent equality rows). A row whose
+gradient vanishes where it holds, ``(x − 1)² = 0``, is no case for it either: its Jacobian is small, never singular,
+IPOPT never perturbs it and ends ``Error_In_Step_Computation`` at a violation of 1e-16, and so does this iteration
+(``MAX_REGULARIZATION``) after the same iterates. IPOPT's ``δ_c`` proper, ``δ̄_c μ^{κ_c}`` on every equality row
+once a factorisation reports a singular system, would need the Riccati core to report the rank it dropped and to
+take a ``(2,2)`` block ``−δ_c I``: on the stage rows ``M w + h = δ_c ν`` (a penalty ``MᵀM/δ_c`` on the stage
+Hessian, ``ν = (M w + h)/δ_c``), on the dynamics ``x_{k+1} = A x_k + B u_k + c_k − δ_c λ_{k+1}`` (the cost-to-go
+``P ← P (I + δ_c P)^{-1}`` before each stage's elimination). With
 ``IPOptions(restoration=False)`` an instance whose line search finds no acceptable step keeps its iterate and
 retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regularization_max`` its status is
 ``MAX_REGULARIZATION``; so does a restoration phase whose own line search fails. The filter holds the last
@@ -38,6 +47,7 @@ retries with a larger ``δ_w`` (a shorter, more gradient-like step); past ``regu
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from typing import Optional
 
@@ -72,8 +82,12 @@ logger = logging.getLogger("torchtraj")
 def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOptions] = None,
                          method: str = "ipm") -> Solution:
     """Solve the ``batch`` of instances of ``problem``: from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
-    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting starts from defects; without it the
-    controls are rolled out), with the parameters batched to B."""
+    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting starts from defects), with the parameters
+    batched to B. Without ``X0`` the states start at the problem's own guess ``Problem.X_init`` where it has one
+    and the controls are the problem's own (as IPOPT's reference does: car_escape's waypoints; from the rollout of
+    its controls, which drives through the walls, IPOPT itself ends ``Infeasible_Problem_Detected`` after 487
+    iterations), else at the rollout of ``U0`` (:func:`state_guess`)."""
+    batch = dataclasses.replace(batch, X0=state_guess(problem, batch))
     out, cons, records = run(problem, batch, options or IPOptions(), method=method)
     knots = cons.ineq_knot_mask
     multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
@@ -82,6 +96,22 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
         iterations=out.iterations, history=full_history(records), costate=out.lam, multipliers=multipliers,
         method=method,
     )
+
+
+def state_guess(problem: Problem, batch: Batch):
+    """The states a solve starts from: the caller's ``X0``; else, where the problem has a state guess
+    ``X_init``, that guess for the instances that start from the problem's own controls ``u_init`` (the two go
+    together: a control step's shifted controls go with their rollout, not with the problem's waypoints) and the
+    rollout of ``U0`` for the others; else ``None`` (the rollout of ``U0``)."""
+    if batch.X0 is not None or problem.X_init is None:
+        return batch.X0
+    own = (batch.U0 == problem.u_init.to(batch.U0)).flatten(1).all(-1)
+    guess = problem.X_init.to(batch.x0).expand(batch.B, *problem.X_init.shape)
+    if bool(own.all()):
+        return guess
+    if not bool(own.any()):
+        return None
+    return where_rows(own, guess, rollout(problem.dynamics, batch.x0, batch.U0, batch.params))
 
 
 def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] = None, method: str = "ipm"):
@@ -101,6 +131,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         it = hooks.start(it)
     expand_k = kernel_of(expand, opts, x0.device)
     direction_k = kernel_of(direction, opts, x0.device)
+    eager = direction_k is direction
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
         else hooks.barrier.clone()
     budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
@@ -131,6 +162,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     # IPOPT's mu_max: its factor times the initial average complementarity
     ceiling = opts.mehrotra_mu_max_factor * average_complementarity(it.s, it.sN, it.z, it.zN, cons.ineq_knot_mask)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
+    may_return = may_watch = False  # a watchdog runs / may start (known at the last iteration's synchronisation)
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
@@ -195,8 +227,11 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
 
         def attempt(delta):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels: no kwargs)
             if mehrotra:
-                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True, sweep=opts.sweep)
-            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, False, opts.sweep)
+                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True, sweep=opts.sweep,
+                                 terminal_rows=opts.terminal_rows)
+            # eager, the factorisation is kept for the second-order corrections (they solve the same system)
+            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, eager, opts.sweep,
+                               opts.terminal_rows)
 
         d, delta = regularized_direction(attempt, floor, last, running, opts)
         factored = running & d.ok
@@ -210,11 +245,13 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                                                theta_min, need, a_max, first, lqr, delta, x0, opts)
 
             lost = running & ~d.ok & wd.running()  # a watchdog's full steps led where no step is found: back
-            if bool(lost.any()):
+            if may_return:  # a watchdog ran at the last synchronisation: no host test of `lost` itself
                 it, last, wd = pick(lost, wd.it, it), torch.where(lost, wd.last, last), wd.stop(lost)
             watching = factored & (wd.running() | (wd.shortened >= opts.watchdog_trigger)) \
                 if opts.watchdog_trigger > 0 else None
-            watched = watching is not None and bool(watching.any())
+            # a superset of the instances watched now, known at the last synchronisation (watched_step on an empty
+            # mask changes nothing)
+            watched = watching is not None and may_watch
             ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
                              factored & ~watching if watched else factored, opts,
                              correct if opts.second_order_corrections > 0 else None)
@@ -226,11 +263,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
                 factored), ls.filter, opts)
         take = factored & ls.found
-        if ls.tiny is not None and bool(ls.tiny.any()):
-            small = ls.tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
-            tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)
-        elif ls.tiny is not None:
-            tiny_steps = torch.where(take, 0, tiny_steps)
+        tiny = ls.tiny
         it = pick(take, ls.it, it)
         filt = pick(take, ls.filter, filt)
         K = where_rows(take, d.K, K)
@@ -239,7 +272,19 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance of the
         # convergence test, ‖c‖_∞ (steps at round-off: those keep the larger-δ_w path)
         entering = missed & (model.primal_error > tol) if restoring else None
-        if entering is not None and bool(entering.any()):
+        # the iteration's one synchronisation with the host: restoration entries, tiny steps, and for the next
+        # iteration whether a watchdog runs (its return) or may start (the restoration and the barrier update only
+        # stop watchdogs, so these stay supersets)
+        never = torch.zeros((), dtype=torch.bool, device=x0.device)
+        enter_any, tiny_any, may_return, may_watch = torch.stack([
+            never if entering is None else entering.any(), never if tiny is None else tiny.any(),
+            wd.running().any(), (wd.running() | (wd.shortened >= opts.watchdog_trigger)).any()]).tolist()
+        if tiny_any:
+            small = tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
+            tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)
+        elif tiny is not None:
+            tiny_steps = torch.where(take, 0, tiny_steps)
+        if enter_any:
             back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, entering, budget - iterations,
                            tol, opts, run)
             it, filt = back.it, back.filter

@@ -1,0 +1,246 @@
+r"""Terminal equality rows by the range-space (Schur complement) method, on top of the unconstrained sweep.
+
+An LQR problem whose only equality rows are terminal, ``C_N δx_N + e_N = 0`` (an interior point's goal
+constraint), is the unconstrained problem with the terminal gradient ``q_N + C_Nᵀ ν`` for the right multiplier
+``ν``; its solution is affine in ``ν``. With the unconstrained factorisation (sequential or parallel sweep, no
+back-propagated rows: :mod:`~torchtraj.riccati.propagation`'s two SVDs a stage are the costliest part of a sweep
+with rows), the response to ``ν`` is the homogeneous problem's (``q = r = c = 0``, ``δx_0 = 0``, ``q_N = C_Nᵀ``),
+columns ``Π_k = Ψ_kᵀ C_Nᵀ`` with ``Ψ_k = Φ_{N−1} ⋯ Φ_k`` the closed loop's transition (``Φ_k = A_k + B_k K_k``):
+
+.. math::
+
+    p^h_k = Π_k = Φ_k^T Π_{k+1},\ Π_N = C_N^T, \qquad k^h_k = -Q_{uu,k}^{-1} B_k^T Π_{k+1}, \qquad
+    δx^h_{k+1} = Φ_k δx^h_k + B_k k^h_k,\ δx^h_0 = 0,
+
+and ``λ^h_k = P_k δx^h_k + Π_k`` (the gains are exact). The terminal rows then read
+``C_N δx_N(ν) + e_N = r + Σ ν = 0`` with ``r = C_N δx^0_N + e_N`` from the unconstrained solution and
+``Σ = C_N δx^h_N = Σ_j T_j``, ``T_j = Π_{j+1}^T B_j k^h_j = −Π_{j+1}^T B_j Q_{uu,j}^{-1} B_j^T Π_{j+1}`` (negative
+semidefinite: minus the closed loop's reachability Gramian seen through the rows). So ``ν = −Σ⁺ r`` with the
+pseudo-inverse at the rank tolerance (dependent rows, and rows the controls cannot reach, drop out as the
+back-propagation's rank-revealing SVD drops them), and every field of the solution is the unconstrained one plus
+the homogeneous columns times ``ν``.
+
+**The terminal penalty.** The unconstrained sweep needs each stage's ``Q_uu`` positive definite, where the
+back-propagation needs the Hessian positive definite only on the directions the rows leave free (the inertia an
+interior point's regularisation tests). The unconstrained problem therefore takes ``Q_N + ρ Π`` with
+``Π = C_N⁺ C_N`` the projector onto the rows' span: on the rows' feasible set ``Π δx_N = −C_N⁺ e_N`` is fixed, so
+the penalty ``½ ρ δx_Nᵀ Π δx_N`` is constant there and the constrained solution does not change, while for ρ large
+enough the Hessian is positive definite on the dynamics' null space wherever it is on the rows' (Finsler's lemma),
+so the inertia test answers as the back-propagation's. ``ρ`` is ten times the Hessian's largest entry
+(:func:`penalty`): a scale, not the bound of Finsler's lemma. The rows' multipliers then carry the penalty's
+gradient, ``ν + ρ C_N⁺ᵀ δx_N``.
+
+The feedback gains are the constrained problem's, those of the back-propagation: a perturbation ``δx_k`` moves the
+terminal rows by ``Π_kᵀ δx_k`` and the controls from stage ``k`` on can answer with ``Σ_k = Σ_{j ≥ k} T_j``, so
+
+.. math::  K^c_k = K_k - k^h_k Σ_k^+ Π_k^T.
+
+The factorisation's cost is the unconstrained sweep's plus two matrix products a stage (the chains of ``Π`` and
+``δx^h``; with the parallel sweep, associative scans) and a constant number of calls for all stages at once; each
+solve is one unconstrained solve plus a constant number.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from ..core.compiled import addmatmul, matmul
+from .factor import RiccatiFactor
+from .linalg import _cholesky_solve, _mT, _sym
+from .lqr import LQR, LQRSolution, LQRVectors
+from .parallel import ParallelRiccatiFactor
+from .parallel_scan import _compose_backward, _compose_forward, associative_scan
+from .sanitize import all_finite
+from .sweep import expected_change
+
+TERMINAL_ROWS = ("back-propagation", "range-space")
+#: The terminal penalty's weight relative to the Hessian's scale (:func:`penalty`).
+PENALTY = 10.0
+
+
+def applies(lqr: LQR, regularization: Optional[Tensor]) -> bool:
+    """Whether the range-space method takes ``lqr``'s rows: terminal rows only, no declared bounds, no ``ρ``."""
+    return lqr.CN is not None and lqr.C is None and lqr.bounds is None and regularization is None
+
+
+@dataclass
+class RangeSpaceFactor:
+    """The factorisation of an LQR problem with terminal rows by the range-space method (module docstring).
+
+    ``inner`` the factorisation of the penalised unconstrained problem, ``lqr`` the shifted problem with its rows
+    (its ``Q_N`` with the penalty), ``K (B, N, nu, nx)`` the constrained feedback gains, ``P`` the unconstrained
+    value function's Hessians, ``ok (B,)``; the homogeneous columns (last dimension ``mN``):
+    ``Pi (B, N+1, nx, mN)``, ``kh (B, N, nu, mN)``, ``dxh (B, N+1, nx, mN)``, ``duh (B, N, nu, mN)``,
+    ``lamh (B, N+1, nx, mN)``; ``inverse (B, mN, mN)`` the pseudo-inverse of ``−Σ``; ``penalty (B, mN, nx)`` the
+    penalty's share of the rows' multipliers, ``ρ C⁺ᵀ``."""
+
+    inner: RiccatiFactor
+    lqr: LQR
+    K: Tensor
+    P: Tensor
+    ok: Tensor
+    Pi: Tensor
+    kh: Tensor
+    dxh: Tensor
+    duh: Tensor
+    lamh: Tensor
+    inverse: Tensor
+    penalty: Tensor
+
+    def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True,
+              initial_multiplier: Optional[Tensor] = None) -> LQRSolution:
+        """Solve for ``rhs``: the unconstrained solution, the multipliers ``ν = −Σ⁺ r`` of the terminal rows and
+        the homogeneous columns times ``ν`` (module docstring). The step is computed whatever ``forward`` (``ν``
+        needs ``δx_N``); no rows are left at the fixed initial state, so ``initial_multiplier`` does not apply."""
+        lqr = self.lqr
+        base = self.inner.solve(dataclasses.replace(rhs, e=None, eN=None), multipliers=multipliers)
+        residual = (lqr.CN @ base.dx[:, -1].unsqueeze(-1)).squeeze(-1)
+        if rhs.eN is not None:
+            residual = residual + rhs.eN
+        residual = residual * lqr.maskN if lqr.maskN is not None else residual
+        nu = self.inverse @ residual.unsqueeze(-1)  # ν = −Σ⁺ r = (−Σ)⁺ r
+        column = nu.unsqueeze(1)
+
+        def plus(value: Tensor, homogeneous: Tensor) -> Tensor:
+            return value + (homogeneous @ column).squeeze(-1)
+
+        k, p = plus(base.k, self.kh), plus(base.p, self.Pi)
+        dx, du = plus(base.dx, self.dxh), plus(base.du, self.duh)
+        # the Q-functions' gradients of the combined solution, for its expected change
+        Qu = (_mT(lqr.B) @ (self.P[:, 1:] @ rhs.c.unsqueeze(-1) + p[:, 1:].unsqueeze(-1))).squeeze(-1) + rhs.r
+        dV1, dV2 = expected_change(k, Qu, _stage_matrices(self.inner.Quu))
+        out = LQRSolution(dx=dx, du=du, k=k, p=p, dV1=dV1, dV2=dV2)
+        if multipliers:
+            out.costate = plus(base.costate, self.lamh)
+            # the penalty's gradient ρ Π δx_N = C_Nᵀ (ρ C⁺ᵀ δx_N) is part of the rows' multiplier
+            nuN = nu.squeeze(-1) + (self.penalty @ dx[:, -1].unsqueeze(-1)).squeeze(-1)
+            out.nuN = nuN * lqr.maskN if lqr.maskN is not None else nuN
+        return out
+
+
+def _stage_matrices(a: Tensor) -> Tensor:
+    """``(B, N, nu, nu)`` per-stage matrices; the parallel sweep stores its ``1 × 1`` ones as ``(B, N, 1)``."""
+    return a if a.dim() == 4 else a.unsqueeze(-1)
+
+
+def _reverse_chain(PhiT: Tensor, last: Tensor, parallel: bool) -> Tensor:
+    """``Π (B, N+1, n, m)``: ``Π_N = last (B, n, m)``, ``Π_k = PhiT_k Π_{k+1}`` for ``PhiT (B, N, n, n)``."""
+    if parallel:  # every suffix product Φ_kᵀ ⋯ Φ_{N−1}ᵀ by an associative scan, then applied to Π_N
+        B, N = PhiT.shape[:2]
+        tm = PhiT.transpose(0, 1).flatten(0, 1)
+        (suffix,) = associative_scan((tm,), _compose_backward, B, reverse=True)
+        chain = torch.bmm(suffix, last.repeat(N, 1, 1)).unflatten(0, (N, B)).transpose(0, 1)
+        return torch.cat([chain, last.unsqueeze(1)], 1)
+    steps = PhiT.unbind(1)
+    out = [None] * (len(steps) + 1)
+    out[-1] = value = last
+    for t in range(len(steps) - 1, -1, -1):
+        value = matmul(steps[t], value)
+        out[t] = value
+    return torch.stack(out, 1)
+
+
+def _forward_chain(Phi: Tensor, drive: Tensor, parallel: bool) -> Tensor:
+    """``x (B, N+1, n, m)``: ``x_0 = 0``, ``x_{k+1} = Φ_k x_k + drive_k`` for ``Phi (B, N, n, n)``."""
+    B, N, n, m = drive.shape
+    zero = drive.new_zeros(B, 1, n, m)
+    if parallel:  # the maps x ↦ Φ x + d as [[Φ, d], [0, I]], composed by an associative scan, applied to [0; I]
+        eye = torch.eye(m, dtype=drive.dtype, device=drive.device).expand(B, N, m, m)
+        maps = torch.cat([torch.cat([Phi, drive], -1), torch.cat([drive.new_zeros(B, N, m, n), eye], -1)], -2)
+        (prefix,) = associative_scan((maps.transpose(0, 1).flatten(0, 1),), _compose_forward, B)
+        chain = prefix[:, :n, n:].unflatten(0, (N, B)).transpose(0, 1)  # applied to [0; I]: the last m columns
+        return torch.cat([zero, chain], 1)
+    Phis, drives = Phi.unbind(1), drive.unbind(1)
+    out = [zero.squeeze(1)] + [None] * N
+    value = drives[0]
+    out[1] = value
+    for t in range(1, N):
+        value = addmatmul(drives[t], Phis[t], value)
+        out[t + 1] = value
+    return torch.stack(out, 1)
+
+
+def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
+    """The pseudo-inverse of the symmetric positive semidefinite ``M (..., m, m)``: its eigenvalues above ``tol``
+    times the largest inverted, the others dropped."""
+    w, V = torch.linalg.eigh(M)
+    keep = w > (tol * w.amax(-1, keepdim=True)).clamp_min(torch.finfo(w.dtype).tiny)
+    inverse_w = torch.where(keep, w.reciprocal(), torch.zeros_like(w))
+    return (V * inverse_w.unsqueeze(-2)) @ _mT(V)
+
+
+def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
+    """The pseudo-inverse of the symmetric positive semidefinite ``negative (..., m, m)`` at the relative ``tol``
+    of its largest eigenvalue, and whether it was finite (a non-finite matrix gets the identity's: no instance's
+    failure reaches the batched eigensolver of the others).
+
+    A batched eigensolver of many tiny matrices costs several times a Cholesky factorisation, and most of these
+    matrices (every stage but the last few, whose controls cannot reach every row) are well conditioned. So all
+    are factorised, and those whose factor proves ``λ_min > tol λ_max`` are inverted with it: with the pivots
+    ``p_i = L_ii²`` and the largest diagonal entry ``d``, ``λ_max ≤ m d`` and ``λ_min ≥ Π p_i / λ_max^{m−1}``, so
+    ``Π p_i > tol (m d)^m`` suffices. The others (gathered, one read of their count by the host) take the
+    eigen-decomposition; while a CUDA graph is captured or torch.compile traces, every matrix does."""
+    finite = torch.isfinite(negative).flatten(-2).all(-1)
+    m = negative.shape[-1]
+    eye = torch.eye(m, dtype=negative.dtype, device=negative.device)
+    M = torch.where(finite.unsqueeze(-1).unsqueeze(-1), _sym(negative), eye)
+    if torch.compiler.is_compiling() or (M.is_cuda and torch.cuda.is_current_stream_capturing()):
+        return _eigen_inverse(M, tol), finite
+    L, info = torch.linalg.cholesky_ex(M)
+    pivots = L.diagonal(dim1=-2, dim2=-1).square().prod(-1)
+    largest = M.diagonal(dim1=-2, dim2=-1).amax(-1)
+    easy = (info == 0) & (pivots > tol * (m * largest) ** m)
+    inverse = torch.cholesky_solve(eye.expand_as(M), torch.where(easy.unsqueeze(-1).unsqueeze(-1), L, eye))
+    hard = (~easy).nonzero(as_tuple=True)
+    if hard[0].numel():
+        inverse = inverse.index_put(hard, _eigen_inverse(M[hard], tol))
+    return inverse, finite
+
+
+def penalty(lqr: LQR, C: Tensor, tol: float) -> tuple:
+    """The terminal penalty ``ρ Π`` (module docstring): ``ρ (B,)`` ``PENALTY`` times the Hessian's largest entry
+    (at least 1), ``Π = C⁺ C (B, nx, nx)`` the projector onto the rows' span and ``C⁺ (B, nx, mN)`` the rows'
+    pseudo-inverse at the rank tolerance (zero for an instance whose rows are not finite: its ``Σ`` fails)."""
+    H = torch.cat([lqr.Q.flatten(1), lqr.R.flatten(1), lqr.S.flatten(1), lqr.QN.flatten(1)], -1)
+    rho = PENALTY * H.abs().amax(-1).clamp_min(1.0)
+    finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
+    pinv = torch.linalg.pinv(torch.where(finite, C, 0.0), rtol=tol)
+    return rho, pinv @ C.nan_to_num(), pinv
+
+
+def penalised(lqr: LQR, tol: float) -> tuple:
+    """The unconstrained problem that :func:`factorize_range_space` factorises: ``lqr`` without its terminal rows
+    and with the penalty ``Q_N + ρ Π`` (module docstring), and the multipliers' correction ``ρ C⁺ᵀ (B, mN, nx)``."""
+    C = lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.maskN is not None else lqr.CN
+    rho, projector, pinv = penalty(lqr, C, tol)
+    rho = rho.reshape(-1, 1, 1)
+    return dataclasses.replace(lqr, CN=None, maskN=None, QN=lqr.QN + rho * projector), rho * _mT(pinv)
+
+
+def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, tol: float) -> RangeSpaceFactor:
+    """The range-space factorisation (module docstring) of ``lqr`` (terminal rows ``CN``, ``maskN`` only) from the
+    factorisation ``inner`` (either sweep, shifted as ``lqr`` is to be) of its :func:`penalised` problem and that
+    problem's multiplier ``correction``, at the rank tolerance ``tol``."""
+    C = lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.maskN is not None else lqr.CN
+    lqr = dataclasses.replace(inner.lqr, CN=lqr.CN, maskN=lqr.maskN)
+    A, Bu = lqr.A, lqr.B
+    parallel = isinstance(inner, ParallelRiccatiFactor)
+    Phi = A + Bu @ inner.K
+    Pi = _reverse_chain(_mT(Phi), _mT(C), parallel)
+    kh = -_cholesky_solve(_mT(Bu) @ Pi[:, 1:], _stage_matrices(inner.chol))
+    drive = Bu @ kh
+    dxh = _forward_chain(Phi, drive, parallel)
+    duh = kh + inner.K @ dxh[:, :-1]
+    lamh = Pi + inner.P @ dxh
+    # −Σ_k = −Σ_{j ≥ k} T_j for the gains, all stages at once; −Σ_0 for the multipliers
+    T = (_mT(Pi[:, 1:]) @ drive).neg()
+    inverses, finite = _pseudo_inverse(T.flip(1).cumsum(1).flip(1), tol)
+    K = inner.K + kh @ (inverses @ _mT(Pi[:, :-1]))
+    ok = inner.ok & finite.all(-1) & all_finite([K, dxh])
+    return RangeSpaceFactor(inner=inner, lqr=lqr, K=K, P=inner.P, ok=ok, Pi=Pi, kh=kh, dxh=dxh, duh=duh,
+                            lamh=lamh, inverse=inverses[:, 0], penalty=correction)
