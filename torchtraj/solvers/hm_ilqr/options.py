@@ -68,7 +68,8 @@ class HMILQROptions:
     #: With 100 every problem of the set converges from its own guess (docs/benchmarks.md, "Default options"; the
     #: cart-pole at a local optimum IPOPT keeps, 1.789, where ``μ_0 = 1`` crawled toward IPOPT's 1.486); its price:
     #: from a guess far outside the bounds (the paper's coarse cart-pole guess, controls 3 beyond them) the AL stage
-    #: stalls and the solve takes 486 iterations instead of 84 (N = 50).
+    #: stalls and the solve takes 486 iterations instead of 84 (N = 50), or ends ``MAX_REGULARIZATION`` from a guess
+    #: that differs by 2e-10: pass ``penalty_initial=1`` from a start far outside the bounds.
     penalty_initial: float = 100.0
     #: ``φ``: the penalty scaling of eq. (16), applied after every iteration (one inner iteration per update).
     penalty_scaling: float = 10.0
