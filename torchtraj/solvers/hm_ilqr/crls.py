@@ -10,7 +10,8 @@ term more weight and the step in the states less: the lagged effect the paper ex
 
 **Plain LS** (the AL stage, and the RLB stage with ``crls=False``): one backward pass and one backtracking line
 search ``α ∈ {1, γ, γ², …}`` (eq. 20); a failure raises ``μ_V ← min(σ μ_V, μ_V^max)`` for the next iteration and the
-iteration takes no step, a success lowers it, ``μ_V ← max(μ_V / σ, μ_V^0)``.
+iteration takes no step, a success lowers it, ``μ_V ← max(μ_V / σ, μ_V^0)``. With ``failed_search_stops`` a failed
+search of the RLB stage ends the solve instead: the paper's pure LS, against which its Fig. 5 measures CRLS.
 
 **CRLS** (the RLB stage): each iteration starts from ``μ_V^0``; where the backward pass fails (a reduced Hessian
 not positive definite) or the line search finds no step down to ``α_min``, the iteration returns to the backward

@@ -143,6 +143,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
                       & (s.psi <= tol.barrier * (1 + 1e-9))
                       & (t.stationary | (dJ.abs() < opts.cost_tolerance)))
         failed = active & t.failed & (crls | (mu_V >= opts.regularization_max)) & ~kkt
+        # the paper's pure LS (Fig. 5): a failed line search of the RLB stage ends the solve
+        stopped = active & t.failed & s.rlb & ~crls & opts.failed_search_stops & ~kkt & ~failed
         # AL stage: multipliers and penalty after every iteration (eqs. 15-16); RLB stage: ψ, δ (18) and the
         # equality rows' AL terms after every accepted step
         # Algorithm 2's "if update": the multipliers move once the inner M-iLQR has nearly converged on J_1 (a
@@ -166,6 +168,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         D = D - held_before + objective.equality_residual(X, U, params)  # handed over: the goal joins the defects
         status = torch.where(done, int(Status.CONVERGED), status)
         status = torch.where(failed & ~done, int(Status.MAX_REGULARIZATION), status)
+        status = torch.where(stopped & ~done, int(Status.STALLED), status)
         rows.append({
             "cost": total_cost(problem, X, U, params), "max_violation": violation, "step_size": t.alpha,
             "regularization": mu_V, "stage": s.rlb.long(), "defect_norm": D.sqrt(), "barrier": s.psi,
