@@ -151,9 +151,9 @@ def _refined(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, done: Tensor
     refine = done & (rounding > ESTIMATE_ROUNDING)
     if not bool(refine.any()):
         return stage, terminal
-    _, ls_stage, ls_terminal, _ = multipliers(al, params, X, U, opts.projection_options)
-    return (torch.where(refine.reshape(-1, 1, 1), ls_stage, stage),
-            torch.where(refine.reshape(-1, 1), ls_terminal, terminal))
+    held = multipliers(al, params, X, U, opts.projection_options)
+    return (torch.where(refine.reshape(-1, 1, 1), held.stage, stage),
+            torch.where(refine.reshape(-1, 1), held.terminal, terminal))
 
 
 def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):
