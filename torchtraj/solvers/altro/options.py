@@ -48,6 +48,10 @@ class ALTROOptions:
     projection_options: ProjectionOptions = field(default_factory=ProjectionOptions)
     #: Cost ``½ R_s |s|²`` on the slack controls of an infeasible start (§III-B, eq. 32).
     slack_cost: float = 1.0
+    #: Without an ``X0``, start from the problem's own state guess (``Problem.X_init``) where it carries one, by the
+    #: infeasible start (§III-B), as from an ``X0``; ``False``: from the rollout of ``U0`` (module docstring of
+    #: :mod:`torchtraj.solvers.altro.solver`). A control step never does (:meth:`ALTRO.step_options`).
+    problem_state_guess: bool = True
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
 
