@@ -24,10 +24,12 @@ times the dynamics' curvature, row multipliers times the rows') converges quadra
 on the quadrotor stationarity 2.4e-6, 2e-10, 2e-13 in two steps. With the cost Hessian alone (a Gauss-Newton
 model) the same steps do not converge there (1.7e-7, 1.7e-7, 2.0e-7, …): the curvature term is what is missing.
 
-A step is kept per instance only where the system factorised and the KKT error (the largest of the certificate's
-residuals: stationarity, feasibility of every row and the dynamics, complementarity, the multipliers' sign) goes
-down; an inactive row that a step would violate, or a held inequality whose multiplier turns negative, raises it,
-and the instance keeps its projected point. Instances stop at a step of round-off size.
+The loop (:func:`torchtraj.solvers.altro.projection.project`) follows each step by the projection's feasibility
+steps (a second-order correction) and keeps it per instance only where the system factorised and the KKT error
+(:func:`kkt_error`: the largest of the certificate's residuals, stationarity, feasibility of every row and the
+dynamics, complementarity, the multipliers' sign) goes down without the violation growing past the tolerance.
+Where a step would violate a free row or leaves a held inequality with a negative multiplier, the held set is
+updated instead and the step computed again. Instances stop at a step of round-off size.
 """
 
 from __future__ import annotations

@@ -157,10 +157,11 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
     _, _, _, _, v = _residuals(al, al.problem.dynamics, params, x0, X, U, stage_active, terminal_active)
     held = multipliers(al, params, X, U, opts, stage_active, terminal_active)
     point = KKTPoint(X, U, held.costate, held.stage, held.terminal, held.K)
-    # the feasible point made stationary as well, with the rows held whose multipliers have the right sign
-    point = _polished(al, params, x0, point, mask & (v <= tolerance), (held.stage_active, held.terminal_active),
-                      opts, reg, rank_tol, tolerance)
-    _, _, _, _, v = _residuals(al, al.problem.dynamics, params, x0, point.X, point.U, stage_active, terminal_active)
+    # the feasible point made stationary as well, with the rows held whose multipliers have the right sign; where it
+    # moved, its violation is that of every row and the dynamics (the held set may have changed on the way)
+    point, moved, violation = _polished(al, params, x0, point, mask & (v <= tolerance),
+                                        (held.stage_active, held.terminal_active), opts, reg, rank_tol, tolerance)
+    v = torch.where(moved, violation, v)
     converged = mask & (v <= tolerance)
     return Projected(X=point.X, U=point.U, violation=v, converged=converged, costate=point.costate,
                      stage=point.stage, terminal=point.terminal, K=point.K)
@@ -213,9 +214,10 @@ def _feasibility_steps(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U
 
 
 def _polished(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint, mask: Tensor, held: tuple,
-              opts: ProjectionOptions, reg: Tensor, rank_tol: float, tolerance: Tensor) -> KKTPoint:
+              opts: ProjectionOptions, reg: Tensor, rank_tol: float, tolerance: Tensor):
     """At most ``polish_iterations`` Newton steps on the KKT conditions of the ``held`` rows
-    (:mod:`torchtraj.solvers.altro.polish`) for the feasible instances in ``mask (B,)``.
+    (:mod:`torchtraj.solvers.altro.polish`) for the feasible instances in ``mask (B,)``: ``(point, moved (B,),
+    violation (B,))``, ``violation`` the largest of every row and the dynamics at ``point`` where it ``moved``.
 
     Where a step would violate a free inequality or leave a held one with a negative multiplier, the set is updated
     instead (Hintermüller, Ito & Kunisch's primal-dual rule, :func:`_updated_rows`) and the step computed again.
@@ -225,11 +227,12 @@ def _polished(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint, mask
     error, violation = kkt_error(al, params, x0, point)
     eps = torch.finfo(point.X.dtype).eps
     moving = mask.clone()
+    moved_at_all = torch.zeros_like(mask)
     for _ in range(opts.polish_iterations):
         if not bool(moving.any()):
             break
         moved, size, ok = newton_kkt_step(al, params, x0, point, held[0], held[1], reg, rank_tol)
-        following, changed = _updated_rows(al, params, moved, held)
+        following, changed = _updated_rows(al, params, moved, held, tolerance)
         changed = moving & ok & changed
         held = tuple(where_rows(changed, new, old) for new, old in zip(following, held))
         stepping = moving & ok & ~changed
@@ -241,18 +244,19 @@ def _polished(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint, mask
         point = moved.where(take, point)
         error = torch.where(take, moved_error, error)
         violation = torch.where(take, moved_violation, violation)
+        moved_at_all = moved_at_all | take
         scale = 1 + torch.maximum(point.X.abs().flatten(1).amax(-1), point.U.abs().flatten(1).amax(-1))
         moving = (take & (size > ROUND_OFF * eps * scale)) | changed
-    return point
+    return point, moved_at_all, violation
 
 
-def _updated_rows(al: AugmentedLagrangian, params, moved: KKTPoint, held: tuple):
+def _updated_rows(al: AugmentedLagrangian, params, moved: KKTPoint, held: tuple, tolerance: Tensor):
     """``((stage (B, N, m), terminal (B, mN)), changed (B,))``: the rows held after a Newton step to ``moved``: a held
-    inequality stays where its multiplier is not negative, a free one joins where ``moved`` violates it (equality rows
-    stay held)."""
+    inequality stays where its multiplier is not negative, a free one joins where ``moved`` violates it by more than
+    ``tolerance (B,)`` (round-off on a weakly active row is no reason to hold it); equality rows stay held."""
     stage, terminal = held
-    c = al.stage_values(moved.X, moved.U, params)
-    cN = al.terminal_values(moved.X, params)
+    c = al.stage_values(moved.X, moved.U, params) - tolerance.reshape(-1, 1, 1)
+    cN = al.terminal_values(moved.X, params) - tolerance.reshape(-1, 1)
     applies = (al.knot_mask > 0) & al.is_ineq
     new_stage = torch.where(applies, torch.where(stage > 0, moved.stage >= 0, c > 0), stage > 0).to(stage.dtype)
     new_terminal = torch.where(al.is_ineqN, torch.where(terminal > 0, moved.terminal >= 0, cN > 0),
