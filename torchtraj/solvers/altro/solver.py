@@ -24,10 +24,12 @@ held rows (:func:`~torchtraj.solvers.altro.stages.finish`); the inner iLQR takes
 carries one (``problem_state_guess``), ALTRO takes its infeasible start (§III-B): the states of the guess, held by
 slack controls that the AL stage drives to zero. A problem that carries a state guess says where its trajectory
 should go, and the paper's infeasible start is the way ALTRO follows such a guess: the rollout of the control guess
-alone can lead elsewhere. ``car_escape`` (a car in a room, its exit through a gap in the walls) shows it: from the
-rollout of its controls ALTRO's defaults end ``MAX_REGULARIZATION`` after 2302 iterations pressed against a wall,
-from its ``X_init`` (a path through the gap) they converge; HM-iLQR starts from ``X_init`` likewise. Without a
-state guess, the start is the rollout of ``U0``. A control step (MPC) never takes ``X_init``: it starts from the
+alone can lead elsewhere (``car_escape``: a car in a room, its exit through a gap in the walls; from the rollout
+of its controls AL-iLQR stays in the first room or cuts through a wall). HM-iLQR starts from ``X_init`` likewise.
+The start alone does not make every problem converge at default settings: ``car_escape`` converges from its
+``X_init`` with the ALTRO sources' settings (``tt.problems.altro_options("car_escape")``: slack cost 0.1,
+penalties 10 × 50ⁿ), but with the defaults it ends ``MAX_REGULARIZATION`` after 2519 iterations (2302 from the
+rollout). Without a state guess, the start is the rollout of ``U0``. A control step (MPC) never takes ``X_init``: it starts from the
 previous step's shifted controls, and ``X_init`` belongs to the problem's own ``x0``.
 
 Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem
