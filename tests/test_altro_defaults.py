@@ -70,7 +70,7 @@ def test_problem_state_guess_is_the_infeasible_start(reference):
     ipopt = reference["double_integrator"]["ipopt"]["cost"]
     for sol in (default, rolled):
         assert sol.status[0] == tt.Status.CONVERGED and float(sol.max_violation[0]) <= 1e-8
-        assert abs(float(sol.cost[0]) - ipopt) <= 1e-6 * ipopt
+        assert abs(float(sol.cost[0]) - ipopt) <= 1e-6 * max(1.0, ipopt)
 
 
 def test_control_step_does_not_take_the_problem_state_guess():
@@ -97,7 +97,7 @@ def test_al_ilqr_defaults_meet_constraints_to_1e_8(reference):
     ipopt = reference["pendulum"]["ipopt"]["cost"]
     assert sol.status[0] == tt.Status.CONVERGED
     assert float(sol.max_violation[0]) <= 1e-8
-    assert abs(float(sol.cost[0]) - ipopt) <= 1e-6 * ipopt
+    assert abs(float(sol.cost[0]) - ipopt) <= 1e-6 * max(1.0, ipopt)  # the bench's "at IPOPT"
 
 
 @pytest.mark.slow  # minutes each: the acceptance check of the issue on the problems ALTRO's defaults missed
@@ -115,9 +115,9 @@ def test_defaults_converge(name, options, reference):
     assert sol.status[0] == tt.Status.CONVERGED
     assert float(sol.max_violation[0]) <= 1e-8
     cost, ipopt = float(sol.cost[0]), reference[name]["ipopt"]["cost"]
-    if abs(cost - ipopt) <= 1e-6 * ipopt:
+    if abs(cost - ipopt) <= 1e-6 * max(1.0, ipopt):
         return
     from torchtraj.bench.reference import ReferenceSolver
 
     warm = ReferenceSolver(name, "ipopt").solve(U0=sol.U[0].numpy(), X0=sol.X[0].numpy(), warm_start=True)
-    assert warm.ok and abs(warm.cost - cost) <= 1e-6 * cost, (warm.cost, cost)
+    assert warm.ok and abs(warm.cost - cost) <= 1e-6 * max(1.0, cost), (warm.cost, cost)
