@@ -57,11 +57,12 @@ def solve(
             point is the constrained default because, with its default options and each problem's own guesses, it
             reaches IPOPT's optimum (or a lower local optimum IPOPT keeps) on every problem of the set measured (all
             but ``car_escape``), the obstacle problems through its restoration phase, in 13 to 143 iterations;
-            ALTRO's defaults take up to 902 (the cart-pole) and stop ``STALLED`` on the 2-D quadrotor
-            (``docs/benchmarks.md``, "Default options"). Name a method to choose otherwise.
+            ALTRO's defaults take up to 902 (the cart-pole) (``docs/benchmarks.md``, "Default options"). Name a
+            method to choose otherwise.
         U0: initial control guess ``(N, nu)`` or ``(B, N, nu)``; ``None`` uses ``problem.u_init``.
         X0: initial state guess ``(N+1, nx)`` or ``(B, N+1, nx)`` for methods that take one
-            (``takes_state_guess``); for ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B).
+            (``takes_state_guess``); for ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B),
+            which the problem's own ``X_init`` triggers where no ``X0`` is given.
         options: the method's options dataclass (or a dict of its fields).
         duals: warm start of the methods that take one (``takes_duals``: the augmented-Lagrangian methods),
             ``{"multipliers": ..., "penalties": ...}``, each a dict of per-block tensors laid out like

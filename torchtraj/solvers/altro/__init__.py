@@ -30,12 +30,12 @@ from .solver import solve_altro
 #: ALTRO's settings for MPC: no projection (the applied control is clamped to its bounds anyway, and the projection
 #: adds 12 % (median) to 26 % (mean) to a pendulum step at B = 1) and Altro.jl's stopping tolerances
 #: (:meth:`ALTROOptions.fast`): a control step is a few warm-started iterations, not a solve to the optimum.
-MPC_OPTIONS = ALTROOptions.fast(projection=False)
+MPC_OPTIONS = ALTROOptions.fast(projection=False, problem_state_guess=False)
 
 
 class ALTRO(Solver):
-    """Method ``"altro"``: :func:`~torchtraj.solvers.altro.solver.solve_altro`. ``X0`` switches to the infeasible
-    start (§III-B); ``duals`` warm-start the multipliers and penalties."""
+    """Method ``"altro"``: :func:`~torchtraj.solvers.altro.solver.solve_altro`. ``X0``, or without one the problem's
+    ``X_init``, switches to the infeasible start (§III-B); ``duals`` warm-start the multipliers and penalties."""
 
     name = "altro"
     options_class = ALTROOptions
@@ -53,6 +53,8 @@ class ALTRO(Solver):
         """One inner solve of at most ``iterations`` iLQR iterations and no further dual update (module docstring);
         ``compile`` compiles the inner iLQR's kernels."""
         opts = self.options(self.step_defaults() if options is None else options)
+        # a control step starts from the shifted controls of the last one, never from the problem's cold guess
+        opts = dataclasses.replace(opts, problem_state_guess=False)
         if compile:
             opts = dataclasses.replace(opts, ilqr=dataclasses.replace(opts.ilqr, compile=True))
         if iterations is None:

@@ -21,11 +21,15 @@ evaluated in one batched call, the largest ``α`` with ``v(α) < v`` taken.
 The LQR is the held-rows KKT system of :mod:`torchtraj.kkt.newton` with the cost Hessian and no gradient. An
 inequality row is held when it is violated or nearly so (``g > −active_tolerance``) or its multiplier is positive
 (:func:`torchtraj.kkt.activity.by_value_or_multiplier`). The multipliers of the projected point are then the
-least-squares solution of stationarity, ``∇ℓ + Dᵀ ν = 0``, from one more solve with the cost gradient.
+least-squares solution of stationarity, ``∇ℓ + Dᵀ ν = 0``, from one more solve with the cost gradient. Last,
+Newton steps on the KKT conditions of the held rows with the Lagrangian Hessian make the feasible point stationary
+too (:mod:`torchtraj.solvers.altro.polish`): the steps above, made without the cost gradient, leave a stationarity
+error that the least-squares multipliers do not remove.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
@@ -34,11 +38,13 @@ from torch import Tensor
 
 from ...core.batching import map_stage
 from ...core.derivatives import quadratize_cost, stage_jacobian, terminal_jacobian
+from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
 from ...kkt import activity
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import factorize
 from .augmented_lagrangian import AugmentedLagrangian, resolution_floor
+from .polish import ROUND_OFF, KKTPoint, kkt_error, newton_kkt_step
 
 
 @dataclass
@@ -67,6 +73,9 @@ class ProjectionOptions:
     rank_tolerance: Optional[float] = None
     #: Multiplier solves: after each, active inequalities with a negative multiplier are released.
     multiplier_passes: int = 4
+    #: Newton steps on the KKT conditions of the held rows after the projection, each kept where it lowers the KKT
+    #: error (:mod:`torchtraj.solvers.altro.polish`; not in the paper, 0 turns them off).
+    polish_iterations: int = 4
 
 
 @dataclass
@@ -138,17 +147,38 @@ def _held_lqr(al: AugmentedLagrangian, params, X, U, stage_active, terminal_acti
 def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, mask: Tensor,
             opts: ProjectionOptions) -> Projected:
     """Project the instances in ``mask (B,)`` of ``(X, U)``; the others are returned unchanged."""
-    problem = al.problem
-    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
-    nz = nx + U.shape[-1]
+    B = U.shape[0]
     reg = X.new_full((B,), opts.regularization)
     eps = torch.finfo(X.dtype).eps
     rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
-    alphas = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
-    v = X.new_full((B,), float("inf"))
     tolerance = resolution_floor(X, U).clamp_min(opts.tolerance)
+    X, U = _feasibility_steps(al, params, x0, X, U, mask, opts, reg, rank_tol, tolerance)
+    stage_active, terminal_active = _active_rows(al, X, U, params, opts)
+    _, _, _, _, v = _residuals(al, al.problem.dynamics, params, x0, X, U, stage_active, terminal_active)
+    held = multipliers(al, params, X, U, opts, stage_active, terminal_active)
+    point = KKTPoint(X, U, held.costate, held.stage, held.terminal, held.K)
+    # the feasible point made stationary as well, with the rows held whose multipliers have the right sign; where it
+    # moved, its violation is that of every row and the dynamics (the held set may have changed on the way)
+    point, moved, violation = _polished(al, params, x0, point, mask & (v <= tolerance),
+                                        (held.stage_active, held.terminal_active), opts, reg, rank_tol, tolerance)
+    v = torch.where(moved, violation, v)
+    converged = mask & (v <= tolerance)
+    return Projected(X=point.X, U=point.U, violation=v, converged=converged, costate=point.costate,
+                     stage=point.stage, terminal=point.terminal, K=point.K)
+
+
+def _feasibility_steps(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, mask: Tensor,
+                       opts: ProjectionOptions, reg: Tensor, rank_tol: float, tolerance: Tensor,
+                       held: Optional[tuple] = None):
+    """Algorithms 2-3 on the instances in ``mask (B,)``: ``(X, U)`` with ``v ≤ tolerance (B,)`` where the steps
+    reach it. The rows held are ALTRO's (:func:`_active_rows`, at each linearisation), or ``held = (stage (B, N, m),
+    terminal (B, mN))``."""
+    problem = al.problem
+    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    nz = nx + U.shape[-1]
+    alphas = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
     for _ in range(opts.iterations):
-        stage_active, terminal_active = _active_rows(al, X, U, params, opts)
+        stage_active, terminal_active = _active_rows(al, X, U, params, opts) if held is None else held
         defect, init, c, cN, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
         pending = mask & (v > tolerance)
         if not bool(pending.any()):
@@ -162,7 +192,8 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
             # the least-H-norm step onto the linearised rows: no gradient, the violations as offsets
             step = factor.solve(newton_rhs(X.new_zeros(B, N, nz), X.new_zeros(B, nx), defect, init, c, cN))
 
-            def decrease(alphas, X=X, U=U, v=v, step=step):
+            def decrease(alphas, X=X, U=U, v=v, step=step, stage_active=stage_active,
+                         terminal_active=terminal_active):
                 """Algorithm 3's test, ``v(α) < v``, at every step size at once, and the candidates' values."""
                 a = alphas.reshape(1, -1, 1, 1)
                 Xc, Uc = X.unsqueeze(1) + a * step.dx.unsqueeze(1), U.unsqueeze(1) + a * step.du.unsqueeze(1)
@@ -179,19 +210,79 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
             v = v_new
             # reuse the factorisation only while convergence stays fast (Algorithm 2, line 8)
             stepping = take & (v > tolerance) & (rate > opts.convergence_rate)
-    stage_active, terminal_active = _active_rows(al, X, U, params, opts)
-    _, _, _, _, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
-    costate, stage, terminal, K = multipliers(al, params, X, U, opts, stage_active, terminal_active)
-    converged = mask & (v <= tolerance)
-    return Projected(X=X, U=U, violation=v, converged=converged, costate=costate, stage=stage, terminal=terminal,
-                     K=K)
+    return X, U
+
+
+def _polished(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint, mask: Tensor, held: tuple,
+              opts: ProjectionOptions, reg: Tensor, rank_tol: float, tolerance: Tensor):
+    """At most ``polish_iterations`` Newton steps on the KKT conditions of the ``held`` rows
+    (:mod:`torchtraj.solvers.altro.polish`) for the feasible instances in ``mask (B,)``: ``(point, moved (B,),
+    violation (B,))``, ``violation`` the largest of every row and the dynamics at ``point`` where it ``moved``.
+
+    Where a step would violate a free inequality or leave a held one with a negative multiplier, the set is updated
+    instead (Hintermüller, Ito & Kunisch's primal-dual rule, :func:`_updated_rows`) and the step computed again.
+    Otherwise the step is followed by the feasibility steps back onto the rows (a second-order correction: a Newton
+    step from afar leaves violations of the size of its square) and kept where the KKT error goes down and the
+    violation stays within ``max(tolerance, its value before)``. The other instances are returned unchanged."""
+    error, violation = kkt_error(al, params, x0, point)
+    eps = torch.finfo(point.X.dtype).eps
+    moving = mask.clone()
+    moved_at_all = torch.zeros_like(mask)
+    for _ in range(opts.polish_iterations):
+        if not bool(moving.any()):
+            break
+        moved, size, ok = newton_kkt_step(al, params, x0, point, held[0], held[1], reg, rank_tol)
+        following, changed = _updated_rows(al, params, moved, held, tolerance)
+        changed = moving & ok & changed
+        held = tuple(where_rows(changed, new, old) for new, old in zip(following, held))
+        stepping = moving & ok & ~changed
+        Xr, Ur = _feasibility_steps(al, params, x0, moved.X, moved.U, stepping, opts, reg, rank_tol, tolerance,
+                                    held)
+        moved = dataclasses.replace(moved, X=Xr, U=Ur)
+        moved_error, moved_violation = kkt_error(al, params, x0, moved)
+        take = stepping & (moved_error < error) & (moved_violation <= torch.maximum(tolerance, violation))
+        point = moved.where(take, point)
+        error = torch.where(take, moved_error, error)
+        violation = torch.where(take, moved_violation, violation)
+        moved_at_all = moved_at_all | take
+        scale = 1 + torch.maximum(point.X.abs().flatten(1).amax(-1), point.U.abs().flatten(1).amax(-1))
+        moving = (take & (size > ROUND_OFF * eps * scale)) | changed
+    return point, moved_at_all, violation
+
+
+def _updated_rows(al: AugmentedLagrangian, params, moved: KKTPoint, held: tuple, tolerance: Tensor):
+    """``((stage (B, N, m), terminal (B, mN)), changed (B,))``: the rows held after a Newton step to ``moved``: a held
+    inequality stays where its multiplier is not negative, a free one joins where ``moved`` violates it by more than
+    ``tolerance (B,)`` (round-off on a weakly active row is no reason to hold it); equality rows stay held."""
+    stage, terminal = held
+    c = al.stage_values(moved.X, moved.U, params) - tolerance.reshape(-1, 1, 1)
+    cN = al.terminal_values(moved.X, params) - tolerance.reshape(-1, 1)
+    applies = (al.knot_mask > 0) & al.is_ineq
+    new_stage = torch.where(applies, torch.where(stage > 0, moved.stage >= 0, c > 0), stage > 0).to(stage.dtype)
+    new_terminal = torch.where(al.is_ineqN, torch.where(terminal > 0, moved.terminal >= 0, cN > 0),
+                               terminal > 0).to(terminal.dtype)
+    changed = (new_stage != stage).flatten(1).any(-1) | (new_terminal != terminal).any(-1)
+    return (new_stage, new_terminal), changed
+
+
+@dataclass
+class HeldMultipliers:
+    """:func:`multipliers`' result: ``costate (B, N+1, nx)``, ``stage (B, N, m)``, ``terminal (B, mN)`` (zero off
+    the held rows), the gains ``K`` of the held-rows system and the rows held in the end, ``stage_active (B, N, m)``
+    and ``terminal_active (B, mN)`` (those of a negative multiplier released)."""
+
+    costate: Tensor
+    stage: Tensor
+    terminal: Tensor
+    K: Tensor
+    stage_active: Tensor
+    terminal_active: Tensor
 
 
 def multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, opts: ProjectionOptions,
-                stage_active: Optional[Tensor] = None, terminal_active: Optional[Tensor] = None):
-    """The least-squares multipliers of the held rows at ``(X, U)``: ``(costate (B, N+1, nx), stage (B, N, m),
-    terminal (B, mN), K)``, the rows held by ALTRO's rule (or ``stage_active``, ``terminal_active``), the others
-    zero, and the gains of the held-rows system."""
+                stage_active: Optional[Tensor] = None, terminal_active: Optional[Tensor] = None) -> HeldMultipliers:
+    """The least-squares multipliers of the held rows at ``(X, U)``, the rows held by ALTRO's rule (or
+    ``stage_active``, ``terminal_active``), the others zero, and the gains of the held-rows system."""
     B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
     reg = X.new_full((B,), opts.regularization)
     eps = torch.finfo(X.dtype).eps
@@ -214,4 +305,5 @@ def multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, opts: Pro
             break
         stage_active = stage_active * (~wrong).to(X.dtype)
         terminal_active = terminal_active * (~wrongN).to(X.dtype)
-    return duals.costate, duals.nu * stage_active, duals.nuN * terminal_active, factor.K
+    return HeldMultipliers(duals.costate, duals.nu * stage_active, duals.nuN * terminal_active, factor.K,
+                           stage_active, terminal_active)

@@ -83,11 +83,12 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     outer_count = torch.zeros_like(iterations)
     K = x0.new_zeros(B, problem.N, U.shape[-1], x0.shape[-1])
     rows = []
+    constraint_tolerance = opts.stage_tolerance()
     stationarity = torch.zeros_like(rho)  # the last running iterate's: a stopped instance's history repeats it
     for it in range(opts.iterations_outer * opts.iterations_inner):
         if not bool(running.any()):
             break
-        tol = torch.where(violation < opts.constraint_tolerance, opts.cost_tolerance, opts.cost_tolerance_intermediate)
+        tol = torch.where(violation < constraint_tolerance, opts.cost_tolerance, opts.cost_tolerance_intermediate)
         s = ilqr_step(problem, al, params, x0, X, U, J, rho, drho, running, inner, backward, tol)
         X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
         K = torch.where(running.reshape(B, 1, 1, 1), s.K, K)
@@ -99,7 +100,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         # met: feasible and complementary with the multiplier estimate λ + I_μ c, the KKT point the certificate asks
         # for (at the inner optimum that estimate makes the Lagrangian stationary); a violation of 1e-6 alone left
         # products λ c of 3e-6 on bounds with multipliers of 3 to 7. Both to the dtype's resolution at least.
-        satisfied = resolution_floor(X, U).clamp_min(opts.constraint_tolerance)
+        satisfied = resolution_floor(X, U).clamp_min(constraint_tolerance)
         finished = inner_done & s.converged & (violation <= satisfied) & (complementarity <= satisfied)
         update = inner_done & ~finished
         status = torch.where(s.blown & ~finished, int(Status.MAX_REGULARIZATION), status)
@@ -151,9 +152,9 @@ def _refined(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, done: Tensor
     refine = done & (rounding > ESTIMATE_ROUNDING)
     if not bool(refine.any()):
         return stage, terminal
-    _, ls_stage, ls_terminal, _ = multipliers(al, params, X, U, opts.projection_options)
-    return (torch.where(refine.reshape(-1, 1, 1), ls_stage, stage),
-            torch.where(refine.reshape(-1, 1), ls_terminal, terminal))
+    held = multipliers(al, params, X, U, opts.projection_options)
+    return (torch.where(refine.reshape(-1, 1, 1), held.stage, stage),
+            torch.where(refine.reshape(-1, 1), held.terminal, terminal))
 
 
 def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):

@@ -1,0 +1,123 @@
+"""ALTRO and AL-iLQR with nothing but the problem (issue "honest results by default"): the projection's Newton
+polish, the problem's own state guess and AL-iLQR's constraint tolerance, each against IPOPT."""
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj.core.batch import Batch
+from torchtraj.core.constraints import Constraints, multiplier_blocks
+from torchtraj.kkt.certificate import Tolerances, residuals
+from torchtraj.solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
+from torchtraj.solvers.altro.projection import ProjectionOptions, project
+
+DATA = Path(__file__).parent / "data"
+
+
+def _tensor(values):
+    return torch.tensor(values, dtype=torch.float64).unsqueeze(0)
+
+
+def _project_quadrotor():
+    data = json.loads((DATA / "altro_projection_reference.json").read_text())
+    problem = tt.problems.get(data["problem"])
+    batch = Batch.build(problem).for_solver()
+    start = data["al_stage"]
+    duals = Duals(*(_tensor(start[k]) for k in ("stage", "terminal", "stage_penalty", "terminal_penalty")))
+    constraints = Constraints.of(problem)
+    al = AugmentedLagrangian(constraints, duals)
+    result = project(al, batch.params, batch.x0, _tensor(start["X"]), _tensor(start["U"]),
+                     torch.ones(1, dtype=torch.bool), ProjectionOptions())
+    kkt = residuals(problem, result.X, result.U, multiplier_blocks(constraints, result.stage, result.terminal),
+                    batch.params, batch.x0)
+    return problem, batch, result, kkt, data["ipopt_warm"]
+
+
+def test_projection_ends_at_a_kkt_point_of_the_quadrotor():
+    """From the point where ALTRO's AL stage ends on the 2-D quadrotor, the projection reaches the local optimum that
+    IPOPT keeps there, stationary to the certificate's tolerance (without its Newton polish: 2.4e-6 > 1e-6)."""
+    problem, batch, result, kkt, ipopt = _project_quadrotor()
+    assert bool(result.converged[0]) and float(result.violation[0]) <= 1e-8
+    assert bool(kkt.within(Tolerances.for_dtype(torch.float64))[0]), kkt.as_dict()
+    assert float(kkt.stationarity[0]) < 1e-9 and float(kkt.feasibility[0]) <= 1e-8
+    cost = float(tt.kkt.total_cost(problem, result.X, result.U, batch.params)[0])
+    assert abs(cost - ipopt["cost"]) <= 1e-9 * ipopt["cost"], (cost, ipopt["cost"])
+    # IPOPT's controls sit 1e-8 inside their bounds, and within 2e-6 of the polished ones elsewhere
+    assert float((result.U[0] - _tensor(ipopt["U"])[0]).abs().max()) < 1e-5
+
+
+def _with_state_guess():
+    """The double integrator with a state guess: the straight line from ``x0`` to its goal."""
+    problem = tt.problems.get("double_integrator")
+    s = torch.linspace(0, 1, problem.N + 1, dtype=torch.float64).unsqueeze(-1)
+    guess = problem.x0 + s * (problem.params["goal"] - problem.x0)
+    return problem.replace(X_init=guess)
+
+
+def test_problem_state_guess_is_the_infeasible_start(reference):
+    """Without ``X0``, ALTRO starts from the problem's ``X_init`` (the infeasible start, as ``X0 = X_init`` does) and
+    reaches IPOPT's optimum; ``problem_state_guess=False`` starts from the rollout of the controls instead."""
+    guessed = _with_state_guess()
+    default = tt.solve(guessed, method="altro")
+    explicit = tt.solve(guessed, method="altro", X0=guessed.X_init)
+    assert torch.equal(default.X, explicit.X) and torch.equal(default.U, explicit.U)
+    assert torch.equal(default.iterations, explicit.iterations)
+    rolled = tt.solve(guessed, method="altro", options=tt.ALTROOptions(problem_state_guess=False))
+    assert not torch.equal(default.iterations, rolled.iterations)  # another start indeed
+    ipopt = reference["double_integrator"]["ipopt"]["cost"]
+    for sol in (default, rolled):
+        assert sol.status[0] == tt.Status.CONVERGED and float(sol.max_violation[0]) <= 1e-8
+        assert abs(float(sol.cost[0]) - ipopt) <= 1e-6 * max(1.0, ipopt)
+
+
+def test_control_step_does_not_take_the_problem_state_guess():
+    """A control step starts from the shifted controls of the last one, never from the problem's cold guess."""
+    solver = tt.solvers.get("altro")
+    assert solver.step_options(None, 3).problem_state_guess is False
+    assert solver.step_options(tt.ALTROOptions(), None).problem_state_guess is False
+
+
+def test_al_ilqr_default_tolerance():
+    """AL-iLQR's answer is its AL stage's point: by default its constraints are met to the projection's tolerance
+    (1e-8); ALTRO's stage keeps 1e-6, and an explicit ``constraint_tolerance`` is used as given."""
+    assert tt.ALTROOptions().stage_tolerance() == 1e-6
+    assert tt.ALTROOptions(projection=False).stage_tolerance() == 1e-8
+    assert tt.ALTROOptions(projection=False, constraint_tolerance=1e-4).stage_tolerance() == 1e-4
+    assert tt.ALTROOptions.fast(projection=False).stage_tolerance() == 1e-6  # Altro.jl's
+
+
+@pytest.mark.slow  # 219 AL-iLQR iterations
+def test_al_ilqr_defaults_meet_constraints_to_1e_8(reference):
+    """The pendulum with AL-iLQR's defaults: at IPOPT's optimum with violations below 1e-8 (at a constraint tolerance
+    of 1e-6: 9.7e-8)."""
+    sol = tt.solve(tt.problems.get("pendulum"), method="al-ilqr")
+    ipopt = reference["pendulum"]["ipopt"]["cost"]
+    assert sol.status[0] == tt.Status.CONVERGED
+    assert float(sol.max_violation[0]) <= 1e-8
+    assert abs(float(sol.cost[0]) - ipopt) <= 1e-6 * max(1.0, ipopt)  # the bench's "at IPOPT"
+
+
+@pytest.mark.slow  # minutes each: the acceptance check of the issue on the problems ALTRO's defaults missed
+@pytest.mark.parametrize("name, options", [
+    ("quadrotor2d", None),
+    # car_escape from its own X_init (no X0 given) with the ALTRO sources' settings; with the default options it
+    # still ends MAX_REGULARIZATION (2519 iterations), as it did from the rollout (2302): docs/benchmarks.md
+    ("car_escape", "problem"),
+])
+def test_defaults_converge(name, options, reference):
+    """``tt.solve(problem, method="altro")`` with no ``X0``: a KKT point, violations below 1e-8, at IPOPT's optimum or
+    at a local optimum that IPOPT warm-started there keeps."""
+    problem = tt.problems.get(name)
+    sol = tt.solve(problem, method="altro", options=tt.problems.altro_options(name) if options else None)
+    assert sol.status[0] == tt.Status.CONVERGED
+    assert float(sol.max_violation[0]) <= 1e-8
+    cost, ipopt = float(sol.cost[0]), reference[name]["ipopt"]["cost"]
+    if abs(cost - ipopt) <= 1e-6 * max(1.0, ipopt):
+        return
+    from torchtraj.bench.reference import ReferenceSolver
+
+    warm = ReferenceSolver(name, "ipopt").solve(U0=sol.U[0].numpy(), X0=sol.X[0].numpy(), warm_start=True)
+    assert warm.ok and abs(warm.cost - cost) <= 1e-6 * max(1.0, cost), (warm.cost, cost)
