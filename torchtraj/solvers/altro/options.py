@@ -9,7 +9,6 @@ from typing import Optional
 from ...iterations.ilqr import ILQROptions
 from .projection import ProjectionOptions
 
-
 #: The AL stage's default ``constraint_tolerance`` where the projection follows (Altro.jl's ``constraint_tolerance``
 #: is 1e-6 too).
 PROJECTED_TOLERANCE = 1e-6

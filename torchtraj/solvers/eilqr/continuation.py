@@ -46,6 +46,7 @@ The state rows apply from knot 1 as in the hard problem (:attr:`~torchtraj.core.
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 

@@ -46,8 +46,7 @@ from ...core.solution import History, Solution
 from ...core.status import Status
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
-from .continuation import (barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done,
-                           weights_for)
+from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done, weights_for
 from .globalization import globalized_step
 from .initial_state import InitialState
 from .merit import model_infeasibility, penalty
