@@ -144,5 +144,6 @@ def test_time_penalized_initial_state_of_a_batch():
     x0 = tt.problems.sample_x0("pendulum", 3, seed=0)
     lifted = tp.initial_state(x0)
     assert torch.equal(tp.initial_state(problem.x0), tp.problem.x0)
-    assert torch.equal(lifted[:, :2], x0) and torch.allclose(lifted[:, 2], torch.full((3,), problem.dt ** 0.5, dtype=torch.float64))
+    assert torch.equal(lifted[:, :2], x0) and torch.allclose(
+        lifted[:, 2], torch.full((3,), problem.dt ** 0.5, dtype=torch.float64))
     assert bool((lifted[:, 3] == 0).all())  # the equal-step switch is off at k = 0

@@ -2,8 +2,8 @@
 
 The reference is IPOPT (``tests/data/float32_di_reference.json``, ``make_float32_di_reference.py``): the optimal
 costs and the derivatives of the optimal cost with respect to ``x0``, one-sided where the optimum has a weakly active
-bound (there LICQ fails and the implicit layer gives zero, with a warning). Before the fixes float32 ALTRO converged 8 of
-32 instances (its projection asked for defects of 1e-8, below float32's 6e-8), AL-iLQR's float32 multipliers were off
+bound (there LICQ fails and the implicit layer gives zero, with a warning). Before the fixes float32 ALTRO converged 8
+of 32 instances (its projection asked for defects of 1e-8, below float32's 6e-8), AL-iLQR's float32 multipliers were off
 by up to 6 (penalties of 1e8 times the rounding of the constraints), and float64 AL-iLQR stopped 4 of 32 with
 ``λ c = 3e-6`` (certified STALLED)."""
 

@@ -97,7 +97,8 @@ def test_lagrangian_hessian_matches_finite_differences():
 
     fd = _fd_stage(grad_L, X[b, k], U[b, k], p)
     assert torch.allclose(H[b, k], fd, atol=1e-6, rtol=1e-6)
-    assert torch.allclose(HN[0], torch.zeros_like(HN[0]) + torch.func.hessian(lambda x: prob.terminal_cost(x, p))(X[0, -1]),
+    assert torch.allclose(HN[0],
+                          torch.zeros_like(HN[0]) + torch.func.hessian(lambda x: prob.terminal_cost(x, p))(X[0, -1]),
                           atol=1e-12)
 
 

@@ -216,9 +216,10 @@ def test_free_components_keep_the_others_at_the_given_start():
 
 # ---------------------------------------------------------------------------------------------- soft barriers
 def test_the_barriers_gap_to_the_hard_optimum_shrinks_with_its_weight():
-    """The paper's fixed weight (``barrier_continuation=False``): double_integrator with its control and velocity bounds as barriers: the gap to IPOPT's hard-constrained
-    optimum falls with the weight w (measured: 3.6e-2, 1.0e-2, 1.4e-3 relative for w = 1e-2, 1e-3, 1e-4, the
-    relaxation δ = w / 10: about linearly in w, each active row costing about w)."""
+    """The paper's fixed weight (``barrier_continuation=False``): double_integrator with its control and velocity bounds
+    as barriers: the gap to IPOPT's hard-constrained optimum falls with the weight w (measured: 3.6e-2, 1.0e-2, 1.4e-3
+    relative for w = 1e-2, 1e-3, 1e-4, the relaxation δ = w / 10: about linearly in w, each active row costing about
+    w)."""
     hard = HARD["double_integrator"]["ipopt"]["cost"]
     gaps = []
     for weight in (1e-2, 1e-3, 1e-4):
@@ -298,8 +299,8 @@ def test_the_cartpole_without_bounds_is_not_held_back_by_carried_regularisation(
 @pytest.mark.slow
 def test_the_cartpole_continuation_keeps_its_multipliers_near_the_barriers():
     """The cart-pole's first steps cross its control bounds into the relaxed rows (``σ = w/δ²``); multipliers allowed
-    1e10 times the barrier's (IPOPT's ``κ_Σ``) reached a complementarity error of 3e6 and ``γ = 1e7``, and from the first
-    weight 1e-4 the solve took 263 iterations (336 before both). Measured now: 50, at IPOPT's optimum."""
+    1e10 times the barrier's (IPOPT's ``κ_Σ``) reached a complementarity error of 3e6 and ``γ = 1e7``, and from the
+    first weight 1e-4 the solve took 263 iterations (336 before both). Measured now: 50, at IPOPT's optimum."""
     sol = tt.solve(problems.get("cartpole"), method="eilqr")
     hard = HARD["cartpole"]["ipopt"]["cost"]
     assert sol.status[0] == tt.Status.CONVERGED and int(sol.iterations[0]) <= 100, sol.iterations

@@ -68,12 +68,12 @@ def test_eilqr_converges_in_float32_at_ipopts_optimum_and_gradient():
 
 @pytest.mark.slow
 def test_eilqr_in_float32_stops_at_the_resolution_of_its_soft_barrier():
-    """With the paper's fixed weight (``barrier_continuation=False``), eILQR's soft problem (``w = 1e-4``, ``δ = 1e-5``) cannot be solved to the certificate's float32 tolerance
-    where an active row's barrier curvature ``z*²/w`` times float32's rounding of the row exceeds it: the float64
-    optimum rounded to float32 has the same stationarity residual, up to 5e-3 here. Each such instance stops once
-    its full Newton step is below float32's resolution (it ran to the iteration limit, 200, before) and is
-    reported ``STALLED``; the others converge, at IPOPT's optimum and gradient up to the soft barrier's gap
-    (1.1e-4 and 1.4e-4 relative in float64)."""
+    """With the paper's fixed weight (``barrier_continuation=False``), eILQR's soft problem (``w = 1e-4``, ``δ = 1e-5``)
+    cannot be solved to the certificate's float32 tolerance where an active row's barrier curvature ``z*²/w`` times
+    float32's rounding of the row exceeds it: the float64 optimum rounded to float32 has the same stationarity residual,
+    up to 5e-3 here. Each such instance stops once its full Newton step is below float32's resolution (it ran to the
+    iteration limit, 200, before) and is reported ``STALLED``; the others converge, at IPOPT's optimum and gradient up
+    to the soft barrier's gap (1.1e-4 and 1.4e-4 relative in float64)."""
     x0 = torch.tensor([r["x0"] for r in REFERENCE], dtype=F32, requires_grad=True)
     with pytest.warns(RuntimeWarning, match="did not converge"):
         sol = tt.solve(double_integrator(), x0, method="eilqr", options=FIXED)

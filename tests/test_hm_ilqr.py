@@ -216,12 +216,12 @@ def _coarse_cartpole_guess(N: int):
 @pytest.mark.parametrize("N", [50, 100])
 def test_the_papers_cartpole(reference, N):
     """The cart-pole at M = 20 from a coarse, dynamically inconsistent guess (:func:`_coarse_cartpole_guess`), default
-    options but ``μ_0 = 1``. Measured (before the last merge of main): N = 50 converges in 84 iterations at 1.518129244 (IPOPT 1.518129237), N = 100
-    in 252 at 1.486186954 (IPOPT 1.486186900); violation below 1e-9. With the default ``μ_0 = 100`` the stiff AL
-    stage stalls at violation 1.2 on this guess (its controls violate their bounds by up to 3) and the RLB stage
-    that follows is fragile: 486 and 700 iterations to IPOPT's optimum from the IPM's N = 10 point of one build,
-    ``MAX_REGULARIZATION`` after 196 (violation 4.1e-2) at N = 50 from that of the next, whose cost differs by 2e-10
-    relative."""
+    options but ``μ_0 = 1``. Measured (before the last merge of main): N = 50 converges in 84 iterations at 1.518129244
+    (IPOPT 1.518129237), N = 100 in 252 at 1.486186954 (IPOPT 1.486186900); violation below 1e-9. With the default
+    ``μ_0 = 100`` the stiff AL stage stalls at violation 1.2 on this guess (its controls violate their bounds by up
+    to 3) and the RLB stage that follows is fragile: 486 and 700 iterations to IPOPT's optimum from the IPM's N = 10
+    point of one build, ``MAX_REGULARIZATION`` after 196 (violation 4.1e-2) at N = 50 from that of the next, whose cost
+    differs by 2e-10 relative."""
     prob = _problem("cartpole", N)
     X0, U0 = _coarse_cartpole_guess(N)
     sol = tt.solve(prob, method="hm-ilqr", X0=X0, U0=U0, options=tt.HMILQROptions(segments=20, penalty_initial=1.0))

@@ -479,7 +479,8 @@ def test_pendulum_solves_stopped_short_of_a_kkt_point_are_stalled_and_get_zero_g
     them STALLED, and they get zero gradients with a warning naming them. The default options reach those KKT
     points and are differentiated."""
     optimum = torch.tensor([0.022140766852, 0.026342644443], dtype=F64)
-    with pytest.warns(RuntimeWarning, match=r"instance\(s\) \[0, 1\] did not converge \(status \['stalled', 'stalled'\]"):
+    with pytest.warns(RuntimeWarning,
+                      match=r"instance\(s\) \[0, 1\] did not converge \(status \['stalled', 'stalled'\]"):
         sol, leaf, loss = _pendulum_mass_solve([0, 1], tt.ALTROOptions.fast())
     assert sol.status.tolist() == [tt.Status.STALLED, tt.Status.STALLED]
     assert bool((sol.cost.detach() > 1.04 * optimum).all())

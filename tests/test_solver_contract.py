@@ -2,10 +2,10 @@
 
 For each method of ``torchtraj.solvers.names()`` and each of a few small problems: it converges, to a KKT point of
 the problem it declares it solves (the constrained one where it ``handles_constraints``, else the unconstrained
-one, or the one its ``kkt_problem`` names), a failing instance changes no other, a batch is its instances solved alone, float32 stays float32, and the
-arguments it does not declare (``X0``, ``duals``) are refused by name. Then ``tt.MPC`` swings the pendulum up with
-every method that handles constraints. A new method is covered by registering it; nothing here names one, except
-the tight options chosen by options class (a new class gets its defaults).
+one, or the one its ``kkt_problem`` names), a failing instance changes no other, a batch is its instances solved alone,
+float32 stays float32, and the arguments it does not declare (``X0``, ``duals``) are refused by name. Then ``tt.MPC``
+swings the pendulum up with every method that handles constraints. A new method is covered by registering it; nothing
+here names one, except the tight options chosen by options class (a new class gets its defaults).
 """
 
 import dataclasses

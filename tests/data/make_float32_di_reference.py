@@ -7,7 +7,8 @@ and ``v_k ≤ 0.5`` on knots ``1..N−1``. The 32 initial states are ``0.5 · ra
 the speed clamped to ``[−0.4, 0.4]`` (float64), stored as used. The gradient ``dJ*/dx0`` is IPOPT's multiplier of
 the initial condition ``x_0 = p`` (``lam_p``, negated), with the one-sided derivatives of the optimal cost
 (``forward``, ``backward``: second-order one-sided differences, step 1e-5), which differ on the instances whose
-optimum has a weakly active bound; IPOPT's gradient is one of them. Run from the repository root: ``python tests/data/make_float32_di_reference.py``.
+optimum has a weakly active bound; IPOPT's gradient is one of them. Run from the repository root:
+``python tests/data/make_float32_di_reference.py``.
 """
 
 import json

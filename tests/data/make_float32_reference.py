@@ -5,9 +5,9 @@ The problem, written here directly in CasADi (multiple shooting): ``p' = v``, ``
 ``N = 40``; cost ``Σ_{k<N} 0.1 u_k² + |x_k − g|² + 10 |x_N − g|²`` with ``g = (1, 0)``; ``|u_k| ≤ 1`` and
 ``v_k ≤ 0.5`` on the knots ``1..N−1``. The starts are eight of ``0.5 · randn`` of seed 0 with ``v`` clipped to
 ``[−0.35, 0.35]`` (a start at ``v = ±0.4`` reaches ``v = 0.5`` on the grid at full thrust, ``v_k = v_0 + 0.1 k``,
-where the rows ``v_k ≤ 0.5`` and ``u ≤ 1`` are active together and dependent: no derivative exists there). The gradient is the central difference of two IPOPT optima ``h = 1e-4`` apart in
-each component (IPOPT's ``tol = 1e-12``). Run from the repository root:
-``python tests/data/make_float32_reference.py``.
+where the rows ``v_k ≤ 0.5`` and ``u ≤ 1`` are active together and dependent: no derivative exists there). The gradient
+is the central difference of two IPOPT optima ``h = 1e-4`` apart in each component (IPOPT's ``tol = 1e-12``). Run from
+the repository root: ``python tests/data/make_float32_reference.py``.
 """
 
 import json

@@ -190,7 +190,8 @@ def _profile_line(problem, method: Solver, batch: int, seed: int, options) -> st
     x0 = batch_x0(problem.name, batch, seed)
     X0 = state_guess(method, problem)
     seconds, parts = profile.split(lambda: solve(problem, x0, method, X0=X0, options=options))
-    return f"  where the time goes ({problem.name}, B={batch}, profiled run of {seconds:.1f} s): {profile.format_split(parts)}"
+    return (f"  where the time goes ({problem.name}, B={batch}, profiled run of {seconds:.1f} s): "
+            f"{profile.format_split(parts)}")
 
 
 def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:

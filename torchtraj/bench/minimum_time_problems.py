@@ -16,10 +16,10 @@ Each problem is, with ``Δt = T / N`` and ``F`` the RK4 step of a model in :mod:
 
 The total time is bounded by ``T_g / 10 ≤ T ≤ 10 T_g``, inactive at the optima: FATROP's ``T ≥ 0`` lets the
 augmented-Lagrangian methods, whose early iterates violate bounds, reach ``T < 0``, where the dynamics run
-backwards, and stay there. The numbers are the problem set's where it has them (:mod:`torchtraj.problems`: the cart-pole's force bound,
-the quadrotor's thrust and tilt bounds and its start and goal positions). ``R`` is zero: the objective is the
-total time alone, as in FATROP's benchmark. :func:`get` builds the :class:`~torchtraj.MinimumTime` transform;
-:mod:`torchtraj.bench.minimum_time_reference` transcribes the same spec for IPOPT and FATROP.
+backwards, and stay there. The numbers are the problem set's where it has them (:mod:`torchtraj.problems`: the
+cart-pole's force bound, the quadrotor's thrust and tilt bounds and its start and goal positions). ``R`` is zero: the
+objective is the total time alone, as in FATROP's benchmark. :func:`get` builds the :class:`~torchtraj.MinimumTime`
+transform; :mod:`torchtraj.bench.minimum_time_reference` transcribes the same spec for IPOPT and FATROP.
 """
 
 from __future__ import annotations

@@ -172,7 +172,8 @@ SUCCESS = {"pendulum": pendulum_success, "cartpole": cartpole_success, "car": ca
 # ---------------------------------------------------------------------------------------------- timing
 @dataclass
 class Timing:
-    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of :data:`torchtraj.bench.profile.PARTS`."""
+    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of
+    :data:`torchtraj.bench.profile.PARTS`."""
 
     task: str
     batch: int
@@ -267,7 +268,8 @@ def parser():
                    help="B of the timing rows (none: skip; default: 1 64)")
     p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row (default: 100)")
     p.add_argument("--compile", action="store_true",
-                   help="run the episodes with torch.compile'd kernels (MPC(compile=True); each batch size compiles first) "
+                   help="run the episodes with torch.compile'd kernels (MPC(compile=True); "
+                        "each batch size compiles first) "
                         "and time the policy both ways")
     p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
@@ -321,8 +323,8 @@ def main(argv: Optional[list] = None, out=None) -> int:
         say("time per control step, pendulum (swing-up and hold from the seeded reset); profile shares of a step:")
         for compiled in (False, True) if args.compile else (False,):
             for batch in args.timing_batch:
-                t = time_steps("pendulum", batch, args.timing_steps, args.seed, profile_steps=min(10, args.timing_steps),
-                               compile=compiled)
+                t = time_steps("pendulum", batch, args.timing_steps, args.seed,
+                               profile_steps=min(10, args.timing_steps), compile=compiled)
                 where = (f"compiled (warm-up steps {t.first_call_s:.0f} s); " if compiled else "eager; ")
                 where += profile.format_split(t.parts)
                 say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used "

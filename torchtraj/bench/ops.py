@@ -28,8 +28,8 @@ The report
 ----------
 For each method (every registered one, unless ``--method``) on each problem (``pendulum``, ``cartpole``,
 ``car_3obs``, unless ``--problems``): one solve at B = 1 from the problem's own ``x0`` with the method's default
-options, its operator calls, ``Solution.iterations``, calls per iteration and status. A method that ignores constraints is
-skipped on a constrained problem, with the reason (:func:`~torchtraj.bench.runs.skip_reason`).
+options, its operator calls, ``Solution.iterations``, calls per iteration and status. A method that ignores constraints
+is skipped on a constrained problem, with the reason (:func:`~torchtraj.bench.runs.skip_reason`).
 
 Then the horizon sweep on the first problem (``pendulum`` by default): the same problem at N = 25, 50, 100, 200
 (``--ops-horizons``; the dynamics' time step kept, the control guess resampled, :func:`with_horizon`), each
@@ -267,8 +267,8 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
         say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None, mpc_steps: int = MPC_STEPS) -> dict:
     """Count, print the two tables as their rows come (``say``) and return the report as JSON-able data:
     ``header``, ``skipped`` (``[{problem, method, reason}]``), ``solves`` (:meth:`Count.to_json` each) and
-    ``horizons`` (``problem``, ``iterations`` cap, ``rows``, ``slopes`` per method) and ``mpc`` (:meth:`StepCount.to_json`
-    each; ``mpc_steps = 0``: none)."""
+    ``horizons`` (``problem``, ``iterations`` cap, ``rows``, ``slopes`` per method) and ``mpc``
+    (:meth:`StepCount.to_json` each; ``mpc_steps = 0``: none)."""
     header = {
         "methods": list(methods), "problems": list(names), "horizons": list(horizons), "sweep_iterations": iterations,
         "dtype": str(dtype).replace("torch.", ""), "device": str(torch.device(device or "cpu")),

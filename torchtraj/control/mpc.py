@@ -95,8 +95,8 @@ class MPC(torch.nn.Module):
         observation_to_params: maps observations to per-instance parameters ``{name: (B, ...)}`` (a car's observed
             obstacles); default none.
         compile: ``torch.compile`` the solver's kernels (sets the options' ``compile``, see
-            :mod:`torchtraj.core.compiled`): the first calls for a batch size compile (tens of seconds to minutes); later
-            pendulum steps (N = 30) take 3.5 ms against 63-74 ms eager at B = 1, 17 ms against 132 ms at B = 64.
+            :mod:`torchtraj.core.compiled`): the first calls for a batch size compile (tens of seconds to minutes);
+            later pendulum steps (N = 30) take 3.5 ms against 63-74 ms eager at B = 1, 17 ms against 132 ms at B = 64.
 
     Call: ``mpc(observations, params=None)`` with observations ``(n_obs,)`` or ``(B, n_obs)``, numpy or torch,
     returns controls ``(nu,)`` or ``(B, nu)`` of the same kind (numpy float64, or a tensor of the observations'

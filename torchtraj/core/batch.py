@@ -98,7 +98,8 @@ class Batch:
         named = {"x0": x0, "U0": U0, "X0": X0}
         empty = [name for name, t in named.items() if t is not None and t.shape[0] == 0]
         if empty:
-            raise ValueError(f"{' and '.join(empty)} {'hold' if len(empty) > 1 else 'holds'} an empty batch (B = 0): there is no instance to solve")
+            raise ValueError(f"{' and '.join(empty)} {'hold' if len(empty) > 1 else 'holds'} an empty batch (B = 0): "
+                             f"there is no instance to solve")
         B = batch_size({**named, "params": torch.empty(problem.param_batch_size())})
         check_parameter_batch(problem, B)
         x0, U0 = x0.expand(B, nx), U0.expand(B, N, nu)

@@ -26,8 +26,8 @@ import numbers
 
 
 def _counts(name: str) -> bool:
-    return (name == "iterations" or name.startswith("iterations_") or name.endswith("_steps") or name.endswith("_attempts")
-            or name in ("segments", "filter_size", "per_round"))
+    return (name == "iterations" or name.startswith("iterations_") or name.endswith("_steps")
+            or name.endswith("_attempts") or name in ("segments", "filter_size", "per_round"))
 
 
 def _rule(name: str):

@@ -116,7 +116,8 @@ class Problem:
         declared = dict(self.param_shapes or {})
         unknown = set(declared) - set(params)
         if unknown:
-            raise ValueError(f"param_shapes names unknown parameters {sorted(unknown)}; the parameters are {sorted(params)}")
+            raise ValueError(f"param_shapes names unknown parameters {sorted(unknown)}; "
+                             f"the parameters are {sorted(params)}")
         # a shape not declared is the given value's: one instance's parameter (see Batch.build for the ambiguous case)
         set_("param_shapes", {k: tuple(declared.get(k, v.shape)) for k, v in params.items()})
         object.__setattr__(self, "_inferred_shapes", frozenset(k for k in params if k not in declared))
@@ -134,8 +135,8 @@ class Problem:
                 if value.shape != (n,):
                     raise ValueError(f"Problem.{name} must have shape ({n},), got {tuple(value.shape)}")
                 if bool(torch.isnan(value).any()):
-                    raise ValueError(f"Problem.{name} holds NaN at {_where(torch.isnan(value))}: a bound must be a number, "
-                                     f"or ±inf where unbounded")
+                    raise ValueError(f"Problem.{name} holds NaN at {_where(torch.isnan(value))}: "
+                                     f"a bound must be a number, or ±inf where unbounded")
                 set_(name, value)
         for lo, hi in (("u_lower", "u_upper"), ("x_lower", "x_upper")):
             a, b = getattr(self, lo), getattr(self, hi)

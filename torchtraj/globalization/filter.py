@@ -25,7 +25,8 @@ class Filter:
 
     @classmethod
     def empty(cls, batch: int, size: int, like: Tensor) -> "Filter":
-        return cls(like.new_full((batch, size, 2), float("inf")), torch.zeros(batch, dtype=torch.long, device=like.device))
+        return cls(like.new_full((batch, size, 2), float("inf")),
+                   torch.zeros(batch, dtype=torch.long, device=like.device))
 
     def reset(self, mask: Tensor) -> "Filter":
         """The filters of the instances in ``mask (B,)`` emptied."""

@@ -3,8 +3,8 @@ r"""The data of a batched LQR problem: its matrices, its right-hand sides and th
 The time-varying LQR problem of the package docstring (:mod:`torchtraj.riccati`), for each of B instances (every
 tensor batch-first), is split into the matrices (:class:`LQR`), which one factorisation reads, and the vectors
 (:class:`LQRVectors`), of which each solve takes one set: the adjoint system of implicit differentiation or a
-second-order correction reuses the factorisation. The constraint rows may be switched off per instance by a mask, or declared simple
-bounds on the controls (:mod:`torchtraj.riccati.bounds`).
+second-order correction reuses the factorisation. The constraint rows may be switched off per instance by a mask, or
+declared simple bounds on the controls (:mod:`torchtraj.riccati.bounds`).
 """
 
 from __future__ import annotations

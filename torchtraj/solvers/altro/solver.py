@@ -29,8 +29,8 @@ of its controls AL-iLQR stays in the first room or cuts through a wall). HM-iLQR
 The start alone does not make every problem converge at default settings: ``car_escape`` converges from its
 ``X_init`` with the ALTRO sources' settings (``tt.problems.altro_options("car_escape")``: slack cost 0.1,
 penalties 10 × 50ⁿ), but with the defaults it ends ``MAX_REGULARIZATION`` after 2519 iterations (2302 from the
-rollout). Without a state guess, the start is the rollout of ``U0``. A control step (MPC) never takes ``X_init``: it starts from the
-previous step's shifted controls, and ``X_init`` belongs to the problem's own ``x0``.
+rollout). Without a state guess, the start is the rollout of ``U0``. A control step (MPC) never takes ``X_init``: it
+starts from the previous step's shifted controls, and ``X_init`` belongs to the problem's own ``x0``.
 
 Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem
 (:mod:`torchtraj.solvers.altro.infeasible`, :mod:`torchtraj.time_penalty`); the square-root backward pass (§III-A)

@@ -126,8 +126,9 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
 
 
 def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTROOptions):
-    """At ``(X, U)``: the largest violation, the complementarity of the multiplier estimate, the duals of eqs. (17)-(18) and ``L_A`` under those duals (every
-    instance; the loop keeps the updates of the instances it updates). One compiled kernel."""
+    """At ``(X, U)``: the largest violation, the complementarity of the multiplier estimate, the duals of eqs. (17)-(18)
+    and ``L_A`` under those duals (every instance; the loop keeps the updates of the instances it updates). One compiled
+    kernel."""
     duals = al.updated_duals(X, U, params, opts.penalty_scaling, penalty_limit(opts.penalty_max, X.dtype),
                              opts.dual_max)
     updated = AugmentedLagrangian(al.constraints, duals, al.square_root).value(X, U, params)
@@ -164,7 +165,8 @@ def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U
 
 
 def _largest_penalty(duals: Duals) -> Tensor:
-    both = torch.cat([duals.stage_penalty.flatten(1), duals.terminal_penalty, duals.terminal.new_zeros(duals.terminal.shape[0], 1)], -1)
+    both = torch.cat([duals.stage_penalty.flatten(1), duals.terminal_penalty,
+                      duals.terminal.new_zeros(duals.terminal.shape[0], 1)], -1)
     return both.amax(-1)
 
 

@@ -37,10 +37,11 @@ Each ``z`` is kept in ``[w s(t) / κ_Σ, κ_Σ w s(t)]`` (IPOPT's safeguard, §3
 of the primal curvature. IPOPT's ``κ_Σ = 1e10`` let the cart-pole's first steps, which cross the control bounds into
 the relaxed rows (``σ = w/δ² = 1e6``), set multipliers ``1e10`` times the barrier's (a complementarity error of
 ``3e6``, the merit's ``γ`` at ``1e7``, 30 iterations to recover); ``κ_Σ = 1e4`` still keeps the largest ratio a
-decrease of ``w`` makes (``w_old / w_new = 1e3``). ``barrier_continuation=False`` keeps the paper's fixed weight (the same
-primal-dual steps converge to the soft problem's KKT point, whose multipliers are ``w s(t)``).
+decrease of ``w`` makes (``w_old / w_new = 1e3``). ``barrier_continuation=False`` keeps the paper's fixed weight (the
+same primal-dual steps converge to the soft problem's KKT point, whose multipliers are ``w s(t)``).
 
-The state rows apply from knot 1 as in the hard problem (:attr:`~torchtraj.core.constraints.Constraints.ineq_knot_mask`).
+The state rows apply from knot 1 as in the hard problem
+(:attr:`~torchtraj.core.constraints.Constraints.ineq_knot_mask`).
 """
 
 from __future__ import annotations
@@ -177,5 +178,5 @@ def weights_for(weight: Tensor, opts) -> Weights:
     return Weights(weight=weight, delta=weight * (opts.barrier_relaxation / opts.barrier_weight))
 
 
-__all__ = ["Weights", "Rows", "rows_at", "barrier_cost", "barrier_multipliers", "barrier_value", "curvatures", "safeguarded",
-           "final_weight", "first_weight", "next_weight", "stage_done", "weights_for", "KAPPA_SIGMA"]
+__all__ = ["Weights", "Rows", "rows_at", "barrier_cost", "barrier_multipliers", "barrier_value", "curvatures",
+           "safeguarded", "final_weight", "first_weight", "next_weight", "stage_done", "weights_for", "KAPPA_SIGMA"]

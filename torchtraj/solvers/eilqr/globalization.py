@@ -4,10 +4,10 @@ A full Newton step that the ℓ1 merit refuses near a solution (the Maratos effe
 second-order defect that ``γ ‖C‖₁`` charges more than the step gains) would cut the step size for ever and lose the
 quadratic convergence. Before backtracking, the step is corrected once (Nocedal & Wright 2006 §18.3, "second-order
 correction"; IPOPT's form, Wächter & Biegler 2006 §2.4): the same factorised KKT system (one vector solve; a
-refactorisation with the same ``ε`` where the inertia correction mixed factorisations) with the constraint values ``c(w) + c(w + p)`` instead of ``c(w)``, so that ``∇c (p̂ − p) = −c(w + p)``
-removes the defect the full step left. The corrected step is taken whole if it passes the Armijo test of ``p``;
-otherwise the step sizes ``α = β, β², …`` of ``p`` are tried in batched rounds
-(:func:`~torchtraj.solvers.eilqr.merit.line_search`).
+refactorisation with the same ``ε`` where the inertia correction mixed factorisations) with the constraint values
+``c(w) + c(w + p)`` instead of ``c(w)``, so that ``∇c (p̂ − p) = −c(w + p)`` removes the defect the full step left. The
+corrected step is taken whole if it passes the Armijo test of ``p``; otherwise the step sizes ``α = β, β², …`` of ``p``
+are tried in batched rounds (:func:`~torchtraj.solvers.eilqr.merit.line_search`).
 """
 
 from __future__ import annotations

@@ -7,10 +7,10 @@ The merit (Horizon eq. 8; Nocedal & Wright 2006 §15.4) of a multiple-shooting p
     m(w) = J(w) + γ \|C(w)\|_1,\qquad
     \|C\|_1 = \sum_k \|f(x_k, u_k) − x_{k+1}\|_1 + \sum_k \|h_k\|_1 + \|h_N\|_1 + \|c_0\|_1,
 
-``J`` the barrier-augmented cost (the cost and ``Σ w β(−g)``, :mod:`~torchtraj.solvers.eilqr.continuation`) and ``c_0`` the initial rows (``x̄_0 − x_0``, or ``h_0(x_0)`` and the fixed
-components of a free start). It is exact where ``γ`` exceeds every multiplier (eq. 9), so :func:`penalty` sets
-``γ = κ max|y⁺| + γ_0`` from the Newton step's own estimates ``y⁺`` (``κ = merit_factor`` the margin,
-``γ_0 = merit_floor``; with ``merit_monotone`` never lowered).
+``J`` the barrier-augmented cost (the cost and ``Σ w β(−g)``, :mod:`~torchtraj.solvers.eilqr.continuation`) and ``c_0``
+the initial rows (``x̄_0 − x_0``, or ``h_0(x_0)`` and the fixed components of a free start). It is exact where ``γ``
+exceeds every multiplier (eq. 9), so :func:`penalty` sets ``γ = κ max|y⁺| + γ_0`` from the Newton step's own estimates
+``y⁺`` (``κ = merit_factor`` the margin, ``γ_0 = merit_floor``; with ``merit_monotone`` never lowered).
 Along a step ``p`` that satisfies the linearised constraints (``C + ∇C p = 0``) the directional derivative is
 
 .. math::  D m(w; p) = ∇J^T p − γ \|C\|_1 \ \le\ −p^T (∇^2 L + εI) p − (γ − \|y^+\|_∞) \|C\|_1 < 0

@@ -41,8 +41,8 @@ from .options import EILQROptions
 @dataclass
 class Direction:
     """The step ``dX (B, N+1, nx)``, ``dU (B, N, nu)``, the new multiplier estimates ``lam``, ``nu``, ``nuN``,
-    ``mu0``, ``z``, ``zN`` (shaped as the :class:`~torchtraj.solvers.eilqr.model.Iterate`'s), the gains ``K (B, N, nu, nx)`` and
-    ``ok (B,)``: positive definite reduced Hessians and a finite step."""
+    ``mu0``, ``z``, ``zN`` (shaped as the :class:`~torchtraj.solvers.eilqr.model.Iterate`'s), the gains
+    ``K (B, N, nu, nx)`` and ``ok (B,)``: positive definite reduced Hessians and a finite step."""
 
     dX: Tensor
     dU: Tensor

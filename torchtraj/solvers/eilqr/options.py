@@ -29,9 +29,9 @@ class EILQROptions:
             ``None``: 1e-9 in float64, 1e-5 in float32.
         barrier_weight: ``w`` of the soft barrier ``w Σ β(−g)`` of every inequality row and bound
             (:mod:`~torchtraj.solvers.eilqr.barrier`) without ``barrier_continuation`` (the paper's fixed weight);
-            with it, ``barrier_weight_initial`` is the first stage's. A fixed weight's solution costs more than the hard-constrained optimum by a gap
-            about linear in ``w`` (the pendulum: +44 % at 1e-3, +6.2 % at 1e-4, +0.8 % at 1e-5, with more
-            iterations as ``w`` falls).
+            with it, ``barrier_weight_initial`` is the first stage's. A fixed weight's solution costs more than the
+            hard-constrained optimum by a gap about linear in ``w`` (the pendulum: +44 % at 1e-3, +6.2 % at 1e-4, +0.8 %
+            at 1e-5, with more iterations as ``w`` falls).
         barrier_relaxation: ``δ`` of the relaxed log barrier: ``−log t`` for ``t ≥ δ``, its C² quadratic
             extension below (an infeasible start stays finite); with continuation ``δ`` follows ``w`` in the
             ratio ``barrier_relaxation / barrier_weight`` (1/10).
@@ -44,7 +44,8 @@ class EILQROptions:
             to 0.03 against its stiff barrier), from 1e-3 85, from 1e-2 68, from 1e-1 107; the pendulum took 110,
             223, 232 from 1e-4, 1e-3, 1e-2 (176 from 1e-2 with the default ``short_step``).
         barrier_weight_final: the last stage's weight ``w_min``; ``None``: ``tol / 10`` of the dtype's tolerance in
-            float64 (1e-10), ``tol / 100`` in float32 (1e-7; :func:`~torchtraj.solvers.eilqr.continuation.final_weight`).
+            float64 (1e-10), ``tol / 100`` in float32 (1e-7;
+            :func:`~torchtraj.solvers.eilqr.continuation.final_weight`).
         barrier_decrease, barrier_superlinear: ``κ_w``, ``θ_w`` of ``w ← max(w_min, min(κ_w w, w^θ_w))``
             (IPOPT's ``κ_μ = 0.2``, ``θ_μ = 1.5``, Wächter & Biegler 2006 eq. (7)).
         barrier_error_factor: ``κ_ε``: a stage ends where the KKT error of its weight is below ``κ_ε w`` (IPOPT's

@@ -6,7 +6,8 @@ any, dynamically inconsistent guess) and no warm-started duals (its multipliers 
 solve). A control step (``tt.MPC``) starts in the RLB stage (``al_iterations=0``): its warm-started controls are near
 a solution, and an AL stage that restarts its multipliers at every step never gets far enough to hold the bounds
 (on the contract's pendulum swing-up it does not come up within 70 steps; started in the RLB stage it is upright
-from about step 45). A converged solution is a KKT point up to the barrier's final weight, which the implicit layer refines.
+from about step 45). A converged solution is a KKT point up to the barrier's final weight, which the implicit layer
+refines.
 """
 
 from __future__ import annotations

@@ -51,8 +51,9 @@ ROUNDING = 10.0
 @dataclass
 class Trial:
     """The outcome of an iteration (all ``(B, ...)``): the accepted point ``X``, ``U``, its objective ``J``, its
-    infeasibility ``D = Σ dᵀd + Σ hᵀh`` (defects and equality rows); ``took`` a step; ``stationary`` (the model predicts no decrease); ``failed`` (no step and no
-    regularisation left); the step size ``alpha``, the final ``mu_V`` and the gains ``K``."""
+    infeasibility ``D = Σ dᵀd + Σ hᵀh`` (defects and equality rows); ``took`` a step; ``stationary`` (the model predicts
+    no decrease); ``failed`` (no step and no regularisation left); the step size ``alpha``, the final ``mu_V`` and the
+    gains ``K``."""
 
     X: Tensor
     U: Tensor

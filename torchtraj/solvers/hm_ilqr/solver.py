@@ -28,8 +28,8 @@ The solution carries the multipliers of every block: on the inequality rows the 
 ``B' = ψ / (−g)`` corrected along the Newton step at the final point (``z⁺``; the AL estimates
 ``max(0, λ + μ g)`` for an instance still in the AL stage), on the
 equality rows the Riccati core's ``ν`` (RLB stage) or ``λ + μ h`` (AL stage), the costates of the expanded
-objective and the gains of a backward pass at the final point; a converged solve is a KKT point of the problem up to ``ψ_min``, which the
-implicit layer refines (``kkt_point``).
+objective and the gains of a backward pass at the final point; a converged solve is a KKT point of the problem up to
+``ψ_min``, which the implicit layer refines (``kkt_point``).
 """
 
 from __future__ import annotations

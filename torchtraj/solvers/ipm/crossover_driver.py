@@ -38,8 +38,8 @@ from .options import IPOptions
 def cross_over(problem: Problem, cons: Constraints, params, model: Model, it: Iterate, x0: Tensor,
                base: Optional[Base], opts: IPOptions, tol: float, error: Tensor, K: Tensor, trying: Tensor,
                rounds: int, start: bool = False) -> tuple:
-    """The crossover (:mod:`torchtraj.solvers.ipm.crossover`) of the instances ``trying``, gathered: up to ``rounds`` active
-    sets, the first proposed by the iterate (``start``: none held, the unconstrained optimum), each next one the
+    """The crossover (:mod:`torchtraj.solvers.ipm.crossover`) of the instances ``trying``, gathered: up to ``rounds``
+    active sets, the first proposed by the iterate (``start``: none held, the unconstrained optimum), each next one the
     primal-dual active-set update of the last candidate. An instance's rounds end where its set stops changing (the
     candidate is then the KKT point of its set), where its system fails, or with the last round; the candidates
     they end with are then checked together, and accepted where they pass the convergence test ``E_0 ≤ tol``.
@@ -101,7 +101,8 @@ def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model
     for r in range(rounds):
         c = candidate(model, cons, it, x0, active)
         ended = c if ended is None else crossover.Candidate(
-            point=pick(going, c.point, ended.point), K=where_rows(going, c.K, ended.K), ok=torch.where(going, c.ok, ended.ok))
+            point=pick(going, c.point, ended.point), K=where_rows(going, c.K, ended.K),
+            ok=torch.where(going, c.ok, ended.ok))
         taken = taken + going.long()
         following = crossover.next_active_set(c, active, knots)
         going = going & c.ok & crossover.changed(active, following)

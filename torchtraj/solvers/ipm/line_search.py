@@ -73,7 +73,8 @@ def step_and_round_off(it: Iterate, d: Direction) -> tuple:
 
 
 def fraction_to_boundary(it: Iterate, d: Direction, tau: Tensor) -> tuple:
-    """The largest primal and dual steps ``(B,)`` that keep ``s`` and ``z`` at least ``1 − τ`` of their distance to zero."""
+    """The largest primal and dual steps ``(B,)`` that keep ``s`` and ``z`` at least ``1 − τ`` of their distance to
+    zero."""
     a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
     a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
     return a_max, a_dual

@@ -45,7 +45,8 @@ from .options import IPOptions
 
 
 def _targets(mu: Tensor, target: Optional[tuple]):
-    """The complementarity targets ``(stage (B, N|1, mi|1), terminal (B, miN|1))``: ``μ`` on every row, or ``target``."""
+    """The complementarity targets ``(stage (B, N|1, mi|1), terminal (B, miN|1))``: ``μ`` on every row, or
+    ``target``."""
     return (mu.reshape(-1, 1, 1), mu.unsqueeze(-1)) if target is None else target
 
 
@@ -103,8 +104,8 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
               keep_factor: bool = False, sweep: str = "sequential",
               terminal_rows: str = "back-propagation") -> Direction:
     """Factorise the system regularised by ``δ_w I`` (``delta (B,)``; or take its ``factor``) with the Riccati
-    ``sweep`` and ``terminal_rows`` (``IPOptions``), solve it and recover ``Δs``, ``Δz`` (FATROP eq. 8) for the complementarity
-    ``μ`` or ``target`` (:func:`newton_rhs`)."""
+    ``sweep`` and ``terminal_rows`` (``IPOptions``), solve it and recover ``Δs``, ``Δz`` (FATROP eq. 8) for the
+    complementarity ``μ`` or ``target`` (:func:`newton_rhs`)."""
     factor = factorize(lqr, shift=delta, sweep=sweep, terminal_rows=terminal_rows) if factor is None else factor
     sol = factor.solve(rhs, multipliers=True)
     dX, dU = sol.dx, sol.du
@@ -129,7 +130,7 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
 def regularized_direction(attempt: Callable[[Tensor], Direction], floor: Tensor, last: Tensor, running: Tensor,
                           opts: IPOptions) -> tuple:
     """The step of every ``running (B,)`` instance with the smallest ``δ_w`` (from ``floor (B,)``) whose system is
-    positive definite, by IPOPT's inertia correction (:func:`~torchtraj.globalization.regularization.corrected_attempts`;
-    ``last (B,)``: the last nonzero ``δ_w`` that was); ``attempt(δ_w)`` factorises and solves the batch. Returns
-    ``(direction, δ_w (B,))``."""
+    positive definite, by IPOPT's inertia correction
+    (:func:`~torchtraj.globalization.regularization.corrected_attempts`; ``last (B,)``: the last nonzero ``δ_w`` that
+    was); ``attempt(δ_w)`` factorises and solves the batch. Returns ``(direction, δ_w (B,))``."""
     return corrected_attempts(attempt, floor, last, running, opts, pick, opts.regularization_attempts)

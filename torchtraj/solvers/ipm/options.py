@@ -79,8 +79,8 @@ class IPOptions:
     barrier_strategy: str = "monotone"
     #: Of a linear-quadratic problem (``Problem.linear_quadratic``) with inequality rows: once an instance's KKT
     #: error ``E_0`` is below ``crossover_from``, try at every iteration the exact solve with its proposed active set
-    #: held (:mod:`torchtraj.solvers.ipm.crossover`); where the result passes the convergence test the instance ends there, at
-    #: its KKT point to round-off.
+    #: held (:mod:`torchtraj.solvers.ipm.crossover`); where the result passes the convergence test the instance ends
+    #: there, at its KKT point to round-off.
     crossover: bool = True
     crossover_from: float = 1e-3
     #: Active sets tried per crossover: the proposed one, then the primal-dual active-set updates of its result.
@@ -138,8 +138,8 @@ class IPOptions:
     verbose: bool = False
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
     #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; for problems without stage equality rows, whose
-    #: back-propagation is sequential, and terminal rows with ``terminal_rows="range-space"``) or ``"auto"`` (parallel where it applies and pays, by
-    #: :func:`~torchtraj.riccati.parallel.choose_sweep`).
+    #: back-propagation is sequential, and terminal rows with ``terminal_rows="range-space"``) or ``"auto"`` (parallel
+    #: where it applies and pays, by :func:`~torchtraj.riccati.parallel.choose_sweep`).
     sweep: str = "sequential"
     #: How the Newton steps hold terminal equality rows (:func:`~torchtraj.riccati.factorize`):
     #: ``"range-space"``, the unconstrained ``sweep`` and the rows' Schur complement

@@ -12,7 +12,8 @@ for every row ``c`` that can be violated: the defects ``f(x_k, u_k) − x_{k+1}`
 general and state inequality rows, written ``g − p + n ≤ 0`` (their interior-point slack plays IPOPT's ``s``). The
 bounds on ``x`` and ``u`` stay hard rows, as IPOPT keeps its variable bounds; so do the terminal rows, which the
 free ``x_N`` of multiple shooting satisfies whenever they are consistent on their own (IPOPT relaxes them too: a
-difference). ``ρ`` (``IPOptions.restoration_penalty``: 10, not IPOPT's 1000, see there), ``ζ = √μ_R`` and ``D_R = diag(min(1, 1/|w_R|))``.
+difference). ``ρ`` (``IPOptions.restoration_penalty``: 10, not IPOPT's 1000, see there), ``ζ = √μ_R`` and
+``D_R = diag(min(1, 1/|w_R|))``.
 
 **Same stage structure, extra controls.** The pairs ``(p, n)`` of a stage are further controls of that stage with
 the bounds ``≥ 0``: the dynamics become ``x_{k+1} = f(x_k, u_k) − p_k + n_k``, which the Riccati core factorises as
@@ -43,7 +44,8 @@ largest residual ``‖c‖_∞`` is above the tolerance, as in the convergence t
 every row; else the main iteration resumes there; an iterate already that feasible takes no restoration phase, its
 failed line search being one at round-off). Any other ending of the restoration
 (iterations, regularisation) is the instance's status. A restoration phase does not enter one of its own (a failed
-line search there raises ``δ_w``); Mehrotra's steps (no filter) take none; and ``ζ`` is fixed for the phase at its start (IPOPT lets it follow ``μ``).
+line search there raises ``δ_w``); Mehrotra's steps (no filter) take none; and ``ζ`` is fixed for the phase at its start
+(IPOPT lets it follow ``μ``).
 """
 
 from __future__ import annotations

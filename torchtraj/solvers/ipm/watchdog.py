@@ -45,8 +45,8 @@ class Watchdog:
     """Per instance: ``shortened (B,)`` successive iterations whose first trial point was rejected, ``trials (B,)``
     watchdog iterations taken (0: none running), the stored point ``it`` and its ``phi``, ``slope``, ``theta`` and
     ``alpha (B,)``, and the last ``δ_w`` there, ``last (B,)`` (restored with it, so that the direction recomputed
-    there is the stored one); for the filter reset, ``blocked (B,)`` successive iterations whose last rejected trial point the
-    filter alone refused and ``resets (B,)`` done."""
+    there is the stored one); for the filter reset, ``blocked (B,)`` successive iterations whose last rejected trial
+    point the filter alone refused and ``resets (B,)`` done."""
 
     shortened: Tensor
     trials: Tensor
