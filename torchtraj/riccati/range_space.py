@@ -27,7 +27,7 @@ interior point's regularisation tests). The unconstrained problem therefore take
 the penalty ``½ ρ δx_Nᵀ Π δx_N`` is constant there and the constrained solution does not change, while for ρ large
 enough the Hessian is positive definite on the dynamics' null space wherever it is on the rows' (Finsler's lemma),
 so the inertia test answers as the back-propagation's. ``ρ`` is ten times the Hessian's largest entry
-(:func:`penalty`): a scale, not the bound of Finsler's lemma. The rows' multipliers then carry the penalty's
+(:func:`penalised`): a scale, not the bound of Finsler's lemma. The rows' multipliers then carry the penalty's
 gradient, ``ν + ρ C_N⁺ᵀ δx_N``.
 
 The feedback gains are the constrained problem's, those of the back-propagation: a perturbation ``δx_k`` moves the
@@ -59,7 +59,7 @@ from .sanitize import all_finite
 from .sweep import expected_change
 
 TERMINAL_ROWS = ("back-propagation", "range-space")
-#: The terminal penalty's weight relative to the Hessian's scale (:func:`penalty`).
+#: The terminal penalty's weight relative to the Hessian's scale (:func:`penalised`).
 PENALTY = 10.0
 
 
@@ -99,10 +99,9 @@ class RangeSpaceFactor:
         needs ``δx_N``); no rows are left at the fixed initial state, so ``initial_multiplier`` does not apply."""
         lqr = self.lqr
         base = self.inner.solve(dataclasses.replace(rhs, e=None, eN=None), multipliers=multipliers)
-        residual = (lqr.CN @ base.dx[:, -1].unsqueeze(-1)).squeeze(-1)
+        residual = (_active_rows(lqr) @ base.dx[:, -1].unsqueeze(-1)).squeeze(-1)
         if rhs.eN is not None:
-            residual = residual + rhs.eN
-        residual = residual * lqr.maskN if lqr.maskN is not None else residual
+            residual = residual + (rhs.eN * lqr.maskN if lqr.maskN is not None else rhs.eN)
         nu = self.inverse @ residual.unsqueeze(-1)  # ν = −Σ⁺ r = (−Σ)⁺ r
         column = nu.unsqueeze(1)
 
@@ -202,23 +201,23 @@ def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     return inverse, finite
 
 
-def penalty(lqr: LQR, C: Tensor, tol: float) -> tuple:
-    """The terminal penalty ``ρ Π`` (module docstring): ``ρ (B,)`` ``PENALTY`` times the Hessian's largest entry
-    (at least 1), ``Π = C⁺ C (B, nx, nx)`` the projector onto the rows' span and ``C⁺ (B, nx, mN)`` the rows'
-    pseudo-inverse at the rank tolerance (zero for an instance whose rows are not finite: its ``Σ`` fails)."""
-    H = torch.cat([lqr.Q.flatten(1), lqr.R.flatten(1), lqr.S.flatten(1), lqr.QN.flatten(1)], -1)
-    rho = PENALTY * H.abs().amax(-1).clamp_min(1.0)
-    finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
-    pinv = torch.linalg.pinv(torch.where(finite, C, 0.0), rtol=tol)
-    return rho, pinv @ C.nan_to_num(), pinv
+def _active_rows(lqr: LQR) -> Tensor:
+    """The terminal rows ``C_N (B, mN, nx)`` with the masked ones zero."""
+    return lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.maskN is not None else lqr.CN
 
 
 def penalised(lqr: LQR, tol: float) -> tuple:
     """The unconstrained problem that :func:`factorize_range_space` factorises: ``lqr`` without its terminal rows
-    and with the penalty ``Q_N + ρ Π`` (module docstring), and the multipliers' correction ``ρ C⁺ᵀ (B, mN, nx)``."""
-    C = lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.maskN is not None else lqr.CN
-    rho, projector, pinv = penalty(lqr, C, tol)
-    rho = rho.reshape(-1, 1, 1)
+    and with the penalty ``Q_N + ρ Π`` (module docstring), ``ρ (B,)`` ``PENALTY`` times the Hessian's largest
+    entry (at least 1) and ``Π = C⁺ C`` the projector onto the rows' span, ``C⁺`` their pseudo-inverse at the rank
+    tolerance (zero for an instance whose rows are not finite: its ``Σ`` fails); and the multipliers' correction
+    ``ρ C⁺ᵀ (B, mN, nx)``."""
+    C = _active_rows(lqr)
+    H = torch.cat([lqr.Q.flatten(1), lqr.R.flatten(1), lqr.S.flatten(1), lqr.QN.flatten(1)], -1)
+    rho = (PENALTY * H.abs().amax(-1).clamp_min(1.0)).reshape(-1, 1, 1)
+    finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
+    pinv = torch.linalg.pinv(torch.where(finite, C, 0.0), rtol=tol)
+    projector = pinv @ C.nan_to_num()
     return dataclasses.replace(lqr, CN=None, maskN=None, QN=lqr.QN + rho * projector), rho * _mT(pinv)
 
 
@@ -226,7 +225,7 @@ def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, to
     """The range-space factorisation (module docstring) of ``lqr`` (terminal rows ``CN``, ``maskN`` only) from the
     factorisation ``inner`` (either sweep, shifted as ``lqr`` is to be) of its :func:`penalised` problem and that
     problem's multiplier ``correction``, at the rank tolerance ``tol``."""
-    C = lqr.CN * lqr.maskN.unsqueeze(-1) if lqr.maskN is not None else lqr.CN
+    C = _active_rows(lqr)
     lqr = dataclasses.replace(inner.lqr, CN=lqr.CN, maskN=lqr.maskN)
     A, Bu = lqr.A, lqr.B
     parallel = isinstance(inner, ParallelRiccatiFactor)
