@@ -31,11 +31,11 @@ from torch import Tensor
 
 from ...core.constraints import Constraints
 from ...globalization.filter import Filter
-from ...riccati import LQR, factorize
+from ...riccati import LQR
 from .expansion import complementarity_error
 from .iterate import Iterate, Model
 from .line_search import Step, advance, fraction_to_boundary, step_and_round_off
-from .newton import Direction, direction, newton_rhs
+from .newton import Direction, direction, factorize_step, newton_rhs
 from .options import IPOptions
 
 
@@ -82,8 +82,7 @@ def mehrotra_step(model: Model, it: Iterate, predictor: Direction, lqr: LQR, del
     mu = torch.maximum(torch.minimum(sigma * average, ceiling), torch.full_like(ceiling, floor))
     target = (mu.reshape(-1, 1, 1) - predictor.ds * predictor.dz, mu.unsqueeze(-1) - predictor.dsN * predictor.dzN)
     rhs = newton_rhs(model, it, mu, x0, it.X.shape[-1], target)
-    factor = predictor.factor if predictor.factor is not None else factorize(lqr, shift=delta, sweep=opts.sweep,
-                                                                                 terminal_rows=opts.terminal_rows)
+    factor = predictor.factor if predictor.factor is not None else factorize_step(lqr, delta, opts)
     d = direction(lqr, rhs, delta, model, it, mu, target, factor=factor)
     a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
     size, round_off = step_and_round_off(it, d)

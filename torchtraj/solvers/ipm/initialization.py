@@ -29,10 +29,11 @@ from torch import Tensor
 
 from ...core.compiled import matvec as _mv
 from ...kkt import newton as kkt_newton
-from ...riccati import all_finite, factorize
+from ...riccati import all_finite
 from .compaction import pick
 from .expansion import flat_abs
 from .iterate import Iterate, Model
+from .newton import factorize_step
 from .options import IPOptions
 
 
@@ -53,7 +54,7 @@ def least_squares_multipliers(model: Model, it: Iterate, running: Tensor, opts: 
     gradN = model.LNx + _mv(GN.transpose(-1, -2), it.zN)
     rhs = kkt_newton.newton_rhs(grad, gradN, torch.zeros_like(model.f), torch.zeros_like(it.X[:, 0]),
                                 torch.zeros_like(model.h) if me else None, torch.zeros_like(model.hN) if meN else None)
-    factor = factorize(lqr, shift=torch.zeros_like(model.J), sweep=opts.sweep, terminal_rows=opts.terminal_rows)
+    factor = factorize_step(lqr, torch.zeros_like(model.J), opts)
     sol = factor.solve(rhs, multipliers=True)
     dw = torch.cat([sol.dx[:, :-1], sol.du], -1)
     nu = sol.nu if sol.nu is not None else torch.zeros_like(it.nu)

@@ -99,6 +99,12 @@ class Direction:
     factor: Optional[RiccatiFactor] = None  # kept when asked for (a corrector reuses it)
 
 
+def factorize_step(lqr: LQR, delta: Tensor, opts: IPOptions) -> RiccatiFactor:
+    """The factorisation of the reduced system regularised by ``δ_w I`` (``delta (B,)``) with the options' Riccati
+    ``sweep`` and ``terminal_rows``."""
+    return factorize(lqr, shift=delta, sweep=opts.sweep, terminal_rows=opts.terminal_rows)
+
+
 def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterate, mu: Tensor,
               target: Optional[tuple] = None, factor: Optional[RiccatiFactor] = None,
               keep_factor: bool = False, sweep: str = "sequential",

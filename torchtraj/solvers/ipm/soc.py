@@ -30,11 +30,11 @@ from torch import Tensor
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.filter import Filter
-from ...riccati import LQR, factorize
+from ...riccati import LQR
 from .compaction import pick
 from .iterate import Iterate, Model
 from .line_search import advance, fraction_to_boundary, trial
-from .newton import Direction, direction, newton_rhs
+from .newton import Direction, direction, factorize_step, newton_rhs
 from .options import IPOptions
 
 
@@ -64,8 +64,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
     c_soc = tuple(_scaled(a_max, c) + t[:, 0] for c, t in zip(current, first))
     theta_old = torch.cat([t[:, 0].reshape(t.shape[0], -1).abs() for t in first], -1).sum(-1)
-    factor = d.factor if d.factor is not None else factorize(lqr, shift=delta, sweep=opts.sweep,
-                                                                     terminal_rows=opts.terminal_rows)
+    factor = d.factor if d.factor is not None else factorize_step(lqr, delta, opts)
     found = torch.zeros_like(need)
     alpha, f_type, best = torch.zeros_like(mu), torch.zeros_like(need), d
     a_dual = torch.zeros_like(mu)
