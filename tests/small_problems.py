@@ -54,3 +54,20 @@ def powell_circle(x0, N=1):
         terminal_cost=lambda x, p: 2.0 * ((x * x).sum() - 1.0) - x[0],
         terminal_eq=lambda x, p: ((x * x).sum() - 1.0).reshape(1),
         x0=torch.tensor(x0, dtype=F64), horizon=N, nu=2)
+
+
+def velocity_bounded_double_integrator(dtype=torch.float32):
+    """The constrained double integrator a README user writes (issue 23's float32 case): RK4 of ``[v, u]`` with a
+    step of 0.1 over 40 steps to the goal ``(1, 0)``, ``|u| ≤ 1`` and ``v ≤ 0.5``; the NLP of
+    ``tests/data/make_float32_reference.py`` and ``make_float32_di_reference.py``."""
+    def dynamics(x, u, p):
+        return torch.stack([x[1], u[0]])
+
+    goal = torch.tensor([1.0, 0.0], dtype=dtype)
+    return tt.Problem(
+        dynamics=tt.rk4(dynamics, 0.1),
+        stage_cost=lambda x, u, p: 0.1 * (u ** 2).sum() + ((x - goal) ** 2).sum(),
+        terminal_cost=lambda x, p: 10.0 * ((x - goal) ** 2).sum(),
+        state_ineq=lambda x, p: x[1:] - 0.5,  # v <= 0.5
+        u_lower=torch.tensor([-1.0], dtype=dtype), u_upper=torch.tensor([1.0], dtype=dtype),
+        x0=torch.zeros(2, dtype=dtype), horizon=40, nu=1)

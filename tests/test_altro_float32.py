@@ -13,24 +13,14 @@ from pathlib import Path
 
 import pytest
 import torch
+from small_problems import velocity_bounded_double_integrator
 
 import torchtraj as tt
 
 REF = json.loads((Path(__file__).parent / "data" / "float32_di_reference.json").read_text())["instances"]
 
 
-def double_integrator(dtype):
-    """The problem as a README user writes it (the reference generator's NLP)."""
-    def dyn(x, u, p):
-        return torch.stack([x[1], u[0]])
-    goal = torch.tensor([1.0, 0.0], dtype=dtype)
-    return tt.Problem(
-        dynamics=tt.rk4(dyn, 0.1),
-        stage_cost=lambda x, u, p: 0.1 * (u ** 2).sum() + ((x - goal) ** 2).sum(),
-        terminal_cost=lambda x, p: 10.0 * ((x - goal) ** 2).sum(),
-        state_ineq=lambda x, p: (x[1:] - 0.5),
-        u_lower=torch.tensor([-1.0], dtype=dtype), u_upper=torch.tensor([1.0], dtype=dtype),
-        x0=torch.zeros(2, dtype=dtype), horizon=40, nu=1)
+double_integrator = velocity_bounded_double_integrator  # the problem as a README user writes it
 
 
 def solve_with_gradient(method, dtype):
