@@ -133,6 +133,21 @@ class AugmentedLagrangian:
     def mN(self) -> int:
         return self.constraints.miN + self.constraints.meN
 
+    def row_jacobians(self, X: Tensor, U: Tensor, params) -> tuple:
+        """``(c (B, N, m), C_z (B, N, m, nx+nu), c_N (B, mN), C_N (B, mN, nx))``: the rows' values and Jacobians at
+        ``(X, U)``, unmasked; a problem without rows gets blocks of zero rows (the held-rows system of the
+        projection and its Newton steps keeps them as such)."""
+        B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+        if self.m:
+            c, Cz = stage_jacobian(self.stage_fn, X, U, params)
+        else:
+            c, Cz = X.new_zeros(B, N, 0), X.new_zeros(B, N, 0, nx + U.shape[-1])
+        if self.mN:
+            cN, CN = terminal_jacobian(self.terminal_fn, X[:, -1], params)
+        else:
+            cN, CN = X.new_zeros(B, 0), X.new_zeros(B, 0, nx)
+        return c, Cz, cN, CN
+
     def stage_values(self, X: Tensor, U: Tensor, params) -> Tensor:
         """``c_k`` at every stage, ``(B, *E, N, m)``; rows that do not apply are 0."""
         if self.m == 0:

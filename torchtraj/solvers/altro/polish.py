@@ -40,11 +40,10 @@ import torch
 from torch import Tensor
 
 from ...core.constraints import multiplier_blocks
-from ...core.derivatives import problem_lagrangian_hessian, quadratize_cost, stage_jacobian, terminal_jacobian
+from ...core.derivatives import problem_lagrangian_hessian, quadratize_cost, stage_jacobian
 from ...core.masks import where_rows
 from ...kkt.certificate import residuals
-from ...kkt.newton import held_lqr, newton_rhs
-from ...riccati import factorize
+from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from .augmented_lagrangian import AugmentedLagrangian
 
 #: A step below ``ROUND_OFF · ε · (1 + |w|∞)`` is at round-off: the instance stops.
@@ -95,22 +94,14 @@ def newton_kkt_step(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint
                                        nuN=point.terminal[..., miN:], muN=point.terminal[..., :miN])
     cost = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
     f, fz = stage_jacobian(problem.dynamics, X, U, params)
-    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
-    if al.m:
-        c, Cz = stage_jacobian(al.stage_fn, X, U, params)
-        c = c * al.knot_mask * stage_active
-    else:  # a block of zero rows is kept as one, as in the projection
-        c, Cz = X.new_zeros(B, N, 0), X.new_zeros(B, N, 0, nx + U.shape[-1])
-    if al.mN:
-        cN, CN = terminal_jacobian(al.terminal_fn, X[:, -1], params)
-        cN = cN * terminal_active
-    else:
-        cN, CN = X.new_zeros(B, 0), X.new_zeros(B, 0, nx)
+    c, Cz, cN, CN = al.row_jacobians(X, U, params)
+    c = c * al.knot_mask * stage_active if al.m else c
+    cN = cN * terminal_active
     lqr = held_lqr(fz, H, HN, rows=Cz, mask=stage_active, rowsN=CN, maskN=terminal_active, lower_only=True)
-    factor = factorize(lqr, regularization, rank_tolerance=rank_tolerance)
     # the cost gradient as linear term: the dual part of the solve is the new multipliers themselves
-    step = factor.solve(newton_rhs(cost.gradient, cost.terminal_gradient, f - X[:, 1:], x0 - X[:, 0], c, cN),
-                        multipliers=True)
+    solved = newton_step(lqr, newton_rhs(cost.gradient, cost.terminal_gradient, f - X[:, 1:], x0 - X[:, 0], c, cN),
+                         regularization, rank_tolerance)
+    factor, step = solved.factor, solved.step
     moved = KKTPoint(X + step.dx, U + step.du, step.costate, step.nu * stage_active, step.nuN * terminal_active,
                      factor.K)
     size = torch.maximum(step.dx.abs().flatten(1).amax(-1), step.du.abs().flatten(1).amax(-1))

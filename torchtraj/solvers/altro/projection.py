@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import map_stage
-from ...core.derivatives import quadratize_cost, stage_jacobian, terminal_jacobian
+from ...core.derivatives import quadratize_cost, stage_jacobian
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
 from ...kkt import activity
@@ -126,19 +126,10 @@ def _held_lqr(al: AugmentedLagrangian, params, X, U, stage_active, terminal_acti
     """The held-rows KKT system's matrices at ``(X, U)`` with the cost Hessian (the projection's metric ``H``),
     and the cost gradient ``(B, N, nz)``, ``(B, nx)`` for the multiplier solve."""
     problem = al.problem
-    nx = X.shape[-1]
     _, fz = stage_jacobian(problem.dynamics, X, U, params)
     cost = quadratize_cost(problem.stage_cost, problem.terminal_cost, X, U, params)
-    B, N = U.shape[0], U.shape[1]
     # a block of zero rows is kept as one: the Riccati core's constrained sweep, as the projection always took
-    if al.m:
-        _, Cz = stage_jacobian(al.stage_fn, X, U, params)
-    else:
-        Cz = X.new_zeros(B, N, 0, nx + U.shape[-1])
-    if al.mN:
-        _, CN = terminal_jacobian(al.terminal_fn, X[:, -1], params)
-    else:
-        CN = X.new_zeros(B, 0, nx)
+    _, Cz, _, CN = al.row_jacobians(X, U, params)
     lqr = held_lqr(fz, cost.hessian, cost.terminal_hessian, rows=Cz, mask=stage_active, rowsN=CN,
                    maskN=terminal_active, lower_only=True)
     return lqr, cost.gradient, cost.terminal_gradient
