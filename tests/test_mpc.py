@@ -66,6 +66,51 @@ def test_warm_start_is_the_shifted_solution_and_the_next_step_solves_from_it():
     assert (sol.U - cold.U).abs().max() > 1e-3  # the warm start changes the answer
 
 
+def test_a_multiple_shooting_method_starts_from_the_shifted_states(monkeypatch):
+    """The IPM's warm step starts from (x̂, x_2, ..., x_N, x_N) of the previous solution, not from a rollout; ALTRO,
+    whose X0 is its infeasible start, gets none."""
+    import torchtraj.control.mpc as mpc_module
+
+    given = []
+
+    def spy(*args, **kwargs):
+        given.append(kwargs.get("X0"))
+        return tt.solve(*args, **kwargs)
+
+    monkeypatch.setattr(mpc_module, "solve", spy)
+    env = envs.PendulumEnv()
+    ipm = tt.MPC(env.problem(), "ipm", 2)
+    ipm(STATES)
+    previous = ipm.solution.X
+    x1 = STATES + 0.01
+    ipm(x1)
+    assert given[0] is None  # the first step is cold: the method's own start
+    torch.testing.assert_close(given[1][:, 0], x1, rtol=0, atol=0)
+    torch.testing.assert_close(given[1][:, 1:-1], previous[:, 2:], rtol=0, atol=0)
+    torch.testing.assert_close(given[1][:, -1], previous[:, -1], rtol=0, atol=0)
+    altro = tt.MPC(env.problem(), "altro", 2)
+    altro(STATES)
+    altro(x1)
+    assert given[2] is None and given[3] is None
+
+
+def test_a_cold_instance_among_warm_ones_starts_as_it_would_alone():
+    """After a reset of one instance the others keep their shifted states, and the reset one starts from the
+    rollout of the cold controls, as a first step (or a solve without X0) would: its control equals a fresh
+    controller's for it alone, and the warm ones' equal a run without that instance."""
+    env = envs.PendulumEnv()
+    both = tt.MPC(env.problem(), "ipm", 2)
+    both(STATES[:2])
+    x1 = STATES[:2] + 0.01
+    both.reset(np.array([True, False]))
+    u = both(x1)
+    fresh = tt.MPC(env.problem(), "ipm", 2)
+    torch.testing.assert_close(u[0], fresh(x1[0]), rtol=0, atol=1e-12)
+    warm_alone = tt.MPC(env.problem(), "ipm", 2)
+    warm_alone(STATES[1:2])
+    torch.testing.assert_close(u[1:], warm_alone(x1[1:]), rtol=0, atol=1e-12)
+
+
 def test_instances_that_converge_still_get_one_multiplier_update():
     mpc, _ = pendulum_mpc(iterations=10)
     x = torch.tensor([[torch.pi + 0.05, 0.0], [torch.pi - 0.02, 0.1]], dtype=torch.float64)

@@ -18,7 +18,9 @@ bounds. The iterations are not run to convergence: the warm start carries the wo
     \lambda^{\text{warm}}_k = \lambda_{k+1}\ (k < N-1), \quad \lambda^{\text{warm}}_{N-1} = \lambda_{N-1},
 
 (the controls and the multipliers the method carries; terminal multipliers are kept), and the solver starts from
-the rollout of :math:`U^{\text{warm}}` from the measured state.
+the rollout of :math:`U^{\text{warm}}` from the measured state; a method that
+:attr:`~torchtraj.solvers.base.Solver.starts_from_shifted_states` (multiple shooting: the interior point) starts
+from the shifted states :math:`X^{\text{warm}} = (\hat x_t, x_2, \dots, x_N, x_N)` instead, and no rollout is made.
 
 The controller never names a method: it asks the method's :class:`~torchtraj.solvers.base.Solver` object, from the
 registry, for
@@ -30,9 +32,12 @@ registry, for
 - the multipliers to carry to the next step (:meth:`~torchtraj.solvers.base.Solver.carried_duals`), none for a
   method that takes no warm-started duals.
 
-The shifted states are not passed: with the model the environment steps, the rollout of the shifted controls
-reproduces them up to the last knot, and ALTRO's ``X0`` would switch to its infeasible start, a different problem
-with slack controls and costs. The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's
+The shifted states are passed only to such a method: ALTRO's ``X0`` would switch to its infeasible start, a
+different problem with slack controls and costs, and its rollout of the shifted controls reproduces the shifted
+states up to the last knot where the model is the plant's. A cold instance (the first step, after a reset or a
+failure) starts from the method's own start: in a batch whose other instances are warm, the problem's ``X_init``
+(with its own controls) or else the rollout of ``u_init``, as a solve without ``X0`` would take, so that one
+instance's start never depends on another's. The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's
 schedule would multiply them by ``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem
 becomes ill-conditioned.
 
@@ -59,6 +64,8 @@ import torch
 from torch import Tensor
 
 from .. import solvers
+from ..core.batch import Batch
+from ..core.batching import rollout
 from ..core.constraints import Constraints
 from ..core.masks import where_rows
 from ..core.problem import Problem
@@ -135,6 +142,7 @@ class MPC(torch.nn.Module):
     def _clear(self, batch: int) -> None:
         p = self.problem
         self._U = p.u_init.expand(batch, p.N, p.nu).clone()
+        self._X = None if not self.solver.starts_from_shifted_states else p.x0.new_zeros(batch, p.N + 1, p.nx)
         self._multipliers: dict = {}
         self._warm = torch.zeros(batch, dtype=torch.bool, device=p.device)
 
@@ -163,6 +171,25 @@ class MPC(torch.nn.Module):
             return U0, None
         mult = {k: where_rows(self._warm, v, torch.zeros_like(v)) for k, v in self._multipliers.items()}
         return U0, {"multipliers": mult}
+
+    def start_states(self, x: Tensor, U0: Tensor) -> Optional[Tensor]:
+        """The next solve's initial states ``(B, N+1, nx)`` for a method that starts from shifted states: the shifted
+        states after the measured ``x`` where warm, the method's own cold start elsewhere; ``None`` where every
+        instance is cold or the method takes none (one read of the warm count)."""
+        if self._X is None:
+            return None
+        warm = int(self._warm.sum())
+        if warm == 0:
+            return None
+        X = torch.cat([x.unsqueeze(1), self._X[:, 1:]], 1)
+        if warm == self.batch_size:
+            return X
+        p = self.problem
+        if p.X_init is not None:
+            cold = p.X_init.expand_as(X)
+        else:
+            cold = rollout(p.dynamics, x, U0, Batch.build(p, x, U0).params)
+        return where_rows(self._warm, X, cold)
 
     # ------------------------------------------------------------------ the policy
     def forward(self, observations, params: Optional[Mapping] = None):
@@ -202,11 +229,12 @@ class MPC(torch.nn.Module):
     def _step(self, x: Tensor) -> Tensor:
         p = self.problem
         U0, duals = self.warm_start()
+        X0 = self.start_states(x, U0)
         start = time.perf_counter()
         with warnings.catch_warnings():
             if self._ignores_constraints:  # said once, at construction
                 warnings.filterwarnings("ignore", message=".*ignores the constraints")
-            sol = solve(p, x, self.solver, options=self.options, **self.solver.warm_start(U0, duals))
+            sol = solve(p, x, self.solver, options=self.options, **self.solver.warm_start(U0, duals, X0))
         self.solve_seconds = time.perf_counter() - start
         failed = torch.isin(sol.status, self._failures) | ~torch.isfinite(sol.U).flatten(1).all(-1)
         usable = ~failed
@@ -216,6 +244,8 @@ class MPC(torch.nn.Module):
         u = torch.clamp(u, lower, upper)
         self.solution = sol
         self._U = _shift(where_rows(usable, sol.U, U0))
+        if self._X is not None:  # a failed instance's states are not used: it starts cold
+            self._X = _shift(sol.X)
         carried = {}
         if self.solver.takes_duals:  # else none to carry, and no constraints to make for it
             carried = self.solver.carried_duals(Constraints.of(p), sol, self.options)

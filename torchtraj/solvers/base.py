@@ -15,6 +15,9 @@ Every method solves the same problem, for each instance i of a batch,
 - ``takes_state_guess``: whether ``X0 (B, N+1, nx)`` is accepted (a multiple-shooting start, or ALTRO's
   infeasible start);
 - ``takes_duals``: whether a warm start of the multipliers (``tt.solve``'s ``duals``) is accepted;
+- ``starts_from_shifted_states``: whether a control step starts from the previous step's states, shifted by one
+  knot, as well as its controls (a multiple-shooting start: the shift replaces the rollout of the shifted controls;
+  ALTRO's ``X0`` would be its infeasible start, another problem);
 - ``kkt_point``: whether a converged solution is a KKT point the implicit layer
   (:mod:`torchtraj.differentiation.implicit`) can refine and differentiate;
 - :meth:`Solver.kkt_problem`: the problem whose KKT point that is, where it is not the one declared above
@@ -55,6 +58,7 @@ class Solver(abc.ABC):
     handles_constraints: ClassVar[bool]
     takes_state_guess: ClassVar[bool]
     takes_duals: ClassVar[bool]
+    starts_from_shifted_states: ClassVar[bool] = False
     kkt_point: ClassVar[bool] = True
 
     def __repr__(self) -> str:
@@ -116,10 +120,15 @@ class Solver(abc.ABC):
             opts = dataclasses.replace(opts, compile=True)
         return opts if iterations is None else dataclasses.replace(opts, iterations=int(iterations))
 
-    def warm_start(self, U0: Tensor, duals: Optional[dict]) -> dict:
-        """``tt.solve``'s keyword arguments that start a control step from the shifted controls ``U0 (B, N, nu)``
-        and the shifted carried duals ``{"multipliers": ...}`` (``None`` when none are carried)."""
-        return {"U0": U0, "duals": duals if self.takes_duals else None}
+    def warm_start(self, U0: Tensor, duals: Optional[dict], X0: Optional[Tensor] = None) -> dict:
+        """``tt.solve``'s keyword arguments that start a control step from the shifted controls ``U0 (B, N, nu)``,
+        the shifted carried duals ``{"multipliers": ...}`` (``None`` when none are carried) and, for a method that
+        :attr:`starts_from_shifted_states`, the shifted states ``X0 (B, N+1, nx)`` (``None``: every instance starts
+        cold, from the method's own start)."""
+        kwargs = {"U0": U0, "duals": duals if self.takes_duals else None}
+        if X0 is not None and self.starts_from_shifted_states:
+            kwargs["X0"] = X0
+        return kwargs
 
     def carried_duals(self, constraints: Constraints, solution: Solution, options) -> dict:
         """The multipliers, per block as in :attr:`Solution.multipliers`, that the next control step starts from

@@ -28,6 +28,7 @@ class HMILQR(Solver):
     handles_constraints = True
     takes_state_guess = True
     takes_duals = False
+    starts_from_shifted_states = True
 
     def solve(self, problem: Problem, batch: Batch, options: HMILQROptions) -> Solution:
         return solve_hm_ilqr(problem, batch, options, method=self.name)

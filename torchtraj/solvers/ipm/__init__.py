@@ -6,8 +6,11 @@ It handles the constraints and takes a state guess ``X0`` (multiple shooting sta
 is one (car_escape's waypoints, IPOPT's start too), else at the rollout of the controls. It takes no warm-started
 duals: its multipliers start from the barrier's initial values (``bound_push``, ``dual_initial``) at every solve.
 A control step with a budget of ``n`` iterations runs at most ``n`` interior-point iterations; it starts from the
-shifted controls alone, whose rollout from the measured state reproduces the shifted states up to the last knot
-when the model is the plant's (the problem's ``X_init`` goes with its own controls only: a cold step).
+previous step's controls and states, shifted by one knot, with the measured state at the first
+(:attr:`~torchtraj.solvers.base.Solver.starts_from_shifted_states`): multiple shooting takes the defects of that
+start (at the first stage where the plant moved otherwise than the model, at the last where the repeated control
+leaves the repeated state) and needs no rollout. A cold instance starts as a solve without ``X0`` does: at the
+problem's ``X_init`` with its own controls, else at the rollout of the controls.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ class IPM(Solver):
     handles_constraints = True
     takes_state_guess = True
     takes_duals = False
+    starts_from_shifted_states = True
 
     def solve(self, problem: Problem, batch: Batch, options: IPOptions) -> Solution:
         return solve_interior_point(problem, batch, options, method=self.name)
