@@ -37,8 +37,9 @@ different problem with slack controls and costs, and its rollout of the shifted 
 states up to the last knot where the model is the plant's. A cold instance (the first step, after a reset or a
 failure) starts from the method's own start: in a batch whose other instances are warm, the problem's ``X_init``
 (with its own controls) or else the rollout of ``u_init``, as a solve without ``X0`` would take, so that one
-instance's start never depends on another's. The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's
-schedule would multiply them by ``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem
+instance's start never depends on another's.
+
+The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by ``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem
 becomes ill-conditioned.
 
 With ``iterations`` set, each step runs at most that many iterations; ALTRO runs one inner AL-iLQR solve of at
