@@ -39,8 +39,8 @@ failure) starts from the method's own start: in a batch whose other instances ar
 (with its own controls) or else the rollout of ``u_init``, as a solve without ``X0`` would take, so that one
 instance's start never depends on another's.
 
-The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by ``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem
-becomes ill-conditioned.
+The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by
+``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem becomes ill-conditioned.
 
 With ``iterations`` set, each step runs at most that many iterations; ALTRO runs one inner AL-iLQR solve of at
 most ``iterations`` iLQR iterations (``iterations_inner = iterations``, ``iterations_outer = 1``) and carries
