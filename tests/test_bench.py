@@ -215,6 +215,25 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
         "al-ilqr", f"{ops.total / 2:.0f}"]
 
 
+def test_ops_sweep_of_whole_solves(tmp_path):
+    """``--ops-iterations 0``: the sweep counts whole solves with the method's default options, as tt.solve runs
+    them at that horizon (no setup spread over a few capped iterations)."""
+    from torchtraj.bench.ops import OperatorCounter, with_horizon
+
+    path = tmp_path / "ops.json"
+    code, text = run(["--ops", "--method", "al-ilqr", "--problems", "double_integrator", "--ops-horizons", "5", "10",
+                      "--ops-iterations", "0", "--ops-mpc-steps", "0", "--json", str(path)])
+    assert code == 0, text
+    assert "over whole solves with the method's default options" in text
+    rows = json.loads(path.read_text())["horizons"]["rows"]
+    for row, n in zip(rows, (5, 10)):
+        problem = with_horizon(problems.get("double_integrator"), n)
+        with OperatorCounter() as ops:
+            sol = tt.solve(problem, method="al-ilqr")
+        assert (row["horizon"], row["iteration_cap"]) == (n, None)
+        assert (row["calls"], row["iterations"]) == (ops.total, int(sol.iterations.max()))
+
+
 def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeypatch):
     from torchtraj import solvers
     from torchtraj.bench import ops as bench_ops
@@ -237,7 +256,7 @@ def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeyp
     assert seen == [(solvers.names(), ["pendulum", "cartpole", "car_3obs"], [25, 50, 100, 200], 5),
                     (["ilqr"], ["pendulum", "cartpole", "car_3obs"], [5, 7], 3)]
     parser = bench_main.parser()
-    for args in (["--ops", "--grad"], ["--ops", "--ops-horizons", "0"], ["--ops", "--ops-iterations", "0"],
+    for args in (["--ops", "--grad"], ["--ops", "--ops-horizons", "0"], ["--ops", "--ops-iterations", "-1"],
                  ["--ops", "--ops-mpc-steps", "-1"]):
         with pytest.raises(SystemExit):
             bench_main._check(parser, parser.parse_args(args))

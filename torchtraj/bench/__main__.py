@@ -113,8 +113,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ops-horizons", nargs="+", type=int, metavar="N", default=list(ops.DEFAULT_HORIZONS),
                    help=f"with --ops: the horizons of the sweep (default: {' '.join(map(str, ops.DEFAULT_HORIZONS))})")
     p.add_argument("--ops-iterations", type=int, metavar="K", default=ops.SWEEP_ITERATIONS,
-                   help="with --ops: iterations counted per solve of the horizon sweep "
-                        f"(default: {ops.SWEEP_ITERATIONS})")
+                   help="with --ops: iterations counted per solve of the horizon sweep (0: whole solves with "
+                        f"default options, whose per-stage slope has no setup in it; default: {ops.SWEEP_ITERATIONS})")
     p.add_argument("--ops-mpc-steps", type=int, metavar="K", default=ops.MPC_STEPS,
                    help=f"with --ops: control steps counted per MPC row (0: no MPC rows; default: {ops.MPC_STEPS})")
     return p
@@ -136,8 +136,9 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error("--ops goes without --grad, --compile and --profile")
     if args.ops_mpc_steps < 0:
         p.error(f"--ops-mpc-steps must be >= 0, got {args.ops_mpc_steps}")
-    if any(n < 1 for n in args.ops_horizons) or args.ops_iterations < 1:
-        p.error(f"--ops-horizons and --ops-iterations must be >= 1, got {args.ops_horizons}, {args.ops_iterations}")
+    if any(n < 1 for n in args.ops_horizons) or args.ops_iterations < 0:
+        p.error(f"--ops-horizons must be >= 1 and --ops-iterations >= 0, got {args.ops_horizons}, "
+                f"{args.ops_iterations}")
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch.cuda.is_available() is False")
 

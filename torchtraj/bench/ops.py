@@ -298,18 +298,19 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
 
     sweep_name = names[0]
     say()
+    over = (f"over the first {iterations} iterations of each solve (the method's step_options), so its setup is "
+            f"spread over those" if iterations else "over whole solves with the method's default options")
     say(f"horizon sweep on {sweep_name} (the same time step, the control guess resampled): calls per iteration "
-        f"over the first {iterations} iterations of each solve (the method's step_options), so its setup is "
-        f"spread over those; calls/stage: the least-squares slope over N")
+        f"{over}; calls/stage: the least-squares slope over N")
     say(_sweep_header(horizons))
     sweep, slopes = [], {}
     for m in methods:
         if skip_reason(m, built[sweep_name]):
             continue
         solver = solvers.get(m)
-        options = solver.step_options(solver.default_options(), iterations)
+        options = solver.step_options(solver.default_options(), iterations) if iterations else None
         rows = [count_solve(with_horizon(problem_set.get(sweep_name, dtype=dtype, device=device), n), solver,
-                            options, iteration_cap=iterations) for n in horizons]
+                            options, iteration_cap=iterations or None) for n in horizons]
         good = [r for r in rows if r.calls_per_iteration is not None]
         fitted = None if len(good) < len(rows) else slope([r.horizon for r in good],
                                                           [r.calls_per_iteration for r in good])
