@@ -63,7 +63,7 @@ class ALTROOptions:
     #: the first LQR model), the model's step only removes slack, and the line search on ``L_A`` (walls at ``μ = 1``)
     #: takes ``α = 1`` of it with ``R_s = 1`` (``α = 0.5`` at 0.15 to 0.3): the route cuts through a wall (rows at
     #: 0.25), the first inner solve ends there (slacks 0.22, walls 0.21, cost 0.047 against the optimum's 0.33) and
-    #: from ``μ = 100`` on the AL stage stalls (slacks 0.37, walls 0.18, up to ``μ = 1e8``), until iLQR's
+    #: from ``μ = 100`` on the AL stage stalls (slacks 0.36 to 0.37, walls 0.18, up to ``μ = 1e8``), until iLQR's
     #: regularisation passes its cap (``MAX_REGULARIZATION``, 2519 iterations; 0.3 stalls at the same point, followed
     #: to ``μ = 1e5``). From 0.001 to 0.12 the first step is cut to 1/16 (walls at 0.088); with 0.1 and 0.03 the
     #: slacks then fall about tenfold per dual update to a local optimum that IPOPT keeps (0.3316056; 234 and 240
