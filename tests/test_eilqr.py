@@ -11,12 +11,14 @@ import torch
 
 import torchtraj as tt
 from torchtraj import problems
+from torchtraj.core.batch import Batch
 from torchtraj.core.batching import map_stage, map_state
 from torchtraj.core.constraints import Constraints
 from torchtraj.solvers.eilqr.continuation import Weights
 from torchtraj.solvers.eilqr.initial_state import InitialState
 from torchtraj.solvers.eilqr.model import Iterate, expand
 from torchtraj.solvers.eilqr.newton import direction
+from torchtraj.solvers.eilqr.solver import solve_eilqr
 
 F64 = torch.float64
 DATA = Path(__file__).parent / "data"
@@ -264,15 +266,35 @@ def test_the_full_newton_step_fails_where_the_globalised_one_converges(pendulum_
 
 
 # ---------------------------------------------------------------------------------------------- the problem set
+def test_the_problems_state_guess_is_the_default_start_but_not_a_control_steps():
+    """Without ``X0`` a solve starts from the problem's ``X_init`` (its first knot the given ``x0``), as IPOPT's
+    reference does; ``problem_state_guess=False`` from the rollout of the controls; a control step never from it.
+    ``iterations=0`` (which ``tt.solve`` refuses) returns the start."""
+    problem = problems.get("double_integrator")
+    line = torch.linspace(0, 1, problem.N + 1, dtype=F64).unsqueeze(-1) * (problem.params["goal"] - problem.x0)
+    guessed = problem.replace(X_init=problem.x0 + line + 0.25)  # off x0 at the first knot too
+    x0 = torch.tensor([0.1, 0.0], dtype=F64)
+
+    def start(p, **options):
+        return solve_eilqr(p, Batch.build(p, x0).for_solver(), tt.EILQROptions(iterations=0, **options)).X[0]
+
+    assert torch.equal(start(guessed)[1:], guessed.X_init[1:]) and torch.equal(start(guessed)[0], x0)
+    rolled = start(guessed, problem_state_guess=False)
+    assert torch.equal(rolled, start(problem)) and not torch.allclose(rolled, start(guessed))
+    solver = tt.solvers.get("eilqr")
+    assert solver.step_options(None, 3).problem_state_guess is False
+    assert solver.step_options(tt.EILQROptions(), None).problem_state_guess is False
+    assert solver.step_options(None, 3).iterations == 3
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [
-    pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="measured: 300 iterations, MAX_ITERATIONS, from the "
-                                            "problem's own x0 inside the walls and no state guess"))
-    if n == "car_escape" else n for n in problems.names() if n in HARD])
+@pytest.mark.parametrize("name", [n for n in problems.names() if n in HARD])
 def test_every_problem_with_default_options_reaches_ipopts_optimum_or_a_lower_kkt_point(name):
     """Every problem of the set with default options and no state guess (issue 23; ``docs/benchmarks.md``, "Default
     options"): certified CONVERGED, the hard constraints met to 1e-8 and the cost at IPOPT's optimum to 1e-6 relative
-    or below it (another local optimum: the benchmark checks that IPOPT warm-started there keeps it)."""
+    or below it (another local optimum: the benchmark checks that IPOPT warm-started there keeps it). ``car_escape``
+    starts from its own state guess ``X_init`` (``problem_state_guess``); from the rollout of its controls (its
+    ``x0`` inside the walls) it stopped at 300 iterations, ``MAX_ITERATIONS``."""
     problem = problems.get(name)
     sol = tt.solve(problem, method="eilqr")
     hard = HARD[name]["ipopt"]["cost"]

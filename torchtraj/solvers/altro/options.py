@@ -1,5 +1,6 @@
 """Options of ALTRO (methods ``"altro"`` and ``"al-ilqr"``); defaults are Altro.jl's ``SolverOptions`` but for the
-stopping tolerances, which reach the optimum (:meth:`ALTROOptions.fast` has Altro.jl's)."""
+stopping tolerances, which reach the optimum (:meth:`ALTROOptions.fast` has Altro.jl's), and the infeasible start's
+slack cost (``slack_cost``)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ PROJECTED_TOLERANCE = 1e-6
 
 @dataclass
 class ALTROOptions:
-    """Options of :func:`solve_altro`; defaults are Altro.jl's ``SolverOptions`` except the stopping tolerances.
+    """Options of :func:`solve_altro`; defaults are Altro.jl's ``SolverOptions`` except the stopping tolerances and
+    the slack cost of an infeasible start (``slack_cost``, the field's comment).
 
     Altro.jl's (``cost_tolerance = cost_tolerance_intermediate = 1e-4``, the inner ``gradient_tolerance = 10``;
     :meth:`fast`) stop the pendulum 31 % above its optimum, the cart-pole 0.1 %. The defaults here (1e-12, 1e-6
@@ -54,8 +56,19 @@ class ALTROOptions:
     #: Run the projection stage (``False`` gives plain AL-iLQR, method ``"al-ilqr"``).
     projection: bool = True
     projection_options: ProjectionOptions = field(default_factory=ProjectionOptions)
-    #: Cost ``½ R_s |s|²`` on the slack controls of an infeasible start (§III-B, eq. 32).
-    slack_cost: float = 1.0
+    #: Cost ``½ R_s |s|²`` on the slack controls of an infeasible start (§III-B, eq. 32); it acts on nothing else. 0.1,
+    #: the ALTRO sources' value for their escape benchmark, where Altro.jl's default ``R_inf`` is 1. Measured on
+    #: ``car_escape`` from its waypoint guess (the only problem of the set that starts infeasibly by default): the
+    #: walls' rows are inactive there (every knot 0.14 or more outside a circle, ``λ = 0``: eq. 3 leaves them out of
+    #: the first LQR model), the model's step only removes slack, and the line search on ``L_A`` (walls at ``μ = 1``)
+    #: takes ``α = 1`` of it with ``R_s = 1`` (``α = 0.5`` at 0.15 to 0.3): the route cuts through a wall (rows at
+    #: 0.25), the first inner solve ends there (slacks 0.22, walls 0.21, cost 0.047 against the optimum's 0.33) and
+    #: from ``μ = 100`` on the AL stage stalls (slacks 0.36 to 0.37, walls 0.18, up to ``μ = 1e8``), until iLQR's
+    #: regularisation passes its cap (``MAX_REGULARIZATION``, 2519 iterations; 0.3 stalls at the same point, followed
+    #: to ``μ = 1e5``). From 0.001 to 0.12 the first step is cut to 1/16 (walls at 0.088); with 0.1 and 0.03 the
+    #: slacks then fall about tenfold per dual update to a local optimum that IPOPT keeps (0.3316056; 234 and 240
+    #: iterations). The margin is narrow (0.12 to 0.15): a line-search outcome, not a property of the problem.
+    slack_cost: float = 0.1
     #: Without an ``X0``, start from the problem's own state guess (``Problem.X_init``) where it carries one, by the
     #: infeasible start (§III-B), as from an ``X0``; ``False``: from the rollout of ``U0`` (module docstring of
     #: :mod:`torchtraj.solvers.altro.solver`). A control step never does (:meth:`ALTRO.step_options`).

@@ -26,10 +26,10 @@ slack controls that the AL stage drives to zero. A problem that carries a state 
 should go, and the paper's infeasible start is the way ALTRO follows such a guess: the rollout of the control guess
 alone can lead elsewhere (``car_escape``: a car in a room, its exit through a gap in the walls; from the rollout
 of its controls AL-iLQR stays in the first room or cuts through a wall). HM-iLQR starts from ``X_init`` likewise.
-The start alone does not make every problem converge at default settings: ``car_escape`` converges from its
-``X_init`` with the ALTRO sources' settings (``tt.problems.altro_options("car_escape")``: slack cost 0.1,
-penalties 10 × 50ⁿ), but with the defaults it ends ``MAX_REGULARIZATION`` after 2519 iterations (2302 from the
-rollout). Without a state guess, the start is the rollout of ``U0``. A control step (MPC) never takes ``X_init``: it
+The start alone did not make ``car_escape`` converge: with Altro.jl's slack cost 1 it ended ``MAX_REGULARIZATION``
+after 2519 iterations from its ``X_init`` (2302 from the rollout); with the default slack cost 0.1 (the ALTRO
+sources' value for it; :attr:`ALTROOptions.slack_cost` says why) it converges in 234. Without a state guess, the
+start is the rollout of ``U0``. A control step (MPC) never takes ``X_init``: it
 starts from the previous step's shifted controls, and ``X_init`` belongs to the problem's own ``x0``.
 
 Infeasible state initialisation (§III-B) and time penalties (§III-C) are transforms of the problem

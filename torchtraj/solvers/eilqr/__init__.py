@@ -9,11 +9,13 @@ extension beyond the paper, :mod:`~torchtraj.solvers.eilqr.continuation`), so th
 point of the problem with hard inequalities. With ``barrier_continuation=False`` (the paper's fixed weight) it is a
 KKT point of :meth:`EILQR.kkt_problem` (the barrier-augmented, equality-constrained problem): the certificate, the
 contract test and the implicit layer then check and differentiate that problem. It takes a state guess ``X0``
-(multiple shooting) and no warm-started duals.
+(multiple shooting; without one, the problem's own ``X_init`` where it has one, outside a control step) and no
+warm-started duals.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional
 
 from ...core.batch import Batch
@@ -42,6 +44,11 @@ class EILQR(Solver):
         optimum, no continuation), ten times stiffer than a solve's first (``w = 1e-3``, ``δ = 1e-4``); with
         ``w = 1e-4`` three iterations a step did not swing the contract test's pendulum up."""
         return EILQROptions(barrier_weight=1e-3, barrier_relaxation=1e-4, barrier_continuation=False)
+
+    def step_options(self, options, iterations, compile=False) -> EILQROptions:
+        """The base's, never from the problem's state guess: a control step starts from the shifted controls of
+        the last one, and ``X_init`` belongs to the problem's own ``x0``."""
+        return dataclasses.replace(super().step_options(options, iterations, compile), problem_state_guess=False)
 
     def kkt_problem(self, problem: Problem, options) -> Optional[Problem]:
         """With a fixed weight (``barrier_continuation=False``), ``problem`` with its inequalities as the soft

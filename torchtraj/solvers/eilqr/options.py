@@ -82,6 +82,11 @@ class EILQROptions:
         free_initial_state: optimise ``x_0`` (Horizon §II-D): ``True`` for every component, a sequence of the
             free components' indices (the others stay at the given ``x_0``), ``False`` for none.
         initial_eq: ``h_0(x_0, p) -> (m_0,)`` equality rows on a free ``x_0`` (a line it starts on, ...).
+        problem_state_guess: without an ``X0``, start the states from the problem's own guess ``Problem.X_init``
+            where it carries one (multiple shooting from it, as from an ``X0``; IPOPT's reference starts there too),
+            ``False``: from the rollout of ``U0``. Measured on ``car_escape``, the one problem of the set with a state
+            guess: from the rollout (its own ``x0`` inside the walls) 300 iterations, ``MAX_ITERATIONS``; from its
+            ``X_init`` IPOPT's optimum in 219. A control step never takes it (:meth:`EILQR.step_options`).
         max_state: ``|x|`` above which an instance is ``DIVERGED``.
         compile: accepted for the control-step interface; eILQR has no compiled kernels and runs eagerly.
         verbose: log one line per iteration.
@@ -116,6 +121,7 @@ class EILQROptions:
     globalization: bool = True
     free_initial_state: Union[bool, Sequence[int]] = False
     initial_eq: Optional[Callable] = None
+    problem_state_guess: bool = True
     max_state: float = 1e8
     compile: bool = False
     verbose: bool = False

@@ -74,8 +74,9 @@ def _step(it: Iterate, d, alpha, take) -> Iterate:
 def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] = None,
                 method: str = "eilqr") -> Solution:
     """Solve the ``batch`` of instances of ``problem`` from ``x0 (B, nx)``, controls ``U0 (B, N, nu)`` and,
-    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting; without it the controls are rolled out),
-    with the parameters batched to B.
+    optionally, states ``X0 (B, N+1, nx)`` (any guess: multiple shooting; without it the problem's own ``X_init``
+    where it has one and ``problem_state_guess`` is on, else the rollout of the controls: :func:`state_guess`), with
+    the parameters batched to B.
 
     The history has a row per iteration (at the iterate the step starts from): ``cost`` (the barrier-augmented cost
     the iteration minimises), ``max_violation`` (the largest defect, equality or initial-row residual),
@@ -95,8 +96,9 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     weights = weights_for(weight, opts)
     initial = InitialState(opts.free_initial_state, opts.initial_eq, x0) \
         if opts.free_initial_state is not False else None
-    X = rollout(problem.dynamics, x0, batch.U0, params) if batch.X0 is None else batch.X0.clone()
-    if batch.X0 is not None and initial is None:
+    guess = state_guess(problem, batch, opts)
+    X = rollout(problem.dynamics, x0, batch.U0, params) if guess is None else guess.clone()
+    if guess is not None and initial is None:
         X[:, 0] = x0  # a fixed start: the guess's first state is the given one
     m0 = initial.evaluate(X[:, 0], params).e0.shape[-1] if initial is not None else 0
     z, zN = barrier_multipliers(rows_at(cons, X, batch.U0, params), weights)
@@ -167,6 +169,14 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                         gamma.max().item(), running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
     return _solution(problem, it, K, status, iterations, rows, x0, params, initial, method)
+
+
+def state_guess(problem: Problem, batch: Batch, opts: EILQROptions) -> Optional[torch.Tensor]:
+    """The states a solve starts from: the caller's ``X0``; else the problem's own ``X_init`` where it has one and
+    ``problem_state_guess`` is on; else ``None`` (the rollout of ``U0``)."""
+    if batch.X0 is not None or not opts.problem_state_guess or problem.X_init is None:
+        return batch.X0
+    return problem.X_init.to(batch.x0).expand(batch.B, *problem.X_init.shape)
 
 
 def _largest(X: torch.Tensor, U: torch.Tensor) -> torch.Tensor:
