@@ -73,7 +73,7 @@ from .line_search import line_search
 from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
-from .scaling import SCALE, objective_scale, scaled_problem, unscale
+from .scaling import scaled_problem, unscale
 from .soc import second_order_correction
 from .watchdog import Watchdog, count_steps, merge_steps, watched_step
 
@@ -92,15 +92,10 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     X0 = state_guess(problem, batch)
     if X0 is None:  # the rollout the iteration would start from, for the objective's scaling
         X0 = kernel(rollout, opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
-    batch = dataclasses.replace(batch, X0=X0)
-    scale = objective_scale(problem, X0, batch.U0, batch.params, opts)  # W&B §3.8
-    scaled = bool((scale != 1.0).any())  # one host read per solve; unscaled problems iterate as given
-    if scaled:
-        problem = scaled_problem(problem)
-        batch = dataclasses.replace(batch, params={**batch.params, SCALE: scale})
+    problem, batch, scale = scaled_problem(problem, dataclasses.replace(batch, X0=X0), opts)  # W&B §3.8
     out, cons, records = run(problem, batch, opts, method=method)
     history = full_history(records)
-    if scaled:
+    if scale is not None:
         out, history = unscale(out, history, scale)
     knots = cons.ineq_knot_mask
     multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
