@@ -14,7 +14,6 @@ import pathlib
 import re
 import tempfile
 
-
 import torchtraj as tt
 from torchtraj.bench.reference import ReferenceSolver
 
