@@ -11,7 +11,10 @@ multiple-shooting NLP where ``x_0`` is a variable fixed by a row). Every constan
 objective against something else is absolute, so the factor changes the path: the inertia correction's ``δ_w``
 (against ``∇²J``), the filter's margin ``φ − γ_φ θ`` and Armijo test, the switching condition
 ``α (−∇φᵀΔ)^{s_φ} > δ θ^{s_θ}`` (``s_φ = 2.3``), and the error's multiplier scaling ``s_d``. The tolerance
-applies to the scaled problem, as in IPOPT.
+applies to the scaled problem, as in IPOPT, so the stationarity of the problem as given is at most ``tol / s_f``:
+``tt.solve``'s certificate (1e-6 on the problem as given) holds at the default ``tol = 1e-8`` for ``s_f ≥ 0.01``
+(quadrotor2d, the smallest of the problem set: 0.026); for a cost gradient above 1e4 at the start, a smaller
+``IPOptions.tolerance`` or ``scaling="none"`` keeps it. The history's errors are the scaled problem's.
 
 Why it is here: start 59 of ``sample_x0("cartpole_unconstrained", 64, seed=0)`` (``‖∇J(w_0)‖_∞ = 309``, from
 the terminal weight ``Q_f = 100``: ``s_f = 0.3238``, IPOPT's factor to 16 digits) took another path from the first
