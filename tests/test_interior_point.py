@@ -36,16 +36,17 @@ def solved(name):
 # ------------------------------------------------------------------------- IPOPT / FATROP optima
 def check_reference(name, reference):
     """Converged, feasible, and the cost of IPOPT's and FATROP's optima. parallel_park: IPOPT's stored run
-    ends 3.4e-6 (relative) above FATROP's; the IPM lands 1.4e-7 from FATROP's, so it is held to 1e-6 of
-    the lower of the two and to 5e-6 of IPOPT's."""
+    ends 3.5e-6 (relative) above FATROP's; the IPM, on IPOPT's path since it scales the objective as IPOPT does
+    (W&B 2006 §3.8; before, it landed 1.4e-7 from FATROP's), lands 2.7e-8 from IPOPT's, so it is held to 1e-6 of
+    IPOPT's and to 5e-6 of the lower of the two."""
     _, sol = solved(name)
     ipopt, fatrop = reference[name]["ipopt"]["cost"], reference[name]["fatrop"]["cost"]
     assert sol.status.tolist() == [tt.Status.CONVERGED], sol.status
     assert float(sol.max_violation[0]) < 1e-8
     cost = float(sol.cost[0])
     best = min(ipopt, fatrop)
-    assert abs(cost - best) / best < 1e-6, (cost, ipopt, fatrop)
-    assert abs(cost - ipopt) / ipopt < 5e-6, (cost, ipopt)
+    assert abs(cost - ipopt) / ipopt < 1e-6, (cost, ipopt, fatrop)
+    assert abs(cost - best) / best < 5e-6, (cost, ipopt, fatrop)
     assert sol.method == "ipm" and 0 < int(sol.iterations[0]) < 200
 
 

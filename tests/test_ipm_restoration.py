@@ -9,7 +9,7 @@
   cost and the largest violation there are CasADi's (from the rollout of its controls, which the IPM took before,
   IPOPT itself ends ``Infeasible_Problem_Detected``; tests/data/ipm_car_escape_start.json);
 * slow: car_3obs, car_escape and quadrotor2d of the problem set, default options, converge within 1.5 times IPOPT's
-  iterations, at IPOPT's optimum or at a neighbouring one that IPOPT warm-started keeps.
+  iterations, at IPOPT's optimum.
 """
 
 import dataclasses
@@ -108,9 +108,10 @@ ITERATION_FACTOR = 1.5
 @pytest.mark.parametrize("name", ["car_3obs", "car_escape", "quadrotor2d"])
 def test_obstacle_problems_converge_through_restoration(name, reference):
     """From the problem set's own guess, default options: converged, a KKT point, in at most 1.5 times IPOPT's
-    iterations; at IPOPT's optimum (car_3obs; car_escape from its waypoints, 75 iterations against IPOPT's 77,
-    without a restoration phase) or at a neighbouring local optimum that IPOPT, warm-started there, keeps
-    (quadrotor2d: 21.4956, the optimum ALTRO also finds, below IPOPT's 26.6357)."""
+    iterations, at IPOPT's optimum (car_escape from its waypoints, 74 iterations against IPOPT's 77, without a
+    restoration phase; quadrotor2d, whose objective IPOPT scales by 0.026 (W&B 2006 §3.8) as the IPM now does,
+    in 533 against IPOPT's 375: unscaled, the IPM took 141 to a lower local optimum, 21.4956, that IPOPT
+    warm-started there keeps)."""
     problem = tt.problems.get(name)
     sol = tt.solve(problem, method="ipm")
     ipopt = reference[name]["ipopt"]
@@ -118,14 +119,4 @@ def test_obstacle_problems_converge_through_restoration(name, reference):
     assert int(sol.iterations[0]) <= ITERATION_FACTOR * ipopt["iterations"], (int(sol.iterations[0]), ipopt)
     stationarity, dual_min, complementarity = kkt_residuals(problem, sol)
     assert stationarity < 1e-6 and dual_min >= 0 and complementarity < 1e-6
-    cost = float(sol.cost[0])
-    if name != "quadrotor2d":
-        assert abs(cost - ipopt["cost"]) / ipopt["cost"] < 1e-6
-        return
-    assert abs(cost - ipopt["cost"]) / ipopt["cost"] > 1e-3  # another optimum: IPOPT warm-started keeps it
-    pytest.importorskip("casadi")
-    from torchtraj.bench.reference import ReferenceSolver
-
-    warm = ReferenceSolver(name, "ipopt").solve(X0=sol.X[0].numpy(), U0=sol.U[0].numpy(), warm_start=True)
-    assert warm.ok and abs(warm.cost - cost) / cost < 1e-6, (warm.cost, cost)
-    assert np.abs(warm.X - sol.X[0].numpy()).max() < 1e-2
+    assert abs(float(sol.cost[0]) - ipopt["cost"]) / ipopt["cost"] < 1e-6

@@ -18,7 +18,8 @@ class History:
 
     Entries after an instance stopped repeat its final values (its status says why it stopped). Besides the four
     fields every method records, ``extra["stationarity"]`` holds the KKT conditions' stationarity residual at each
-    iterate as the method measures it (the Lagrangian's gradient, unscaled except for the IPM's IPOPT scaling);
+    iterate as the method measures it (the Lagrangian's gradient, unscaled except for the IPM's IPOPT scalings,
+    of the multipliers and of the objective);
     ``max_violation`` is their feasibility residual, and the IPM's ``kkt_error`` their largest residual.
     """
 

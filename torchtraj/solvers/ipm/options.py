@@ -134,6 +134,13 @@ class IPOptions:
     #: primal steps at round-off with a multiplier step below this (``tiny_step_y_tol``), ``μ`` is decreased, or,
     #: at its floor, the instance stops ``STALLED``.
     tiny_step_dual: float = 1e-2  # 0: never
+    #: Automatic scaling of the objective (W&B 2006 §3.8, :mod:`~torchtraj.solvers.ipm.scaling`):
+    #: ``"gradient-based"`` solves ``min s_f J`` with ``s_f = min(1, g_max / ‖∇J(w_0)‖_∞)`` per instance
+    #: (``nlp_scaling_method``), at least ``scaling_min_value`` (``nlp_scaling_min_value``), ``g_max`` =
+    #: ``scaling_max_gradient`` (``nlp_scaling_max_gradient``); ``"none"``: the problem as given.
+    scaling: str = "gradient-based"
+    scaling_max_gradient: float = 100.0
+    scaling_min_value: float = 1e-8
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
@@ -155,6 +162,8 @@ class IPOptions:
             raise ValueError(f"sweep must be 'sequential', 'parallel' or 'auto', not {self.sweep!r}")
         if self.terminal_rows not in ("range-space", "back-propagation"):
             raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {self.terminal_rows!r}")
+        if self.scaling not in ("gradient-based", "none"):
+            raise ValueError(f"scaling must be 'gradient-based' or 'none', not {self.scaling!r}")
         if self.barrier_strategy not in ("monotone", "mehrotra"):
             raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
         if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:

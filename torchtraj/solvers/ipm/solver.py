@@ -73,6 +73,7 @@ from .line_search import line_search
 from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
+from .scaling import scaled_problem, unscale
 from .soc import second_order_correction
 from .watchdog import Watchdog, count_steps, merge_steps, watched_step
 
@@ -87,13 +88,20 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     and the controls are the problem's own (as IPOPT's reference does: car_escape's waypoints; from the rollout of
     its controls, which drives through the walls, IPOPT itself ends ``Infeasible_Problem_Detected`` after 487
     iterations), else at the rollout of ``U0`` (:func:`state_guess`)."""
-    batch = dataclasses.replace(batch, X0=state_guess(problem, batch))
-    out, cons, records = run(problem, batch, options or IPOptions(), method=method)
+    opts = options or IPOptions()
+    X0 = state_guess(problem, batch)
+    if X0 is None:  # the rollout the iteration would start from, for the objective's scaling
+        X0 = kernel(rollout, opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
+    problem, batch, scale = scaled_problem(problem, dataclasses.replace(batch, X0=X0), opts)  # W&B §3.8
+    out, cons, records = run(problem, batch, opts, method=method)
+    history = full_history(records)
+    if scale is not None:
+        out, history = unscale(out, history, scale)
     knots = cons.ineq_knot_mask
     multipliers = multiplier_blocks(cons, torch.cat([out.z * knots, out.nu], -1), torch.cat([out.zN, out.nuN], -1))
     return Solution(
         X=out.X, U=out.U, K=out.K, cost=out.J, max_violation=out.violation, status=out.status,
-        iterations=out.iterations, history=full_history(records), costate=out.lam, multipliers=multipliers,
+        iterations=out.iterations, history=history, costate=out.lam, multipliers=multipliers,
         method=method,
     )
 

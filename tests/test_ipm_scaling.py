@@ -1,0 +1,73 @@
+"""The interior-point method's scaling of the objective (Wächter & Biegler 2006 §3.8), against IPOPT.
+
+cartpole_unconstrained from start 59 of ``sample_x0(name, 64, seed=0)``: IPOPT (its defaults, gradient-based
+scaling) converges in 16 iterations; the IPM without the scaling took another path from its first step and ended
+``MAX_ITERATIONS`` (a fixed point of the full step and its second-order correction, ``torchtraj/solvers/ipm/
+scaling.py``). IPOPT's scaling factor, objective at each iterate and optimum are in
+``tests/data/ipm_objective_scaling.json`` (``tests/data/make_ipm_objective_scaling.py``).
+"""
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj.core.batch import Batch
+from torchtraj.core.batching import rollout
+from torchtraj.solvers.ipm.scaling import objective_scale
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="module")
+def ipopt() -> dict:
+    return json.loads((DATA / "ipm_objective_scaling.json").read_text())
+
+
+def _start(ipopt):
+    x0 = tt.problems.sample_x0("cartpole_unconstrained", 64, seed=0)[ipopt["start"]:ipopt["start"] + 1]
+    return tt.problems.get("cartpole_unconstrained"), x0
+
+
+def test_objective_scale_is_ipopts(ipopt):
+    problem, x0 = _start(ipopt)
+    batch = Batch.build(problem, x0)
+    X = rollout(problem.dynamics, batch.x0, batch.U0, batch.params)
+    scale = objective_scale(problem, X, batch.U0, batch.params, tt.IPOptions())
+    assert abs(float(scale[0]) - ipopt["objective_scale"]) < 1e-12 * ipopt["objective_scale"]
+
+
+def test_cartpole_start_59_takes_ipopts_path_to_its_optimum(ipopt):
+    """Before the scaling: ``MAX_ITERATIONS`` here (100 iterations; 1000 by default)."""
+    problem, x0 = _start(ipopt)
+    sol = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(iterations=100))
+    assert sol.status.tolist() == [tt.Status.CONVERGED]
+    assert int(sol.iterations[0]) == ipopt["iterations"]
+    assert abs(float(sol.cost[0]) - ipopt["cost"]) < 1e-9 * ipopt["cost"]
+    U = torch.tensor(ipopt["U"], dtype=torch.float64).reshape(sol.U.shape[1:])
+    torch.testing.assert_close(sol.U[0], U, rtol=0, atol=1e-6)
+    # IPOPT's iterates: its objective at each of them (the history's cost is the problem's, unscaled)
+    path = torch.tensor(ipopt["objective"][:ipopt["iterations"]], dtype=torch.float64)
+    torch.testing.assert_close(sol.history.cost[0], path, rtol=1e-9, atol=0)
+    # without the scaling the first step already goes elsewhere (J = 261 against IPOPT's 23.7)
+    unscaled = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(iterations=2, scaling="none"))
+    assert float(unscaled.history.cost[0, 1]) > 5 * ipopt["objective"][1]
+
+
+def test_multipliers_are_the_problems(reference):
+    """The double integrator with its costs times 1000 (``‖∇J(w_0)‖_∞ = 1000``, ``s_f = 0.1``): IPOPT's optimum
+    times 1000, and the multipliers 1000 times those of the problem as given (``s_f = 1``), not the scaled ones."""
+    problem = tt.problems.get("double_integrator")
+    p = problem.params
+    heavy = problem.with_params(Q=1000 * p["Q"], R=1000 * p["R"], Qf=1000 * p["Qf"])
+    given, scaled = tt.solve(problem, method="ipm"), tt.solve(heavy, method="ipm")
+    assert given.status.tolist() == scaled.status.tolist() == [tt.Status.CONVERGED]
+    cost = reference["double_integrator"]["ipopt"]["cost"]
+    assert abs(float(scaled.cost[0]) - 1000 * cost) < 1e-7 * 1000 * cost  # a tolerance on the scaled error
+    # to the five digits that the stop at a scaled error of 1e-8 leaves (unscaled, they would be 0.1 times these)
+    torch.testing.assert_close(scaled.costate, 1000 * given.costate, rtol=1e-4, atol=1e-3)
+    for name, value in given.multipliers.items():
+        torch.testing.assert_close(scaled.multipliers[name], 1000 * value, rtol=1e-4, atol=1e-3)
+    assert float(scaled.kkt["stationarity"][0]) < 1e-6
