@@ -77,3 +77,48 @@ def test_the_terminal_penalty_keeps_the_inertia_of_the_back_propagation():
         torch.testing.assert_close(getattr(got, name), getattr(want, name), rtol=1e-8, atol=1e-9)
     unpenalised = factorize(dataclasses.replace(lqr, CN=None, maskN=None))  # what the sweep would see without ρ
     assert not bool(unpenalised.ok.any())
+
+
+def test_a_matrix_the_eigensolver_fails_on_fails_alone(monkeypatch):
+    """LAPACK's eigensolver raises for a whole batch when it does not converge on one matrix: that matrix's instance
+    gets a zero inverse and counts as failed, the others get the inverses they get without it (simulated: the
+    failure is raised for a marked matrix)."""
+    from torchtraj.riccati import range_space
+
+    eigh = torch.linalg.eigh
+
+    def failing(M):
+        if bool((M[..., 0, 1] == 0.125).any()):  # the marked matrix (scaled by its largest entry, 4)
+            raise torch.linalg.LinAlgError("linalg.eigh: The algorithm failed to converge")
+        return eigh(M)
+
+    g = torch.Generator().manual_seed(3)
+    A = torch.randn(5, 3, 2, generator=g, dtype=torch.float64)
+    M = A @ A.mT  # rank 2 of 3: the eigensolver's path (not the Cholesky's)
+    M[2] = torch.tensor([[4.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    expected, _ = range_space._isolated_eigen_inverse(M, 1e-10)
+    monkeypatch.setattr(torch.linalg, "eigh", failing)
+    inverse, ok = range_space._isolated_eigen_inverse(M, 1e-10)
+    assert ok.tolist() == [True, True, False, True, True]
+    assert torch.equal(inverse[2], torch.zeros(3, 3, dtype=torch.float64))
+    keep = [0, 1, 3, 4]
+    torch.testing.assert_close(inverse[keep], expected[keep], rtol=0, atol=0)
+    torch.testing.assert_close(expected[keep], torch.linalg.pinv(M[keep], hermitian=True), rtol=1e-9, atol=1e-9)
+
+
+def test_entries_that_overflow_when_symmetrised_fail_their_instance_alone():
+    """A Schur complement of a blown-up instance with finite entries near the largest float: symmetrising it
+    overflows to inf (LAPACK's eigensolver then raised for the whole batch, seen on a quadrotor2d batch); that
+    instance counts as not finite and the others' pseudo-inverses are unchanged."""
+    from torchtraj.riccati import range_space
+
+    g = torch.Generator().manual_seed(4)
+    A = torch.randn(3, 4, 2, generator=g, dtype=torch.float64)
+    M = A @ A.mT  # rank 2 of 4: the eigensolver's path
+    alone, ok = range_space._pseudo_inverse(M, 1e-10)
+    blown = M.clone()
+    blown[1] = 1.5e308
+    blown[1].diagonal().fill_(1.7e308)
+    inverse, finite = range_space._pseudo_inverse(blown, 1e-10)
+    assert ok.all() and finite.tolist() == [True, False, True]
+    torch.testing.assert_close(inverse[[0, 2]], alone[[0, 2]], rtol=0, atol=0)

@@ -166,11 +166,29 @@ def _forward_chain(Phi: Tensor, drive: Tensor, parallel: bool) -> Tensor:
 
 def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
     """The pseudo-inverse of the symmetric positive semidefinite ``M (..., m, m)``: its eigenvalues above ``tol``
-    times the largest inverted, the others dropped."""
-    w, V = torch.linalg.eigh(M)
+    times the largest inverted, the others dropped. Each matrix is divided by its largest entry first
+    (``pinv(c M) = pinv(M) / c``), so that the eigensolver's own scaling cannot overflow."""
+    scale = M.abs().flatten(-2).amax(-1).clamp_min(torch.finfo(M.dtype).tiny).unsqueeze(-1).unsqueeze(-1)
+    w, V = torch.linalg.eigh(M / scale)
     keep = w > (tol * w.amax(-1, keepdim=True)).clamp_min(torch.finfo(w.dtype).tiny)
     inverse_w = torch.where(keep, w.reciprocal(), torch.zeros_like(w))
-    return (V * inverse_w.unsqueeze(-2)) @ _mT(V)
+    return (V * inverse_w.unsqueeze(-2)) @ _mT(V) / scale
+
+
+def _isolated_eigen_inverse(M: Tensor, tol: float) -> tuple:
+    """:func:`_eigen_inverse` of the matrices ``M (K, m, m)`` and ``ok (K,)``: where LAPACK's eigensolver does not
+    converge for one of them (it raises for the whole batch), the batch is halved until that matrix is alone, and
+    it gets a zero inverse and ``ok`` false (its instance fails; the others' inverses are those of their own
+    halves: the same numbers, as each matrix is decomposed on its own)."""
+    try:
+        return _eigen_inverse(M, tol), torch.ones(M.shape[0], dtype=torch.bool, device=M.device)
+    except torch.linalg.LinAlgError:
+        if M.shape[0] == 1:
+            return torch.zeros_like(M), torch.zeros(1, dtype=torch.bool, device=M.device)
+        half = M.shape[0] // 2
+        (first, ok_first), (second, ok_second) = (_isolated_eigen_inverse(part, tol)
+                                                  for part in (M[:half], M[half:]))
+        return torch.cat([first, second]), torch.cat([ok_first, ok_second])
 
 
 def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
@@ -183,11 +201,13 @@ def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     are factorised, and those whose factor proves ``λ_min > tol λ_max`` are inverted with it: with the pivots
     ``p_i = L_ii²`` and the largest diagonal entry ``d``, ``λ_max ≤ m d`` and ``λ_min ≥ Π p_i / λ_max^{m−1}``, so
     ``Π p_i > tol (m d)^m`` suffices. The others (gathered, one read of their count by the host) take the
-    eigen-decomposition; while a CUDA graph is captured or torch.compile traces, every matrix does."""
-    finite = torch.isfinite(negative).flatten(-2).all(-1)
+    eigen-decomposition; while a CUDA graph is captured or torch.compile traces, every matrix does. A matrix the
+    eigensolver does not converge on counts as not finite (:func:`_isolated_eigen_inverse`)."""
+    M = _sym(negative)  # finiteness after symmetrising: entries near the largest float overflow in the sum
+    finite = torch.isfinite(M).flatten(-2).all(-1)
     m = negative.shape[-1]
     eye = torch.eye(m, dtype=negative.dtype, device=negative.device)
-    M = torch.where(finite.unsqueeze(-1).unsqueeze(-1), _sym(negative), eye)
+    M = torch.where(finite.unsqueeze(-1).unsqueeze(-1), M, eye)
     if torch.compiler.is_compiling() or (M.is_cuda and torch.cuda.is_current_stream_capturing()):
         return _eigen_inverse(M, tol), finite
     L, info = torch.linalg.cholesky_ex(M)
@@ -197,7 +217,9 @@ def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     inverse = torch.cholesky_solve(eye.expand_as(M), torch.where(easy.unsqueeze(-1).unsqueeze(-1), L, eye))
     hard = (~easy).nonzero(as_tuple=True)
     if hard[0].numel():
-        inverse = inverse.index_put(hard, _eigen_inverse(M[hard], tol))
+        hard_inverse, converged = _isolated_eigen_inverse(M[hard], tol)
+        inverse = inverse.index_put(hard, hard_inverse)
+        finite = finite.index_put(hard, finite[hard] & converged)
     return inverse, finite
 
 
