@@ -349,3 +349,20 @@ def test_the_implicit_layer_differentiates_the_hard_problems_kkt_point():
     differences = torch.tensor([(cost(x0.detach() + h * e) - cost(x0.detach() - h * e)) / (2 * h)
                                 for e in torch.eye(2, dtype=F64)], dtype=F64)
     torch.testing.assert_close(gradient, differences, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_cartpole_starts_that_crossed_a_bound_with_every_full_step_converge_at_ipopts_optimum():
+    """Starts 3 and 6 of ``sample_x0("cartpole", 64, seed=0)`` (issue 23): in the stage at ``w = 3.2e-5`` every full
+    Newton step ran through an active control bound, so the merit refused it and its second-order correction, and the
+    steps were cut to ``α ≈ 1/16`` (300 iterations, ``MAX_ITERATIONS``). Truncated to the barrier's domain first
+    (fraction to the boundary) and corrected there, both reach IPOPT's optimum
+    (``tests/data/eilqr_cartpole_starts.json``)."""
+    reference = json.loads((DATA / "eilqr_cartpole_starts.json").read_text())
+    starts = [3, 6]
+    x0 = problems.sample_x0("cartpole", 64, seed=0)[starts]
+    sol = tt.solve(problems.get("cartpole"), x0, method="eilqr")
+    for i, start in enumerate(starts):
+        ipopt = reference[str(start)]["cost"]
+        assert sol.status[i] == tt.Status.CONVERGED, (start, int(sol.iterations[i]))
+        assert abs(float(sol.cost[i]) - ipopt) / ipopt < 1e-6, (start, float(sol.cost[i]), ipopt)

@@ -75,6 +75,9 @@ class EILQROptions:
             raised was carried by every later partial step: the cart-pole without bounds took 219 iterations at
             ``α = 0.125`` and ``ε = 2.7e-4`` (33 at 0.05 or 0); at 0 the pendulum without bounds never got the
             regularisation it needs (more than 300 iterations; 57 at 0.1, 62 at 0.05).
+        boundary_fraction: ``τ_min`` of the fraction-to-the-boundary rule ``τ = max(τ_min, 1 − w)`` that truncates
+            each step to the barrier's domain before the line search (IPOPT's ``τ_min = 0.99``;
+            :mod:`~torchtraj.solvers.eilqr.globalization`).
         second_order_correction: correct a refused full step once before backtracking
             (:mod:`~torchtraj.solvers.eilqr.globalization`).
         globalization: ``False`` takes the full Newton step with no line search and no regularisation (the
@@ -117,6 +120,7 @@ class EILQROptions:
     regularization_increase: float = 8.0
     regularization_attempts: int = 12
     short_step: float = 0.05
+    boundary_fraction: float = 0.99
     second_order_correction: bool = True
     globalization: bool = True
     free_initial_state: Union[bool, Sequence[int]] = False
