@@ -68,7 +68,8 @@ class EILQROptions:
             ``δ_w^{max}``, ``κ_w^-``, ``κ̄_w^+``, ``κ_w^+``). Within an iteration it rises where a reduced Hessian is
             not positive definite (refactorised, at most ``regularization_attempts`` times). Between iterations it
             is carried: ``×κ_w^+`` (at least ``δ_w^0``) after a step the merit refused or cut below ``short_step``,
-            ``×κ_w^-`` after a full step (zero below ``regularization_min``), kept otherwise; past
+            ``×κ_w^-`` after a full step (zero below ``regularization_min``), kept otherwise
+            (``regularization_partial``: ``×min(1/α, κ_w^+)`` after a step cut to ``α ≥ short_step``); past
             ``regularization_max`` the status is ``MAX_REGULARIZATION``.
         short_step: the step size below which the next iteration is regularised more (a shorter, more
             gradient-like step where the Newton model was poor). At 0.1 the regularisation that an early cut step
@@ -78,6 +79,14 @@ class EILQROptions:
         boundary_fraction: ``τ_min`` of the fraction-to-the-boundary rule ``τ = max(τ_min, 1 − w)`` that truncates
             each step to the barrier's domain before the line search (IPOPT's ``τ_min = 0.99``;
             :mod:`~torchtraj.solvers.eilqr.globalization`).
+        regularization_partial: after a step cut to ``α ≥ short_step``, multiply the next ``ε`` by ``min(1/α, κ_w^+)``
+            (a trust region's radius from the accepted step: where ``ε`` dominates the reduced Hessian's smallest
+            eigenvalue the step's length goes as ``1/ε``). Off by default: on ``sample_x0("cartpole_unconstrained",
+            64, 0)`` with ``second_order_trials=4`` it shortened the crawls (``α = 1/16`` at a fixed ``ε = 7e-4``) but
+            slowed the problem's own start (33 iterations with the defaults; 179 with both, 150 with the trials only).
+        second_order_trials: how many trial step sizes ``α = 1, β, …`` of the line search get the second-order
+            correction where the merit refuses them (1: the first only, IPOPT's; ``docs/benchmarks.md``, eILQR, has
+            the measurements with 4).
         second_order_correction: correct a refused full step once before backtracking
             (:mod:`~torchtraj.solvers.eilqr.globalization`).
         globalization: ``False`` takes the full Newton step with no line search and no regularisation (the
@@ -121,6 +130,8 @@ class EILQROptions:
     regularization_attempts: int = 12
     short_step: float = 0.05
     boundary_fraction: float = 0.99
+    regularization_partial: bool = False
+    second_order_trials: int = 1
     second_order_correction: bool = True
     globalization: bool = True
     free_initial_state: Union[bool, Sequence[int]] = False
