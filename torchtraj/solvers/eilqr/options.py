@@ -22,8 +22,8 @@ class EILQROptions:
     """Options of :func:`~torchtraj.solvers.eilqr.solver.solve_eilqr`.
 
     Attributes:
-        iterations: most Newton iterations (300: the pendulum's default solve takes 176, most of them in its
-            continuation's stage at ``w = 3.2e-5``, where the steps are cut to ``α ≈ 1/16`` to ``1/32``).
+        iterations: most Newton iterations (300: the pendulum's default solve takes 152; 176 before the fraction to
+            the boundary, most of them in its continuation's stage at ``w = 3.2e-5`` with steps cut to ``α ≈ 1/16``).
         tolerance: the KKT error at which an instance has converged, the largest of the Lagrangian's gradient,
             the dynamics defects, the equality rows and the initial-state rows (``∞``-norms, unscaled);
             ``None``: 1e-9 in float64, 1e-5 in float32.
@@ -78,7 +78,9 @@ class EILQROptions:
             regularisation it needs (more than 300 iterations; 57 at 0.1, 62 at 0.05).
         boundary_fraction: ``τ_min`` of the fraction-to-the-boundary rule ``τ = max(τ_min, 1 − w)`` that truncates
             each step to the barrier's domain before the line search (IPOPT's ``τ_min = 0.99``;
-            :mod:`~torchtraj.solvers.eilqr.globalization`).
+            :mod:`~torchtraj.solvers.eilqr.globalization`). ``None``: no truncation (before issue 23's change:
+            cart-pole's ``sample_x0`` batch 48/64 against 54/64 with it, but the pendulum's and car_3obs's median
+            iterations there 130.5 and 83.5 against 196.5 and 183.5; ``docs/benchmarks.md``, eILQR).
         regularization_partial: after a step cut to ``α ≥ short_step``, multiply the next ``ε`` by ``min(1/α, κ_w^+)``
             (a trust region's radius from the accepted step: where ``ε`` dominates the reduced Hessian's smallest
             eigenvalue the step's length goes as ``1/ε``). Off by default: on ``sample_x0("cartpole_unconstrained",
@@ -129,7 +131,7 @@ class EILQROptions:
     regularization_increase: float = 8.0
     regularization_attempts: int = 12
     short_step: float = 0.05
-    boundary_fraction: float = 0.99
+    boundary_fraction: Optional[float] = 0.99
     regularization_partial: bool = False
     second_order_trials: int = 1
     second_order_correction: bool = True
