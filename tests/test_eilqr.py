@@ -349,3 +349,49 @@ def test_the_implicit_layer_differentiates_the_hard_problems_kkt_point():
     differences = torch.tensor([(cost(x0.detach() + h * e) - cost(x0.detach() - h * e)) / (2 * h)
                                 for e in torch.eye(2, dtype=F64)], dtype=F64)
     torch.testing.assert_close(gradient, differences, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_cartpole_starts_that_crossed_a_bound_with_every_full_step_converge_at_ipopts_optimum():
+    """Starts 3 and 6 of ``sample_x0("cartpole", 64, seed=0)`` (issue 23): in the stage at ``w = 3.2e-5`` every full
+    Newton step ran through an active control bound, so the merit refused it and its second-order correction, and the
+    steps were cut to ``α ≈ 1/16`` (300 iterations, ``MAX_ITERATIONS``). Truncated to the barrier's domain first
+    (fraction to the boundary) and corrected there, both reach IPOPT's optimum
+    (``tests/data/eilqr_cartpole_starts.json``)."""
+    reference = json.loads((DATA / "eilqr_cartpole_starts.json").read_text())
+    starts = [3, 6]
+    x0 = problems.sample_x0("cartpole", 64, seed=0)[starts]
+    sol = tt.solve(problems.get("cartpole"), x0, method="eilqr")
+    for i, start in enumerate(starts):
+        ipopt = reference[str(start)]["cost"]
+        assert sol.status[i] == tt.Status.CONVERGED, (start, int(sol.iterations[i]))
+        assert abs(float(sol.cost[i]) - ipopt) / ipopt < 1e-6, (start, float(sol.cost[i]), ipopt)
+
+
+def test_the_step_is_truncated_to_the_barriers_domain_by_the_fraction_to_the_boundary():
+    """``α_max = max{α ≤ 1: t − α G δz ≥ (1 − τ) t}`` over the rows in the log region, by hand: a stage row with
+    ``t = 0.1`` shrinking by 0.2 per unit step limits it to ``τ 0.1 / 0.2``; a row at ``t = 0.5`` shrinking by 0.1, a
+    growing row and a relaxed row (``t < δ``, no boundary) do not, nor a terminal row at ``t = 3`` shrinking by 1;
+    at ``t = 0.03`` it does."""
+    from types import SimpleNamespace
+
+    from torchtraj.solvers.eilqr.continuation import Rows
+    from torchtraj.solvers.eilqr.globalization import boundary_fraction
+
+    dX = torch.tensor([[[0.0], [0.0], [1.0]]], dtype=F64)  # (B=1, N+1=3, nx=1)
+    dU = torch.tensor([[[1.0], [1.0]]], dtype=F64)  # (B, N=2, nu=1): δz_k = (δx_k, δu_k) = (0, 1)
+    t = torch.tensor([[[0.1, 0.5, 0.2], [1e-7, 0.4, 0.4]]], dtype=F64)  # (B, N, mi=3)
+    G = torch.zeros(1, 2, 3, 2, dtype=F64)
+    G[0, 0, :, 1] = torch.tensor([0.2, 0.1, -5.0])  # −δt: shrinking, shrinking slowly, growing
+    G[0, 1, :, 1] = torch.tensor([9.0, 0.0, 0.0])  # a relaxed row (t < δ): no boundary
+    rows = Rows(t=t, G=G, tN=torch.tensor([[3.0]], dtype=F64), GN=torch.tensor([[[1.0]]], dtype=F64),
+                mask=torch.ones(2, 3, dtype=F64))
+    model, d = SimpleNamespace(rows=rows), SimpleNamespace(dX=dX, dU=dU)
+    w, delta = torch.tensor([1e-4], dtype=F64), torch.tensor([1e-5], dtype=F64)
+    tau = 1 - 1e-4  # max(0.99, 1 − w)
+    assert torch.allclose(boundary_fraction(model, d, w, delta, 0.99), torch.tensor([tau * 0.1 / 0.2], dtype=F64))
+    rows.tN = torch.tensor([[0.03]], dtype=F64)  # now the terminal row binds: τ 0.03 / 1
+    assert torch.allclose(boundary_fraction(model, d, w, delta, 0.99), torch.tensor([tau * 0.03], dtype=F64))
+    G.zero_()
+    rows.tN = torch.tensor([[3.0]], dtype=F64)  # nothing binds: the full step
+    assert torch.allclose(boundary_fraction(model, d, w, delta, 0.99), torch.ones(1, dtype=F64))

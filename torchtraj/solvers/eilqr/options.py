@@ -22,8 +22,8 @@ class EILQROptions:
     """Options of :func:`~torchtraj.solvers.eilqr.solver.solve_eilqr`.
 
     Attributes:
-        iterations: most Newton iterations (300: the pendulum's default solve takes 176, most of them in its
-            continuation's stage at ``w = 3.2e-5``, where the steps are cut to ``α ≈ 1/16`` to ``1/32``).
+        iterations: most Newton iterations (300: the pendulum's default solve takes 152; 176 before the fraction to
+            the boundary, most of them in its continuation's stage at ``w = 3.2e-5`` with steps cut to ``α ≈ 1/16``).
         tolerance: the KKT error at which an instance has converged, the largest of the Lagrangian's gradient,
             the dynamics defects, the equality rows and the initial-state rows (``∞``-norms, unscaled);
             ``None``: 1e-9 in float64, 1e-5 in float32.
@@ -68,13 +68,27 @@ class EILQROptions:
             ``δ_w^{max}``, ``κ_w^-``, ``κ̄_w^+``, ``κ_w^+``). Within an iteration it rises where a reduced Hessian is
             not positive definite (refactorised, at most ``regularization_attempts`` times). Between iterations it
             is carried: ``×κ_w^+`` (at least ``δ_w^0``) after a step the merit refused or cut below ``short_step``,
-            ``×κ_w^-`` after a full step (zero below ``regularization_min``), kept otherwise; past
+            ``×κ_w^-`` after a full step (zero below ``regularization_min``), kept otherwise
+            (``regularization_partial``: ``×min(1/α, κ_w^+)`` after a step cut to ``α ≥ short_step``); past
             ``regularization_max`` the status is ``MAX_REGULARIZATION``.
         short_step: the step size below which the next iteration is regularised more (a shorter, more
             gradient-like step where the Newton model was poor). At 0.1 the regularisation that an early cut step
             raised was carried by every later partial step: the cart-pole without bounds took 219 iterations at
             ``α = 0.125`` and ``ε = 2.7e-4`` (33 at 0.05 or 0); at 0 the pendulum without bounds never got the
             regularisation it needs (more than 300 iterations; 57 at 0.1, 62 at 0.05).
+        boundary_fraction: ``τ_min`` of the fraction-to-the-boundary rule ``τ = max(τ_min, 1 − w)`` that truncates
+            each step to the barrier's domain before the line search (IPOPT's ``τ_min = 0.99``;
+            :mod:`~torchtraj.solvers.eilqr.globalization`). ``None``: no truncation (before issue 23's change:
+            cart-pole's ``sample_x0`` batch 48/64 against 54/64 with it, but the pendulum's and car_3obs's median
+            iterations there 130.5 and 83.5 against 196.5 and 183.5; ``docs/benchmarks.md``, eILQR).
+        regularization_partial: after a step cut to ``α ≥ short_step``, multiply the next ``ε`` by ``min(1/α, κ_w^+)``
+            (a trust region's radius from the accepted step: where ``ε`` dominates the reduced Hessian's smallest
+            eigenvalue the step's length goes as ``1/ε``). Off by default: on ``sample_x0("cartpole_unconstrained",
+            64, 0)`` with ``second_order_trials=4`` it shortened the crawls (``α = 1/16`` at a fixed ``ε = 7e-4``) but
+            slowed the problem's own start (33 iterations with the defaults; 179 with both, 150 with the trials only).
+        second_order_trials: how many trial step sizes ``α = 1, β, …`` of the line search get the second-order
+            correction where the merit refuses them (1: the first only, IPOPT's; ``docs/benchmarks.md``, eILQR, has
+            the measurements with 4).
         second_order_correction: correct a refused full step once before backtracking
             (:mod:`~torchtraj.solvers.eilqr.globalization`).
         globalization: ``False`` takes the full Newton step with no line search and no regularisation (the
@@ -117,6 +131,9 @@ class EILQROptions:
     regularization_increase: float = 8.0
     regularization_attempts: int = 12
     short_step: float = 0.05
+    boundary_fraction: Optional[float] = 0.99
+    regularization_partial: bool = False
+    second_order_trials: int = 1
     second_order_correction: bool = True
     globalization: bool = True
     free_initial_state: Union[bool, Sequence[int]] = False
