@@ -15,8 +15,8 @@ inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrie
    backtracking line search (:mod:`~torchtraj.solvers.eilqr.merit`, :mod:`~torchtraj.solvers.eilqr.globalization`);
    the accepted ``α`` moves the primal variables and the multipliers, ``y ← y + α (y⁺ − y)``. A step refused or cut
    below ``short_step`` raises the next iteration's regularisation (a shorter, more gradient-like step), a full one
-   lowers it, one cut to ``α`` above ``short_step`` keeps it (``regularization_partial``: ``×min(1/α, κ_w^+)``) (the paper's Fig. 5: adaptive
-   ``α`` and ``ε_reg``; :class:`EILQROptions`).
+   lowers it, one cut to ``α`` above ``short_step`` keeps it (``regularization_partial``: ``×min(1/α, κ_w^+)``)
+   (the paper's Fig. 5: adaptive ``α`` and ``ε_reg``; :class:`EILQROptions`).
 
 An instance has converged where, at the last weight, the KKT error is below the tolerance or a full Newton step
 changes no variable by more than ten rounding errors of the iterate (the dtype can resolve no further step, and the
@@ -156,10 +156,10 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         smaller = torch.where(smaller < opts.regularization_min, 0.0, smaller)
         full = take & (ls.alpha == 1.0)
         # a step cut to α ≥ short_step: the model held over α of the step only; the regularised step's length goes
-        # as 1/ε where ε dominates the reduced Hessian's smallest eigenvalue, so ε/α (at most ×κ_w^+) asks for a
-        # step about as long as the accepted one (a trust region's radius set from the accepted step)
-        partial = eps * torch.clamp(1.0 / torch.clamp(ls.alpha, min=opts.short_step), max=opts.regularization_increase) \
-            if opts.regularization_partial else eps
+        # as 1/ε where ε dominates the reduced Hessian's smallest eigenvalue, so ε/α (at most ×κ_w^+) asks for
+        # a step about as long as the accepted one (a trust region's radius set from the accepted step)
+        growth = torch.clamp(1.0 / torch.clamp(ls.alpha, min=opts.short_step), max=opts.regularization_increase)
+        partial = eps * growth if opts.regularization_partial else eps
         floor = torch.where(short, larger, torch.where(full, smaller, torch.where(take, partial, floor)))
         blown = running & (~factored | (floor > opts.regularization_max))
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
