@@ -22,7 +22,8 @@ their linearisation (at ``α = 1`` IPOPT's ``c(w) + c(w + p)`` system), and ``α
 test of ``α`` (for the first ``second_order_trials`` trials; the shorter steps are tried plain in batched rounds,
 :func:`~torchtraj.solvers.eilqr.merit.line_search`): a backtracking along the corrected arc ``α ↦ α p̄ + q(α)``,
 whose defects are third order in ``α``. The first corrected trial the merit accepted was ``α = 1/2`` on the
-cart-pole without bounds, where the plain step needed ``1/16`` and gained 25 times less. Before the truncation and the correction at every trial, the correction was tried
+cart-pole without bounds, where the plain step needed ``1/16`` and gained 25 times less.
+Before the truncation and the correction at every trial, the correction was tried
 only at ``α = 1``, which on the cart-pole crossed a control bound in most iterations of its last stages.
 The multipliers of a corrected trial are the corrected system's, ``y + α α_max (ŷ⁺ − y)``.
 """
