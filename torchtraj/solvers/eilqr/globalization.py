@@ -114,8 +114,11 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
         ls = line_search(problem, cons, params, it.X, it.U, x0, initial, d, merit0, slope(model, d, gamma, l1),
                          gamma, pending, trial_steps(opts, merit0), opts, weights)
         return d, ls, merit0
-    alpha_max = torch.ones_like(merit0) if opts.boundary_fraction is None \
-        else boundary_fraction(model, d, weights.weight, weights.delta, opts.boundary_fraction)
+    # with the paper's fixed weight the relaxed barrier is the problem (its rows may end in the quadratic branch):
+    # no domain to stay in, and the minimum-time double integrator's fixed-weight solve then ended MAX_REGULARIZATION
+    truncate = opts.boundary_fraction is not None and opts.barrier_continuation
+    alpha_max = boundary_fraction(model, d, weights.weight, weights.delta, opts.boundary_fraction) if truncate \
+        else torch.ones_like(merit0)
     derivative = slope(model, truncated(d, it, alpha_max), gamma, l1)
     steps = trial_steps(opts, merit0)
     corrected_trials = min(opts.second_order_trials, steps.shape[0]) if opts.second_order_correction else 0
