@@ -79,9 +79,10 @@ class EILQROptions:
         boundary_fraction: ``τ_min`` of the fraction-to-the-boundary rule ``τ = max(τ_min, 1 − w)`` that truncates
             each step to the barrier's domain before the line search (IPOPT's ``τ_min = 0.99``;
             :mod:`~torchtraj.solvers.eilqr.globalization`), with ``barrier_continuation`` (with the paper's fixed
-            weight the relaxed barrier is the problem itself and no step is truncated). ``None``: no truncation (before issue 23's change:
-            cart-pole's ``sample_x0`` batch 48/64 against 54/64 with it, but the pendulum's and car_3obs's median
-            iterations there 130.5 and 83.5 against 196.5 and 183.5; ``docs/benchmarks.md``, eILQR).
+            weight the relaxed barrier is the problem itself and no step is truncated). ``None``: no truncation
+            (before issue 23's change: cart-pole's ``sample_x0`` batch 48/64 against 54/64 with it, but the
+            pendulum's and car_3obs's median iterations there 130.5 and 83.5 against 196.5 and 183.5;
+            ``docs/benchmarks.md``, eILQR).
         regularization_partial: after a step cut to ``α ≥ short_step``, multiply the next ``ε`` by ``min(1/α, κ_w^+)``
             (a trust region's radius from the accepted step: where ``ε`` dominates the reduced Hessian's smallest
             eigenvalue the step's length goes as ``1/ε``). Off by default: on ``sample_x0("cartpole_unconstrained",
