@@ -94,19 +94,21 @@ def test_a_multiple_shooting_method_starts_from_the_shifted_states(monkeypatch):
     assert given[2] is None and given[3] is None
 
 
-def test_a_cold_instance_among_warm_ones_starts_as_it_would_alone():
-    """After a reset of one instance the others keep their shifted states, and the reset one starts from the
-    rollout of the cold controls, as a first step (or a solve without X0) would: its control equals a fresh
-    controller's for it alone, and the warm ones' equal a run without that instance."""
-    env = envs.PendulumEnv()
-    both = tt.MPC(env.problem(), "ipm", 2)
+@pytest.mark.parametrize("method", ["ipm", "hm-ilqr", "eilqr"])
+def test_a_cold_instance_among_warm_ones_starts_as_it_would_alone(method):
+    """After a reset of one instance the others keep their shifted states, and the reset one starts where the
+    method's own first step starts (the IPM and eILQR: the rollout of the cold controls; HM-iLQR: the line to the
+    goal): its control equals a fresh controller's for it alone, and the warm ones' equal a run without that
+    instance."""
+    problem = tt.problems.get("pendulum")  # a goal among its parameters: HM-iLQR's line to it
+    both = tt.MPC(problem, method, 2)
     both(STATES[:2])
     x1 = STATES[:2] + 0.01
     both.reset(np.array([True, False]))
     u = both(x1)
-    fresh = tt.MPC(env.problem(), "ipm", 2)
+    fresh = tt.MPC(problem, method, 2)
     torch.testing.assert_close(u[0], fresh(x1[0]), rtol=0, atol=1e-12)
-    warm_alone = tt.MPC(env.problem(), "ipm", 2)
+    warm_alone = tt.MPC(problem, method, 2)
     warm_alone(STATES[1:2])
     torch.testing.assert_close(u[1:], warm_alone(x1[1:]), rtol=0, atol=1e-12)
 

@@ -35,9 +35,9 @@ registry, for
 The shifted states are passed only to such a method: ALTRO's ``X0`` would switch to its infeasible start, a
 different problem with slack controls and costs, and its rollout of the shifted controls reproduces the shifted
 states up to the last knot where the model is the plant's. A cold instance (the first step, after a reset or a
-failure) starts from the method's own start: in a batch whose other instances are warm, the problem's ``X_init``
-(with its own controls) or else the rollout of ``u_init``, as a solve without ``X0`` would take, so that one
-instance's start never depends on another's.
+failure) starts from the method's own start: in a batch whose other instances are warm, the states the method
+gives for a solve without ``X0`` (:meth:`~torchtraj.solvers.base.Solver.start_states`), so that one instance's
+start never depends on another's.
 
 The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's schedule would multiply them by
 ``penalty_scaling`` at every step until they reach ``penalty_max`` and the problem becomes ill-conditioned.
@@ -66,7 +66,6 @@ from torch import Tensor
 
 from .. import solvers
 from ..core.batch import Batch
-from ..core.batching import rollout
 from ..core.constraints import Constraints
 from ..core.masks import where_rows
 from ..core.problem import Problem
@@ -185,11 +184,7 @@ class MPC(torch.nn.Module):
         X = torch.cat([x.unsqueeze(1), self._X[:, 1:]], 1)
         if warm == self.batch_size:
             return X
-        p = self.problem
-        if p.X_init is not None:
-            cold = p.X_init.expand_as(X)
-        else:
-            cold = rollout(p.dynamics, x, U0, Batch.build(p, x, U0).params)
+        cold = self.solver.start_states(self.problem, Batch.build(self.problem, x, U0), self.options)
         return where_rows(self._warm, X, cold)
 
     # ------------------------------------------------------------------ the policy

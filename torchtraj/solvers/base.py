@@ -38,6 +38,7 @@ from typing import ClassVar, Optional
 from torch import Tensor
 
 from ..core.batch import Batch
+from ..core.batching import rollout
 from ..core.constraints import Constraints
 from ..core.options import validate
 from ..core.problem import Problem
@@ -129,6 +130,12 @@ class Solver(abc.ABC):
         if X0 is not None and self.starts_from_shifted_states:
             kwargs["X0"] = X0
         return kwargs
+
+    def start_states(self, problem: Problem, batch: Batch, options) -> Tensor:
+        """The states ``(B, N+1, nx)`` that a solve of ``batch`` (no ``X0``) with ``options`` starts from: by default
+        the rollout of its controls. A control step asks a method that :attr:`starts_from_shifted_states` for its
+        cold instances among warm ones, so that each starts as it would alone."""
+        return rollout(problem.dynamics, batch.x0, batch.U0, batch.params)
 
     def carried_duals(self, constraints: Constraints, solution: Solution, options) -> dict:
         """The multipliers, per block as in :attr:`Solution.multipliers`, that the next control step starts from

@@ -18,13 +18,15 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
+from torch import Tensor
+
 from ...core.batch import Batch
 from ...core.problem import Problem
 from ...core.solution import Solution
 from ..base import Solver
 from .barrier import soft_problem
 from .options import EILQROptions
-from .solver import solve_eilqr
+from .solver import solve_eilqr, start_states
 
 
 class EILQR(Solver):
@@ -39,6 +41,9 @@ class EILQR(Solver):
 
     def solve(self, problem: Problem, batch: Batch, options: EILQROptions) -> Solution:
         return solve_eilqr(problem, batch, options, method=self.name)
+
+    def start_states(self, problem: Problem, batch: Batch, options: EILQROptions) -> Tensor:
+        return start_states(problem, batch, options)
 
     def step_defaults(self) -> EILQROptions:
         """A control step's options: the paper's fixed weight (a few warm-started iterations a step track the moving

@@ -97,9 +97,8 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     weights = weights_for(weight, opts)
     initial = InitialState(opts.free_initial_state, opts.initial_eq, x0) \
         if opts.free_initial_state is not False else None
-    guess = state_guess(problem, batch, opts)
-    X = rollout(problem.dynamics, x0, batch.U0, params) if guess is None else guess.clone()
-    if guess is not None and initial is None:
+    X = start_states(problem, batch, opts).clone()
+    if initial is None:
         X[:, 0] = x0  # a fixed start: the guess's first state is the given one
     m0 = initial.evaluate(X[:, 0], params).e0.shape[-1] if initial is not None else 0
     z, zN = barrier_multipliers(rows_at(cons, X, batch.U0, params), weights)
@@ -175,6 +174,12 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                         gamma.max().item(), running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
     return _solution(problem, it, K, status, iterations, rows, x0, params, initial, method)
+
+
+def start_states(problem: Problem, batch: Batch, opts: EILQROptions) -> torch.Tensor:
+    """The states ``(B, N+1, nx)`` a solve starts from: :func:`state_guess`, else the rollout of ``U0``."""
+    guess = state_guess(problem, batch, opts)
+    return rollout(problem.dynamics, batch.x0, batch.U0, batch.params) if guess is None else guess
 
 
 def state_guess(problem: Problem, batch: Batch, opts: EILQROptions) -> Optional[torch.Tensor]:

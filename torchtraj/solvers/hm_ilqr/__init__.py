@@ -12,12 +12,14 @@ refines.
 
 from __future__ import annotations
 
+from torch import Tensor
+
 from ...core.batch import Batch
 from ...core.problem import Problem
 from ...core.solution import Solution
 from ..base import Solver
 from .options import HMILQROptions
-from .solver import solve_hm_ilqr
+from .solver import solve_hm_ilqr, start_states
 
 
 class HMILQR(Solver):
@@ -32,6 +34,9 @@ class HMILQR(Solver):
 
     def solve(self, problem: Problem, batch: Batch, options: HMILQROptions) -> Solution:
         return solve_hm_ilqr(problem, batch, options, method=self.name)
+
+    def start_states(self, problem: Problem, batch: Batch, options: HMILQROptions) -> Tensor:
+        return start_states(problem, batch)
 
     def step_defaults(self) -> HMILQROptions:
         return HMILQROptions.fast(al_iterations=0)

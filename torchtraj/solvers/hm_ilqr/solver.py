@@ -72,15 +72,20 @@ def initial_states(problem: Problem, batch: Batch) -> Tensor:
     return None
 
 
+def start_states(problem: Problem, batch: Batch) -> Tensor:
+    """The states ``(B, N+1, nx)`` a solve starts from: :func:`initial_states`, else the rollout of ``U0`` (no
+    defects to close)."""
+    guess = initial_states(problem, batch)
+    return rollout(problem.dynamics, batch.x0, batch.U0, batch.params) if guess is None else guess
+
+
 def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method: str = "hm-ilqr") -> Solution:
     """Solve the ``batch`` of instances of ``problem`` by HM-iLQR (module docstring)."""
     opts = options
     x0, params, B = batch.x0, batch.params, batch.B
     constraints = Constraints.of(problem)
     segments = Segments.of(problem.N, opts.segments, x0.device)
-    guess = initial_states(problem, batch)
-    if guess is None:  # the rollout of U0: no defects to close
-        guess = rollout(problem.dynamics, x0, batch.U0, params)
+    guess = start_states(problem, batch)
     nodes = guess[:, segments.starts].clone()
     nodes[:, 0] = x0
     X, U, gaps = rollout_segments(problem.dynamics, params, nodes, batch.U0, segments)  # Algorithm 1, lines 2-8

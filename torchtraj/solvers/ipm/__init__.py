@@ -15,12 +15,14 @@ problem's ``X_init`` with its own controls, else at the rollout of the controls.
 
 from __future__ import annotations
 
+from torch import Tensor
+
 from ...core.batch import Batch
 from ...core.problem import Problem
 from ...core.solution import Solution
 from ..base import Solver
 from .options import IPOptions
-from .solver import solve_interior_point
+from .solver import solve_interior_point, start_states
 
 
 class IPM(Solver):
@@ -35,6 +37,9 @@ class IPM(Solver):
 
     def solve(self, problem: Problem, batch: Batch, options: IPOptions) -> Solution:
         return solve_interior_point(problem, batch, options, method=self.name)
+
+    def start_states(self, problem: Problem, batch: Batch, options: IPOptions) -> Tensor:
+        return start_states(problem, batch, options)
 
 
 __all__ = ["IPM"]

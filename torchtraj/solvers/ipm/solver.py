@@ -89,9 +89,7 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     its controls, which drives through the walls, IPOPT itself ends ``Infeasible_Problem_Detected`` after 487
     iterations), else at the rollout of ``U0`` (:func:`state_guess`)."""
     opts = options or IPOptions()
-    X0 = state_guess(problem, batch)
-    if X0 is None:  # the rollout the iteration would start from, for the objective's scaling
-        X0 = kernel(rollout, opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
+    X0 = start_states(problem, batch, opts)  # given, for the objective's scaling
     problem, batch, scale = scaled_problem(problem, dataclasses.replace(batch, X0=X0), opts)  # W&B §3.8
     out, cons, records = run(problem, batch, opts, method=method)
     history = full_history(records)
@@ -120,6 +118,14 @@ def state_guess(problem: Problem, batch: Batch):
     if not bool(own.any()):
         return None
     return where_rows(own, guess, rollout(problem.dynamics, batch.x0, batch.U0, batch.params))
+
+
+def start_states(problem: Problem, batch: Batch, opts: IPOptions) -> torch.Tensor:
+    """The states ``(B, N+1, nx)`` a solve starts from: :func:`state_guess`, else the rollout of ``U0``."""
+    X0 = state_guess(problem, batch)
+    if X0 is None:
+        X0 = kernel(rollout, opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
+    return X0
 
 
 def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] = None, method: str = "ipm"):
