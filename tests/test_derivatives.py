@@ -135,3 +135,75 @@ def test_derivatives_of_affine_and_quadratic_functions_at_one_stage_are_every_st
         for a, b in zip(once, every):
             assert a.shape == b.shape and float(b.abs().max()) > 1e-1
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["car_3obs", "parallel_park", "car_3obs with stage equalities"])
+def test_one_pass_kkt_expansion_matches_the_separate_derivatives(name):
+    """The one-pass expansion (cost, Lagrangian gradient and Hessian, dynamics and rows with their Jacobians) is the
+    separate passes' (each checked against finite differences above), with every multiplier block nonzero."""
+    from torchtraj.core.derivatives import problem_lagrangian_expansion
+    from torchtraj.core.one_pass import problem_kkt_expansion
+    from torchtraj.kkt.model import total_cost
+
+    prob = tt.problems.get(name.split()[0])
+    if name.endswith("equalities"):
+        prob = prob.replace(stage_eq=lambda x, u, p: torch.stack([x[0] * u[0] - 0.1, torch.sin(x[1] * u[1])]))
+    cons = Constraints(prob)
+    B, N = 2, prob.N
+    X, U = _random_trajectory(prob, B=B, seed=5)
+    P = prob.batched_params(B)
+    g = torch.Generator().manual_seed(6)
+
+    def rand(*shape):
+        return torch.randn(*shape, generator=g, dtype=torch.float64)
+
+    lam, nu, mu = rand(B, N + 1, prob.nx), rand(B, N, cons.me), rand(B, N, cons.mi).abs()
+    nuN, muN = rand(B, cons.meN), rand(B, cons.miN).abs()
+    e = problem_kkt_expansion(prob, cons, X, U, P, lam, nu, mu, nuN, muN)
+    ref = problem_lagrangian_expansion(prob, cons, X, U, P, lam, nu, mu, nuN, muN)
+    f, fz = stage_jacobian(prob.dynamics, X[:, :-1], U, P)
+    pairs = [(e.Lz, ref.gradient), (e.Lzz, ref.hessian), (e.LNx, ref.terminal_gradient),
+             (e.LNxx, ref.terminal_hessian), (e.f, f), (e.fz, fz), (e.cost, total_cost(prob, X, U, P))]
+    for fn, value, jac, m in [(cons.stage_eq, e.h, e.Hz, cons.me), (cons.stage_ineq, e.g, e.Gz, cons.mi)]:
+        ref_value, ref_jac = stage_jacobian(fn, X[:, :-1], U, P) if m else (value, jac)
+        pairs += [(value, ref_value), (jac, ref_jac)]
+    for fn, value, jac, m in [(cons.terminal_eq, e.hN, e.HN, cons.meN), (cons.terminal_ineq, e.gN, e.GN, cons.miN)]:
+        ref_value, ref_jac = terminal_jacobian(fn, X[:, -1], P) if m else (value, jac)
+        pairs += [(value, ref_value), (jac, ref_jac)]
+    assert cons.mi + cons.meN > 0 and (cons.me > 0) == name.endswith("equalities")
+    for got, want in pairs:
+        assert got.shape == want.shape
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_one_pass_cost_expansion_and_values_match_the_separate_passes():
+    """Without multipliers the one-pass expansion is the cost's (a Gauss-Newton model's) with the rows' Jacobians;
+    the values-only pass, at a line search's stacked trial points ``(B, L, ...)``, is the separate evaluations'."""
+    from torchtraj.core.batching import map_stage, map_state
+    from torchtraj.core.one_pass import problem_kkt_expansion, problem_values
+    from torchtraj.kkt.model import total_cost
+
+    prob = tt.problems.get("car_3obs")
+    cons = Constraints(prob)
+    X, U = _random_trajectory(prob, B=2, seed=7)
+    P = prob.batched_params(2)
+    e = problem_kkt_expansion(prob, cons, X, U, P)
+    cost = quadratize_cost(prob.stage_cost, prob.terminal_cost, X, U, P)
+    f, fz = stage_jacobian(prob.dynamics, X[:, :-1], U, P)
+    g, Gz = stage_jacobian(cons.stage_ineq, X[:, :-1], U, P)
+    hN, HN = terminal_jacobian(cons.terminal_eq, X[:, -1], P)
+    for got, want in [(e.Lz, cost.gradient), (e.Lzz, cost.hessian), (e.LNx, cost.terminal_gradient),
+                      (e.LNxx, cost.terminal_hessian), (e.f, f), (e.fz, fz), (e.g, g), (e.Gz, Gz), (e.hN, hN),
+                      (e.HN, HN), (e.cost, total_cost(prob, X, U, P))]:
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="costate"):
+        problem_kkt_expansion(prob, cons, X, U, P, nuN=torch.zeros(2, cons.meN, dtype=torch.float64))
+    Xc = torch.stack([X, X + 0.1, X - 0.2], 1)
+    Uc = torch.stack([U, U * 0.5, U + 0.3], 1)
+    v = problem_values(prob, cons, Xc, Uc, P)
+    for got, want in [(v.cost, total_cost(prob, Xc, Uc, P)), (v.f, map_stage(prob.dynamics, Xc[..., :-1, :], Uc, P)),
+                      (v.g, map_stage(cons.stage_ineq, Xc[..., :-1, :], Uc, P)),
+                      (v.hN, map_state(cons.terminal_eq, Xc[..., -1, :], P))]:
+        assert got.shape == want.shape
+        torch.testing.assert_close(got, want, rtol=1e-13, atol=1e-13)
+    assert v.h.shape == (2, 3, prob.N, 0) and v.gN.shape == (2, 3, 0)

@@ -392,7 +392,7 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
             return original(*args, **kwargs)
         return call
 
-    for name in ("problem_lagrangian_expansion", "quadratic_stage_hessian"):
+    for name in ("problem_kkt_expansion", "quadratic_stage_hessian"):
         monkeypatch.setattr(interior_point, name, counted(name))
     x0s = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2]], dtype=F64)
     out = {}
@@ -410,7 +410,7 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
     (plain, plain_calls, plain_grads), (lq, lq_calls, lq_grads) = out[False], out[True]
     assert lq_calls == ["quadratic_stage_hessian"]
     # one per iterate, and the first iterate's again with its least-squares multipliers
-    assert plain_calls == ["problem_lagrangian_expansion"] * (int(plain.iterations.max()) + 2)
+    assert plain_calls == ["problem_kkt_expansion"] * (int(plain.iterations.max()) + 2)
     assert torch.equal(lq.iterations, plain.iterations)
     X, U = lq.X.detach(), lq.U.detach()
     assert bool(((X[:, 1:-1, 0] < -0.2 + 1e-6).sum(-1) >= 1).all())  # the state row holds on an arc

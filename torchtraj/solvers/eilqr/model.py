@@ -29,13 +29,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ...core.batching import map_stage, map_state
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
-from ...core.derivatives import problem_lagrangian_expansion, stage_jacobian, terminal_jacobian
+from ...core.one_pass import problem_kkt_expansion
 from ...core.problem import Problem
-from ...kkt.model import total_cost
 from ...riccati import all_finite
-from .continuation import Rows, Weights, barrier_multipliers, barrier_value, curvatures, rows_at, safeguarded
+from .continuation import Rows, Weights, barrier_multipliers, barrier_value, curvatures, safeguarded
 from .initial_state import InitialRows
 
 
@@ -100,55 +100,57 @@ def _amax(*parts: Tensor) -> Tensor:
     return torch.cat([p.reshape(B, -1).abs() for p in parts] + [parts[0].new_zeros(B, 1)], -1).amax(-1)
 
 
+def _slacks(cons: Constraints, X: Tensor, U: Tensor, params) -> tuple:
+    """The inequality rows' slacks ``t = −g`` at the stages ``(B, N, mi)`` and the end ``(B, miN)``."""
+    B, N = U.shape[0], U.shape[1]
+    t = -map_stage(cons.stage_ineq, X[:, :-1], U, params) if cons.mi else X.new_zeros(B, N, 0)
+    tN = -map_state(cons.terminal_ineq, X[:, -1], params) if cons.miN else X.new_zeros(B, 0)
+    return t, tN
+
+
 def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows, weights: Weights) -> Model:
     """Everything an iteration needs at ``it`` (module docstring): ``cons`` the problem's constraints, ``x0 (B, nx)``
     the given initial states, ``rows`` the free initial state's
     :class:`~torchtraj.solvers.eilqr.initial_state.InitialState` or ``None``, ``weights`` the barrier's."""
     X, U = it.X, it.U
     nx = X.shape[-1]
-    ineq = rows_at(cons, X, U, params)
-    zw, zwN = barrier_multipliers(ineq, weights)
-    z, zN = safeguarded(it.z, zw) * ineq.mask, safeguarded(it.zN, zwN)
-    e = problem_lagrangian_expansion(problem, cons, X, U, params, it.lam, it.nu, z, it.nuN, zN)
-    f, fz = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
-    B, N = U.shape[0], U.shape[1]
-    nz = fz.shape[-1]
-    if cons.me:
-        h, Hz = stage_jacobian(cons.stage_eq, X[:, :-1], U, params)
-    else:
-        h, Hz = X.new_zeros(B, N, 0), X.new_zeros(B, N, 0, nz)
-    if cons.meN:
-        hN, HN = terminal_jacobian(cons.terminal_eq, X[:, -1], params)
-    else:
-        hN, HN = X.new_zeros(B, 0), X.new_zeros(B, 0, nx)
+    # the barrier's multipliers come from the rows' values, the Lagrangian's Hessian from the multipliers: the values
+    # first, then everything else in one pass (the rows' Jacobians with it)
+    t, tN = _slacks(cons, X, U, params)
+    mask = cons.ineq_knot_mask if cons.mi else X.new_zeros(U.shape[1], 0)
+    zw, zwN = barrier_multipliers(Rows(t=t, G=None, tN=tN, GN=None, mask=mask), weights)
+    z, zN = safeguarded(it.z, zw) * mask, safeguarded(it.zN, zwN)
+    e = problem_kkt_expansion(problem, cons, X, U, params, it.lam, it.nu, z, it.nuN, zN)
+    ineq = Rows(t=t, G=e.Gz, tN=tN, GN=e.GN, mask=mask)
+    f, fz, h, Hz, hN, HN = e.f, e.fz, e.h, e.Hz, e.hN, e.HN
     # the cost gradient: the Lagrangian's less its multiplier terms (the right-hand side whose solve gives λ⁺, ν⁺;
     # the barrier's gradient is added by with_weight)
-    lz = (e.gradient - _mv(fz.transpose(-1, -2), it.lam[:, 1:]) - _mv(Hz.transpose(-1, -2), it.nu)
+    lz = (e.Lz - _mv(fz.transpose(-1, -2), it.lam[:, 1:]) - _mv(Hz.transpose(-1, -2), it.nu)
           - _mv(ineq.G.transpose(-1, -2), z))
-    lNx = e.terminal_gradient - _mv(HN.transpose(-1, -2), it.nuN) - _mv(ineq.GN.transpose(-1, -2), zN)
+    lNx = e.LNx - _mv(HN.transpose(-1, -2), it.nuN) - _mv(ineq.GN.transpose(-1, -2), zN)
     initial = rows.evaluate(X[:, 0], params, jacobian=True) if rows is not None else None
-    Lzz = e.hessian
+    Lzz = e.Lzz
     curvature = rows.curvature(X[:, 0], it.mu0, params) if rows is not None else None
     if curvature is not None:  # a free x_0's rows h_0 are part of the Lagrangian (μ_0ᵀ h_0)
         Lzz = Lzz.clone()
         Lzz[:, 0, :nx, :nx] += curvature
     defects = f - X[:, 1:]
-    grad_x = e.gradient[:, 1:, :nx] - it.lam[:, 1:-1]
-    grad_N = e.terminal_gradient - it.lam[:, -1]
-    parts = [grad_x, e.gradient[..., nx:], grad_N]
+    grad_x = e.Lz[:, 1:, :nx] - it.lam[:, 1:-1]
+    grad_N = e.LNx - it.lam[:, -1]
+    parts = [grad_x, e.Lz[..., nx:], grad_N]
     if initial is not None:  # x_0 is a variable: its stationarity counts, with the initial rows' multipliers
-        parts.append(e.gradient[:, 0, :nx] + _mv(initial.E0.transpose(-1, -2), it.mu0))
+        parts.append(e.Lz[:, 0, :nx] + _mv(initial.E0.transpose(-1, -2), it.mu0))
         start = initial.e0
     else:
         start = x0 - X[:, 0]
     dual = _amax(*parts)
     primal = _amax(defects, h, hN, start)
-    cost = total_cost(problem, X, U, params)
-    finite = all_finite([e.gradient, e.hessian, e.terminal_hessian, fz, Hz, HN, cost.unsqueeze(1),
+    cost = e.cost
+    finite = all_finite([e.Lz, e.Lzz, e.LNxx, fz, Hz, HN, cost.unsqueeze(1),
                          primal.unsqueeze(1), ineq.G.flatten(1), ineq.GN.flatten(1), ineq.t.flatten(1)])
-    model = Model(J=cost, lz=lz, lNx=lNx, Lzz=Lzz, LNxx=e.terminal_hessian, f=f, fz=fz, h=h, Hz=Hz, hN=hN, HN=HN,
+    model = Model(J=cost, lz=lz, lNx=lNx, Lzz=Lzz, LNxx=e.LNxx, f=f, fz=fz, h=h, Hz=Hz, hN=hN, HN=HN,
                   initial=initial, defects=defects, dual=dual, primal=primal, error=torch.maximum(dual, primal),
-                  finite=finite, rows=ineq, z=z, zN=zN, cost=cost, base=(lz, lNx, Lzz, e.terminal_hessian))
+                  finite=finite, rows=ineq, z=z, zN=zN, cost=cost, base=(lz, lNx, Lzz, e.LNxx))
     return with_weight(model, weights)
 
 

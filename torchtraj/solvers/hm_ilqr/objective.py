@@ -33,7 +33,7 @@ from torch import Tensor
 
 from ...core.batching import map_stage, map_state
 from ...core.constraints import Constraints
-from ...core.derivatives import linearize_dynamics, quadratize_cost, stage_jacobian, terminal_jacobian
+from ...core.one_pass import problem_kkt_expansion
 from ...kkt.model import total_cost
 from ...riccati import LQR, LQRVectors
 from .augmented_lagrangian import al_equality, al_inequality
@@ -161,20 +161,20 @@ class HybridObjective:
         dynamics ``f(x_k, u_k) (B, N, nx)`` and the :class:`InequalityRows`; the defects ``c`` of the right-hand
         side are left to the caller."""
         nx = X.shape[-1]
-        f, A, Bm = linearize_dynamics(self.problem.dynamics, X, U, params)
-        cost = quadratize_cost(self.problem.stage_cost, self.problem.terminal_cost, X, U, params)
-        H, g = cost.hessian, cost.gradient
-        HN, gN = cost.terminal_hessian, cost.terminal_gradient
+        # the cost's Hessian with the dynamics' and the rows' Jacobians, in one pass
+        point = problem_kkt_expansion(self.problem, self.constraints, X, U, params)
+        f, A, Bm = point.f, point.fz[..., :nx], point.fz[..., nx:]
+        H, g = point.Lzz, point.Lz
+        HN, gN = point.LNxx, point.LNx
         rows, ineq = {}, InequalityRows()
         if self.mi:
-            c, Cz = stage_jacobian(self.constraints.stage_ineq, X, U, params)
-            c, Cz = c * self.knot_mask, Cz * self.knot_mask.unsqueeze(-1)
+            c, Cz = point.g * self.knot_mask, point.Gz * self.knot_mask.unsqueeze(-1)
             _, d1, d2 = self.penalty(c, self.params.lam, self.knot_mask)
             H = H + Cz.transpose(-1, -2) @ (d2.unsqueeze(-1) * Cz)
             g = g + (Cz.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
             ineq.Cz, ineq.d1, ineq.d2 = Cz, d1, d2
         if self.miN:
-            cN, CN = terminal_jacobian(self.constraints.terminal_ineq, X[:, -1], params)
+            cN, CN = point.gN, point.GN
             _, d1, d2 = self.penalty(cN, self.params.lamN)
             HN = HN + CN.transpose(-1, -2) @ (d2.unsqueeze(-1) * CN)
             gN = gN + (CN.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
@@ -182,13 +182,13 @@ class HybridObjective:
         e = eN = None
         held = self.params.rlb.to(X.dtype)
         if self.me:  # AL terms (AL stage) or held rows (RLB stage), per instance
-            e, Hz = stage_jacobian(self.constraints.stage_eq, X, U, params)
+            e, Hz = point.h, point.Hz
             _, d1, d2 = self.equality_penalty(e, self.params.lamE)
             H = H + Hz.transpose(-1, -2) @ (d2.unsqueeze(-1) * Hz)
             g = g + (Hz.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)
             rows.update(C=Hz[..., :nx], D=Hz[..., nx:], mask=torch.ones_like(e) * held.reshape(-1, 1, 1))
         if self.meN:
-            eN, HNx = terminal_jacobian(self.constraints.terminal_eq, X[:, -1], params)
+            eN, HNx = point.hN, point.HN
             _, d1, d2 = self.equality_penalty(eN, self.params.lamEN)
             HN = HN + HNx.transpose(-1, -2) @ (d2.unsqueeze(-1) * HNx)
             gN = gN + (HNx.transpose(-1, -2) @ d1.unsqueeze(-1)).squeeze(-1)

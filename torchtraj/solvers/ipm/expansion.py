@@ -42,12 +42,12 @@ from ...core.constraints import Constraints
 from ...core.derivatives import (
     affine_stage_jacobian,
     multiplier_terms,
-    problem_lagrangian_expansion,
     quadratic_stage_hessian,
     stage_jacobian,
     terminal_hessian,
     terminal_jacobian,
 )
+from ...core.one_pass import problem_kkt_expansion
 from ...core.problem import Problem
 from ...kkt.merit import violation_of
 from ...kkt.model import total_cost
@@ -126,7 +126,7 @@ class Base:
 class Expansion:
     """The derivatives of an iterate: the stage Lagrangians' gradient ``Lz (B, N, nz)`` (without ``−λ_k x_k``) and
     Hessian ``Lzz``, the terminal ones ``LNx``, ``LNxx``, the dynamics' values ``f (B, N, nx)`` and Jacobians
-    ``fz``, and the rows' :class:`ConstraintParts`."""
+    ``fz``, the rows' :class:`ConstraintParts` and the objective ``J (B,)`` where the pass gave it."""
 
     Lz: Tensor
     Lzz: Tensor
@@ -135,16 +135,17 @@ class Expansion:
     f: Tensor
     fz: Tensor
     rows: ConstraintParts
+    J: Optional[Tensor] = None  # the objective, where the pass gave it
 
 
 def _general_expansion(problem: Problem, cons: Constraints, params, it: Iterate) -> Expansion:
-    """One pass of ``torch.func`` over the batch and the stages."""
-    X, U = it.X, it.U
-    _, Lz, Lzz, _, LNx, LNxx = problem_lagrangian_expansion(problem, cons, X, U, params, it.lam, it.nu, it.y,
-                                                            it.nuN, it.yN)
-    f, fz = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
-    rows = constraint_parts(cons, X, U, params, jacobians=True)
-    return Expansion(Lz=Lz, Lzz=Lzz, LNx=LNx, LNxx=LNxx, f=f, fz=fz, rows=rows)
+    """One pass of ``torch.func`` over the batch and the stages
+    (:func:`~torchtraj.core.one_pass.problem_kkt_expansion`)."""
+    e = problem_kkt_expansion(problem, cons, it.X, it.U, params, it.lam, it.nu, it.y, it.nuN, it.yN)
+    knots = cons.ineq_knot_mask
+    rows = ConstraintParts(g=e.g * knots, Gz=e.Gz * knots.unsqueeze(-1), h=e.h, Hz=e.Hz, gN=e.gN, GN=e.GN, hN=e.hN,
+                           HN=e.HN)
+    return Expansion(Lz=e.Lz, Lzz=e.Lzz, LNx=e.LNx, LNxx=e.LNxx, f=e.f, fz=e.fz, rows=rows, J=e.cost)
 
 
 def _linear_quadratic_expansion(problem: Problem, cons: Constraints, params, it: Iterate) -> Expansion:
@@ -190,7 +191,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     else:
         e = _linear_quadratic_values(problem, cons, params, it, base)
     r = e.rows
-    J = total_cost(problem, X, U, params)
+    J = total_cost(problem, X, U, params) if e.J is None else e.J
     defects = e.f - X[:, 1:]
     knots = cons.ineq_knot_mask
     residuals = flat_abs(defects, r.h, r.hN, (r.g + it.s) * knots, r.gN + it.sN)

@@ -27,15 +27,13 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
+from ...core.one_pass import problem_values
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...globalization.line_search import Accepted, backtrack
-from ...kkt.model import total_cost
 from .compaction import pick
-from .expansion import constraint_parts
 from .iterate import Iterate, Model
 from .kernels import kernel_of
 from .newton import Direction
@@ -109,10 +107,10 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     Uc = it.U.unsqueeze(1) + a4 * d.dU.unsqueeze(1)
     sc = it.s.unsqueeze(1) + a4 * d.ds.unsqueeze(1)
     sNc = it.sN.unsqueeze(1) + alphas.unsqueeze(-1) * d.dsN.unsqueeze(1)
-    Jc = total_cost(problem, Xc, Uc, params)
-    defects = map_stage(problem.dynamics, Xc[..., :-1, :], Uc, params) - Xc[..., 1:, :]
-    rows = constraint_parts(cons, Xc, Uc, params, jacobians=False)
-    parts = (defects, rows.h, rows.hN, (rows.g + sc) * knots, rows.gN + sNc)
+    values = problem_values(problem, cons, Xc, Uc, params)
+    Jc = values.cost
+    defects = values.f - Xc[..., 1:, :]
+    parts = (defects, values.h, values.hN, (values.g * knots + sc) * knots, values.gN + sNc)
     theta_c = torch.cat([p.reshape(B, L, -1).abs() for p in parts], -1).sum(-1)
     phi_c = Jc - mu.unsqueeze(1) * log_barrier(sc, sNc, knots)
     theta, phi, slope = model.theta.unsqueeze(1), phi.unsqueeze(1), slope.unsqueeze(1)

@@ -1,0 +1,161 @@
+r"""Everything a Newton-type iteration reads at a point, from one pass of ``torch.func`` over the batch and stages.
+
+At a stage point ``z = (x, u)`` with multipliers ``w = (λ_{k+1}, ν_k, μ_k)``, the stage Lagrangian
+``L(z) = l(z) + λ_{k+1}ᵀ f(z) + ν_kᵀ h(z) + μ_kᵀ g(z)`` is built from the values ``l, f, h, g``. One reverse pass
+gives ``∇L`` with those values (as auxiliary outputs), and a second one, over the stacked vector
+
+.. math::  r(z) = \big(∇L(z),\ f(z),\ h(z),\ g(z)\big),\qquad ∂r/∂z = \big(∇²L,\ f_z,\ h_z,\ g_z\big),
+
+gives the Hessian and every row's Jacobian together: the rows' derivatives reuse the graph the Hessian
+differentiates, where separate passes (:func:`~torchtraj.core.derivatives.stage_jacobian` for the dynamics, again
+for each row block, :func:`~torchtraj.kkt.model.total_cost` for the objective) evaluate and differentiate the user's
+functions again, each behind its own ``vmap``. The terminal point is the same with ``L_N = l_N + ν_Nᵀ h_N +
+μ_Nᵀ g_N``. Without multipliers (``costate=None``) the Lagrangian is the cost alone: the cost's Hessian of a
+Gauss-Newton model (iLQR, HM-iLQR) with the rows' Jacobians.
+
+:func:`problem_values` is the same point's values alone (a line search's trial points), in one ``vmap`` of the
+stages and one of the end points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+from torch.func import jacrev
+
+from .batching import map_stage, map_state
+from .derivatives import _stacked_weights, _stage_points
+
+
+@dataclass
+class KKTExpansion:
+    """The point's objective ``cost (B,)``, the Lagrangians' gradients and Hessians (``Lz (B, N, nz)``, ``Lzz``,
+    ``LNx (B, nx)``, ``LNxx``; without the ``−λ_kᵀ x_k`` terms, as
+    :func:`~torchtraj.core.derivatives.problem_lagrangian_expansion`'s), the dynamics ``f (B, N, nx)`` and
+    Jacobians ``fz``, the stage rows ``h (B, N, me)``, ``g (B, N, mi)`` and terminal rows ``hN``, ``gN`` with their
+    Jacobians ``Hz``, ``Gz``, ``HN``, ``GN`` (unmasked: rows off at a knot are the caller's to mask)."""
+
+    cost: Tensor
+    Lz: Tensor
+    Lzz: Tensor
+    LNx: Tensor
+    LNxx: Tensor
+    f: Tensor
+    fz: Tensor
+    h: Tensor
+    Hz: Tensor
+    g: Tensor
+    Gz: Tensor
+    hN: Tensor
+    HN: Tensor
+    gN: Tensor
+    GN: Tensor
+
+
+def _gradient_and_rows_jacobian(fn: Callable) -> Callable:
+    """``fn(v) -> (L, (value, rows))`` as ``v ↦ (value, (∇L, rows), ∂(∇L, rows)/∂v)`` (module docstring)."""
+    def wrapped(v):
+        def first(v_):
+            grad, (value, rows) = jacrev(fn, has_aux=True)(v_)
+            stacked = torch.cat([grad, *rows])
+            return stacked, (stacked, value)
+
+        jac, (stacked, value) = jacrev(first, has_aux=True)(v)
+        return value, stacked, jac
+
+    return wrapped
+
+
+def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:
+    return out if weights is None or not values.numel() else out + (weights * values).sum()
+
+
+def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, costate: Optional[Tensor] = None,
+                          nu=None, mu=None, nuN=None, muN=None) -> KKTExpansion:
+    """The :class:`KKTExpansion` of ``problem`` at ``X (B, N+1, nx)``, ``U (B, N, nu)`` in one pass (module
+    docstring): ``costate (B, N+1, nx)`` (``λ``) and the multipliers in the layout of
+    :func:`~torchtraj.core.derivatives.problem_lagrangian_hessian` (missing ones zero), or ``costate=None`` and no
+    multipliers for the cost's own Hessian."""
+    nx, nz = X.shape[-1], X.shape[-1] + U.shape[-1]
+    me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
+    Z = _stage_points(X, U)
+    if costate is None:
+        if any(m is not None for m in (nu, mu, nuN, muN)):
+            raise ValueError("multipliers without a costate: pass costate as well")
+        stage_in, terminal_in = Z, X[:, -1]
+    else:
+        stage_w, terminal_w = _stacked_weights(constraints, X, U, costate, nu, mu, nuN, muN)
+        stage_in, terminal_in = torch.cat([Z, stage_w], -1), torch.cat([X[:, -1], terminal_w], -1)
+
+    def stage(zw, p):
+        lam = v = m = None
+        if costate is not None:
+            w = zw[nz:]
+            lam, v, m = w[:nx], w[nx:nx + me], w[nx + me:]
+
+        def lagrangian(z):
+            x, u = z[:nx], z[nx:]
+            cost, f = problem.stage_cost(x, u, p), problem.dynamics(x, u, p)
+            h = constraints.stage_eq(x, u, p) if me else z.new_zeros(0)
+            g = constraints.stage_ineq(x, u, p) if mi else z.new_zeros(0)
+            out = _weighted(_weighted(_weighted(cost, lam, f), v, h), m, g)
+            return out, (cost, (f, h, g))
+
+        return _gradient_and_rows_jacobian(lagrangian)(zw[:nz])
+
+    def terminal(xw, p):
+        v = m = None
+        if costate is not None:
+            v, m = xw[nx:nx + meN], xw[nx + meN:]
+
+        def lagrangian(x):
+            cost = problem.terminal_cost(x, p)
+            h = constraints.terminal_eq(x, p) if meN else x.new_zeros(0)
+            g = constraints.terminal_ineq(x, p) if miN else x.new_zeros(0)
+            return _weighted(_weighted(cost, v, h), m, g), (cost, (h, g))
+
+        return _gradient_and_rows_jacobian(lagrangian)(xw[:nx])
+
+    l, rows, jac = map_state(stage, stage_in, params)
+    lN, rowsN, jacN = map_state(terminal, terminal_in, params)
+    Lz, f, h, g = rows.split([nz, nx, me, mi], -1)
+    Lzz, fz, Hz, Gz = jac.split([nz, nx, me, mi], -2)
+    LNx, hN, gN = rowsN.split([nx, meN, miN], -1)
+    LNxx, HN, GN = jacN.split([nx, meN, miN], -2)
+    return KKTExpansion(cost=l.sum(-1) + lN, Lz=Lz, Lzz=Lzz, LNx=LNx, LNxx=LNxx, f=f, fz=fz, h=h, Hz=Hz, g=g,
+                        Gz=Gz, hN=hN, HN=HN, gN=gN, GN=GN)
+
+
+@dataclass
+class PointValues:
+    """The values at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: the objective ``cost (B, *E)``, the dynamics
+    ``f (B, *E, N, nx)``, the stage rows ``h``, ``g`` and the terminal rows ``hN``, ``gN`` (unmasked)."""
+
+    cost: Tensor
+    f: Tensor
+    h: Tensor
+    g: Tensor
+    hN: Tensor
+    gN: Tensor
+
+
+def problem_values(problem, constraints, X: Tensor, U: Tensor, params) -> PointValues:
+    """The :class:`PointValues` of ``problem`` at ``(X, U)``: one ``vmap`` of the stages, one of the end points."""
+    me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
+
+    def stage(x, u, p):
+        h = constraints.stage_eq(x, u, p) if me else x.new_zeros(0)
+        g = constraints.stage_ineq(x, u, p) if mi else x.new_zeros(0)
+        return problem.stage_cost(x, u, p), problem.dynamics(x, u, p), h, g
+
+    def terminal(x, p):
+        h = constraints.terminal_eq(x, p) if meN else x.new_zeros(0)
+        g = constraints.terminal_ineq(x, p) if miN else x.new_zeros(0)
+        return problem.terminal_cost(x, p), h, g
+
+    l, f, h, g = map_stage(stage, X[..., :-1, :], U, params)
+    lN, hN, gN = map_state(terminal, X[..., -1, :], params)
+    return PointValues(cost=l.sum(-1) + lN, f=f, h=h, g=g, hN=hN, gN=gN)
