@@ -1,17 +1,20 @@
 r"""Everything a Newton-type iteration reads at a point, from one pass of ``torch.func`` over the batch and stages.
 
 At a stage point ``z = (x, u)`` with multipliers ``w = (λ_{k+1}, ν_k, μ_k)``, the stage Lagrangian
-``L(z) = l(z) + λ_{k+1}ᵀ f(z) + ν_kᵀ h(z) + μ_kᵀ g(z)`` is built from the values ``l, f, h, g``. One reverse pass
-gives ``∇L`` with those values (as auxiliary outputs), and a second one, over the stacked vector
+``L(z) = l(z) + λ_{k+1}ᵀ f(z) + ν_kᵀ h(z) + μ_kᵀ g(z)`` is built from the values ``l, f, h, g``, which one forward
+evaluation gives together. From it, one pass gives
 
-.. math::  r(z) = \big(∇L(z),\ f(z),\ h(z),\ g(z)\big),\qquad ∂r/∂z = \big(∇²L,\ f_z,\ h_z,\ g_z\big),
+.. math::  ∇L,\quad ∇²L,\quad f_z,\ h_z,\ g_z \quad\text{and}\quad J = Σ_k l_k + l_N,
 
-gives the Hessian and every row's Jacobian together: the rows' derivatives reuse the graph the Hessian
-differentiates, where separate passes (:func:`~torchtraj.core.derivatives.stage_jacobian` for the dynamics, again
-for each row block, :func:`~torchtraj.kkt.model.total_cost` for the objective) evaluate and differentiate the user's
-functions again, each behind its own ``vmap``. The terminal point is the same with ``L_N = l_N + ν_Nᵀ h_N +
-μ_Nᵀ g_N``. Without multipliers (``costate=None``) the Lagrangian is the cost alone: the cost's Hessian of a
-Gauss-Newton model (iLQR, HM-iLQR) with the rows' Jacobians.
+where separate passes (:func:`~torchtraj.core.derivatives.problem_lagrangian_expansion`, then
+:func:`~torchtraj.core.derivatives.stage_jacobian` for the dynamics and again for each row block, then
+:func:`~torchtraj.kkt.model.total_cost`) evaluate and differentiate the user's functions again, each behind its own
+``vmap``. The Hessian is the reverse-over-reverse derivative of ``∇L``; the rows' Jacobians are first-order
+pullbacks of the same forward evaluation, taken beside the gradient's. Without multipliers (``costate=None``) the
+Lagrangian is the cost alone, the Hessian of a Gauss-Newton model (iLQR, HM-iLQR); its gradient's graph is small,
+and the Hessian's reverse pass runs over the stacked ``(∇l, f, h, g)``, which gives the rows' Jacobians with it in
+the fewest calls. The terminal point is the same with ``L_N = l_N + ν_Nᵀ h_N + μ_Nᵀ g_N``. The results are those of
+the separate passes to the last bit.
 
 :func:`problem_values` is the same point's values alone (a line search's trial points), in one ``vmap`` of the
 stages and one of the end points.
@@ -24,7 +27,7 @@ from typing import Callable, Optional
 
 import torch
 from torch import Tensor
-from torch.func import jacrev
+from torch.func import jacrev, vjp, vmap
 
 from .batching import map_stage, map_state
 from .derivatives import _stacked_weights, _stage_points
@@ -55,9 +58,15 @@ class KKTExpansion:
     GN: Tensor
 
 
-def _gradient_and_rows_jacobian(fn: Callable) -> Callable:
-    """``fn(v) -> (L, (value, rows))`` as ``v ↦ (value, (∇L, rows), ∂(∇L, rows)/∂v)`` (module docstring)."""
-    def wrapped(v):
+def _gradient_and_rows_jacobian(fn: Callable, rows_through_hessian: bool) -> Callable:
+    """``fn(v) -> (L, (value, rows))`` as ``v ↦ (value, (∇L, rows), ∂(∇L, rows)/∂v)`` (module docstring).
+
+    ``rows_through_hessian``: the rows' Jacobians come out of the Hessian's reverse pass, over ``(∇L, rows)``
+    (the fewest calls; for a cost without multiplier terms, whose gradient's graph is small). Otherwise (a
+    Lagrangian, whose gradient's graph holds the rows' second derivatives) they get their own first-order
+    pullbacks of the same forward evaluation: the Hessian's pass, batched over ``(∇L, rows)``, would carry the
+    rows' cotangents through that graph, about twice the arithmetic at large batches."""
+    def through_hessian(v):
         def first(v_):
             grad, (value, rows) = jacrev(fn, has_aux=True)(v_)
             stacked = torch.cat([grad, *rows])
@@ -66,7 +75,25 @@ def _gradient_and_rows_jacobian(fn: Callable) -> Callable:
         jac, (stacked, value) = jacrev(first, has_aux=True)(v)
         return value, stacked, jac
 
-    return wrapped
+    def own_pullbacks(v):
+        def first(v_):
+            def stacked(u):
+                L, (value, rows) = fn(u)
+                return torch.cat([L.reshape(1), *rows]), value
+
+            out, pullback, value = vjp(stacked, v_, has_aux=True)
+            basis = torch.eye(out.shape[0], dtype=out.dtype, device=out.device)
+            (grad,) = pullback(basis[0])
+            if out.shape[0] > 1:
+                (rows_jac,) = vmap(pullback)(basis[1:])
+            else:
+                rows_jac = v_.new_zeros(0, v_.shape[0])
+            return grad, (grad, out[1:], rows_jac, value)
+
+        hessian, (grad, rows, rows_jac, value) = jacrev(first, has_aux=True)(v)
+        return value, torch.cat([grad, rows]), torch.cat([hessian, rows_jac])
+
+    return through_hessian if rows_through_hessian else own_pullbacks
 
 
 def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:
@@ -104,7 +131,7 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
             out = _weighted(_weighted(_weighted(cost, lam, f), v, h), m, g)
             return out, (cost, (f, h, g))
 
-        return _gradient_and_rows_jacobian(lagrangian)(zw[:nz])
+        return _gradient_and_rows_jacobian(lagrangian, costate is None)(zw[:nz])
 
     def terminal(xw, p):
         v = m = None
@@ -117,7 +144,7 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
             g = constraints.terminal_ineq(x, p) if miN else x.new_zeros(0)
             return _weighted(_weighted(cost, v, h), m, g), (cost, (h, g))
 
-        return _gradient_and_rows_jacobian(lagrangian)(xw[:nx])
+        return _gradient_and_rows_jacobian(lagrangian, costate is None)(xw[:nx])
 
     l, rows, jac = map_state(stage, stage_in, params)
     lN, rowsN, jacN = map_state(terminal, terminal_in, params)
