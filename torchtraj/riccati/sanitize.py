@@ -22,7 +22,7 @@ def all_finite(values: list) -> Tensor:
     """``(B,)``: whether every entry of an instance is finite in each of ``values`` (batch-first tensors or None)."""
     finite = None
     for value in values:
-        if value is not None and value[:1].numel():
+        if value is not None and value.shape[1:].numel():
             # amax and amin propagate NaN: a fifth of the cost of isfinite(...).all() (0.28 ms against
             # 1.5 ms for an A of B = 256, N = 30, nx = 8); reduced in place, as a reshape copies strided blocks
             dims = tuple(range(1, value.dim()))
