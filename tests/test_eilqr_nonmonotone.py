@@ -12,6 +12,7 @@ import torch
 import torchtraj as tt
 from torchtraj import problems
 from torchtraj.solvers.eilqr.merit import MeritMemory
+from torchtraj.solvers.eilqr.options import EILQROptions
 
 F64 = torch.float64
 IPOPT = json.loads((Path(__file__).parent / "data" / "eilqr_batch64.json").read_text())
@@ -37,6 +38,8 @@ def test_the_nonmonotone_reference_is_the_largest_of_the_last_merits_at_the_curr
     single = MeritMemory.empty(1, 1, torch.zeros(1, dtype=F64)).record(torch.tensor([3.0], dtype=F64),
                                                                         torch.tensor([1.0], dtype=F64))
     assert torch.equal(single.reference(torch.tensor([0.5], dtype=F64)), torch.tensor([3.5], dtype=F64))
+    with pytest.raises(ValueError, match="nonmonotone_memory"):
+        EILQROptions(nonmonotone_memory=0)
 
 
 @pytest.mark.parametrize("name", ["cartpole_unconstrained", "cartpole"])

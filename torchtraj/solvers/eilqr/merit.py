@@ -23,21 +23,21 @@ through once the decrease is below round-off, where the Newton iteration converg
 
 **Nonmonotone reference** (Grippo, Lampariello & Lucidi 1986, "A nonmonotone line search technique for Newton's
 method", SIAM J. Numer. Anal. 23(4), with their memory ``M = 10``; Panier & Tits 1991 use such a test against the
-Maratos effect of the ℓ1 merit; Nocedal & Wright 2006 §15.5, the nonmonotone strategy). The Armijo test compares the trial
-merit with the largest merit of the last ``M`` iterates instead of the current one,
+Maratos effect of the ℓ1 merit; Nocedal & Wright 2006 §15.5, the nonmonotone strategy). The Armijo test compares the
+trial merit with the largest merit of the last ``M`` iterates instead of the current one,
 
 .. math::  m(w + α p) \le \max_{0 \le j < M} m_γ(w_{k−j}) + η α D m,\qquad m_γ(w_j) = J(w_j) + γ \|C(w_j)\|_1,
 
 the past points' merits taken with the current ``γ`` (:class:`MeritMemory` keeps their ``J`` and ``‖C‖₁``; the
 memory is emptied where the barrier's weight changes, which changes ``J``). Why: the ℓ1 merit charges a step's
 second-order defects at ``γ ≥ max|y|`` on every row, while the Lagrangian's Hessian weighs them by each row's own
-multiplier, so along directions where the reduced Hessian is small or indefinite the merit refuses steps that
-the Newton model and the Lagrangian accept (the Maratos effect). On the cart-pole's ``sample_x0`` starts
-(issue 23) the monotone test cut such steps to ``α = 1/16`` for hundreds of iterations along valleys of negative
-curvature (the defects, reduced by ``α`` of their value a step, stayed at ``1e-4`` to ``1e-3``), and near
-some optima refused Newton steps of ``|δu| = 1e-3`` whose defects rose to ``1e-6`` from ``1e-11``, with the
-KKT error at ``6e-8``. Letting the merit rise over a few iterations lets the full steps through; the following
-Newton steps remove the defects, and the sequence of reference values still decreases.
+multiplier, so along directions where the reduced Hessian is small or indefinite the merit refuses steps that the
+Newton model and the Lagrangian accept (the Maratos effect). On the cart-pole's ``sample_x0`` starts (issue 23) the
+monotone test cut such steps to ``α = 1/16`` for hundreds of iterations along valleys of negative curvature (the
+defects, reduced by ``α`` of their value a step, stayed at ``1e-4`` to ``1e-3``), and near some optima refused
+Newton steps of ``|δu| = 1e-3`` whose defects' ℓ1 norm rose from ``2e-10`` to about ``1e-6``, with the KKT error at
+``6e-8``. Letting the merit rise over a few iterations lets the full steps through; the following Newton steps
+remove the defects, and the reference values never increase.
 """
 
 from __future__ import annotations

@@ -166,6 +166,9 @@ class EILQROptions:
         if not 0 < self.barrier_decrease < 1 or self.barrier_superlinear <= 1 or self.barrier_error_factor <= 0:
             raise ValueError("barrier_decrease must lie in (0, 1), barrier_superlinear exceed 1 and "
                              "barrier_error_factor be positive")
+        if self.nonmonotone_memory < 1:
+            raise ValueError(f"nonmonotone_memory must be at least 1 (1: the monotone test), "
+                             f"got {self.nonmonotone_memory}")
         if not 0 < self.backtracking < 1:
             raise ValueError(f"backtracking must lie in (0, 1), got {self.backtracking}")
         if self.initial_eq is not None and self.free_initial_state is False:
