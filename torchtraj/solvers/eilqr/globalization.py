@@ -105,11 +105,16 @@ def _through(step: Direction, it: Iterate, alpha: Tensor) -> Direction:
     return dataclasses.replace(step, dX=inverse(step.dX), dU=inverse(step.dU), **moved)
 
 
-def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts, weights):
+def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts, weights,
+                    reference=None):
     """The accepted step of the ``pending (B,)`` instances from the direction ``d`` (computed with ``eps (B,)``):
     ``(direction, Accepted, merit0 (B,))``: the accepted ``α`` moves the iterate by the direction returned to the
-    accepted point (the truncated step ``α α_max p``, or its correction ``α α_max p + q``)."""
+    accepted point (the truncated step ``α α_max p``, or its correction ``α α_max p + q``). The Armijo test
+    starts from ``reference (B,)`` (the nonmonotone one, :class:`~torchtraj.solvers.eilqr.merit.MeritMemory`;
+    ``None``: the current merit ``m(w)``)."""
     merit0 = model.J + gamma * l1
+    if reference is None:
+        reference = merit0
     if not opts.globalization:
         ls = line_search(problem, cons, params, it.X, it.U, x0, initial, d, merit0, slope(model, d, gamma, l1),
                          gamma, pending, trial_steps(opts, merit0), opts, weights)
@@ -128,7 +133,7 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
         if not bool(waiting.any()):
             break
         step = truncated(d, it, a * alpha_max)
-        bound = armijo_bound(merit0, derivative, a.reshape(1), opts)[:, 0]
+        bound = armijo_bound(reference, derivative, a.reshape(1), opts)[:, 0]
         m = merit_at(problem, cons, params, it.X + step.dX, it.U + step.dU, x0, initial, gamma, weights)
         passed = waiting & torch.isfinite(m) & (m <= bound)
         if bool((waiting & ~passed).any()):
@@ -141,9 +146,9 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
     refused = pending & ~found
     if steps.shape[0] > corrected_trials and bool(refused.any()):  # the shorter steps plain, in batched rounds
         p = truncated(d, it, alpha_max)
-        rest = line_search(problem, cons, params, it.X, it.U, x0, initial, p, merit0, derivative, gamma, refused,
+        rest = line_search(problem, cons, params, it.X, it.U, x0, initial, p, reference, derivative, gamma, refused,
                            steps[corrected_trials:], opts, weights)
         chosen = pick_direction(refused & rest.found, p, chosen)
         found, alpha = found | rest.found, torch.where(refused, rest.alpha, alpha)
-        value = torch.where(refused, rest.values[0], value)
+        value = torch.where(refused & rest.found, rest.values[0], value)
     return chosen, Accepted(found=found, alpha=alpha, values=(value,)), merit0

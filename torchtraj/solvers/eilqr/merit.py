@@ -20,10 +20,29 @@ Along a step ``p`` that satisfies the linearised constraints (``C + ∇C p = 0``
 of ``per_round`` step sizes (:func:`torchtraj.globalization.line_search.backtrack`): the dynamics, the costs and the
 rows at all knots at once, no rollout. A tolerance of a few hundred rounding errors of ``m`` lets the full step
 through once the decrease is below round-off, where the Newton iteration converges quadratically.
+
+**Nonmonotone reference** (Grippo, Lampariello & Lucidi 1986, "A nonmonotone line search technique for Newton's
+method", SIAM J. Numer. Anal. 23(4), with their memory ``M = 10``; Panier & Tits 1991 use such a test against the
+Maratos effect of the ℓ1 merit; Nocedal & Wright 2006 §15.5, the nonmonotone strategy). The Armijo test compares the
+trial merit with the largest merit of the last ``M`` iterates instead of the current one,
+
+.. math::  m(w + α p) \le \max_{0 \le j < M} m_γ(w_{k−j}) + η α D m,\qquad m_γ(w_j) = J(w_j) + γ \|C(w_j)\|_1,
+
+the past points' merits taken with the current ``γ`` (:class:`MeritMemory` keeps their ``J`` and ``‖C‖₁``; the
+memory is emptied where the barrier's weight changes, which changes ``J``). Why: the ℓ1 merit charges a step's
+second-order defects at ``γ ≥ max|y|`` on every row, while the Lagrangian's Hessian weighs them by each row's own
+multiplier, so along directions where the reduced Hessian is small or indefinite the merit refuses steps that the
+Newton model and the Lagrangian accept (the Maratos effect). On the cart-pole's ``sample_x0`` starts (issue 23) the
+monotone test cut such steps to ``α = 1/16`` for hundreds of iterations along valleys of negative curvature (the
+defects, reduced by ``α`` of their value a step, stayed at ``1e-4`` to ``1e-3``), and near some optima refused
+Newton steps of ``|δu| = 1e-3`` whose defects' ℓ1 norm rose from ``2e-10`` to about ``1e-6``, with the KKT error at
+``6e-8``. Letting the merit rise over a few iterations lets the full steps through; the following Newton steps
+remove the defects, and the reference values never increase.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional
 
 import torch
@@ -39,6 +58,35 @@ from .initial_state import InitialState
 from .model import Model
 from .newton import Direction
 from .options import EILQROptions
+
+
+@dataclass
+class MeritMemory:
+    """The cost ``J (B, M)`` and infeasibility ``‖C‖₁ (B, M)`` of each instance's last ``M`` iterates (``J = −∞``
+    where empty) and the next slot: the nonmonotone reference (module docstring)."""
+
+    J: Tensor
+    l1: Tensor
+    slot: int = 0
+
+    @classmethod
+    def empty(cls, batch: int, memory: int, like: Tensor) -> "MeritMemory":
+        return cls(like.new_full((batch, max(memory, 1)), float("-inf")), like.new_zeros(batch, max(memory, 1)))
+
+    def record(self, J: Tensor, l1: Tensor) -> "MeritMemory":
+        """The memory with the current iterates' ``J``, ``‖C‖₁`` (``(B,)`` each) over the oldest."""
+        size = self.J.shape[1]
+        here = torch.arange(size, device=J.device) == self.slot % size
+        return MeritMemory(torch.where(here, J.unsqueeze(-1), self.J), torch.where(here, l1.unsqueeze(-1), self.l1),
+                           self.slot + 1)
+
+    def forget(self, mask: Tensor) -> "MeritMemory":
+        """The memory emptied for the instances of ``mask (B,)`` (their barrier's weight changed)."""
+        return MeritMemory(torch.where(mask.unsqueeze(-1), float("-inf"), self.J), self.l1, self.slot)
+
+    def reference(self, gamma: Tensor) -> Tensor:
+        """``max_j J_j + γ ‖C_j‖₁ (B,)`` over the remembered iterates, with the current ``gamma (B,)``."""
+        return (self.J + gamma.unsqueeze(-1) * self.l1).amax(-1)
 
 
 def constraint_values(problem: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,

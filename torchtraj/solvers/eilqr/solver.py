@@ -12,7 +12,8 @@ inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrie
    where asked (:mod:`~torchtraj.solvers.eilqr.newton`, :mod:`~torchtraj.solvers.eilqr.initial_state`),
    regularised until the reduced Hessians are positive definite;
 3. the ℓ1 merit's weight ``γ`` from the step's multipliers, the full step, its second-order correction and the
-   backtracking line search (:mod:`~torchtraj.solvers.eilqr.merit`, :mod:`~torchtraj.solvers.eilqr.globalization`);
+   backtracking line search against the largest merit of the last ``nonmonotone_memory`` iterates (Grippo et al.'s
+   nonmonotone test; :mod:`~torchtraj.solvers.eilqr.merit`, :mod:`~torchtraj.solvers.eilqr.globalization`);
    the accepted ``α`` moves the primal variables and the multipliers, ``y ← y + α (y⁺ − y)``. A step refused or cut
    below ``short_step`` raises the next iteration's regularisation (a shorter, more gradient-like step), a full one
    lowers it, one cut to ``α`` above ``short_step`` keeps it (``regularization_partial``: ``×min(1/α, κ_w^+)``)
@@ -50,7 +51,7 @@ from ...kkt.model import total_cost
 from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done, weights_for
 from .globalization import globalized_step
 from .initial_state import InitialState
-from .merit import model_infeasibility, penalty
+from .merit import MeritMemory, model_infeasibility, penalty
 from .model import Iterate, expand, with_weight
 from .newton import direction, empty_multipliers, multiplier_size, regularized_direction
 from .options import EILQROptions
@@ -113,6 +114,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     K = x0.new_zeros(B, problem.N, problem.nu, problem.nx)
     unresolved = torch.zeros(B, dtype=torch.bool, device=x0.device)
     rows = []
+    memory = MeritMemory.empty(B, opts.nonmonotone_memory, x0)
     for step in range(opts.iterations + 1):
         model = expand(problem, cons, params, it, x0, initial, weights)
         it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
@@ -128,6 +130,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
             weights = weights_for(torch.where(advance, next_weight(weights.weight, final, opts), weights.weight),
                                   opts)
             model = with_weight(model, weights)
+            memory = memory.forget(advance)  # the barrier's new weight changes J: the past merits do not compare
         diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
         status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
         running = status == Status.RUNNING
@@ -138,8 +141,9 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                                        regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
         gamma = torch.where(factored, penalty(gamma, multiplier_size(d, initial is not None), opts), gamma)
+        memory = memory.record(model.J, l1)
         d, ls, merit0 = globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, factored,
-                                        opts, weights)
+                                        opts, weights, memory.reference(gamma))
         take = factored & ls.found
         # a full step below the dtype's resolution of the iterate: it cannot move any further in this dtype
         unresolved = take & (ls.alpha == 1.0) & (_largest(d.dX, d.dU) <= RESOLVED * torch.finfo(x0.dtype).eps
