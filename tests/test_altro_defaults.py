@@ -49,6 +49,39 @@ def test_projection_ends_at_a_kkt_point_of_the_quadrotor():
     assert float((result.U[0] - _tensor(ipopt["U"])[0]).abs().max()) < 1e-5
 
 
+def _project_park(options):
+    """The projection from where ALTRO's AL stage ends on parallel_park's ``sample_x0`` starts 26 and 40."""
+    data = json.loads((DATA / "altro_polish_park.json").read_text())
+    problem = tt.problems.get(data["problem"])
+    x0 = torch.tensor(data["x0"], dtype=torch.float64)
+    batch = Batch.build(problem, x0).for_solver()
+    start = data["al_stage"]
+    duals = Duals(*(torch.tensor(start[k], dtype=torch.float64)
+                    for k in ("stage", "terminal", "stage_penalty", "terminal_penalty")))
+    constraints = Constraints.of(problem)
+    al = AugmentedLagrangian(constraints, duals)
+    X, U = (torch.tensor(start[k], dtype=torch.float64) for k in ("X", "U"))
+    result = project(al, batch.params, batch.x0, X, U, torch.tensor(data["mask"]), options)
+    kkt = residuals(problem, result.X, result.U, multiplier_blocks(constraints, result.stage, result.terminal),
+                    batch.params, batch.x0)
+    return problem, batch, result, kkt, data["ipopt_warm"]
+
+
+def test_projection_polish_outlasts_the_held_set_updates():
+    """On two parallel_park starts the polish updates the held set four times before its Newton steps converge:
+    with the default count both end at KKT points (local optima that IPOPT, warm-started there, keeps: within its
+    last barrier's offset, μ = 1e-9 times about 60 active rows); with the former 4 they stop at stationarity 1e-4."""
+    problem, batch, result, kkt, ipopt = _project_park(ProjectionOptions())
+    assert bool(result.converged.all()) and bool((result.violation <= 1e-8).all())
+    assert bool(kkt.within(Tolerances.for_dtype(torch.float64)).all()), kkt.as_dict()
+    assert bool((kkt.stationarity < 1e-9).all())
+    cost = tt.kkt.total_cost(problem, result.X, result.U, batch.params)
+    for j, warm in enumerate(ipopt):
+        assert abs(float(cost[j]) - warm["cost"]) <= 1e-7, (float(cost[j]), warm["cost"])
+    _, _, _, short, _ = _project_park(ProjectionOptions(polish_iterations=4))
+    assert bool((short.stationarity > 1e-5).all())
+
+
 def _with_state_guess():
     """The double integrator with a state guess: the straight line from ``x0`` to its goal."""
     problem = tt.problems.get("double_integrator")
