@@ -82,6 +82,42 @@ def test_projection_polish_outlasts_the_held_set_updates():
     assert bool((short.stationarity > 1e-5).all())
 
 
+def test_sign_mismatch_counts_held_rows_pulling_with_a_negative_multiplier():
+    """A control bound held by the augmented Lagrangian (λ > 0) but left inactive by 1e-9 with μ = 1e7 pulls with
+    λ + μ c = 4e-3 − 1e-2 < 0, which eq. (17)'s estimate clamps to zero: the AL stage must not stop there. A row
+    that is not held (λ = 0, c < 0), and a held one whose multiplier stays positive, count nothing."""
+    problem = tt.problems.get("pendulum")  # rows: u − 3 ≤ 0, −3 − u ≤ 0 at every stage
+    constraints = Constraints.of(problem)
+    B, N = 3, problem.N
+    duals = Duals.initial(constraints, B, 1e7, torch.zeros(B, 1, dtype=torch.float64))
+    U = torch.zeros(B, N, 1, dtype=torch.float64)
+    U[:, 5, 0] = 3.0 - 1e-9  # the upper bound's row at stage 5: c = −1e-9
+    lam = torch.zeros_like(duals.stage)
+    lam[0, 5, 0] = 4e-3  # held, pulls with 4e-3 − 1e7 · 1e-9 = −6e-3
+    lam[2, 5, 0] = 2e-2  # held, pulls with 2e-2 − 1e-2 = 1e-2 > 0
+    duals = Duals(lam, duals.terminal, duals.stage_penalty, duals.terminal_penalty)
+    al = AugmentedLagrangian(constraints, duals)
+    X = torch.zeros(B, N + 1, 2, dtype=torch.float64)
+    mismatch = al.sign_mismatch(X, U, problem.batched_params(B))
+    c = (3.0 - 1e-9) - 3.0  # the row's value as float64 computes it
+    torch.testing.assert_close(mismatch, torch.tensor([-(4e-3 + 1e7 * c), 0.0, 0.0], dtype=torch.float64))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["al-ilqr", "altro"])
+def test_parallel_park_starts_whose_held_rows_pulled_the_wrong_way(method):
+    """parallel_park's sample starts 26, 35 and 40 ended ``STALLED`` (stationarity 1e-4: rows held by L_A pulled with
+    negative multipliers, and eq. (17)'s estimate at μ = 1e7 carried the inner solve's error); now both methods end at
+    KKT points that IPOPT, warm-started there, keeps (within its last barrier's offset, 1e-9 times the active rows)."""
+    data = json.loads((DATA / "al_ilqr_park_starts.json").read_text())
+    x0 = tt.problems.sample_x0("parallel_park", 64, 0)[data["starts"]]
+    sol = tt.solve(tt.problems.get("parallel_park"), x0, method=method)
+    assert sol.status.tolist() == [tt.Status.CONVERGED] * 3, sol.kkt
+    assert bool((sol.max_violation <= 1e-8).all())
+    for j, warm in enumerate(data["ipopt_warm_cost"]):
+        assert abs(float(sol.cost[j]) - warm) <= 1e-7, (float(sol.cost[j]), warm)
+
+
 def _with_state_guess():
     """The double integrator with a state guess: the straight line from ``x0`` to its goal."""
     problem = tt.problems.get("double_integrator")

@@ -237,6 +237,23 @@ class AugmentedLagrangian:
         scale = (sums / max(self.ineq_rows, 1)).clamp_min(100.0) / 100.0
         return torch.cat(parts, -1).amax(-1) / scale
 
+    def sign_mismatch(self, X: Tensor, U: Tensor, params) -> Tensor:
+        """``(B,)``: the largest ``max(0, −(λ_i + μ_i c_i))`` over the inequality rows the augmented Lagrangian holds
+        (``c_i ≥ 0`` or ``λ_i > 0``, eq. 7's ``I_μ``). Such a row pulls on the point with a negative multiplier, which
+        the estimate of eq. (17) clamps to zero: where it is nonzero, a stationary point of ``L_A`` is not one of
+        the Lagrangian with the estimate (a row left weakly inactive, ``c ≈ −1e-9``, with ``λ`` above ``−μ c``)."""
+        d = self.duals
+        parts = [X.new_zeros(X.shape[0], 1)]
+        if self.m:
+            c = self.stage_values(X, U, params)
+            held = ((c >= 0) | (d.stage > 0)) & self.is_ineq & (self.knot_mask > 0)
+            parts.append(torch.where(held, (-(d.stage + d.stage_penalty * c)).clamp_min(0), 0.0).flatten(1))
+        if self.mN:
+            cN = self.terminal_values(X, params)
+            held = ((cN >= 0) | (d.terminal > 0)) & self.is_ineqN
+            parts.append(torch.where(held, (-(d.terminal + d.terminal_penalty * cN)).clamp_min(0), 0.0))
+        return torch.cat(parts, -1).amax(-1)
+
     def updated_duals(self, X: Tensor, U: Tensor, params, scaling: float, penalty_max: float,
                       dual_max: float) -> Duals:
         """Eqs. (17)-(18) at ``(X, U)`` for every instance (the caller masks)."""

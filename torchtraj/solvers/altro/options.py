@@ -48,6 +48,13 @@ class ALTROOptions:
     penalty_max: float = 1e8
     #: Multipliers are clipped to ``±dual_max``.
     dual_max: float = 1e8
+    #: The AL stage stops only where the inequality rows ``L_A`` holds (eq. 7's ``I_μ``) pull with nonnegative
+    #: multipliers ``λ + μ c`` (:meth:`~torchtraj.solvers.altro.augmented_lagrangian.AugmentedLagrangian.sign_mismatch`
+    #: within the constraint tolerance), else it updates the duals and goes on: eq. (17)'s estimate clamps such a
+    #: multiplier to zero, so the point is stationary for ``L_A`` but not a KKT point (parallel_park's sample starts
+    #: 26, 35 and 40: rows at ``c ≈ −1e-9`` with ``λ = 4e-3`` and ``μ = 1e7``, stationarity 1e-4). Not in the paper:
+    #: :meth:`fast` (and so a control step) leaves it out, as Altro.jl does.
+    multiplier_signs: bool = True
     #: Outer (dual update) iterations and iLQR iterations per outer iteration.
     iterations_outer: int = 30
     iterations_inner: int = 300
@@ -85,9 +92,10 @@ class ALTROOptions:
     @classmethod
     def fast(cls, **changes) -> "ALTROOptions":
         """Altro.jl's own stopping tolerances (cost change 1e-4 inside and out, the inner scaled step 10, the
-        constraints 1e-6 with or without the projection): fewer iterations, a point short of the optimum that
-        ``tt.solve`` reports ``STALLED`` unless it is a KKT point. ``changes`` replace fields (``ilqr`` among
-        them)."""
+        constraints 1e-6 with or without the projection, no test of the held rows' multiplier signs): fewer
+        iterations, a point short of the optimum that ``tt.solve`` reports ``STALLED`` unless it is a KKT point.
+        ``changes`` replace fields (``ilqr`` among them)."""
         fields = {"cost_tolerance": 1e-4, "cost_tolerance_intermediate": 1e-4,
-                  "constraint_tolerance": PROJECTED_TOLERANCE, "ilqr": ILQROptions.fast(), **changes}
+                  "constraint_tolerance": PROJECTED_TOLERANCE, "ilqr": ILQROptions.fast(), "multiplier_signs": False,
+                  **changes}
         return cls(**fields)

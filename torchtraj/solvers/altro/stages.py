@@ -16,11 +16,13 @@ from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
 from ...iterations.ilqr import ilqr_step, log_iteration, riccati_backward, start_status
+from ...kkt.certificate import Tolerances
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
 from ...riccati.square_root import factorize_sqrt
 from .augmented_lagrangian import AugmentedLagrangian, Duals, penalty_limit, resolution_floor
 from .options import ALTROOptions
+from .polish import KKTPoint, kkt_error
 from .projection import multipliers, project
 
 
@@ -99,7 +101,9 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         inner_done = running & (s.converged | (inner_count >= opts.iterations_inner))
         # met: feasible and complementary with the multiplier estimate λ + I_μ c, the KKT point the certificate asks
         # for (at the inner optimum that estimate makes the Lagrangian stationary); a violation of 1e-6 alone left
-        # products λ c of 3e-6 on bounds with multipliers of 3 to 7. Both to the dtype's resolution at least.
+        # products λ c of 3e-6 on bounds with multipliers of 3 to 7. Both to the dtype's resolution at least. The
+        # complementarity counts a held row's negative multiplier as well: on parallel_park starts rows left at
+        # c ≈ −1e-9 with λ = 4e-3 and μ = 1e7 pulled with −5e-3, stationarity 1.5e-4 under the clamped estimate.
         satisfied = resolution_floor(X, U).clamp_min(constraint_tolerance)
         finished = inner_done & s.converged & (violation <= satisfied) & (complementarity <= satisfied)
         update = inner_done & ~finished
@@ -132,30 +136,42 @@ def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTRO
     duals = al.updated_duals(X, U, params, opts.penalty_scaling, penalty_limit(opts.penalty_max, X.dtype),
                              opts.dual_max)
     updated = AugmentedLagrangian(al.constraints, duals, al.square_root).value(X, U, params)
-    # the updated multipliers are the estimate λ + I_μ c whatever the penalty: its complementarity
-    return al.violation(X, U, params), al.complementarity(duals, X, U, params), duals, updated
+    # the updated multipliers are the estimate λ + I_μ c whatever the penalty: its complementarity, and the sign of the
+    # multipliers the rows held by L_A pull with (the estimate clamps a negative one)
+    complementarity = al.complementarity(duals, X, U, params)
+    if opts.multiplier_signs:
+        complementarity = torch.maximum(complementarity, al.sign_mismatch(X, U, params))
+    return al.violation(X, U, params), complementarity, duals, updated
 
 
 #: Rounding error of eq. (17)'s multiplier estimate above which AL-iLQR solves for least-squares multipliers.
 ESTIMATE_ROUNDING = 1e-7
 
 
-def _refined(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, done: Tensor, stage: Tensor, terminal: Tensor,
-             opts: ALTROOptions):
-    """AL-iLQR's multipliers, the least-squares ones of the held rows (the projection's multiplier solve) where
-    eq. (17)'s estimate ``λ + μ c`` carries a rounding error ``μ ε max(1, |X|, |U|)`` above ``ESTIMATE_ROUNDING``.
+def _refined(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, done: Tensor, stage: Tensor,
+             terminal: Tensor, opts: ALTROOptions):
+    """AL-iLQR's multipliers: eq. (17)'s estimate ``λ + μ c``, or the least-squares ones of the held rows (the
+    projection's multiplier solve) where the estimate is not a KKT point's and they do better.
 
-    That is float32 (``μ ε`` alone is 1.2e-7 at ``μ = 1``): on the pendulum, with ``|x_N| = π`` and ``μ = 100``, it
-    is 2.4e-5 on the goal constraint's multipliers, which fifty steps of the unstable dynamics amplify into
-    stationarity residuals of 1e-3 to 1.6e-2 (the certificate then says STALLED, 37 of 64 instances). In float64
-    it stays below the threshold up to the default ``penalty_max``, and the estimate is kept."""
+    The estimate multiplies the rows' values by the penalty, so it carries their error times ``μ``: their rounding,
+    ``μ ε max(1, |X|, |U|)`` (float32: ``μ ε`` alone is 1.2e-7 at ``μ = 1``; on the pendulum, with ``|x_N| = π`` and
+    ``μ = 100``, 2.4e-5 on the goal constraint's multipliers, which fifty steps of the unstable dynamics amplify
+    into stationarity residuals of 1e-3 to 1.6e-2, 37 of 64 instances ``STALLED``), and the inner solve's
+    inaccuracy (float64, parallel_park's sample starts 26, 35 and 40: ``μ = 1e7``, stationarity 5e-6 to 1.1e-5
+    with the estimate, 1e-9 with the least-squares multipliers). Above ``ESTIMATE_ROUNDING`` of rounding the
+    least-squares multipliers are taken; otherwise where the estimate misses the certificate's stationarity and they
+    lower the KKT error (:func:`~torchtraj.solvers.altro.polish.kkt_error`)."""
     rounding = _largest_penalty(al.duals) * resolution_floor(X, U) / 10.0
-    refine = done & (rounding > ESTIMATE_ROUNDING)
-    if not bool(refine.any()):
+    rounded = done & (rounding > ESTIMATE_ROUNDING)
+    error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, stage, terminal, None))
+    missed = done & (error > Tolerances.for_dtype(X.dtype).stationarity)
+    if not bool((rounded | missed).any()):
         return stage, terminal
     held = multipliers(al, params, X, U, opts.projection_options)
-    return (torch.where(refine.reshape(-1, 1, 1), held.stage, stage),
-            torch.where(refine.reshape(-1, 1), held.terminal, terminal))
+    held_error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, held.stage, held.terminal, None))
+    take = rounded | (missed & (held_error < error))
+    return (torch.where(take.reshape(-1, 1, 1), held.stage, stage),
+            torch.where(take.reshape(-1, 1), held.terminal, terminal))
 
 
 def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):
@@ -189,7 +205,7 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         done = al_done.reshape(-1, 1, 1)
         stage = torch.where(done, estimate.stage, al.duals.stage)
         terminal = torch.where(al_done.reshape(-1, 1), estimate.terminal, al.duals.terminal)
-        stage, terminal = _refined(al, params, X, U, al_done, stage, terminal, opts)
+        stage, terminal = _refined(al, params, x0, X, U, al_done, stage, terminal, opts)
         costate = None
         # the gains of the last backward pass, at the iterate before the last step: a converged step is below
         # the tolerances, and a new expansion and factorisation only for K would cost a third of an MPC step
