@@ -55,6 +55,12 @@ class ALTROOptions:
     #: 26, 35 and 40: rows at ``c ≈ −1e-9`` with ``λ = 4e-3`` and ``μ = 1e7``, stationarity 1e-4). Not in the paper:
     #: :meth:`fast` (and so a control step) leaves it out, as Altro.jl does.
     multiplier_signs: bool = True
+    #: AL-iLQR (no projection): where eq. (17)'s multiplier estimate misses the certificate's stationarity, take the
+    #: held rows' least-squares multipliers if they do better (at ``μ = 1e7`` the estimate carries the inner solve's
+    #: error times the penalty: stationarity 5e-6 to 1.1e-5 on parallel_park's sample starts 26, 35 and 40, 1e-9
+    #: with the least-squares ones). Not in the paper: :meth:`fast` (and so a control step, where the check would
+    #: evaluate the certificate at every step) leaves it out.
+    multiplier_refinement: bool = True
     #: Outer (dual update) iterations and iLQR iterations per outer iteration.
     iterations_outer: int = 30
     iterations_inner: int = 300
@@ -92,10 +98,11 @@ class ALTROOptions:
     @classmethod
     def fast(cls, **changes) -> "ALTROOptions":
         """Altro.jl's own stopping tolerances (cost change 1e-4 inside and out, the inner scaled step 10, the
-        constraints 1e-6 with or without the projection, no test of the held rows' multiplier signs): fewer
+        constraints 1e-6 with or without the projection, no test of the held rows' multiplier signs or refinement
+        of AL-iLQR's estimate): fewer
         iterations, a point short of the optimum that ``tt.solve`` reports ``STALLED`` unless it is a KKT point.
         ``changes`` replace fields (``ilqr`` among them)."""
         fields = {"cost_tolerance": 1e-4, "cost_tolerance_intermediate": 1e-4,
                   "constraint_tolerance": PROJECTED_TOLERANCE, "ilqr": ILQROptions.fast(), "multiplier_signs": False,
-                  **changes}
+                  "multiplier_refinement": False, **changes}
         return cls(**fields)

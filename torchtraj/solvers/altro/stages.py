@@ -160,16 +160,20 @@ def _refined(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, 
     inaccuracy (float64, parallel_park's sample starts 26, 35 and 40: ``μ = 1e7``, stationarity 5e-6 to 1.1e-5
     with the estimate, 1e-9 with the least-squares multipliers). Above ``ESTIMATE_ROUNDING`` of rounding the
     least-squares multipliers are taken; otherwise where the estimate misses the certificate's stationarity and they
-    lower the KKT error (:func:`~torchtraj.solvers.altro.polish.kkt_error`)."""
+    lower the KKT error (:func:`~torchtraj.solvers.altro.polish.kkt_error`; ``multiplier_refinement``)."""
     rounding = _largest_penalty(al.duals) * resolution_floor(X, U) / 10.0
     rounded = done & (rounding > ESTIMATE_ROUNDING)
-    error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, stage, terminal, None))
-    missed = done & (error > Tolerances.for_dtype(X.dtype).stationarity)
+    missed = torch.zeros_like(done)
+    if opts.multiplier_refinement and bool(done.any()):
+        error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, stage, terminal, None))
+        missed = done & (error > Tolerances.for_dtype(X.dtype).stationarity)
     if not bool((rounded | missed).any()):
         return stage, terminal
     held = multipliers(al, params, X, U, opts.projection_options)
-    held_error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, held.stage, held.terminal, None))
-    take = rounded | (missed & (held_error < error))
+    take = rounded
+    if bool(missed.any()):
+        held_error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, held.stage, held.terminal, None))
+        take = take | (missed & (held_error < error))
     return (torch.where(take.reshape(-1, 1, 1), held.stage, stage),
             torch.where(take.reshape(-1, 1), held.terminal, terminal))
 
