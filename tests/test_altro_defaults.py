@@ -98,7 +98,7 @@ def test_sign_mismatch_counts_held_rows_pulling_with_a_negative_multiplier():
     duals = Duals(lam, duals.terminal, duals.stage_penalty, duals.terminal_penalty)
     al = AugmentedLagrangian(constraints, duals)
     X = torch.zeros(B, N + 1, 2, dtype=torch.float64)
-    mismatch = al.sign_mismatch(X, U, problem.batched_params(B))
+    mismatch = al.sign_mismatch(*al.row_values(X, U, problem.batched_params(B)))
     c = (3.0 - 1e-9) - 3.0  # the row's value as float64 computes it
     torch.testing.assert_close(mismatch, torch.tensor([-(4e-3 + 1e7 * c), 0.0, 0.0], dtype=torch.float64))
 

@@ -211,60 +211,58 @@ class AugmentedLagrangian:
             rhs.qN = rhs.qN + (CN.transpose(-1, -2) @ (d.terminal + wN * cN).unsqueeze(-1)).squeeze(-1)
         return lqr, rhs
 
-    def violation(self, X: Tensor, U: Tensor, params) -> Tensor:
-        """Largest violation ``(B,)`` of the stacked constraints (``max(g, 0)``, ``|h|``)."""
-        parts = [X.new_zeros(X.shape[0], 1)]
+    def row_values(self, X: Tensor, U: Tensor, params) -> tuple:
+        """``(c (B, N, m), c_N (B, mN))`` at ``(X, U)``: what the measures below read, evaluated once."""
+        return self.stage_values(X, U, params), self.terminal_values(X, params)
+
+    def violation(self, c: Tensor, cN: Tensor) -> Tensor:
+        """Largest violation ``(B,)`` of the stacked constraints (``max(g, 0)``, ``|h|``) of :meth:`row_values`."""
+        parts = [c.new_zeros(c.shape[0], 1)]
         if self.m:
-            c = self.stage_values(X, U, params)
             parts.append(torch.where(self.is_ineq, c.clamp_min(0), c.abs()).flatten(1))
         if self.mN:
-            cN = self.terminal_values(X, params)
             parts.append(torch.where(self.is_ineqN, cN.clamp_min(0), cN.abs()))
         return torch.cat(parts, -1).amax(-1)
 
-    def complementarity(self, duals: "Duals", X: Tensor, U: Tensor, params) -> Tensor:
+    def complementarity(self, duals: "Duals", c: Tensor, cN: Tensor) -> Tensor:
         """``(B,)``: the largest ``|λ_i c_i|`` of the inequality rows with the multipliers of ``duals``, over
         ``s_c = max(100, mean λ_i) / 100`` as :mod:`torchtraj.kkt.certificate` scales it."""
-        parts, sums = [X.new_zeros(X.shape[0], 1)], X.new_zeros(X.shape[0])
+        parts, sums = [c.new_zeros(c.shape[0], 1)], c.new_zeros(c.shape[0])
         if self.m:
             lam = duals.stage * self.is_ineq * self.knot_mask
-            parts.append((lam * self.stage_values(X, U, params)).abs().flatten(1))
+            parts.append((lam * c).abs().flatten(1))
             sums = sums + lam.flatten(1).sum(1)
         if self.mN:
             lamN = duals.terminal * self.is_ineqN
-            parts.append((lamN * self.terminal_values(X, params)).abs())
+            parts.append((lamN * cN).abs())
             sums = sums + lamN.sum(1)
         scale = (sums / max(self.ineq_rows, 1)).clamp_min(100.0) / 100.0
         return torch.cat(parts, -1).amax(-1) / scale
 
-    def sign_mismatch(self, X: Tensor, U: Tensor, params) -> Tensor:
-        """``(B,)``: the largest ``max(0, −(λ_i + μ_i c_i))`` over the inequality rows the augmented Lagrangian holds
-        (``c_i ≥ 0`` or ``λ_i > 0``, eq. 7's ``I_μ``). Such a row pulls on the point with a negative multiplier, which
-        the estimate of eq. (17) clamps to zero: where it is nonzero, a stationary point of ``L_A`` is not one of
-        the Lagrangian with the estimate (a row left weakly inactive, ``c ≈ −1e-9``, with ``λ`` above ``−μ c``)."""
+    def sign_mismatch(self, c: Tensor, cN: Tensor) -> Tensor:
+        """``(B,)``: the largest ``max(0, −(λ_i + I_μ,ii c_i))`` over the inequality rows: the multiplier a row pulls
+        on the point with in ``L_A`` (eq. 7; zero on the rows ``I_μ`` leaves out). Eq. (17)'s estimate clamps a
+        negative one to zero, so where this is nonzero a stationary point of ``L_A`` is not one of the Lagrangian
+        with the estimate (a row left weakly inactive, ``c ≈ −1e-9``, with ``λ`` above ``−μ c``)."""
         d = self.duals
-        parts = [X.new_zeros(X.shape[0], 1)]
+        parts = [c.new_zeros(c.shape[0], 1)]
         if self.m:
-            c = self.stage_values(X, U, params)
-            held = ((c >= 0) | (d.stage > 0)) & self.is_ineq & (self.knot_mask > 0)
-            parts.append(torch.where(held, (-(d.stage + d.stage_penalty * c)).clamp_min(0), 0.0).flatten(1))
+            w = self._weights(c, d.stage, d.stage_penalty, self.is_ineq) * self.knot_mask
+            parts.append(((-(d.stage + w * c)).clamp_min(0) * self.is_ineq).flatten(1))
         if self.mN:
-            cN = self.terminal_values(X, params)
-            held = ((cN >= 0) | (d.terminal > 0)) & self.is_ineqN
-            parts.append(torch.where(held, (-(d.terminal + d.terminal_penalty * cN)).clamp_min(0), 0.0))
+            wN = self._weights(cN, d.terminal, d.terminal_penalty, self.is_ineqN)
+            parts.append((-(d.terminal + wN * cN)).clamp_min(0) * self.is_ineqN)
         return torch.cat(parts, -1).amax(-1)
 
-    def updated_duals(self, X: Tensor, U: Tensor, params, scaling: float, penalty_max: float,
-                      dual_max: float) -> Duals:
-        """Eqs. (17)-(18) at ``(X, U)`` for every instance (the caller masks)."""
+    def updated_duals(self, c: Tensor, cN: Tensor, scaling: float, penalty_max: float, dual_max: float) -> Duals:
+        """Eqs. (17)-(18) at the :meth:`row_values` ``c``, ``c_N`` of a point, for every instance (the caller
+        masks)."""
         d = self.duals
         lam, lamN = d.stage, d.terminal
         if self.m:
-            c = self.stage_values(X, U, params)
             lam = d.stage + d.stage_penalty * c
             lam = torch.where(self.is_ineq, lam.clamp_min(0), lam).clamp(-dual_max, dual_max)
         if self.mN:
-            cN = self.terminal_values(X, params)
             lamN = d.terminal + d.terminal_penalty * cN
             lamN = torch.where(self.is_ineqN, lamN.clamp_min(0), lamN).clamp(-dual_max, dual_max)
         return Duals(lam, lamN, (d.stage_penalty * scaling).clamp_max(penalty_max),

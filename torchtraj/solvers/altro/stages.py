@@ -72,7 +72,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     backward = factorize_sqrt if opts.square_root else riccati_backward(inner.sweep)
     measures = kernel(_measures, inner.compile)
     J = kernel(AugmentedLagrangian.value, inner.compile)(al, X, U, params)
-    violation = kernel(AugmentedLagrangian.violation, inner.compile)(al, X, U, params)
+    violation = kernel(_violation, inner.compile)(al, X, U, params)
     status = start_status(x0, X, J, inner)
     running = status == Status.RUNNING
     al_done = torch.zeros_like(running)
@@ -129,19 +129,24 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     return ALStage(problem, al, X, U, status, al_done, iterations, rows, K, stalled)
 
 
+def _violation(al: AugmentedLagrangian, X: Tensor, U: Tensor, params) -> Tensor:
+    """The largest violation ``(B,)`` of the stacked rows at ``(X, U)`` (one compiled kernel)."""
+    return al.violation(*al.row_values(X, U, params))
+
+
 def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTROOptions):
     """At ``(X, U)``: the largest violation, the complementarity of the multiplier estimate, the duals of eqs. (17)-(18)
     and ``L_A`` under those duals (every instance; the loop keeps the updates of the instances it updates). One compiled
     kernel."""
-    duals = al.updated_duals(X, U, params, opts.penalty_scaling, penalty_limit(opts.penalty_max, X.dtype),
-                             opts.dual_max)
+    c, cN = al.row_values(X, U, params)
+    duals = al.updated_duals(c, cN, opts.penalty_scaling, penalty_limit(opts.penalty_max, X.dtype), opts.dual_max)
     updated = AugmentedLagrangian(al.constraints, duals, al.square_root).value(X, U, params)
     # the updated multipliers are the estimate λ + I_μ c whatever the penalty: its complementarity, and the sign of the
     # multipliers the rows held by L_A pull with (the estimate clamps a negative one)
-    complementarity = al.complementarity(duals, X, U, params)
+    complementarity = al.complementarity(duals, c, cN)
     if opts.multiplier_signs:
-        complementarity = torch.maximum(complementarity, al.sign_mismatch(X, U, params))
-    return al.violation(X, U, params), complementarity, duals, updated
+        complementarity = torch.maximum(complementarity, al.sign_mismatch(c, cN))
+    return al.violation(c, cN), complementarity, duals, updated
 
 
 #: Rounding error of eq. (17)'s multiplier estimate above which AL-iLQR solves for least-squares multipliers.
@@ -205,7 +210,7 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         # at an inner optimum the first-order multiplier estimate is the update of eq. (17), λ + I_μ c projected
         # (Nocedal & Wright, §17.3): the gradient of L_A is the Lagrangian's with it. Unfinished instances keep the
         # multipliers they would go on with.
-        estimate = al.updated_duals(X, U, params, 1.0, opts.penalty_max, opts.dual_max)
+        estimate = al.updated_duals(*al.row_values(X, U, params), 1.0, opts.penalty_max, opts.dual_max)
         done = al_done.reshape(-1, 1, 1)
         stage = torch.where(done, estimate.stage, al.duals.stage)
         terminal = torch.where(al_done.reshape(-1, 1), estimate.terminal, al.duals.terminal)
