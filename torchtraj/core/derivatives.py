@@ -280,4 +280,3 @@ def problem_lagrangian_expansion(problem, constraints, X, U, params, costate, nu
     L, Lz, Lzz = map_state(stage_vgh, torch.cat([Z, stage_w], -1), params)
     LN, LNx, LNxx = map_state(terminal_vgh, torch.cat([X[:, -1], terminal_w], -1), params)
     return Expansion(L, Lz, Lzz, LN, LNx, LNxx)
-

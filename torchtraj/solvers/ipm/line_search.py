@@ -110,7 +110,7 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     values = problem_values(problem, cons, Xc, Uc, params)
     Jc = values.cost
     defects = values.f - Xc[..., 1:, :]
-    parts = (defects, values.h, values.hN, (values.g * knots + sc) * knots, values.gN + sNc)
+    parts = (defects, values.h, values.hN, (values.g + sc) * knots, values.gN + sNc)
     theta_c = torch.cat([p.reshape(B, L, -1).abs() for p in parts], -1).sum(-1)
     phi_c = Jc - mu.unsqueeze(1) * log_barrier(sc, sNc, knots)
     theta, phi, slope = model.theta.unsqueeze(1), phi.unsqueeze(1), slope.unsqueeze(1)
