@@ -254,7 +254,10 @@ def test_unconstrained_problem_matches_ilqr():
     then 2.9e-3). The cost is flat along
     part of the swing: tight iLQR stops 7.6e-11 above in cost, 1e-3 away in U, with a reduced gradient of
     6e-8. So: the costs agree to 1e-10, the IPM's reduced gradient (autograd through a rollout) vanishes,
-    and iLQR started at the IPM's controls stops there at once."""
+    and iLQR started at the IPM's controls stops there at once. That gradient carries the round-off of the IPM's
+    last step through the unstable rollout: 4.9e-8 and 1.3e-7 for two orderings of the same Riccati products (the
+    vector sweeps before and after they became affine recursions, :mod:`torchtraj.riccati.sweep`), after the same
+    iterates; the bound is 3e-7, a thousandth of the guess's."""
     problem = tt.problems.get("pendulum_unconstrained")
     tight = tt.ILQROptions(cost_tolerance=1e-12, gradient_tolerance=1e-8)
     with warnings.catch_warnings():
@@ -275,7 +278,7 @@ def test_unconstrained_problem_matches_ilqr():
         J = tt.kkt.total_cost(problem, rollout(problem.dynamics, x0, U, params), U, params)
         return float(torch.autograd.grad(J.sum(), U)[0].abs().max())
 
-    assert reduced_gradient(ipm.U) < 1e-7 < 1e-3 * reduced_gradient(problem.u_init.unsqueeze(0))
+    assert reduced_gradient(ipm.U) < 3e-7 < 1e-3 * reduced_gradient(problem.u_init.unsqueeze(0))
     again = tt.solve(problem, method="ilqr", U0=ipm.U, options=tight)
     assert again.status[0] == tt.Status.CONVERGED and float((again.U - ipm.U).abs().max()) < 1e-9
 
@@ -411,13 +414,19 @@ def test_a_linear_quadratic_problem_is_expanded_once(monkeypatch):
     assert lq_calls == ["quadratic_stage_hessian"]
     # one per iterate, and the first iterate's again with its least-squares multipliers
     assert plain_calls == ["problem_kkt_expansion"] * (int(plain.iterations.max()) + 2)
-    assert torch.equal(lq.iterations, plain.iterations)
+    # the same path up to round-off: the third start's step at iteration 11 ends at a KKT error of 1e-8 to 1e-7 or of
+    # 3e-9 as the Riccati products' rounding falls (both ways, before and after the vector sweeps' reordering), so
+    # it converges at iteration 12 or 13
+    assert int((lq.iterations - plain.iterations).abs().max()) <= 1
     X, U = lq.X.detach(), lq.U.detach()
     assert bool(((X[:, 1:-1, 0] < -0.2 + 1e-6).sum(-1) >= 1).all())  # the state row holds on an arc
     assert bool(((U.abs() > 0.6 - 1e-6).flatten(1).sum(-1) >= 1).all())  # and so does a bound
     assert torch.allclose(lq.X, plain.X, atol=1e-10) and torch.allclose(lq.U, plain.U, atol=1e-10)
+    same = lq.iterations == plain.iterations  # one iteration apart the barrier differs: multipliers to 1e-5
     for name in plain.multipliers:
-        assert torch.allclose(lq.multipliers[name], plain.multipliers[name], atol=1e-8), name
+        a, b = lq.multipliers[name], plain.multipliers[name]
+        assert torch.allclose(a[same], b[same], atol=1e-8), name
+        assert torch.allclose(a[~same], b[~same], atol=1e-5), name
     for a, b in zip(lq_grads, plain_grads):
         assert float(b.abs().max()) > 1e-2
         assert torch.allclose(a, b, rtol=1e-8, atol=1e-8 * float(b.abs().max())), (a, b)

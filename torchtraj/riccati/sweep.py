@@ -21,7 +21,11 @@ the vector sweep, with ``Q_z = [Q_x; Q_u]`` and ``M_k = (Q_{uu} K_k + Q_{ux})^T`
     p_k = E_k^T Q_z + M_k k_k,
 
 (which is ``Q_x + K_kᵀ (Q_uu k_k + Q_u) + Q_xu k_k``), and the forward sweep
-``δu_k = K_k δx_k + k_k``, ``δx_{k+1} = A_k δx_k + B_k δu_k + c_k``. A single control (``nu = 1``) takes its
+``δu_k = K_k δx_k + k_k``, ``δx_{k+1} = A_k δx_k + B_k δu_k + c_k``. Both vector sweeps are affine recursions
+once the matrices are known: the feedforward is affine in ``Q_u`` (``k_k = k0_k + G_k Q_u``), so
+``p_k = b_k + F_k p_{k+1}`` (:func:`solve_stages`) and ``δx_{k+1} = Φ_k δx_k + d_k`` with ``Φ_k = A_k + B_k K_k``
+(:func:`forward_stages`); their coefficients are formed for all stages at once, and each stage is then one
+product. A single control (``nu = 1``) takes its
 gain as a product with ``−1 / (Q_uu + ρ)``, a division for the whole horizon instead of a factorisation per stage;
 declared bounds (:mod:`~torchtraj.riccati.bounds`) take the free-control mask ``F`` into the same products. Stages
 whose reduced Hessian is not positive definite get the identity in its place, as the general sweep does.
@@ -104,46 +108,96 @@ def finish_single(chol: Tensor, ok: list) -> tuple:
 
 
 def stage_terms(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, q: Tensor, r: Tensor, c: Tensor) -> tuple:
-    """What every vector sweep reads per stage, split once for all stages: ``(W_kᵀ, P_k, E_kᵀ, M_k, [q_k; r_k],
-    c_k)`` with ``E_k = [I; K_k]``, ``M_k = (Q_uu K_k + Q_ux)ᵀ`` and the vectors as columns (module docstring)."""
+    """What the vector sweep with back-propagated rows reads per stage, split once for all stages: ``(W_kᵀ, P_k,
+    E_kᵀ, M_k, [q_k; r_k], c_k)`` with ``E_k = [I; K_k]``, ``M_k = (Q_uu K_k + Q_ux)ᵀ`` and the vectors as columns
+    (module docstring)."""
     Bsz, N, nx = P.shape[0], K.shape[1], P.shape[-1]
     ET = torch.cat([torch.eye(nx, dtype=K.dtype, device=K.device).expand(Bsz, N, nx, nx), _mT(K)], -1)
     return (_stages(_mT(W)), _stages(P), _stages(ET), _stages(_mT(matmul(Quu, K) + Qux)),
             _columns(torch.cat([q, r], -1)), _columns(c))
 
 
+def _flat(a: Tensor) -> Tensor:
+    """``a (B, T, ...)``, a batch-first view of a time-major buffer (or any tensor), as ``(T·B, ...)`` time-major:
+    a view where ``a`` is one, else one copy."""
+    return a.transpose(0, 1).reshape(-1, *a.shape[2:])
+
+
+def _batch_first(a: Tensor, Bsz: int) -> Tensor:
+    """``a (T·B, ...)`` time-major as the batch-first view ``(B, T, ...)``."""
+    return a.unflatten(0, (-1, Bsz)).transpose(0, 1)
+
+
+def _feedforward(Quu: Tensor, chol: Tensor, held: Optional[Tensor], value: Optional[Tensor]) -> tuple:
+    """The feedforward as an affine map of the stage's ``Q_u``, ``k_k = k0_k + G_k Q_u``, time-major
+    (``(N·B, ...)``): ``(gain, k0)``, where ``gain(Y)`` is ``G Y`` for any columns ``Y (N·B, nu, m)`` and ``k0``
+    ``(N·B, nu, 1)`` (``None`` without held controls).
+
+    Unconstrained ``G = −(Q_uu + ρ)^{-1}`` (``nu = 1``: ``−1 / (Q_uu + ρ)``); with held controls at ``v``, the free
+    ones minimise given them, ``k = v − (Q_uu + ρ)_F^{-1} F (Q_u + Q_uu v)``, so ``G = −(Q_uu + ρ)_F^{-1} F`` and
+    ``k0 = v + G Q_uu v`` (``F`` the free-control mask). For ``nu > 1`` ``G`` is applied by a solve with the
+    factor, never formed: an interior point's barrier makes ``Q_uu`` ill conditioned, and a product with an
+    explicit inverse is not backward stable (in float32 the Newton steps of ``tests/test_implicit.py``'s car
+    stalled at a stationarity of 1e-4)."""
+    chol = _flat(chol)
+    nu = chol.shape[-1]
+    free = None if held is None else _flat(1.0 - held).unsqueeze(-1)
+    if nu == 1:
+        g = -1.0 / (chol * chol)
+        if free is not None:
+            g = g * free
+
+        def gain(Y: Tensor) -> Tensor:
+            return g * Y
+    else:
+        def gain(Y: Tensor) -> Tensor:
+            return -_cholesky_solve(Y if free is None else Y * free, chol)
+    if held is None:
+        return gain, None
+    v = _flat(value).unsqueeze(-1)
+    return gain, v + gain(matmul(_flat(Quu), v))
+
+
 def solve_stages(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, chol: Tensor, q: Tensor, r: Tensor,
                  qN: Tensor, c: Tensor, held: Optional[Tensor] = None, value: Optional[Tensor] = None):
-    """The vector sweep without back-propagated rows: ``(k (B, N, nu), p (B, N+1, nx), Q_u (B, N, nu))``.
+    r"""The vector sweep without back-propagated rows: ``(k (B, N, nu), p (B, N+1, nx), Q_u (B, N, nu))``.
 
     ``W (B, N, nx, nx+nu)``, ``P (B, N+1, nx, nx)``, ``K``, ``Quu``, ``Qux``, ``chol`` of the factorisation;
     ``q, r, qN, c`` the right-hand side; ``held (B, N, nu)`` the held controls and ``value (B, N, nu)`` the
-    values they are held at (declared bounds, else ``None``)."""
-    N, nx, nu = K.shape[1], P.shape[-1], K.shape[-2]
-    WTs, Ps, ET, Ms, qz, cs = stage_terms(W, P, K, Quu, Qux, q, r, c)
-    if nu == 1:  # k = g Q_u, with g = −1 / (Q_uu + ρ) (zero on held controls)
-        gain = -1.0 / (chol * chol)
-        if held is not None:
-            gain = gain * (1.0 - held).unsqueeze(-1)
-        gains = _stages(gain)
-    else:
-        chols = _stages(chol)
-    if held is not None:
-        frees, values, Quus = _columns(1.0 - held), _columns(value), _stages(Quu)
+    values they are held at (declared bounds, else ``None``).
+
+    The feedforward is affine in ``Q_u`` (:func:`_feedforward`: ``k = k0 + G Q_u``), so with
+    ``v_k = P_{k+1} c_k + p_{k+1}`` the vector recursion (module docstring) is affine in ``p_{k+1}``:
+
+    .. math::  p_k = Q_x + K_k^T Q_u + M_k k_k = b_k + F_k p_{k+1},\quad F_k = A_k^T + R_k B_k^T,\quad
+               R_k = K_k^T + M_k G_k,\quad b_k = q_k + R_k r_k + M_k k0_k + F_k P_{k+1} c_k.
+
+    ``F`` and ``b`` are formed for all stages at once, the sweep is one product a stage, and ``Q_u`` and ``k``
+    follow for all stages at once."""
+    Bsz, N, nx, nu = K.shape[0], K.shape[1], P.shape[-1], K.shape[-2]
+    gain, k0 = _feedforward(Quu, chol, held, value)
+    A, Bu = _flat(W).split([nx, nu], -1)
+    Kt = _flat(K)
+    MT = addmatmul(_flat(Qux), _flat(Quu), Kt)  # M_kᵀ
+    M = _mT(MT)
+    R = _mT(Kt) + _mT(gain(MT))  # Gᵀ = G: the (free-masked) inverse is symmetric
+    F = addmatmul(_mT(A), R, _mT(Bu))
+    Pc = matmul(_flat(P[:, 1:]), _flat(c).unsqueeze(-1))
+    r_col = _flat(r).unsqueeze(-1)
+    b = addmatmul(addmatmul(_flat(q).unsqueeze(-1), R, r_col), F, Pc)
+    if k0 is not None:
+        b = addmatmul(b, M, k0)
+    Fs, bs = F.unflatten(0, (N, Bsz)).unbind(0), b.unflatten(0, (N, Bsz)).unbind(0)
     p = qN.unsqueeze(-1)
-    ps, ks, Qus = [None] * (N + 1), [None] * N, [None] * N
+    ps = [None] * (N + 1)
     ps[N] = p
     for t in range(N - 1, -1, -1):
-        Qz = addmatmul(qz[t], WTs[t], addmatmul(p, Ps[t + 1], cs[t]))
-        Qu = Qz[:, nx:]
-        if held is not None:  # the held controls at their values, the free ones minimise given them
-            grad = addmatmul(Qu, Quus[t], values[t])
-            k = values[t] + (gains[t] * grad if nu == 1 else -_cholesky_solve(grad * frees[t], chols[t]))
-        else:
-            k = gains[t] * Qu if nu == 1 else -_cholesky_solve(Qu, chols[t])
-        p = addmatmul(matmul(ET[t], Qz), Ms[t], k)
-        ps[t], ks[t], Qus[t] = p, k, Qu
-    return torch.stack(ks, 1).squeeze(-1), torch.stack(ps, 1).squeeze(-1), torch.stack(Qus, 1).squeeze(-1)
+        p = addmatmul(bs[t], Fs[t], p)
+        ps[t] = p
+    p = torch.stack(ps, 0)  # (N+1, B, nx, 1)
+    Qu = addmatmul(r_col, _mT(Bu), Pc + p[1:].flatten(0, 1))
+    k = gain(Qu) if k0 is None else k0 + gain(Qu)
+    return (_batch_first(k.squeeze(-1), Bsz), p.squeeze(-1).transpose(0, 1), _batch_first(Qu.squeeze(-1), Bsz))
 
 
 def expected_change(k: Tensor, Qu: Tensor, Quu: Tensor) -> tuple:
@@ -155,18 +209,22 @@ def expected_change(k: Tensor, Qu: Tensor, Quu: Tensor) -> tuple:
 
 def forward_stages(W: Tensor, K: Tensor, k: Tensor, c: Tensor, x0: Tensor) -> tuple:
     """The step ``(δx (B, N+1, nx), δu (B, N, nu))``: ``δu_k = K_k δx_k + k_k``,
-    ``δx_{k+1} = A_k δx_k + B_k δu_k + c_k`` from ``δx_0 = x0``."""
-    nx = W.shape[-2]
-    As, Bs, Ks = _stages(W[..., :nx]), _stages(W[..., nx:]), _stages(K)
-    ks, cs = _columns(k), _columns(c)
+    ``δx_{k+1} = A_k δx_k + B_k δu_k + c_k`` from ``δx_0 = x0``, as the closed loop
+    ``δx_{k+1} = Φ_k δx_k + d_k`` with ``Φ_k = A_k + B_k K_k`` and ``d_k = B_k k_k + c_k`` formed for all stages at
+    once (one product a stage), and ``δu`` for all stages after."""
+    Bsz, N, nx = K.shape[0], K.shape[1], W.shape[-2]
+    A, Bu = _flat(W).split([nx, W.shape[-1] - nx], -1)
+    Kt, kt = _flat(K), _flat(k).unsqueeze(-1)
+    Phis = addmatmul(A, Bu, Kt).unflatten(0, (N, Bsz)).unbind(0)
+    ds = addmatmul(_flat(c).unsqueeze(-1), Bu, kt).unflatten(0, (N, Bsz)).unbind(0)
     x = x0.unsqueeze(-1)
-    xs, us = [x], []
-    for t in range(len(Ks)):
-        u = addmatmul(ks[t], Ks[t], x)
-        x = addmatmul(addmatmul(cs[t], As[t], x), Bs[t], u)
+    xs = [x]
+    for t in range(N):
+        x = addmatmul(ds[t], Phis[t], x)
         xs.append(x)
-        us.append(u)
-    return torch.stack(xs, 1).squeeze(-1), torch.stack(us, 1).squeeze(-1)
+    X = torch.stack(xs, 0)  # (N+1, B, nx, 1)
+    u = addmatmul(kt, Kt, X[:-1].flatten(0, 1))
+    return X.squeeze(-1).transpose(0, 1), _batch_first(u.squeeze(-1), Bsz)
 
 
 def costate_stages(A: Tensor, local: Tensor, last: Tensor) -> Tensor:

@@ -59,7 +59,8 @@ from .options import IPOptions
 def flat_abs(*parts: Tensor) -> Tensor:
     """``|parts|`` flattened per instance and side by side, ``(B, n + 1)`` (a zero column: never empty)."""
     B = parts[0].shape[0]
-    return torch.cat([p.reshape(B, -1).abs() for p in parts] + [parts[0].new_zeros(B, 1)], -1)
+    flat = [p.reshape(B, -1) for p in parts if p.shape[1:].numel()]  # empty blocks (no such rows) add no call
+    return torch.cat(flat + [parts[0].new_zeros(B, 1)], -1).abs()
 
 
 @dataclass
