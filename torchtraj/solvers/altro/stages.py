@@ -86,6 +86,10 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     K = x0.new_zeros(B, problem.N, U.shape[-1], x0.shape[-1])
     rows = []
     constraint_tolerance = opts.stage_tolerance()
+    # AL-iLQR's answer is the AL stage's point (no projection follows): its inner solve finishes at the certificate's
+    # stationarity (ALTROOptions.stationary_finish)
+    stationary_finish = opts.stationary_finish and not opts.projection
+    stationarity_tolerance = Tolerances.for_dtype(x0.dtype).stationarity
     stationarity = torch.zeros_like(rho)  # the last running iterate's: a stopped instance's history repeats it
     for it in range(opts.iterations_outer * opts.iterations_inner):
         if not bool(running.any()):
@@ -94,23 +98,28 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         s = ilqr_step(problem, al, params, x0, X, U, J, rho, drho, running, inner, backward, tol)
         X, U, J, rho, drho = s.X, s.U, s.J, s.rho, s.drho
         K = torch.where(running.reshape(B, 1, 1, 1), s.K, K)
-        stationarity = torch.where(running, s.stationarity, stationarity)
+        previous, stationarity = stationarity, torch.where(running, s.stationarity, stationarity)
         iterations = iterations + running.long()
         inner_count = inner_count + running.long()
         violation, complementarity, new_duals, J_updated = measures(al, X, U, params, opts)
-        inner_done = running & (s.converged | (inner_count >= opts.iterations_inner))
+        converged = s.converged
+        if stationary_finish:  # an inner optimum short of the certificate goes on while its residual halves a step
+            # (its first step under new duals has no previous residual to halve)
+            falling = s.took & ((s.stationarity < 0.5 * previous) | (inner_count == 1))
+            converged = converged & ~(falling & (s.stationarity > stationarity_tolerance))
+        inner_done = running & (converged | (inner_count >= opts.iterations_inner))
         # met: feasible and complementary with the multiplier estimate λ + I_μ c, the KKT point the certificate asks
         # for (at the inner optimum that estimate makes the Lagrangian stationary); a violation of 1e-6 alone left
         # products λ c of 3e-6 on bounds with multipliers of 3 to 7. Both to the dtype's resolution at least. The
         # complementarity counts a held row's negative multiplier as well: on parallel_park starts rows left at
         # c ≈ −1e-9 with λ = 4e-3 and μ = 1e7 pulled with −5e-3, stationarity 1.5e-4 under the clamped estimate.
         satisfied = resolution_floor(X, U).clamp_min(constraint_tolerance)
-        finished = inner_done & s.converged & (violation <= satisfied) & (complementarity <= satisfied)
+        finished = inner_done & converged & (violation <= satisfied) & (complementarity <= satisfied)
         update = inner_done & ~finished
         status = torch.where(s.blown & ~finished, int(Status.MAX_REGULARIZATION), status)
         exhausted = update & (outer_count + 1 >= opts.iterations_outer)
         status = torch.where(exhausted, int(Status.MAX_ITERATIONS), status)
-        stalled = stalled | (exhausted & s.converged)
+        stalled = stalled | (exhausted & converged)
         al_done = al_done | finished
         al = AugmentedLagrangian(constraints, new_duals.where(update, al.duals), opts.square_root)
         J = torch.where(update, J_updated, J)  # the objective changed with the duals
