@@ -207,3 +207,41 @@ def test_one_pass_cost_expansion_and_values_match_the_separate_passes():
         assert got.shape == want.shape
         torch.testing.assert_close(got, want, rtol=1e-13, atol=1e-13)
     assert v.h.shape == (2, 3, prob.N, 0) and v.gN.shape == (2, 3, 0)
+
+
+def test_altro_expansion_from_one_pass_is_the_separate_passes():
+    """ALTRO's model of ``L_A`` (eqs. 5-12) takes the cost's Hessian and the dynamics' and rows' Jacobians from the
+    one-pass expansion, the rows stacked as ``stage_fn`` stacks them (inequalities, then equalities; a state row
+    off at knot 0): the same model, bit for bit, as the cost's separate passes and the rows' own Jacobians."""
+    from small_problems import oscillator
+
+    from torchtraj.kkt.model import cost_model
+    from torchtraj.solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
+
+    prob = oscillator(stage_eq=lambda x, u, p: (x[0] * u[0] - 0.1).reshape(1),
+                      terminal_ineq=lambda x, p: (x[0] * x[0] - 1.0).reshape(1))
+    cons = Constraints(prob)
+    X, U = _random_trajectory(prob, B=3, seed=11)
+    P = prob.batched_params(3)
+    g = torch.Generator().manual_seed(12)
+    empty = Duals.initial(cons, 3, 10.0, X[:, 0])
+    duals = Duals(torch.rand(empty.stage.shape, generator=g, dtype=torch.float64),
+                  torch.rand(empty.terminal.shape, generator=g, dtype=torch.float64),
+                  empty.stage_penalty, empty.terminal_penalty)
+    al = AugmentedLagrangian(cons, duals)
+    lqr, rhs = al.expand(X, U, P)
+    want, want_rhs = cost_model(prob, X, U, P)
+    c, Cz, cN, CN = al.row_jacobians(X, U, P)
+    assert c.shape[-1] == cons.mi + cons.me == 4 and cN.shape[-1] == 2
+    c, Cz = c * al.knot_mask, Cz * al.knot_mask.unsqueeze(-1)
+    w = al._weights(c, duals.stage, duals.stage_penalty, al.is_ineq) * al.knot_mask
+    H = Cz.mT @ (w.unsqueeze(-1) * Cz)
+    grad = (Cz.mT @ (duals.stage + w * c).unsqueeze(-1)).squeeze(-1)
+    wN = al._weights(cN, duals.terminal, duals.terminal_penalty, al.is_ineqN)
+    nx = prob.nx
+    for got, expected in [(lqr.A, want.A), (lqr.B, want.B), (lqr.Q, want.Q + H[..., :nx, :nx]),
+                          (lqr.R, want.R + H[..., nx:, nx:]), (lqr.S, want.S + H[..., nx:, :nx]),
+                          (lqr.QN, want.QN + CN.mT @ (wN.unsqueeze(-1) * CN)),
+                          (rhs.q, want_rhs.q + grad[..., :nx]), (rhs.r, want_rhs.r + grad[..., nx:]),
+                          (rhs.qN, want_rhs.qN + (CN.mT @ (duals.terminal + wN * cN).unsqueeze(-1)).squeeze(-1))]:
+        torch.testing.assert_close(got, expected, rtol=0, atol=0)

@@ -29,7 +29,9 @@ from torch import Tensor
 from ...core.batching import map_stage, map_state
 from ...core.constraints import Constraints
 from ...core.derivatives import stage_jacobian, terminal_jacobian
-from ...kkt.model import cost_model, total_cost
+from ...core.one_pass import problem_kkt_expansion
+from ...kkt.model import total_cost
+from ...riccati import LQR, LQRVectors
 from ...riccati.square_root import psd_root
 
 
@@ -93,6 +95,15 @@ def penalty_limit(penalty_max: float, dtype: torch.dtype) -> float:
     stationarity (1e-3), and the multiplier updates, not the penalty, drive the violation down. In float64 the
     limit (4.5e11) lies above the default ``penalty_max``."""
     return min(penalty_max, MULTIPLIER_RESOLUTION / torch.finfo(dtype).eps)
+
+
+def _stacked(inequalities: Tensor, equalities: Tensor, dim: int) -> Tensor:
+    """The two row blocks one above the other (one of them alone where the other has no rows)."""
+    if not equalities.shape[dim]:
+        return inequalities
+    if not inequalities.shape[dim]:
+        return equalities
+    return torch.cat([inequalities, equalities], dim)
 
 
 def _lift(t: Tensor, extra: int) -> Tensor:
@@ -185,12 +196,18 @@ class AugmentedLagrangian:
         return J
 
     def expand(self, X: Tensor, U: Tensor, params):
-        """LQR model of ``L_A`` around ``(X, U)`` (eqs. 5-12)."""
-        lqr, rhs = cost_model(self.problem, X, U, params)
+        """LQR model of ``L_A`` around ``(X, U)`` (eqs. 5-12): the cost's Hessian and the dynamics' and rows'
+        Jacobians from one ``torch.func`` pass (:func:`~torchtraj.core.one_pass.problem_kkt_expansion`)."""
         nx = X.shape[-1]
+        point = problem_kkt_expansion(self.problem, self.constraints, X, U, params)
+        H, g = point.Lzz, point.Lz
+        lqr = LQR(A=point.fz[..., :nx], B=point.fz[..., nx:], Q=H[..., :nx, :nx], R=H[..., nx:, nx:],
+                  S=H[..., nx:, :nx], QN=point.LNxx)
+        rhs = LQRVectors(q=g[..., :nx], r=g[..., nx:], qN=point.LNx, c=torch.zeros_like(X[:, 1:]),
+                         x0=torch.zeros_like(X[:, 0]))
         d = self.duals
-        if self.m:
-            c, Cz = stage_jacobian(self.stage_fn, X, U, params)
+        if self.m:  # the rows stacked as stage_fn stacks them: inequalities, then equalities
+            c, Cz = _stacked(point.g, point.h, -1), _stacked(point.Gz, point.Hz, -2)
             c, Cz = c * self.knot_mask, Cz * self.knot_mask.unsqueeze(-1)
             w = self._weights(c, d.stage, d.stage_penalty, self.is_ineq) * self.knot_mask
             H = Cz.transpose(-1, -2) @ (w.unsqueeze(-1) * Cz)
@@ -203,7 +220,7 @@ class AugmentedLagrangian:
             rhs.q = rhs.q + g[..., :nx]
             rhs.r = rhs.r + g[..., nx:]
         if self.mN:
-            cN, CN = terminal_jacobian(self.terminal_fn, X[:, -1], params)
+            cN, CN = _stacked(point.gN, point.hN, -1), _stacked(point.GN, point.HN, -2)
             wN = self._weights(cN, d.terminal, d.terminal_penalty, self.is_ineqN)
             if self.square_root:
                 lqr.rootN = torch.cat([psd_root(lqr.QN), wN.clamp_min(0).sqrt().unsqueeze(-1) * CN], -2)
