@@ -80,7 +80,7 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
             chol, ok = finish_single(_time_major(chols), oks)
         else:
             chol, ok = _time_major(chols), torch.stack(oks, 1).all(1)
-        return RiccatiFactor(lqr=lqr, K=_time_major(Ks), P=_time_major(Ps), ok=finite & ok, Quu=_time_major(Quus),
+        return RiccatiFactor(lqr=lqr, K=_time_major(Ks), P=Ps, ok=finite & ok, Quu=_time_major(Quus),
                              Qux=_time_major(Quxs), chol=chol, free=None, stage=None, terminal=None, exact=exact,
                              fixed=held, W=W.transpose(0, 1))
     return _factorize_propagated(lqr, finite, W, Hs, regularization, tol)

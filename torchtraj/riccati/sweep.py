@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from ..core.compiled import addmatmul, matmul
-from .linalg import _cholesky, _cholesky_solve, _mT, _sym
+from .linalg import _cholesky, _cholesky_solve, _mT, _time_major
 
 
 def _stages(a: Tensor) -> tuple:
@@ -56,8 +56,9 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
     """The matrix sweep without back-propagated rows.
 
     ``W (N, B, nx, nx+nu)`` and ``Hs (N, B, nx+nu, nx+nu)`` the time-major stage blocks, ``QN (B, nx, nx)``,
-    ``ρ (B,)``, ``held (B, N, nu)`` the controls that declared bounds hold (``None``: none). Returns lists over
-    the stages ``(P, K, Quu, Qux, chol, ok)``: ``P`` of length N+1; ``chol`` the Cholesky factors of the reduced
+    ``ρ (B,)``, ``held (B, N, nu)`` the controls that declared bounds hold (``None``: none). Returns
+    ``P (B, N+1, nx, nx)`` (a view of a time-major buffer) and lists over the stages ``(K, Quu, Qux, chol, ok)``;
+    ``chol`` the Cholesky factors of the reduced
     Hessians (``nu = 1``: the reduced Hessian negated, whose root :func:`finish_single` takes); ``ok`` per stage,
     ``(B,)`` booleans (``nu = 1``: ``(B, 1, 1)``)."""
     N, Bsz, nx, n = W.shape
@@ -65,18 +66,21 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
     eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
     rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
     minus_rho = -rho
-    Ws, WTs, Hss = W.unbind(0), _mT(W).unbind(0), Hs.unbind(0)
+    # the sweep carries 2 P_k = X + Xᵀ (X = E_kᵀ H E_k), the symmetrisation without its halving, and takes P_k W_k as
+    # (2 P_k)(W_k / 2): scaling by a power of two is exact, so every P_k, H and K is the one of sym(X), one call a stage
+    # fewer, and the stack of them is halved once
+    Ws, WTs, Hss = (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.unbind(0)
     if held is not None:
         free = 1.0 - held
         outer = _stages(free.unsqueeze(-1) * free.unsqueeze(-2))
         held_diag = _stages(torch.diag_embed(held))
         free_rows = _stages(free.unsqueeze(-1))
     minus_one = W.new_full((), -1.0)
-    P = QN
+    P2 = QN + QN
     Ps, Ks, Quus, Quxs, chols, oks = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N, [None] * N
-    Ps[N] = P
+    Ps[N] = P2
     for t in range(N - 1, -1, -1):
-        H = addmatmul(Hss[t], WTs[t], matmul(P, Ws[t]))
+        H = addmatmul(Hss[t], WTs[t], matmul(P2, Ws[t]))
         Qux, Quu = H[:, nx:].split([nx, nu], -1)
         rows = Qux
         if nu == 1:  # K = Q_ux / −(Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
@@ -96,9 +100,10 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
             ok = info == 0
             K = -_cholesky_solve(rows, L)
         E = torch.cat([eye_x, K], -2)
-        P = _sym(matmul(_mT(E), matmul(H, E)))
-        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t], oks[t] = P, K, Quu, Qux, L, ok
-    return Ps, Ks, Quus, Quxs, chols, oks
+        X = matmul(_mT(E), matmul(H, E))
+        P2 = X + _mT(X)
+        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t], oks[t] = P2, K, Quu, Qux, L, ok
+    return _time_major(Ps) * 0.5, Ks, Quus, Quxs, chols, oks
 
 
 def finish_single(chol: Tensor, ok: list) -> tuple:
