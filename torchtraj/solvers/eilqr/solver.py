@@ -137,8 +137,8 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         l1 = model_infeasibility(model, x0, it.X)
         if step == opts.iterations or not bool(running.any()):
             break
-        d, eps = regularized_direction(lambda e: direction(model, it, x0, e), floor, last, running, opts,
-                                       regularize=opts.globalization)
+        d, eps = regularized_direction(lambda e: direction(model, it, x0, e, opts.terminal_rows), floor, last,
+                                       running, opts, regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
         gamma = torch.where(factored, penalty(gamma, multiplier_size(d, initial is not None), opts), gamma)
         memory = memory.record(model.J, l1)
