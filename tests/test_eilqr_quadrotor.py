@@ -6,7 +6,9 @@ same KKT system, and the starts against IPOPT's optima (``tests/data/quadrotor2d
 import json
 from pathlib import Path
 
+import pytest
 import torch
+from kkt import kkt_residuals
 
 import torchtraj as tt
 from torchtraj import problems
@@ -79,3 +81,25 @@ def test_the_terminal_rows_multipliers_are_the_dense_kkt_solves():
     torch.testing.assert_close(d.nuN[0], terminal, rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(d.dU[0], dU, rtol=0, atol=1e-6)
     assert d.lam.abs().max() < 1e3
+
+
+@pytest.mark.parametrize("start", [17, 47])
+def test_a_start_that_ended_max_regularization_converges_at_a_kkt_point(start):
+    """Starts 17 and 47 of ``sample_x0("quadrotor2d", 64, seed=0)`` ended ``MAX_REGULARIZATION`` after 175 and 172
+    iterations: the back-propagation's multipliers (above) drove ``ε_reg`` to 1e6 in the first iterations, and at
+    the end a step with multipliers of 1e5 to 5e6 asked for ``ε ≈ 1`` where the inertia correction's twelve
+    attempts from the carried ``ε ≈ 1e-20`` reach about 1e-9 (start 47 with the range-space step alone stopped so
+    after 47 iterations). Now the attempts that run out carry their ``ε`` into the next iteration. Start 47
+    reaches IPOPT's optimum from the same start; start 17 a lower local optimum (22.46 against IPOPT's 27.47) that
+    IPOPT warm-started there keeps (2 iterations, the same cost to 1e-9 relative)."""
+    problem = problems.get("quadrotor2d")
+    x0 = problems.sample_x0("quadrotor2d", 64, seed=0)[start:start + 1]
+    sol = tt.solve(problem, x0, method="eilqr")
+    assert sol.status[0] == tt.Status.CONVERGED, (int(sol.status[0]), int(sol.iterations[0]))
+    assert float(sol.max_violation[0]) < 1e-9
+    stationarity, least_multiplier, complementarity = kkt_residuals(problem, sol)
+    assert stationarity < 1e-9 and least_multiplier >= 0.0 and complementarity < 1e-8
+    ipopt = IPOPT[str(start)]["cost"]
+    assert float(sol.cost[0]) <= ipopt * (1 + 1e-7), (float(sol.cost[0]), ipopt)
+    if start == 47:
+        assert abs(float(sol.cost[0]) - ipopt) / ipopt < 1e-7
