@@ -14,7 +14,8 @@ Every instance runs the paper's two stages on the multiple-shooting M-iLQR itera
 3. **done** where ``ψ`` has reached ``ψ_min``, the violation of the constraints and the defects is at most
    ``c_min^rlb`` and the stationarity residual at the iterate, with the inequality multipliers ``z⁺`` of its Newton
    step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), is below ``stationarity_tolerance`` (that step is still
-   taken where the point it reaches passes the same test, else the iterate is returned); or where an RLB iteration changes the objective by less than ``ε_v`` (the paper's test; off by default,
+   taken where the point it reaches passes the same test, else the iterate is returned); or where an RLB iteration
+   changes the objective by less than ``ε_v`` (the paper's test; off by default,
    :mod:`~torchtraj.solvers.hm_ilqr.options` says why) or the model predicts no decrease and no step is found. The
    tolerances are met at the dtype's resolution where they lie below it.
 
