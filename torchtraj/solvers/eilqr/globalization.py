@@ -74,7 +74,7 @@ def truncated(d: Direction, it: Iterate, alpha: Tensor) -> Direction:
     return dataclasses.replace(d, dX=scale(d.dX), dU=scale(d.dU), **moved)
 
 
-def corrected_step(problem, cons, params, model, it, x0, initial, d, p, alpha, eps):
+def corrected_step(problem, cons, params, model, it, x0, initial, d, p, alpha, eps, terminal_rows):
     """The second-order correction of the trial step ``p = α d`` (``alpha (B,)``): ``p + q`` with ``q`` the
     step of the constraint residual ``r = c(w + p) − (1 − α) c(w)`` (module docstring), its multipliers
     ``y + α (ŷ⁺ − y)`` from the corrected system."""
@@ -91,7 +91,10 @@ def corrected_step(problem, cons, params, model, it, x0, initial, d, p, alpha, e
         hN=model.hN if hN is None else model.hN + residual(hN, model.hN),
         initial=None if model.initial is None else InitialRows(e0=model.initial.e0 + r0, E0=model.initial.E0))
     # the same factorisation, one vector solve, where every instance's step came from one
-    soc = resolve(d, corrected, it, x0) if d.factor is not None else direction(corrected, it, x0, eps)
+    if d.factor is not None:
+        soc = resolve(d, corrected, it, x0)
+    else:
+        soc = direction(corrected, it, x0, eps, terminal_rows)
     step = truncated(soc, it, alpha)
     return dataclasses.replace(step, dX=p.dX + soc.dX - d.dX, dU=p.dU + soc.dU - d.dU, ok=soc.ok)
 
@@ -137,7 +140,8 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
         m = merit_at(problem, cons, params, it.X + step.dX, it.U + step.dU, x0, initial, gamma, weights)
         passed = waiting & torch.isfinite(m) & (m <= bound)
         if bool((waiting & ~passed).any()):
-            soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps)
+            soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps,
+                                 opts.terminal_rows)
             ms = merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights)
             taken = waiting & ~passed & soc.ok & torch.isfinite(ms) & (ms <= bound)
             step, m, passed = pick_direction(taken, soc, step), torch.where(taken, ms, m), passed | taken

@@ -31,8 +31,8 @@ from torch import Tensor
 
 from ...core.masks import where_rows
 from ...globalization.regularization import corrected_attempts
-from ...kkt.newton import held_lqr, newton_rhs, newton_step
-from ...riccati import RiccatiFactor, all_finite
+from ...kkt.newton import held_lqr, newton_rhs
+from ...riccati import RiccatiFactor, all_finite, factorize
 from .initial_state import initial_step
 from .model import Iterate, Model
 from .options import EILQROptions
@@ -69,14 +69,18 @@ def _rhs(model: Model, it: Iterate, x0: Tensor):
     return newton_rhs(model.lz, model.lNx, model.defects, start, model.h if me else None, model.hN if meN else None)
 
 
-def direction(model: Model, it: Iterate, x0: Tensor, eps: Tensor) -> Direction:
-    """The Newton step at ``it`` with the Hessian regularised by ``eps (B,)``."""
+def direction(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
+              terminal_rows: str = "back-propagation") -> Direction:
+    """The Newton step at ``it`` with the Hessian regularised by ``eps (B,)``; ``terminal_rows`` as
+    :attr:`EILQROptions.terminal_rows <torchtraj.solvers.eilqr.options.EILQROptions>` (the range-space method only
+    with a fixed initial state: a free start's stage-0 system reads the rows the back-propagation leaves there)."""
     me, meN = model.h.shape[-1], model.hN.shape[-1]
     lqr = held_lqr(model.fz, _shifted(model.Lzz, eps), _shifted(model.LNxx, eps), rows=model.Hz if me else None,
                    rowsN=model.HN if meN else None)
     rhs = _rhs(model, it, x0)
-    ns = newton_step(lqr, rhs, multipliers=model.initial is None)
-    return _completed(ns.factor, rhs, ns.step, model, it)
+    rows = terminal_rows if model.initial is None else "back-propagation"
+    factor = factorize(lqr, terminal_rows=rows)
+    return _completed(factor, rhs, factor.solve(rhs, multipliers=model.initial is None), model, it)
 
 
 def resolve(d: Direction, model: Model, it: Iterate, x0: Tensor) -> Direction:

@@ -67,11 +67,14 @@ class EILQROptions:
             regularization_increase_first, regularization_increase: the ``ε_reg I`` added to the Lagrangian
             Hessian (the paper's Fig. 5), with IPOPT's inertia-correction numbers (``δ_w^0``, ``δ_w^{min}``,
             ``δ_w^{max}``, ``κ_w^-``, ``κ̄_w^+``, ``κ_w^+``). Within an iteration it rises where a reduced Hessian is
-            not positive definite (refactorised, at most ``regularization_attempts`` times). Between iterations it
-            is carried: ``×κ_w^+`` (at least ``δ_w^0``) after a step the merit refused or cut below ``short_step``,
-            ``×κ_w^-`` after a full step (zero below ``regularization_min``), kept otherwise
-            (``regularization_partial``: ``×min(1/α, κ_w^+)`` after a step cut to ``α ≥ short_step``); past
-            ``regularization_max`` the status is ``MAX_REGULARIZATION``.
+            not positive definite (refactorised, at most ``regularization_attempts`` times; where they run out below
+            ``regularization_max`` the iterate stays and the next iteration starts above the largest ``ε`` tried:
+            from the carried ``ε ≈ 1e-20`` twelve attempts reach about 1e-9, and quadrotor2d's start 47 of
+            ``sample_x0`` had ended ``MAX_REGULARIZATION`` so, issue 23). Between iterations it is carried:
+            ``×κ_w^+`` (at least ``δ_w^0``) after a step the merit refused or cut below ``short_step``, ``×κ_w^-``
+            after a full step (zero below ``regularization_min``), kept otherwise (``regularization_partial``:
+            ``×min(1/α, κ_w^+)`` after a step cut to ``α ≥ short_step``); past ``regularization_max`` the status is
+            ``MAX_REGULARIZATION``.
         short_step: the step size below which the next iteration is regularised more (a shorter, more
             gradient-like step where the Newton model was poor). At 0.1 the regularisation that an early cut step
             raised was carried by every later partial step: the cart-pole without bounds took 219 iterations at
@@ -102,6 +105,21 @@ class EILQROptions:
             cartpole_unconstrained 42/64 converged, the others crawling at ``α = 1/16`` along valleys of negative
             curvature; with 10, 64/64 each, at IPOPT's optima or lower ones, and the problems' own starts no slower
             (the pendulum 152 → 47 iterations, the cart-pole 72 → 40).
+        terminal_rows: how the Newton step holds the terminal equality rows (:func:`~torchtraj.riccati.factorize`):
+            ``"range-space"``, the unconstrained sweep and the rows' Schur complement
+            (:mod:`~torchtraj.riccati.range_space`, the interior point's default), where the problem has no stage
+            equality rows and the initial state is fixed; ``"back-propagation"``, Horizon's constraint
+            back-propagation (§II-B/C) always. Both solve the same Newton system; they differ in round-off. With a
+            goal the controls must reach, the back-propagation fixes the last few controls by the terminal rows
+            (on quadrotor2d, all six rows by the last three controls, singular values down to ``1.5e-5``), so the
+            value function's Hessians there grow as their inverse squares and the step's multipliers lose their
+            accuracy: on ``sample_x0("quadrotor2d", 64, 0)`` start 17, iteration 2, its terminal multipliers were
+            ``1.2e7`` and its costates ``4.9e9`` where a dense solve of the same system and the range-space method
+            give ``675``; moved into the iterate, they made the Lagrangian's Hessian indefinite by ``1e6`` (the
+            regularisation's 140 iterations of crawl) and ended the solve ``MAX_REGULARIZATION`` (issue 23). The
+            range-space method asks the inertia test for a positive definite ``Q_uu`` at every stage (with the
+            rows' projector added to ``Q_N``), the back-propagation on the controls the rows leave free, so ``ε``
+            can differ on a nonconvex problem.
         globalization: ``False`` takes the full Newton step with no line search and no regularisation (the
             paper's "crucial" ingredients left out; for experiments).
         free_initial_state: optimise ``x_0`` (Horizon §II-D): ``True`` for every component, a sequence of the
@@ -147,6 +165,7 @@ class EILQROptions:
     second_order_trials: int = 1
     second_order_correction: bool = True
     nonmonotone_memory: int = 10
+    terminal_rows: str = "range-space"
     globalization: bool = True
     free_initial_state: Union[bool, Sequence[int]] = False
     initial_eq: Optional[Callable] = None
@@ -169,6 +188,8 @@ class EILQROptions:
         if self.nonmonotone_memory < 1:
             raise ValueError(f"nonmonotone_memory must be at least 1 (1: the monotone test), "
                              f"got {self.nonmonotone_memory}")
+        if self.terminal_rows not in ("range-space", "back-propagation"):
+            raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {self.terminal_rows!r}")
         if not 0 < self.backtracking < 1:
             raise ValueError(f"backtracking must lie in (0, 1), got {self.backtracking}")
         if self.initial_eq is not None and self.free_initial_state is False:

@@ -137,8 +137,8 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         l1 = model_infeasibility(model, x0, it.X)
         if step == opts.iterations or not bool(running.any()):
             break
-        d, eps = regularized_direction(lambda e: direction(model, it, x0, e), floor, last, running, opts,
-                                       regularize=opts.globalization)
+        d, eps = regularized_direction(lambda e: direction(model, it, x0, e, opts.terminal_rows), floor, last,
+                                       running, opts, regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
         gamma = torch.where(factored, penalty(gamma, multiplier_size(d, initial is not None), opts), gamma)
         memory = memory.record(model.J, l1)
@@ -153,7 +153,10 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         last = torch.where(take & (eps > 0), eps, last)
         # Fig. 5's adaptive ε_reg: a step the merit refuses or cuts short asks for more regularisation (a shorter,
         # more gradient-like step) at the next iteration, a full one for less, down to none
-        short = factored & (~ls.found | (ls.alpha < opts.short_step))
+        # an instance whose inertia correction ran out of attempts below ``regularization_max`` keeps its iterate and
+        # starts the next iteration's correction above the largest ε tried (IPOPT's correction goes on up to
+        # δ_w^max; one iteration's attempts from a carried ε of 1e-20 reach only about 1e-9)
+        short = (factored & (~ls.found | (ls.alpha < opts.short_step))) | (running & ~factored)
         larger = torch.clamp(opts.regularization_increase * torch.maximum(floor, eps), min=opts.regularization_first)
         smaller = opts.regularization_decrease * eps
         smaller = torch.where(smaller < opts.regularization_min, 0.0, smaller)
@@ -164,7 +167,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         growth = torch.clamp(1.0 / torch.clamp(ls.alpha, min=opts.short_step), max=opts.regularization_increase)
         partial = eps * growth if opts.regularization_partial else eps
         floor = torch.where(short, larger, torch.where(full, smaller, torch.where(take, partial, floor)))
-        blown = running & (~factored | (floor > opts.regularization_max))
+        blown = running & (floor > opts.regularization_max)
         status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
         iterations = iterations + running.long()
         rows.append(dict(cost=model.J, max_violation=model.primal, step_size=torch.where(take, ls.alpha, 0.0),

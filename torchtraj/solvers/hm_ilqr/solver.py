@@ -14,7 +14,8 @@ Every instance runs the paper's two stages on the multiple-shooting M-iLQR itera
 3. **done** where ``ψ`` has reached ``ψ_min``, the violation of the constraints and the defects is at most
    ``c_min^rlb`` and the stationarity residual at the iterate, with the inequality multipliers ``z⁺`` of its Newton
    step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), is below ``stationarity_tolerance`` (that step is still
-   taken); or where an RLB iteration changes the objective by less than ``ε_v`` (the paper's test; off by default,
+   taken where the point it reaches passes the same test, else the iterate is returned); or where an RLB iteration
+   changes the objective by less than ``ε_v`` (the paper's test; off by default,
    :mod:`~torchtraj.solvers.hm_ilqr.options` says why) or the model predicts no decrease and no step is found. The
    tolerances are met at the dtype's resolution where they lie below it.
 
@@ -42,6 +43,7 @@ from torch import Tensor
 from ...core.batch import Batch
 from ...core.batching import map_stage, rollout
 from ...core.constraints import Constraints, multiplier_blocks
+from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
@@ -53,7 +55,7 @@ from .crls import iterate, regularized
 from .multipliers import stepped_multipliers, with_multipliers
 from .objective import HybridObjective, StageParameters
 from .options import HMILQROptions
-from .shooting import Segments, defects, rollout_segments
+from .shooting import Segments, defects, rollout_segments, stationarity
 
 logger = logging.getLogger("torchtraj")
 AL, RLB = 0, 1
@@ -129,11 +131,16 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         # converged: the start point is a KKT point of the problem (with the multipliers z⁺) at the barrier's
         # final weight; its step, a Newton step on the barrier problem, is taken all the same (the solution then
         # follows the barrier's minimiser smoothly in x0 and the parameters, as a re-solve from a perturbed start
-        # does: central differences of re-solves stopped a step short differed from the gradient by 6e-4)
+        # does: central differences of re-solves stopped a step short differed from the gradient by 6e-4), where its
+        # point passes the same test; where it does not, the start point is returned (_stepped_stationarity)
         kkt = (active & s.rlb & (violation <= tol.constraint) & (s.psi <= tol.barrier * (1 + 1e-9))
                & (t.residual <= tol.stationarity))
         dJ = J - t.J
+        start = X, U, J, D
         X, U, J, D = t.X, t.U, t.J, t.D
+        if bool(kkt.any()):  # the step's point must pass the test as well, or the start point is returned
+            back = kkt & ~(_stepped_stationarity(objective, X, U, params, segments) <= tol.stationarity)
+            X, U, J, D = (where_rows(back, before, after) for before, after in zip(start, (X, U, J, D)))
         iterations = iterations + active.long()
         # regularisation: CRLS keeps what it reached; plain LS follows its schedule
         plain = torch.where(t.took | t.stationary, (mu_V / opts.regularization_increase).clamp_min(
@@ -218,19 +225,36 @@ def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb,
                            psi=torch.where(update_rlb, psi, s.psi), delta=torch.where(update_rlb, delta, s.delta))
 
 
+def _final_step(objective, X, U, params, segments) -> tuple:
+    """``(lqr, rhs, rows, factor, step, z, zN)`` at ``(X, U)``: the expansion, the unregularised LQR step with its
+    multipliers and the inequality rows' multipliers ``z⁺`` corrected along it
+    (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), what a solution reports."""
+    lqr, rhs, f, rows = objective.expand(X, U, params)
+    rhs.c = defects(f, X, segments)
+    factor = factorize(regularized(lqr, X.new_zeros(X.shape[0])))
+    step = factor.solve(rhs, multipliers=True)
+    z, zN = stepped_multipliers(rows, step.dx, step.du, objective.params.rlb)
+    return lqr, rhs, rows, factor, step, z, zN
+
+
+def _stepped_stationarity(objective, X, U, params, segments) -> Tensor:
+    """The stationarity residual ``(B,)`` at ``(X, U)`` with the multipliers a solution there reports: the last
+    step of a converged instance is taken from a point that passed the test, and the Gauss-Newton model (no
+    curvature of the dynamics) can leave the new point less stationary (quadrotor2d's ``sample_x0`` starts 38, 50
+    and 53: 2.1e-7 before the step, 1.1e-6 after, above the certificate's 1e-6)."""
+    lqr, rhs, rows, _, step, z, zN = _final_step(objective, X, U, params, segments)
+    return stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), step.nu, step.nuN)
+
+
 def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method):
     """Gains, costates and multipliers at the final point (one more expansion and LQR solve), and the
     :class:`Solution`."""
-    lqr, rhs, f, ineq_rows = objective.expand(X, U, params)
-    rhs.c = defects(f, X, segments)
-    factor = factorize(regularized(lqr, torch.zeros_like(mu_V)))
     # the equality rows' multipliers ν of the LQR step at the final point; the costates from the Lagrangian's
     # stationarity in the states, λ_N = q_N + C_Nᵀ ν_N, λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k (q holds the inequality
-    # rows' P'), which at a converged point is the Riccati costate without its step terms
-    step = factor.solve(rhs, multipliers=True)
-    # the inequality rows' multipliers corrected along that step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`)
+    # rows' P'), which at a converged point is the Riccati costate without its step terms; the inequality rows'
+    # multipliers corrected along that step
+    lqr, rhs, ineq_rows, factor, step, z, zN = _final_step(objective, X, U, params, segments)
     ineq, ineqN = objective.multipliers(X, U, params)
-    z, zN = stepped_multipliers(ineq_rows, step.dx, step.du, objective.params.rlb)
     ineq, ineqN = ineq if z is None else z, ineqN if zN is None else zN
     rhs = with_multipliers(rhs, ineq_rows, X.shape[-1], z, zN)
     B = X.shape[0]
