@@ -83,6 +83,7 @@ def test_the_terminal_rows_multipliers_are_the_dense_kkt_solves():
     assert d.lam.abs().max() < 1e3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("start", [17, 47])
 def test_a_start_that_ended_max_regularization_converges_at_a_kkt_point(start):
     """Starts 17 and 47 of ``sample_x0("quadrotor2d", 64, seed=0)`` ended ``MAX_REGULARIZATION`` after 175 and 172

@@ -5,6 +5,7 @@
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 import torchtraj as tt
@@ -14,6 +15,7 @@ IPOPT = json.loads((Path(__file__).parent / "data" / "quadrotor2d_starts.json").
 STARTS = [38, 50, 53]
 
 
+@pytest.mark.slow
 def test_a_converged_solve_returns_a_point_that_passed_its_own_test():
     """Starts 38, 50 and 53 of ``sample_x0("quadrotor2d", 64, seed=0)`` ended ``STALLED``: the stationarity test
     held at the start of the last iteration (2.1e-7 on start 50, below the solver's 5e-7), the step was taken all
