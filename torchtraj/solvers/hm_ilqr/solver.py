@@ -10,7 +10,10 @@ Every instance runs the paper's two stages on the multiple-shooting M-iLQR itera
    ``al_iterations``);
 2. **RLB stage** (Algorithm 3): M-iLQR iterations on ``J_2`` with CRLS (:mod:`~torchtraj.solvers.hm_ilqr.crls`),
    ``ψ, δ`` follow (18a-b) after a step whose predicted decrease was below ``κ ψ`` (the barrier problem of that
-   ``ψ`` nearly solved);
+   ``ψ`` nearly solved). Beyond the paper (``dynamics_curvature``, ``second_order_correction``, on by default):
+   the model adds the dynamics' curvature where it stays convex (Newton's model of the barrier problem;
+   :mod:`~torchtraj.solvers.hm_ilqr.objective`), the Gauss-Newton one elsewhere and once after a failed
+   iteration with it, and a refused full step gets a second-order correction (:mod:`~torchtraj.solvers.hm_ilqr.crls`);
 3. **done** where ``ψ`` has reached ``ψ_min``, the violation of the constraints and the defects is at most
    ``c_min^rlb`` and the stationarity residual at the iterate, with the inequality multipliers ``z⁺`` of its Newton
    step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), is below ``stationarity_tolerance`` (that step is still
