@@ -139,13 +139,20 @@ def stationarity(lqr, rhs, nu=None, nuN=None) -> Tensor:
     controls at the expansion point, with the costates of its stationarity in the states, ``λ_N = q_N + C_Nᵀ ν_N``,
     ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k`` (the KKT certificate's, :mod:`torchtraj.kkt.certificate`, for the
     multipliers ``P'`` that ``q``, ``r`` hold), and the held rows' multipliers ``ν``, ``ν_N`` of an LQR step."""
-    last, local, reduced = rhs.qN, rhs.q, rhs.r
+    lam = costates(lqr, rhs, nu, nuN)
+    reduced = rhs.r
+    if nu is not None and lqr.C is not None and nu.shape[-1]:
+        reduced = reduced + matvec(lqr.D.transpose(-1, -2), nu * lqr.mask)
+    reduced = reduced + matvec(lqr.B.transpose(-1, -2), lam[:, 1:])
+    return reduced.abs().flatten(1).amax(-1)
+
+
+def costates(lqr, rhs, nu=None, nuN=None) -> Tensor:
+    """``λ (B, N+1, nx)`` that make the objective's Lagrangian stationary in the states at the expansion point:
+    ``λ_N = q_N + C_Nᵀ ν_N``, ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k`` (the held rows' ``ν``, ``ν_N``; none: 0)."""
+    last, local = rhs.qN, rhs.q
     if nuN is not None and lqr.CN is not None and nuN.shape[-1]:
         last = last + matvec((lqr.CN * lqr.maskN.unsqueeze(-1)).transpose(-1, -2), nuN)
     if nu is not None and lqr.C is not None and nu.shape[-1]:
-        held = nu * lqr.mask
-        local = local + matvec(lqr.C.transpose(-1, -2), held)
-        reduced = reduced + matvec(lqr.D.transpose(-1, -2), held)
-    lam = costate_stages(lqr.A, local, last)
-    reduced = reduced + matvec(lqr.B.transpose(-1, -2), lam[:, 1:])
-    return reduced.abs().flatten(1).amax(-1)
+        local = local + matvec(lqr.C.transpose(-1, -2), nu * lqr.mask)
+    return costate_stages(lqr.A, local, last)

@@ -10,7 +10,10 @@ Every instance runs the paper's two stages on the multiple-shooting M-iLQR itera
    ``al_iterations``);
 2. **RLB stage** (Algorithm 3): M-iLQR iterations on ``J_2`` with CRLS (:mod:`~torchtraj.solvers.hm_ilqr.crls`),
    ``ψ, δ`` follow (18a-b) after a step whose predicted decrease was below ``κ ψ`` (the barrier problem of that
-   ``ψ`` nearly solved);
+   ``ψ`` nearly solved). Beyond the paper (``dynamics_curvature``, ``second_order_correction``, on by default):
+   the model adds the dynamics' curvature where it stays convex (Newton's model of the barrier problem;
+   :mod:`~torchtraj.solvers.hm_ilqr.objective`), the Gauss-Newton one elsewhere and once after a failed
+   iteration with it, and a refused full step gets a second-order correction (:mod:`~torchtraj.solvers.hm_ilqr.crls`);
 3. **done** where ``ψ`` has reached ``ψ_min``, the violation of the constraints and the defects is at most
    ``c_min^rlb`` and the stationarity residual at the iterate, with the inequality multipliers ``z⁺`` of its Newton
    step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), is below ``stationarity_tolerance`` (that step is still
@@ -51,7 +54,7 @@ from ...kkt.model import total_cost
 from ...riccati import factorize
 from .augmented_lagrangian import increased_penalty, updated_multipliers
 from .barrier import updated_barrier
-from .crls import iterate, regularized
+from .crls import iterate, regularized, with_curvature
 from .multipliers import stepped_multipliers, with_multipliers
 from .objective import HybridObjective, StageParameters
 from .options import HMILQROptions
@@ -115,6 +118,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     tol = opts.tolerances(x0.dtype)
     rows = []
     stationarity = torch.zeros_like(mu_V)  # the last running iterate's: a stopped instance's history repeats it
+    nu = nuN = None
+    flat = torch.zeros(B, dtype=torch.bool, device=x0.device)
     for it in range(opts.iterations):
         active = status == Status.RUNNING
         if not bool(active.any()):  # the iteration's host synchronisation
@@ -124,10 +129,18 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         rhs.c = defects(f, X, segments)
         crls = s.rlb & opts.crls
         start_mu_V = torch.where(crls, torch.full_like(mu_V, opts.regularization_initial), mu_V)
+        curved = active & s.rlb & ~flat
+        if opts.dynamics_curvature and bool(curved.any()):  # the iteration's second host synchronisation
+            lqr, curved = with_curvature(lqr, objective.dynamics_curvature(lqr, rhs, X, U, params, curved, nu, nuN),
+                                         curved, start_mu_V)
+        else:
+            curved = torch.zeros_like(curved)
         t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
-                    defect_weight if opts.monotone_defect_weight else None)
+                    defect_weight if opts.monotone_defect_weight else None, curved)
         defect_weight = torch.where(active & t.took, torch.maximum(defect_weight, t.weight), defect_weight)
         stationarity = torch.where(active, t.residual, stationarity)
+        # the held rows' multipliers for the next expansion's costates (the last LQR step's)
+        nu, nuN = _finite(t.nu, nu, active), _finite(t.nuN, nuN, active)
         # converged: the start point is a KKT point of the problem (with the multipliers z⁺) at the barrier's
         # final weight; its step, a Newton step on the barrier problem, is taken all the same (the solution then
         # follows the barrier's minimiser smoothly in x0 and the parameters, as a re-solve from a perturbed start
@@ -154,7 +167,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         done = kkt | (active & s.rlb & moved & (violation <= tol.constraint)
                       & (s.psi <= tol.barrier * (1 + 1e-9))
                       & (t.stationary | (dJ.abs() < opts.cost_tolerance)))
-        failed = active & t.failed & (crls | (mu_V >= opts.regularization_max)) & ~kkt
+        failed = active & t.failed & (crls | (mu_V >= opts.regularization_max)) & ~kkt & ~curved
+        flat = torch.where(active, t.failed & curved, flat)  # the Gauss-Newton model once after a failed Newton one
         # the paper's pure LS (Fig. 5): a failed line search of the RLB stage ends the solve
         stopped = active & t.failed & s.rlb & ~crls & opts.failed_search_stops & ~kkt & ~failed
         # AL stage: multipliers and penalty after every iteration (eqs. 15-16); RLB stage: ψ, δ (18) and the
@@ -191,6 +205,16 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
                         float(rows[-1]["cost"].max()), float(violation.max()), int(s.rlb.sum()), int(active.sum()))
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
     return _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method)
+
+
+def _finite(new, old, active):
+    """``new`` where finite and ``active (B,)``, else ``old`` (0 where there is none); ``None`` stays ``None``."""
+    if new is None:
+        return old
+    if old is None:
+        old = torch.zeros_like(new)
+    keep = active.reshape(-1, *([1] * (new.dim() - 1))) & torch.isfinite(new)
+    return torch.where(keep, new, old)
 
 
 def _max_defect(X, U, problem, params, segments) -> Tensor:
