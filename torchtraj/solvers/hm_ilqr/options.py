@@ -153,9 +153,12 @@ class HMILQROptions:
 
     @classmethod
     def fast(cls, **changes) -> "HMILQROptions":
-        """The paper's exit criteria (``ε_v = 1e-3``, ``c_min^rlb = 1e-7``, ``MaxIter = 100``): fewer iterations, a
-        point short of the optimum that ``tt.solve`` reports ``STALLED`` unless it is a KKT point."""
-        return cls(**{"cost_tolerance": 1e-3, "constraint_tolerance": 1e-7, "iterations": 100, **changes})
+        """The paper's exit criteria (``ε_v = 1e-3``, ``c_min^rlb = 1e-7``, ``MaxIter = 100``) and its model (no
+        dynamics curvature, no second-order correction, which cost an expansion, a factorisation and a rollout more
+        an iteration): fewer, cheaper iterations (a control step's), a point short of the optimum that ``tt.solve``
+        reports ``STALLED`` unless it is a KKT point."""
+        return cls(**{"cost_tolerance": 1e-3, "constraint_tolerance": 1e-7, "iterations": 100,
+                      "dynamics_curvature": False, "second_order_correction": False, **changes})
 
     def tolerances(self, dtype: torch.dtype) -> "Tolerances":
         """The exit tolerances and the barrier's floors in ``dtype`` (:class:`Tolerances`)."""
