@@ -33,6 +33,10 @@ def _entry(rank: int, world: int, port: int, fn, args) -> None:
                             timeout=datetime.timedelta(seconds=COLLECTIVE_TIMEOUT_S))
     try:
         fn(rank, world, *args)
+        # every rank past its last collective before any tears its Gloo context down: a rank that destroyed its
+        # group while the other was still in one once aborted it (SIGABRT, "terminate called without an active
+        # exception") in a full test run
+        dist.barrier()
     finally:
         dist.destroy_process_group()
 
