@@ -110,8 +110,9 @@ class NewtonStep:
 
 
 def newton_step(lqr: LQR, rhs: LQRVectors, regularization: Optional[Tensor] = None,
-                rank_tolerance: Optional[float] = None, multipliers: bool = True) -> NewtonStep:
-    """Factorise ``lqr`` (:func:`~torchtraj.riccati.factorize`, ``regularization (B,)`` on ``Q_uu`` for the gains)
-    and solve for ``rhs``, with the multipliers unless ``multipliers=False``."""
-    factor = factorize(lqr, regularization, rank_tolerance=rank_tolerance)
+                rank_tolerance: Optional[float] = None, multipliers: bool = True,
+                terminal_rows: str = "back-propagation") -> NewtonStep:
+    """Factorise ``lqr`` (:func:`~torchtraj.riccati.factorize`, ``regularization (B,)`` on ``Q_uu`` for the gains,
+    its ``terminal_rows``) and solve for ``rhs``, with the multipliers unless ``multipliers=False``."""
+    factor = factorize(lqr, regularization, rank_tolerance=rank_tolerance, terminal_rows=terminal_rows)
     return NewtonStep(factor=factor, step=factor.solve(rhs, multipliers=multipliers))

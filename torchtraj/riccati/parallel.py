@@ -58,7 +58,7 @@ from torch import Tensor
 from ..core.compiled import matmul as _mm
 from .bounds import _bound_multipliers, _held_controls, _held_values
 from .factor import RiccatiFactor
-from .linalg import _cholesky, _cholesky_solve, _factored_solve, _mT, _sym
+from .linalg import _batch_first, _cholesky, _cholesky_solve, _factored_solve, _mT, _sym
 from .lqr import LQR, LQRSolution, LQRVectors
 from .parallel_scan import affine_scan, associative_scan
 from .sanitize import _sanitize_stacked, all_finite
@@ -105,13 +105,6 @@ def choose_sweep(lqr: LQR, sweep: str) -> str:
 def _time_major(x: Tensor) -> Tensor:
     """``x (B, N, n)`` as a time-major column stack ``(N·B, n, 1)``."""
     return x.transpose(0, 1).reshape(-1, x.shape[-1], 1)
-
-
-def _batch_first(x: Tensor, B: int) -> Tensor:
-    """``x (N·B, …)`` time-major as a batch-first ``(B, N, …)`` view; a column stack loses its last dimension."""
-    if x.shape[-1] == 1 and x.dim() == 3:
-        x = x.squeeze(-1)
-    return x.unflatten(0, (-1, B)).transpose(0, 1)
 
 
 @dataclass

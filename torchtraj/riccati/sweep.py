@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from ..core.compiled import addmatmul, matmul
-from .linalg import _cholesky, _cholesky_solve, _mT, _time_major
+from .linalg import _batch_first, _cholesky, _cholesky_solve, _mT, _time_major
 
 
 def _stages(a: Tensor) -> tuple:
@@ -128,11 +128,6 @@ def _flat(a: Tensor) -> Tensor:
     return a.transpose(0, 1).reshape(-1, *a.shape[2:])
 
 
-def _batch_first(a: Tensor, Bsz: int) -> Tensor:
-    """``a (T·B, ...)`` time-major as the batch-first view ``(B, T, ...)``."""
-    return a.unflatten(0, (-1, Bsz)).transpose(0, 1)
-
-
 def _feedforward(Quu: Tensor, chol: Tensor, held: Optional[Tensor], value: Optional[Tensor]) -> tuple:
     """The feedforward as an affine map of the stage's ``Q_u``, ``k_k = k0_k + G_k Q_u``, time-major
     (``(N·B, ...)``): ``(gain, k0)``, where ``gain(Y)`` is ``G Y`` for any columns ``Y (N·B, nu, m)`` and ``k0``
@@ -202,7 +197,7 @@ def solve_stages(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, chol
     p = torch.stack(ps, 0)  # (N+1, B, nx, 1)
     Qu = addmatmul(r_col, _mT(Bu), Pc + p[1:].flatten(0, 1))
     k = gain(Qu) if k0 is None else k0 + gain(Qu)
-    return (_batch_first(k.squeeze(-1), Bsz), p.squeeze(-1).transpose(0, 1), _batch_first(Qu.squeeze(-1), Bsz))
+    return _batch_first(k, Bsz), p.squeeze(-1).transpose(0, 1), _batch_first(Qu, Bsz)
 
 
 def expected_change(k: Tensor, Qu: Tensor, Quu: Tensor) -> tuple:
@@ -229,7 +224,7 @@ def forward_stages(W: Tensor, K: Tensor, k: Tensor, c: Tensor, x0: Tensor) -> tu
         xs.append(x)
     X = torch.stack(xs, 0)  # (N+1, B, nx, 1)
     u = addmatmul(kt, Kt, X[:-1].flatten(0, 1))
-    return X.squeeze(-1).transpose(0, 1), _batch_first(u.squeeze(-1), Bsz)
+    return X.squeeze(-1).transpose(0, 1), _batch_first(u, Bsz)
 
 
 def costate_stages(A: Tensor, local: Tensor, last: Tensor) -> Tensor:

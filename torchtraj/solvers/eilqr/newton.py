@@ -31,8 +31,8 @@ from torch import Tensor
 
 from ...core.masks import where_rows
 from ...globalization.regularization import corrected_attempts
-from ...kkt.newton import held_lqr, newton_rhs
-from ...riccati import RiccatiFactor, all_finite, factorize
+from ...kkt.newton import held_lqr, newton_rhs, newton_step
+from ...riccati import RiccatiFactor, all_finite
 from .initial_state import initial_step
 from .model import Iterate, Model
 from .options import EILQROptions
@@ -79,8 +79,8 @@ def direction(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
                    rowsN=model.HN if meN else None)
     rhs = _rhs(model, it, x0)
     rows = terminal_rows if model.initial is None else "back-propagation"
-    factor = factorize(lqr, terminal_rows=rows)
-    return _completed(factor, rhs, factor.solve(rhs, multipliers=model.initial is None), model, it)
+    ns = newton_step(lqr, rhs, multipliers=model.initial is None, terminal_rows=rows)
+    return _completed(ns.factor, rhs, ns.step, model, it)
 
 
 def resolve(d: Direction, model: Model, it: Iterate, x0: Tensor) -> Direction:
