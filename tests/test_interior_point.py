@@ -469,6 +469,38 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, mo
         same(gathered.history.extra[name], whole.history.extra[name], name)
 
 
+def test_corrections_on_the_pending_instances_alone_change_no_answer(monkeypatch):
+    """The inertia correction's attempts after the first factorise only the instances still pending (gathered),
+    not the whole batch again: every field of the solution and of its history is the one of whole-batch attempts,
+    bit for bit, on pendulum starts where some instances need corrections at some iterations and others do not."""
+    from torchtraj.solvers.ipm import solver as interior_point
+
+    problem = tt.problems.get("pendulum")
+    x0 = tt.problems.sample_x0("pendulum", 6, 0)
+    options = tt.IPOptions(iterations=12, compact_below=0.0)
+    original = interior_point.regularized_direction
+    retried = []
+
+    def counted(attempt, *args, by_rows=False):
+        def counting(delta, rows=None):
+            if rows is not None:
+                retried.append(rows.numel())
+            return attempt(delta) if rows is None else attempt(delta, rows)
+        return original(counting, *args, by_rows=by_rows)
+
+    monkeypatch.setattr(interior_point, "regularized_direction", counted)
+    by_rows = tt.solve(problem, x0, method="ipm", options=options)
+    assert retried and max(retried) < x0.shape[0]  # corrections were made, never for the whole batch
+    monkeypatch.setattr(interior_point, "regularized_direction", lambda *args, by_rows=False: original(*args))
+    whole = tt.solve(problem, x0, method="ipm", options=options)
+    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
+        torch.testing.assert_close(getattr(by_rows, name), getattr(whole, name), rtol=0, atol=0, msg=name)
+    for name in whole.multipliers:
+        torch.testing.assert_close(by_rows.multipliers[name], whole.multipliers[name], rtol=0, atol=0, msg=name)
+    for name in ("cost", "max_violation", "step_size", "regularization"):
+        torch.testing.assert_close(getattr(by_rows.history, name), getattr(whole.history, name), rtol=0, atol=0)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("case", ["general", "declared", "bounds"])
 def test_cuda_graphs_replay_the_eager_solve(case):

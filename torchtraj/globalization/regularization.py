@@ -20,7 +20,7 @@ Both act on the batch: ``(B,)`` tensors in and out, one element's schedule indep
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
@@ -51,7 +51,7 @@ def inertia_correction(delta: Tensor, last: Tensor, first: float, minimum: float
 
 
 def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: Tensor, opts, pick: Callable,
-                       attempts: int) -> tuple:
+                       attempts: int, retry: Optional[Callable] = None) -> tuple:
     """IPOPT's inertia correction for a batch: the step of every ``running (B,)`` instance with the smallest
     ``δ_w`` from ``floor (B,)`` up whose reduced Hessians are positive definite.
 
@@ -59,7 +59,9 @@ def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: 
     old)`` takes ``new`` on ``mask``; ``last (B,)`` is the last nonzero ``δ_w`` that worked; ``opts`` holds the
     schedule's ``regularization_first``, ``_min``, ``_decrease``, ``_increase_first``, ``_increase`` and ``_max``.
     At most ``attempts`` attempts follow the first. An instance whose ``δ_w`` passes ``regularization_max`` or whose
-    attempts run out keeps its last, failed, step. Returns ``(step, δ_w (B,))``."""
+    attempts run out keeps its last, failed, step. ``retry(δ_w, pending, step)``, given, makes the attempts after
+    the first: the step with the ``pending (B,)`` instances' rows attempted again (on those rows alone, where the
+    solver can gather them). Returns ``(step, δ_w (B,))``."""
     delta = floor
     step = attempt(delta)
     pending = running & ~step.ok
@@ -71,6 +73,6 @@ def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: 
                                     opts.regularization_increase)
         delta = torch.where(pending, larger, delta)
         pending = pending & (delta <= opts.regularization_max)
-        step = pick(pending, attempt(delta), step)
+        step = pick(pending, attempt(delta), step) if retry is None else retry(delta, pending, step)
         pending = pending & ~step.ok
     return step, delta

@@ -66,6 +66,18 @@ class LQR:
         return cls(A=W[..., :nx], B=W[..., nx:], Q=H[..., :nx, :nx], R=H[..., nx:, nx:], S=H[..., nx:, :nx], QN=QN,
                    W=W, H=H, **constraints)
 
+    def rows(self, index: Tensor) -> "LQR":
+        """The instances ``index`` of the batch (a copy; ``bounds``, shared by the batch, stays), with their stacked
+        blocks where the batch has them."""
+        def take(a: Optional[Tensor]) -> Optional[Tensor]:
+            return None if a is None else a[index]
+
+        rows = {name: take(getattr(self, name)) for name in ("C", "D", "mask", "CN", "maskN", "root", "rootN")}
+        if self.W is not None:
+            return LQR.from_blocks(self.W[index], self.H[index], self.QN[index], bounds=self.bounds, **rows)
+        return LQR(A=self.A[index], B=self.B[index], Q=self.Q[index], R=self.R[index], S=self.S[index],
+                   QN=self.QN[index], bounds=self.bounds, **rows)
+
     @property
     def constrained(self) -> bool:
         return self.C is not None or self.CN is not None

@@ -32,11 +32,23 @@ def pick(mask: Tensor, a, b):
 
 
 def gather_rows(value, index: Tensor):
-    """The rows ``index`` of a batch-first tensor or dataclass (:class:`Model`'s ``knots`` is per stage)."""
+    """The rows ``index`` of a batch-first tensor or dataclass (:class:`Model`'s ``knots`` is per stage; ``None``
+    stays ``None``)."""
+    if value is None:
+        return None
     if isinstance(value, Tensor):
         return value[index]
     return type(value)(**{f.name: getattr(value, f.name) if f.name == "knots"
                           else gather_rows(getattr(value, f.name), index) for f in fields(value)})
+
+
+def write_rows(value, index: Tensor, rows):
+    """The batch-first dataclass ``value`` with its rows ``index`` replaced by ``rows`` (a new object; a field that
+    is no tensor, as a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factor, becomes ``None``)."""
+    def one(x, y):
+        return x.index_copy(0, index, y) if isinstance(x, Tensor) else None
+
+    return type(value)(**{f.name: one(getattr(value, f.name), getattr(rows, f.name)) for f in fields(value)})
 
 
 @dataclass

@@ -239,15 +239,17 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             target_mu = mu
         lqr, rhs = newton_lqr(model, it, target_mu, x0, nx)
 
-        def attempt(delta):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels: no kwargs)
+        def attempt(delta, rows=None):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels:
+            # no kwargs); `rows`: the instances of a correction alone (eager only, regularized_direction's by_rows)
+            system = (lqr, rhs, delta, model, it, target_mu) if rows is None else (
+                lqr.rows(rows), gather_rows(rhs, rows), delta[rows], gather_rows(model, rows), gather_rows(it, rows),
+                target_mu[rows])
             if mehrotra:
-                return direction(lqr, rhs, delta, model, it, target_mu, keep_factor=True, sweep=opts.sweep,
-                                 terminal_rows=opts.terminal_rows)
+                return direction(*system, keep_factor=True, sweep=opts.sweep, terminal_rows=opts.terminal_rows)
             # eager, the factorisation is kept for the second-order corrections (they solve the same system)
-            return direction_k(lqr, rhs, delta, model, it, target_mu, None, None, eager, opts.sweep,
-                               opts.terminal_rows)
+            return direction_k(*system, None, None, eager, opts.sweep, opts.terminal_rows)
 
-        d, delta = regularized_direction(attempt, floor, last, running, opts)
+        d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager)
         factored = running & d.ok
         lost = torch.zeros_like(running)
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
