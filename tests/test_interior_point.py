@@ -470,28 +470,36 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, mo
 
 
 def test_corrections_on_the_pending_instances_alone_change_no_answer(monkeypatch):
-    """The inertia correction's attempts after the first factorise only the instances still pending (gathered),
-    not the whole batch again: every field of the solution and of its history is the one of whole-batch attempts,
-    bit for bit, on pendulum starts where some instances need corrections at some iterations and others do not."""
+    """The inertia correction's attempts after the first, and the second-order corrections, work on the rows of the
+    instances that need them alone (gathered), not on the whole batch again: every field of the solution and of its
+    history is the one of whole-batch attempts and corrections, bit for bit, on pendulum starts where some
+    instances need them at some iterations and others do not."""
     from torchtraj.solvers.ipm import solver as interior_point
 
     problem = tt.problems.get("pendulum")
     x0 = tt.problems.sample_x0("pendulum", 6, 0)
     options = tt.IPOptions(iterations=12, compact_below=0.0)
-    original = interior_point.regularized_direction
-    retried = []
+    regularized, corrected = interior_point.regularized_direction, interior_point.correction_of_rows
+    gathered = {"attempts": [], "corrections": []}
 
-    def counted(attempt, *args, by_rows=False):
+    def counted_attempts(attempt, *args, by_rows=False):
         def counting(delta, rows=None):
             if rows is not None:
-                retried.append(rows.numel())
+                gathered["attempts"].append(rows.numel())
             return attempt(delta) if rows is None else attempt(delta, rows)
-        return original(counting, *args, by_rows=by_rows)
+        return regularized(counting, *args, by_rows=by_rows)
 
-    monkeypatch.setattr(interior_point, "regularized_direction", counted)
+    def counted_corrections(*args):
+        gathered["corrections"].append(int(args[12].sum()))  # need
+        return corrected(*args)
+
+    monkeypatch.setattr(interior_point, "regularized_direction", counted_attempts)
+    monkeypatch.setattr(interior_point, "correction_of_rows", counted_corrections)
     by_rows = tt.solve(problem, x0, method="ipm", options=options)
-    assert retried and max(retried) < x0.shape[0]  # corrections were made, never for the whole batch
-    monkeypatch.setattr(interior_point, "regularized_direction", lambda *args, by_rows=False: original(*args))
+    for counts in gathered.values():  # made, and never for the whole batch
+        assert counts and min(counts) > 0 and max(counts) < x0.shape[0], gathered
+    monkeypatch.setattr(interior_point, "regularized_direction", lambda *args, by_rows=False: regularized(*args))
+    monkeypatch.setattr(interior_point, "correction_of_rows", interior_point.second_order_correction)
     whole = tt.solve(problem, x0, method="ipm", options=options)
     for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
         torch.testing.assert_close(getattr(by_rows, name), getattr(whole, name), rtol=0, atol=0, msg=name)

@@ -27,11 +27,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ...core.batching import param_rows
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...riccati import LQR
-from .compaction import pick
+from .compaction import gather_rows, pick, write_rows
 from .iterate import Iterate, Model
 from .line_search import advance, fraction_to_boundary, trial
 from .newton import Direction, direction, factorize_step, newton_rhs
@@ -89,3 +90,27 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         c_soc = tuple(_scaled(a_soc, c) + t[:, 0] for c, t in zip(c_soc, parts))
     return Correction(found=found, alpha=alpha, f_type=f_type,
                       it=advance(it, best, alpha, a_dual, mu, knots, opts))
+
+
+def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
+                       mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor,
+                       need: Tensor, a_max: Tensor, first: tuple, lqr: LQR, delta: Tensor, x0: Tensor,
+                       opts: IPOptions) -> Correction:
+    """:func:`second_order_correction` of the instances ``need (B,)`` on their rows alone (eager solves), gathered
+    with their parameters; the others' ``found`` is false. Their system is factorised again for them (the
+    step's factorisation is of the whole batch): in a large batch a few instances need a correction, and a
+    factorisation or a solve of all would be made for them. Each instance's arithmetic is the same."""
+    rows = need.nonzero().squeeze(-1)
+    if rows.numel() == need.shape[0]:
+        return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
+                                       theta_min, need, a_max, first, lqr, delta, x0, opts)
+    sub = second_order_correction(
+        problem, cons, param_rows(params, rows), gather_rows(it, rows),
+        gather_rows(dataclasses.replace(d, factor=None), rows), gather_rows(model, rows),
+        *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
+        *(v[rows] for v in (theta_max, theta_min, need, a_max)), tuple(t[rows] for t in first), lqr.rows(rows),
+        delta[rows], x0[rows], opts)
+    return Correction(found=torch.zeros_like(need).index_copy(0, rows, sub.found),
+                      alpha=torch.zeros_like(mu).index_copy(0, rows, sub.alpha),
+                      f_type=torch.zeros_like(need).index_copy(0, rows, sub.f_type),
+                      it=write_rows(it, rows, sub.it))

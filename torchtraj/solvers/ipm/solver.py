@@ -74,7 +74,7 @@ from .newton import direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
 from .scaling import scaled_problem, unscale
-from .soc import second_order_correction
+from .soc import correction_of_rows, second_order_correction
 from .watchdog import Watchdog, count_steps, merge_steps, watched_step
 
 logger = logging.getLogger("torchtraj")
@@ -256,9 +256,11 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
         else:
-            def correct(need, a_max, phi, slope, first):  # W&B §2.3, on this iteration's system
-                return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
-                                               theta_min, need, a_max, first, lqr, delta, x0, opts)
+            def correct(need, a_max, phi, slope, first):  # W&B §2.3, on this iteration's system (eager: the rows of
+                # the instances that need it alone)
+                return (correction_of_rows if eager else second_order_correction)(
+                    problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min, need, a_max,
+                    first, lqr, delta, x0, opts)
 
             lost = running & ~d.ok & wd.running()  # a watchdog's full steps led where no step is found: back
             if may_return:  # a watchdog ran at the last synchronisation: no host test of `lost` itself
