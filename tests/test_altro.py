@@ -124,3 +124,49 @@ def test_warm_started_duals_resolve_in_few_iterations():
     assert warm.status[0] == tt.Status.CONVERGED
     assert int(warm.iterations[0]) < int(cold.iterations[0]) // 5
     assert abs(float(warm.cost[0] - cold.cost[0])) < 1e-6
+
+
+@pytest.mark.parametrize("method", ["altro", "ilqr"])
+def test_iterating_on_the_running_instances_alone_changes_no_answer(method, monkeypatch):
+    """``ILQROptions.compact_below``: once instances have finished, the iLQR iterations run on the others alone
+    (gathered, with their own parameters and multipliers). Every field of the solution and of its history is the
+    same as without, bit for bit, where instances stop at different iterations, a parameter differs per instance
+    and one instance fails (a NaN start)."""
+    from small_problems import oscillator, pendulum10
+
+    from torchtraj.iterations import ilqr as ilqr_module
+
+    gathered = []
+    original = ilqr_module._on_rows
+    monkeypatch.setattr(ilqr_module, "_on_rows", lambda iteration, rows, *args: gathered.append(rows.numel())
+                        or original(iteration, rows, *args))
+    x0 = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2], [float("nan"), 0.0], [0.9, 0.4], [0.4, -0.2]],
+                      dtype=torch.float64)
+    if method == "altro":
+        k = torch.tensor([2.0, 1.0, 3.0, 2.5, 1.5, 2.0], dtype=torch.float64)
+        problem = oscillator().with_params(k=k, goal=torch.tensor([-0.5, 0.0], dtype=torch.float64).repeat(6, 1))
+
+        def options(compact_below):
+            return tt.ALTROOptions(ilqr=tt.ILQROptions(compact_below=compact_below))
+    else:
+        problem = pendulum10(N=20)
+
+        def options(compact_below):
+            return tt.ILQROptions(compact_below=compact_below)
+    whole = tt.solve(problem, x0, method=method, options=options(0.0))
+    assert not gathered
+    compacted = tt.solve(problem, x0, method=method, options=options(0.99))
+    assert gathered and min(gathered) >= 1 and max(gathered) < x0.shape[0]
+    assert whole.status[3] == tt.Status.NON_FINITE and len(set(whole.iterations.tolist())) >= 3
+
+    def same(a, b, name):  # bit for bit, NaN where NaN
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=name)
+
+    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
+        same(getattr(compacted, name), getattr(whole, name), name)
+    for name in whole.multipliers:
+        same(compacted.multipliers[name], whole.multipliers[name], name)
+    for name in ("cost", "max_violation", "step_size", "regularization"):
+        same(getattr(compacted.history, name), getattr(whole.history, name), name)
+    for name in whole.history.extra:
+        same(compacted.history.extra[name], whole.history.extra[name], name)

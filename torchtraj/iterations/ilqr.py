@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..core.batching import closed_loop_rollout
+from ..core.batching import closed_loop_rollout, param_rows
 from ..core.compiled import kernel
 from ..core.masks import where_rows
 from ..core.problem import Problem
@@ -87,6 +87,11 @@ class ILQROptions:
     line_search_steps: int = 20
     #: Step sizes simulated together per round; 0 picks ``min(steps, 8192 // B)``.
     line_search_parallel: int = 0
+    #: Once the running instances are at most this share of the batch, an iteration runs on their rows alone
+    #: (gathered with their parameters and multipliers; the others are returned unchanged as always): the answers are
+    #: the same, bit for bit, and the finished instances stop costing arithmetic. ``0``: never; off with ``compile``
+    #: (its kernels are specialised to the batch size).
+    compact_below: float = 0.75
     #: Divergence limits on the cost and on |x| (``max_cost_value``, ``max_state_value``).
     max_cost: float = 1e8
     max_state: float = 1e8
@@ -173,6 +178,10 @@ class CostObjective:
     def expand(self, X: Tensor, U: Tensor, params):
         return cost_model(self.problem, X, U, params)
 
+    def rows(self, index: Tensor) -> "CostObjective":
+        """The objective of the instances ``index`` (the same: it holds nothing per instance)."""
+        return self
+
 
 @dataclass
 class Step:
@@ -231,8 +240,32 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
     """
     cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
     iteration = kernel(_iteration, opts.compile)
-    return iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts,
-                     backward or riccati_backward(opts.sweep), cost_tolerance)
+    backward = backward or riccati_backward(opts.sweep)
+    if opts.compact_below > 0 and not opts.compile:
+        rows = active.nonzero().squeeze(-1)  # the iteration's host synchronisation
+        if 0 < rows.numel() <= opts.compact_below * active.shape[0]:
+            return _on_rows(iteration, rows, problem, objective, params, x0, X, U, J, rho, drho, active, opts,
+                            backward, cost_tolerance)
+    return iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts, backward, cost_tolerance)
+
+
+def _on_rows(iteration, rows: Tensor, problem, objective, params, x0, X, U, J, rho, drho, active, opts, backward,
+             cost_tolerance) -> Step:
+    """:func:`_iteration` on the instances ``rows`` alone (``ILQROptions.compact_below``), gathered; the others'
+    fields of the :class:`Step` are those of an instance outside ``active``: unchanged, no step, zero where the
+    callers read them only for active instances (gains, stationarity)."""
+    tol = cost_tolerance[rows] if isinstance(cost_tolerance, Tensor) and cost_tolerance.dim() else cost_tolerance
+    s = iteration(problem, objective.rows(rows), param_rows(params, rows), x0[rows], X[rows], U[rows], J[rows],
+                  rho[rows], drho[rows], active[rows], opts, backward, tol)
+
+    def put(full: Tensor, part: Tensor) -> Tensor:
+        return full.index_copy(0, rows, part)
+
+    no, zero = torch.zeros_like(active), torch.zeros_like(J)
+    K = X.new_zeros(X.shape[0], *s.K.shape[1:])
+    return Step(put(X, s.X), put(U, s.U), put(J, s.J), put(rho, s.rho), put(drho, s.drho), put(no, s.took),
+                put(no, s.converged), put(no, s.blown), put(zero, s.alpha), put(K, s.K), put(zero, s.dJ),
+                put(zero, s.stationarity))
 
 
 def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts: ILQROptions, backward,

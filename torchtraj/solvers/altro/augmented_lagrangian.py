@@ -21,6 +21,7 @@ are multiplied by zero, so they never contribute and their multipliers stay zero
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -56,6 +57,10 @@ class Duals:
         stage = like.new_zeros(batch, N, m)
         terminal = like.new_zeros(batch, mN)
         return cls(stage, terminal, torch.full_like(stage, penalty), torch.full_like(terminal, penalty))
+
+    def rows(self, index: Tensor) -> "Duals":
+        """The instances ``index`` of the batch."""
+        return Duals(self.stage[index], self.terminal[index], self.stage_penalty[index], self.terminal_penalty[index])
 
     def where(self, mask: Tensor, other: "Duals") -> "Duals":
         """``self`` for the instances in ``mask (B,)``, ``other`` elsewhere."""
@@ -128,6 +133,12 @@ class AugmentedLagrangian:
         self.is_ineqN = torch.arange(c.miN + c.meN, device=self.problem.device) < c.miN
         #: number of inequality rows that apply (the mean multiplier of :meth:`complementarity`)
         self.ineq_rows = int((self.knot_mask * self.is_ineq).sum()) + c.miN
+
+    def rows(self, index: Tensor) -> "AugmentedLagrangian":
+        """``L_A`` of the instances ``index`` of the batch (their duals)."""
+        out = copy.copy(self)
+        out.duals = self.duals.rows(index)
+        return out
 
     # the stacked per-instance constraint functions
     def stage_fn(self, x: Tensor, u: Tensor, p) -> Tensor:
