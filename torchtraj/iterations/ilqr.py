@@ -85,7 +85,9 @@ class ILQROptions:
     line_search_upper: float = 10.0
     #: Number of step sizes tried, all in one batched rollout (``iterations_linesearch``).
     line_search_steps: int = 20
-    #: Step sizes simulated together per round; 0 picks ``min(steps, 8192 // B)``.
+    #: Step sizes simulated together per round; 0 picks ``min(steps, 2048 // B)`` (at least 1): at small batches a
+    #: round costs its calls, and all step sizes go together; at large ones it costs its arithmetic, and the full step
+    #: is mostly taken. The accepted step is the same whatever the rounds.
     line_search_parallel: int = 0
     #: Once the running instances are at most this share of the batch, an iteration runs on their rows alone
     #: (gathered with their parameters and multipliers; the others are returned unchanged as always): the answers are
@@ -137,7 +139,7 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
     """
     B = U.shape[0]
     L = opts.line_search_steps
-    per_round = opts.line_search_parallel or max(1, min(L, 8192 // max(B, 1)))
+    per_round = opts.line_search_parallel or max(1, min(L, 2048 // max(B, 1)))
     all_alphas = opts.line_search_decrease ** torch.arange(L, dtype=X.dtype, device=X.device)
 
     def ratio_test(alphas):  # the step is accepted where the actual decrease is a fair share of the predicted one
