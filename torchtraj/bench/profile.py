@@ -14,25 +14,25 @@ from typing import Callable
 
 #: label: (file under torchtraj/, function name)
 PARTS = {
-    "expansion (torch.func derivatives)": ("augmented_lagrangian.py", "expand"),
-    "line search (batched rollouts)": ("ilqr.py", "_line_search"),
-    "Riccati factorisation": ("riccati.py", "factorize"),
-    "Riccati solve": ("riccati.py", "solve"),
-    "initial rollout": ("batching.py", "rollout"),
-    "multiplier updates": ("augmented_lagrangian.py", "updated_duals"),
-    "projection": ("projection.py", "project"),
+    "expansion (torch.func derivatives)": ("solvers/altro/augmented_lagrangian.py", "expand"),
+    "line search (batched rollouts)": ("iterations/ilqr.py", "_line_search"),
+    "Riccati factorisation": ("riccati/factorization.py", "factorize"),
+    "Riccati solve": ("riccati/factor.py", "solve"),
+    "initial rollout": ("core/batching.py", "rollout"),
+    "multiplier updates": ("solvers/altro/augmented_lagrangian.py", "updated_duals"),
+    "projection": ("solvers/altro/projection.py", "project"),
 }
 
 
 #: the same for compiled kernels (``ILQROptions.compile``), whose insides cProfile cannot see
 COMPILED_PARTS = {
-    "iterations (compiled: expansion, Riccati, line search)": ("ilqr.py", "_iteration"),
-    "AL violation and dual update": ("altro.py", "_measures"),
-    "initial rollout": ("batching.py", "rollout"),
-    "initial AL objective": ("augmented_lagrangian.py", "value"),
-    "initial AL violation": ("augmented_lagrangian.py", "violation"),
-    "MPC multiplier update": ("augmented_lagrangian.py", "updated_duals"),
-    "final cost and violation": ("altro.py", "_cost_and_violation"),
+    "iterations (compiled: expansion, Riccati, line search)": ("iterations/ilqr.py", "_iteration"),
+    "AL violation and dual update": ("solvers/altro/stages.py", "_measures"),
+    "initial rollout": ("core/batching.py", "rollout"),
+    "initial AL objective": ("solvers/altro/augmented_lagrangian.py", "value"),
+    "initial AL violation": ("solvers/altro/augmented_lagrangian.py", "violation"),
+    "MPC multiplier update": ("solvers/altro/augmented_lagrangian.py", "updated_duals"),
+    "final cost and violation": ("solvers/altro/stages.py", "_cost_and_violation"),
 }
 
 
