@@ -170,3 +170,36 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(method, monk
         same(getattr(compacted.history, name), getattr(whole.history, name), name)
     for name in whole.history.extra:
         same(compacted.history.extra[name], whole.history.extra[name], name)
+
+
+@pytest.mark.parametrize("method", ["altro", "ilqr"])
+def test_later_line_search_rounds_on_the_instances_still_looking_change_no_answer(method, monkeypatch):
+    """A line-search round after the first simulates only the instances that found no step yet (``backtrack``'s
+    ``by_rows``): the solution and its history are those of rounds over the whole batch, bit for bit, with one step
+    size a round so that instances part ways at every round."""
+    from small_problems import oscillator, pendulum10
+
+    from torchtraj.globalization import line_search
+    from torchtraj.iterations import ilqr as ilqr_module
+
+    x0 = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2], [0.1, 0.0], [0.9, 0.4], [0.4, -0.2]],
+                      dtype=torch.float64)
+    inner = tt.ILQROptions(line_search_parallel=1, compact_below=0.0)
+    if method == "altro":
+        problem, options = oscillator(), tt.ALTROOptions(ilqr=inner)
+    else:  # swinging up from far: shortened steps
+        problem, options = pendulum10(N=20), inner
+        x0 = x0 * torch.tensor([6.0, 4.0], dtype=torch.float64)
+    looked = []
+    original = line_search._round_of_rows
+    monkeypatch.setattr(line_search, "_round_of_rows", lambda evaluate, alphas, looking, *args: looked.append(
+        looking.numel()) or original(evaluate, alphas, looking, *args))
+    by_rows = tt.solve(problem, x0, method=method, options=options)
+    assert looked and max(looked) < x0.shape[0]
+    backtrack = ilqr_module.backtrack
+    monkeypatch.setattr(ilqr_module, "backtrack", lambda *args, by_rows=False: backtrack(*args))
+    whole = tt.solve(problem, x0, method=method, options=options)
+    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
+        torch.testing.assert_close(getattr(by_rows, name), getattr(whole, name), rtol=0, atol=0, msg=name)
+    for name in ("cost", "max_violation", "step_size", "regularization"):
+        torch.testing.assert_close(getattr(by_rows.history, name), getattr(whole.history, name), rtol=0, atol=0)

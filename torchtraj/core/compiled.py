@@ -7,7 +7,7 @@ Compiled by inductor into fused loops, it takes 3.5 ms (``python -m torchtraj.be
 
 * one iLQR iteration (:func:`torchtraj.solvers.ilqr.ilqr_step`: the ``torch.func`` expansion, the Riccati sweep of
   :mod:`torchtraj.riccati`, the line search's batched rollouts and the step acceptance) — one graph while the
-  line search takes a single round of step sizes (``B ≤ 2048 / line_search_steps``), else one per round;
+  line search takes a single round of step sizes (``B ≤ 8192 / line_search_steps``), else one per round;
 * the initial rollout, objective and violation, and the final gains and costates (iLQR) or cost and violation
   (ALTRO);
 * per ALTRO iteration, the violation, the multiplier update and the objective under the new multipliers

@@ -37,8 +37,8 @@ class Accepted:
     values: tuple = ()
 
 
-def backtrack(steps: Tensor, per_round: int, evaluate: Callable[[Tensor], tuple], pending: Tensor, start: Accepted,
-              sync_first: bool = False) -> Accepted:
+def backtrack(steps: Tensor, per_round: int, evaluate: Callable[..., tuple], pending: Tensor, start: Accepted,
+              sync_first: bool = False, by_rows: bool = False) -> Accepted:
     """The first accepted of the step sizes ``steps`` (``(L,)``, shared by the batch, or ``(B, L)``) per instance.
 
     ``evaluate(alphas)`` takes a round's step sizes (``steps[..., j:j + per_round]``, ``(l,)`` or ``(B, l)``) and
@@ -46,7 +46,11 @@ def backtrack(steps: Tensor, per_round: int, evaluate: Callable[[Tensor], tuple]
     ``start.values``. A round is evaluated only while some instance of ``pending (B,)`` has found no step; before
     the first round that is asked only with ``sync_first`` (a compiled caller that wants one graph leaves it off).
     An instance already ``found`` at the start keeps its start; the others take their first accepted candidate of
-    the first round that has one (the largest step there). Returns the :class:`Accepted` steps."""
+    the first round that has one (the largest step there). ``by_rows``: a round after the first evaluates only the
+    pending instances that found no step yet, ``evaluate(alphas, rows)`` on the rows ``rows (R,)`` of the batch
+    (``alphas`` of those rows where per instance), returning ``(R, l)``-shaped results: in a large batch most
+    instances take the full step, and the others' further rounds would evaluate the whole batch again. The same
+    candidates are evaluated for the instances that read them. Returns the :class:`Accepted` steps."""
     L = steps.shape[-1]
     shared = steps.dim() == 1
     rows = torch.arange(pending.shape[0], device=steps.device)
@@ -55,6 +59,12 @@ def backtrack(steps: Tensor, per_round: int, evaluate: Callable[[Tensor], tuple]
         if (first > 0 or sync_first) and not bool((pending & ~found).any()):
             break
         alphas = steps[..., first:first + per_round].contiguous()  # a kernel sees the strides of a fresh tensor
+        if by_rows and first > 0:
+            looking = (pending & ~found).nonzero().squeeze(-1)
+            if looking.shape[0] < pending.shape[0]:
+                found, alpha, values = _round_of_rows(evaluate, alphas if shared else alphas[looking], looking, found,
+                                                      alpha, values)
+                continue
         accept, candidates = evaluate(alphas)
         idx = first_true(accept)  # the first (largest) accepted step of the round
         new = accept.any(1) & ~found
@@ -62,3 +72,18 @@ def backtrack(steps: Tensor, per_round: int, evaluate: Callable[[Tensor], tuple]
         alpha = torch.where(new, alphas[idx] if shared else alphas[rows, idx], alpha)
         found = found | new
     return Accepted(found, alpha, values)
+
+
+def _round_of_rows(evaluate: Callable[..., tuple], alphas: Tensor, looking: Tensor, found: Tensor, alpha: Tensor,
+                   values: tuple) -> tuple:
+    """One round of :func:`backtrack` on the rows ``looking (R,)`` alone (none of them ``found``): ``(found, alpha,
+    values)`` with those rows updated."""
+    accept, candidates = evaluate(alphas, looking)
+    idx = first_true(accept)
+    new = accept.any(1)
+    rows = torch.arange(looking.shape[0], device=looking.device)
+    values = tuple(v.index_copy(0, looking, where_rows(new, c[rows, idx], v[looking]))
+                   for c, v in zip(candidates, values))
+    taken = alphas[idx] if alphas.dim() == 1 else alphas[rows, idx]
+    return (found.index_copy(0, looking, new), alpha.index_copy(0, looking, torch.where(new, taken, alpha[looking])),
+            values)

@@ -31,6 +31,7 @@ instance is running.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import torch
@@ -85,9 +86,11 @@ class ILQROptions:
     line_search_upper: float = 10.0
     #: Number of step sizes tried, all in one batched rollout (``iterations_linesearch``).
     line_search_steps: int = 20
-    #: Step sizes simulated together per round; 0 picks ``min(steps, 2048 // B)`` (at least 1): at small batches a
-    #: round costs its calls, and all step sizes go together; at large ones it costs its arithmetic, and the full step
-    #: is mostly taken. The accepted step is the same whatever the rounds.
+    #: Step sizes simulated together per round; 0 picks ``min(steps, 128 / √B)`` eager (at least 1; a round after
+    #: the first simulates only the instances still looking, :func:`~torchtraj.globalization.line_search.backtrack`):
+    #: at small batches a round costs its calls, and all step sizes go together, at large ones its arithmetic. With
+    #: ``compile``, ``min(steps, 8192 // B)`` (a single round keeps the iteration one graph). The accepted step is
+    #: the same whatever the rounds.
     line_search_parallel: int = 0
     #: Once the running instances are at most this share of the batch, an iteration runs on their rows alone
     #: (gathered with their parameters and multipliers; the others are returned unchanged as always): the answers are
@@ -139,17 +142,24 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
     """
     B = U.shape[0]
     L = opts.line_search_steps
-    per_round = opts.line_search_parallel or max(1, min(L, 2048 // max(B, 1)))
+    per_round = opts.line_search_parallel or max(1, min(L, 8192 // max(B, 1) if opts.compile
+                                                       else int(128 / math.sqrt(max(B, 1)))))
     all_alphas = opts.line_search_decrease ** torch.arange(L, dtype=X.dtype, device=X.device)
 
-    def ratio_test(alphas):  # the step is accepted where the actual decrease is a fair share of the predicted one
-        Xc, Uc = _candidates(problem, params, x0, X, U, K, d, alphas)
-        Jc = objective.value(Xc, Uc, params)  # (B, l)
-        expected = -(alphas * dV1.unsqueeze(1) + alphas**2 * dV2.unsqueeze(1))
-        actual = J.unsqueeze(1) - Jc
+    def ratio_test(alphas, rows=None):  # the step is accepted where the actual decrease is a fair share of the
+        # predicted one; `rows`: of those instances alone (backtrack's by_rows)
+        if rows is None:
+            o, p, x0_, X_, U_, K_, d_, J_, dV1_, dV2_ = objective, params, x0, X, U, K, d, J, dV1, dV2
+        else:
+            o, p = objective.rows(rows), param_rows(params, rows)
+            x0_, X_, U_, K_, d_, J_, dV1_, dV2_ = (v[rows] for v in (x0, X, U, K, d, J, dV1, dV2))
+        Xc, Uc = _candidates(problem, p, x0_, X_, U_, K_, d_, alphas)
+        Jc = o.value(Xc, Uc, p)  # (B, l)
+        expected = -(alphas * dV1_.unsqueeze(1) + alphas**2 * dV2_.unsqueeze(1))
+        actual = J_.unsqueeze(1) - Jc
         # the ratio test compared as IPOPT compares values, up to ten rounding errors of the cost: a step whose
         # predicted decrease the cost cannot resolve is judged by whether it leaves the cost where it was
-        slack = 10 * torch.finfo(J.dtype).eps * J.abs().unsqueeze(1)
+        slack = 10 * torch.finfo(J.dtype).eps * J_.abs().unsqueeze(1)
         bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
         accept = (torch.isfinite(Jc) & bounded & (expected > 0)
                   & (actual > opts.line_search_lower * expected - slack)
@@ -159,7 +169,7 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
     # no host synchronisation before the first round: a compiled iteration stays one graph while it takes one round
     start = Accepted(found=torch.zeros(B, dtype=torch.bool, device=X.device), alpha=torch.zeros_like(J),
                      values=(X, U, J))
-    step = backtrack(all_alphas, per_round, ratio_test, active, start)
+    step = backtrack(all_alphas, per_round, ratio_test, active, start, by_rows=not opts.compile)
     Xa, Ua, Ja = step.values
     return Xa, Ua, Ja, step.alpha, step.found
 
