@@ -253,7 +253,7 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
     cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
     iteration = kernel(_iteration, opts.compile)
     backward = backward or riccati_backward(opts.sweep)
-    if opts.compact_below > 0 and not opts.compile:
+    if opts.compact_below > 0 and not opts.compile and active.shape[0] > 1:
         rows = active.nonzero().squeeze(-1)  # the iteration's host synchronisation
         if 0 < rows.numel() <= opts.compact_below * active.shape[0]:
             return _on_rows(iteration, rows, problem, objective, params, x0, X, U, J, rho, drho, active, opts,
