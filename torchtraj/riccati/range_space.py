@@ -200,8 +200,7 @@ def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     matrices (every stage but the last few, whose controls cannot reach every row) are well conditioned. So all
     are factorised, and those whose factor proves ``λ_min > tol λ_max`` are inverted with it: with the pivots
     ``p_i = L_ii²`` and the largest diagonal entry ``d``, ``λ_max ≤ m d`` and ``λ_min ≥ Π p_i / λ_max^{m−1}``, so
-    ``Π p_i > tol (m d)^m`` suffices (inverted from the factor, ``cholesky_inverse``: one LAPACK call, cheaper than a
-    solve against the identity). The others (gathered, one read of their count by the host) take the
+    ``Π p_i > tol (m d)^m`` suffices. The others (gathered, one read of their count by the host) take the
     eigen-decomposition; while a CUDA graph is captured or torch.compile traces, every matrix does. A matrix the
     eigensolver does not converge on counts as not finite (:func:`_isolated_eigen_inverse`)."""
     M = _sym(negative)  # finiteness after symmetrising: entries near the largest float overflow in the sum
@@ -215,7 +214,7 @@ def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     pivots = L.diagonal(dim1=-2, dim2=-1).square().prod(-1)
     largest = M.diagonal(dim1=-2, dim2=-1).amax(-1)
     easy = (info == 0) & (pivots > tol * (m * largest) ** m)
-    inverse = torch.cholesky_inverse(torch.where(easy.unsqueeze(-1).unsqueeze(-1), L, eye))
+    inverse = torch.cholesky_solve(eye.expand_as(M), torch.where(easy.unsqueeze(-1).unsqueeze(-1), L, eye))
     hard = (~easy).nonzero(as_tuple=True)
     if hard[0].numel():
         hard_inverse, converged = _isolated_eigen_inverse(M[hard], tol)
