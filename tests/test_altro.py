@@ -103,12 +103,14 @@ def test_status_max_iterations_and_multiplier_blocks():
 
 @pytest.mark.slow  # a minute of the default run; the same path is tested on shorter problems
 def test_al_ilqr_stops_at_the_coarse_tolerance():
-    """The AL stage alone ends below ``constraint_tolerance``; the projection then reaches 1e-8."""
+    """The AL stage alone ends below ``constraint_tolerance``; the projection then reaches 1e-8. The AL stage's point
+    is no KKT point at the certificate's feasibility (1e-8), so AL-iLQR says ``STALLED`` (issue 23's contract;
+    measured: violation 9.7e-6 after 217 iterations)."""
     problem = tt.problems.get("pendulum")
     opts = tt.problems.altro_options("pendulum", constraint_tolerance=1e-4)
     coarse = tt.solve(problem, method="al-ilqr", options=opts)
     fine = tt.solve(problem, method="altro", options=opts)
-    assert coarse.status[0] == tt.Status.CONVERGED and fine.status[0] == tt.Status.CONVERGED
+    assert coarse.status[0] == tt.Status.STALLED and fine.status[0] == tt.Status.CONVERGED
     assert 1e-8 < float(coarse.max_violation[0]) < 1e-4  # what projection is for
     assert float(fine.max_violation[0]) <= 1e-8
     assert torch.allclose(coarse.U, fine.U, atol=1e-2)  # a projection, not a different solution

@@ -1,5 +1,7 @@
 """iLQR against IPOPT optima and against first-order optimality computed independently by autograd."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -50,7 +52,8 @@ def test_cartpole_unconstrained_from_perturbed_optimum(reference):
     prob = tt.problems.get("cartpole_unconstrained")
     ipopt = reference["cartpole_unconstrained"]["ipopt"]
     U0 = torch.tensor(ipopt["U"], dtype=torch.float64) + 0.05
-    sol = tt.solve(prob, U0=U0, options=TIGHT)
+    # iLQR's linear convergence on the cart-pole: 311 iterations (measured), past the default cap of 300
+    sol = tt.solve(prob, U0=U0, options=dataclasses.replace(TIGHT, iterations=1000))
     assert sol.status[0] == tt.Status.CONVERGED
     assert abs(sol.cost[0].item() - ipopt["cost"]) / ipopt["cost"] < 1e-6
 
