@@ -352,12 +352,13 @@ def test_newton_model_converges_where_gauss_newton_crawled_on_cartpole_starts():
 @pytest.mark.slow
 def test_shifted_curvature_and_the_weights_floor_converge_the_bounded_cartpole_starts():
     """Issue 23: ``cartpole`` starts 18, 19 and 36 of ``sample_x0(..., 64, 0)`` ended ``MAX_ITERATIONS`` with the
-    default options. The defect weight's monotone floor had taken the weights of CRLS's heavily regularised steps
-    (up to 1.5e11, about ``‖λ‖ / ‖d‖`` as the defects closed; costates of at most 6) and refused every later step
-    that opened second-order defects (CRLS at ``μ_V`` 0.1 to 1 for hundreds of iterations), and where the Newton model
-    was not convex the Gauss-Newton steps took ``α`` of 2e-3 to 8e-3. With the floor kept from ``μ_V^0`` steps only
-    and the curvature shifted instead of dropped (the defaults), each converges (measured: 338, 293, 255 iterations)
-    to IPOPT's optimum from the same start (``tests/data/hm_ilqr_cartpole_bounded_starts.json``)."""
+    default options (in this sub-batch start 19 ``MAX_REGULARIZATION`` after 202 iterations). The defect weight's
+    monotone floor had taken the weights of CRLS's heavily regularised steps (up to 1.5e11, about ``‖λ‖ / ‖d‖`` as the
+    defects closed; costates of at most 6) and refused every later step that opened second-order defects (CRLS at
+    ``μ_V`` 0.1 to 1 for hundreds of iterations), and where the Newton model was not convex the Gauss-Newton steps
+    took ``α`` of 2e-3 to 8e-3. With the floor kept from ``μ_V^0`` steps only and the curvature shifted instead of
+    dropped (the defaults), each converges (measured: 338, 293, 255 iterations) to IPOPT's optimum from the same
+    start (``tests/data/hm_ilqr_cartpole_bounded_starts.json``)."""
     reference = json.loads((DATA / "hm_ilqr_cartpole_bounded_starts.json").read_text())
     starts = [18, 19, 36]
     prob = problems.get("cartpole")

@@ -1,7 +1,7 @@
 """IPOPT's optima (``torchtraj.bench.reference.ReferenceSolver``, its defaults) from the ``cartpole`` starts of
-``problems.sample_x0("cartpole", 64, seed=0)`` on which HM-iLQR's default options ended ``MAX_ITERATIONS`` before
-the shifted curvature and the defect weight's floor of ``μ_V^0`` steps (18, 19, 36; issue 23,
-``tests/test_hm_ilqr.py``), written to ``hm_ilqr_cartpole_bounded_starts.json`` as
+``problems.sample_x0("cartpole", 64, seed=0)`` on which HM-iLQR's default options ended ``MAX_ITERATIONS`` (or
+``MAX_REGULARIZATION``) before the shifted curvature and the defect weight's floor of ``μ_V^0`` steps (18, 19, 36;
+issue 23, ``tests/test_hm_ilqr.py``), written to ``hm_ilqr_cartpole_bounded_starts.json`` as
 ``{start: {"cost", "ok", "iterations", "max_violation"}}``. Not a test.
 
     PYTHONPATH=. python tests/data/make_hm_ilqr_cartpole_bounded_starts.py
