@@ -99,17 +99,38 @@ def regularized(lqr, mu_V: Tensor):
                                W=None, H=None)
 
 
-def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor) -> tuple:
-    """``lqr`` with the stage Hessians' ``curvature (B, N, nz, nz)`` added where ``curved (B,)`` and the model stays
-    convex: where the backward pass at ``mu_V (B,)`` succeeds with it (objective module docstring, "Dynamics
-    curvature"); the Gauss-Newton model elsewhere. Returns the LQR and the instances that took the curvature."""
+def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts: tuple = ()) -> tuple:
+    """``lqr`` with the stage Hessians' ``curvature (B, N, nz, nz)`` added where ``curved (B,)``: as it is where the
+    backward pass at ``mu_V (B,)`` succeeds with it; elsewhere with the stage Hessians shifted by ``δ I``, the
+    smallest ``δ = s δ*`` for ``s`` in ``shifts`` (increasing) with which it succeeds, ``δ*`` the largest negative
+    eigenvalue of the curvature blocks in magnitude (objective module docstring, "Dynamics curvature"); the
+    Gauss-Newton model where none does. Returns the LQR and the instances that took the curvature."""
     nx = lqr.A.shape[-1]
     full = dataclasses.replace(lqr, Q=lqr.Q + curvature[..., :nx, :nx], R=lqr.R + curvature[..., nx:, nx:],
                                S=lqr.S + curvature[..., nx:, :nx])
     use = curved & factorize(regularized(full, mu_V)).ok
+    shift = torch.zeros_like(mu_V)
+    if shifts and bool((curved & ~use).any()):  # a host synchronisation only where a model failed
+        worst = -torch.linalg.eigvalsh(0.5 * (curvature + curvature.transpose(-1, -2)))[..., 0].amin(-1)
+        for s in shifts:
+            pending = curved & ~use
+            if not bool(pending.any()):
+                break
+            ok = pending & factorize(regularized(shifted(full, s * worst.clamp_min(0)), mu_V)).ok
+            shift = torch.where(ok, s * worst.clamp_min(0), shift)
+            use = use | ok
+    full = shifted(full, shift)
     m = use.reshape(-1, 1, 1, 1)
     return dataclasses.replace(lqr, Q=torch.where(m, full.Q, lqr.Q), R=torch.where(m, full.R, lqr.R),
                                S=torch.where(m, full.S, lqr.S)), use
+
+
+def shifted(lqr, delta: Tensor):
+    """``lqr`` with ``δ I`` added to every stage Hessian, ``delta (B,)``."""
+    d = delta.reshape(-1, 1, 1, 1)
+    eye_x = torch.eye(lqr.Q.shape[-1], dtype=lqr.Q.dtype, device=lqr.Q.device)
+    eye_u = torch.eye(lqr.R.shape[-1], dtype=lqr.R.dtype, device=lqr.R.device)
+    return dataclasses.replace(lqr, Q=lqr.Q + d * eye_x, R=lqr.R + d * eye_u)
 
 
 def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu_V, active, retry, opts,

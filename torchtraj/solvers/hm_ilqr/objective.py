@@ -32,9 +32,11 @@ on the barrier problem): the costates are those that make the objective's Lagran
 the expansion point, ``λ_N = q_N + C_Nᵀ ν_N``, ``λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k``
 (:func:`~torchtraj.solvers.hm_ilqr.shooting.costates`, the held rows' ``ν`` of the last LQR step), which within a
 segment are the adjoints of the rollout, so that the model is the objective's second-order expansion along it. The
-term can make the model nonconvex: an iteration keeps it only where the backward pass at ``μ_V^0`` succeeds with
-it, and takes the Gauss-Newton model otherwise, and once after an iteration with it that failed
-(:mod:`~torchtraj.solvers.hm_ilqr.crls`).
+term can make the model nonconvex: where the backward pass at ``μ_V^0`` fails with it, the stage Hessians are
+shifted by ``δ I``, the smallest on a short ladder of fractions of ``δ*``, the most negative eigenvalue of the
+curvature blocks in magnitude, that succeeds (``HMILQROptions.curvature_shifts``; an inertia correction as IPOPT's,
+Wächter & Biegler 2006, §3.1); the Gauss-Newton model where none does, and once after an iteration with the
+curvature that failed (:mod:`~torchtraj.solvers.hm_ilqr.crls`).
 """
 
 from __future__ import annotations

@@ -128,6 +128,17 @@ class HMILQROptions:
     #: ``cartpole_unconstrained`` start 8: without it the search took ``α = 2e-3`` from iteration 130 on and the
     #: solve ended ``MAX_ITERATIONS``; with 0.1 it converges after 915 iterations.
     curvature_step_min: float = 0.1
+    #: With ``dynamics_curvature``: where the backward pass at ``μ_V^0`` fails with the curvature (the model is not
+    #: convex), the stage Hessians are shifted by ``δ I``, the smallest ``δ = s δ*`` for ``s`` in these factors with
+    #: which it succeeds, ``δ*`` the most negative eigenvalue of the curvature blocks in magnitude (the inertia
+    #: correction of Wächter & Biegler 2006, §3.1, on a short ladder), instead of dropping to the Gauss-Newton model,
+    #: which stays the fallback where none succeeds. ``()``: no shift. Measured on ``sample_x0("cartpole", 64, 0)``
+    #: start 36: the curvature failed in 478 of 935 RLB iterations and the Gauss-Newton steps there took ``α`` of
+    #: 2e-3 to 8e-3 (``MAX_ITERATIONS``); with the shifts starts 18, 19, 36 converge (338, 293, 255 iterations).
+    #: Small factors only: a shift near ``δ*`` damps every direction like a large ``μ_V``, and
+    #: ``cartpole_unconstrained`` start 19 then took full steps of a model shifted by about 47 for 1000 iterations
+    #: (stationarity 2.4; up to ``s = 0.1`` the same), where with ``s ≤ 1e-2`` it converges (386 iterations).
+    curvature_shifts: tuple = (1e-3, 1e-2)
     #: A second-order correction of a refused full step (an extension beyond the paper, Wächter & Biegler 2006 §2.4;
     #: :mod:`~torchtraj.solvers.hm_ilqr.crls`, "Second-order correction"): against the Maratos effect of the
     #: defects' merit term. ``False``: the paper's line search.
@@ -139,7 +150,12 @@ class HMILQROptions:
     #: recomputed from ``w`` at every iteration, the merit changes from one iteration to the next and the iterates
     #: can cycle between merits (Nocedal & Wright 2006 §18.3's reason for a monotone penalty parameter). Measured on
     #: the cart-pole, N = 100, M = 20: without it the RLB stage repeats steps of ``α = 0.5`` at violation 9e-3 until
-    #: the iteration limit; with it the solve converges (253 iterations, IPOPT's cost to 4e-8).
+    #: the iteration limit; with it the solve converges (253 iterations, IPOPT's cost to 4e-8). Only the weights of
+    #: steps that CRLS took at ``μ_V^0`` raise the floor: a step of a larger ``μ_V`` barely moves but closes the
+    #: defects, its model predicts the objective's price of closing them, ``λᵀd``, and the weight that outweighs it,
+    #: about ``‖λ‖ / ‖d‖``, grows without bound as the defects close. Kept, it refused every later step that opened
+    #: second-order defects: on ``sample_x0("cartpole", 64, 0)`` starts 18, 19, 36 it reached 3.1e8, 1.5e11 and
+    #: 1.6e6 (costates of at most 6) and CRLS then took ``μ_V`` of 0.1 to 1 for hundreds of iterations.
     monotone_defect_weight: bool = True
     #: Converged (no step needed) when the predicted decrease is below this.
     expected_decrease_tolerance: float = 1e-16

@@ -11,9 +11,10 @@ Every instance runs the paper's two stages on the multiple-shooting M-iLQR itera
 2. **RLB stage** (Algorithm 3): M-iLQR iterations on ``J_2`` with CRLS (:mod:`~torchtraj.solvers.hm_ilqr.crls`),
    ``ψ, δ`` follow (18a-b) after a step whose predicted decrease was below ``κ ψ`` (the barrier problem of that
    ``ψ`` nearly solved). Beyond the paper (``dynamics_curvature``, ``second_order_correction``, on by default):
-   the model adds the dynamics' curvature where it stays convex (Newton's model of the barrier problem;
-   :mod:`~torchtraj.solvers.hm_ilqr.objective`), the Gauss-Newton one elsewhere and once after a failed
-   iteration with it, and a refused full step gets a second-order correction (:mod:`~torchtraj.solvers.hm_ilqr.crls`);
+   the model adds the dynamics' curvature (Newton's model of the barrier problem;
+   :mod:`~torchtraj.solvers.hm_ilqr.objective`), with the stage Hessians shifted where it is not convex, the
+   Gauss-Newton one where no shift helps and once after a failed iteration with it, and a refused full step gets
+   a second-order correction (:mod:`~torchtraj.solvers.hm_ilqr.crls`);
 3. **done** where ``ψ`` has reached ``ψ_min``, the violation of the constraints and the defects is at most
    ``c_min^rlb`` and the stationarity residual at the iterate, with the inequality multipliers ``z⁺`` of its Newton
    step (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), is below ``stationarity_tolerance`` (that step is still
@@ -132,12 +133,14 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         curved = active & s.rlb & ~flat
         if opts.dynamics_curvature and bool(curved.any()):  # the iteration's second host synchronisation
             lqr, curved = with_curvature(lqr, objective.dynamics_curvature(lqr, rhs, X, U, params, curved, nu, nuN),
-                                         curved, start_mu_V)
+                                         curved, start_mu_V, opts.curvature_shifts)
         else:
             curved = torch.zeros_like(curved)
         t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
                     defect_weight if opts.monotone_defect_weight else None, curved)
-        defect_weight = torch.where(active & t.took, torch.maximum(defect_weight, t.weight), defect_weight)
+        # the floor keeps the weights of steps of CRLS's first round (μ_V^0) only (options: monotone_defect_weight)
+        keeps = active & t.took & (~crls | (t.mu_V <= start_mu_V))
+        defect_weight = torch.where(keeps, torch.maximum(defect_weight, t.weight), defect_weight)
         stationarity = torch.where(active, t.residual, stationarity)
         # the held rows' multipliers for the next expansion's costates (the last LQR step's)
         nu, nuN = _finite(t.nu, nu, active), _finite(t.nuN, nuN, active)
