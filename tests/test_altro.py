@@ -3,6 +3,7 @@
 import pytest
 import torch
 from kkt import kkt_residuals
+from same_solutions import assert_same_solutions
 
 import torchtraj as tt
 
@@ -161,17 +162,7 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(method, monk
     assert gathered and min(gathered) >= 1 and max(gathered) < x0.shape[0]
     assert whole.status[3] == tt.Status.NON_FINITE and len(set(whole.iterations.tolist())) >= 3
 
-    def same(a, b, name):  # bit for bit, NaN where NaN
-        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=name)
-
-    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
-        same(getattr(compacted, name), getattr(whole, name), name)
-    for name in whole.multipliers:
-        same(compacted.multipliers[name], whole.multipliers[name], name)
-    for name in ("cost", "max_violation", "step_size", "regularization"):
-        same(getattr(compacted.history, name), getattr(whole.history, name), name)
-    for name in whole.history.extra:
-        same(compacted.history.extra[name], whole.history.extra[name], name)
+    assert_same_solutions(compacted, whole)
 
 
 @pytest.mark.parametrize("method", ["altro", "ilqr"])
@@ -201,7 +192,4 @@ def test_later_line_search_rounds_on_the_instances_still_looking_change_no_answe
     backtrack = ilqr_module.backtrack
     monkeypatch.setattr(ilqr_module, "backtrack", lambda *args, by_rows=False: backtrack(*args))
     whole = tt.solve(problem, x0, method=method, options=options)
-    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
-        torch.testing.assert_close(getattr(by_rows, name), getattr(whole, name), rtol=0, atol=0, msg=name)
-    for name in ("cost", "max_violation", "step_size", "regularization"):
-        torch.testing.assert_close(getattr(by_rows.history, name), getattr(whole.history, name), rtol=0, atol=0)
+    assert_same_solutions(by_rows, whole)

@@ -14,6 +14,7 @@ import warnings
 import pytest
 import torch
 from kkt import kkt_residuals
+from same_solutions import assert_same_solutions
 from small_problems import oscillator, pendulum10
 
 import torchtraj as tt
@@ -450,23 +451,13 @@ def test_iterating_on_the_running_instances_alone_changes_no_answer(declared, mo
     goal[4, 0] = float("nan")
     problem = oscillator(linear_quadratic=declared).with_params(k=k, goal=goal)
 
-    def same(a, b, name):  # bit for bit, NaN where NaN
-        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=name)
-
     # the crossover gathers the instances it tries too (tests/test_crossover.py)
     whole = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.0, crossover=False))
     assert not gathers
     gathered = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(compact_below=0.99, crossover=False))
     assert len(gathers) >= 2 and len(set(whole.iterations.tolist())) >= 3
     assert whole.status[4] == tt.Status.NON_FINITE and int(whole.converged.sum()) == 5
-    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
-        same(getattr(gathered, name), getattr(whole, name), name)
-    for name in whole.multipliers:
-        same(gathered.multipliers[name], whole.multipliers[name], name)
-    for name in ("cost", "max_violation", "step_size", "regularization"):
-        same(getattr(gathered.history, name), getattr(whole.history, name), name)
-    for name in whole.history.extra:
-        same(gathered.history.extra[name], whole.history.extra[name], name)
+    assert_same_solutions(gathered, whole)
 
 
 def test_corrections_on_the_pending_instances_alone_change_no_answer(monkeypatch):
@@ -501,12 +492,7 @@ def test_corrections_on_the_pending_instances_alone_change_no_answer(monkeypatch
     monkeypatch.setattr(interior_point, "regularized_direction", lambda *args, by_rows=False: regularized(*args))
     monkeypatch.setattr(interior_point, "correction_of_rows", interior_point.second_order_correction)
     whole = tt.solve(problem, x0, method="ipm", options=options)
-    for name in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
-        torch.testing.assert_close(getattr(by_rows, name), getattr(whole, name), rtol=0, atol=0, msg=name)
-    for name in whole.multipliers:
-        torch.testing.assert_close(by_rows.multipliers[name], whole.multipliers[name], rtol=0, atol=0, msg=name)
-    for name in ("cost", "max_violation", "step_size", "regularization"):
-        torch.testing.assert_close(getattr(by_rows.history, name), getattr(whole.history, name), rtol=0, atol=0)
+    assert_same_solutions(by_rows, whole)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

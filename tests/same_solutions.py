@@ -1,0 +1,24 @@
+"""One check shared by the tests of batch work that must not change an answer (gathered rows, compaction)."""
+
+import torch
+
+#: the fields of a Solution and of its history that such a test compares
+SOLUTION_FIELDS = ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate")
+HISTORY_FIELDS = ("cost", "max_violation", "step_size", "regularization")
+
+
+def assert_same_solutions(got, want):
+    """Every field of the two solutions, their multipliers and their histories, bit for bit (NaN where NaN)."""
+    def same(a, b, name):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=name)
+
+    for name in SOLUTION_FIELDS:
+        same(getattr(got, name), getattr(want, name), name)
+    assert set(got.multipliers) == set(want.multipliers)
+    for name in want.multipliers:
+        same(got.multipliers[name], want.multipliers[name], name)
+    for name in HISTORY_FIELDS:
+        same(getattr(got.history, name), getattr(want.history, name), f"history.{name}")
+    assert set(got.history.extra) == set(want.history.extra)
+    for name in want.history.extra:
+        same(got.history.extra[name], want.history.extra[name], f"history.{name}")
