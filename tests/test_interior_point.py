@@ -20,6 +20,7 @@ from small_problems import oscillator, pendulum10
 import torchtraj as tt
 from torchtraj.core.batching import map_stage, rollout
 from torchtraj.core.constraints import Constraints
+from torchtraj.riccati import sweep_for_batch
 
 F64 = torch.float64
 FAST = ["double_integrator", "pendulum"]
@@ -611,6 +612,35 @@ def test_mehrotra_ends_an_infeasible_instance_with_a_status():
     alone = tt.solve(problem, torch.tensor([[0.5, 0.0]], dtype=F64), method="ipm", options=options)
     assert both.status.tolist() == [tt.Status.CONVERGED, tt.Status.MAX_REGULARIZATION]
     assert torch.allclose(both.U[:1], alone.U, rtol=0, atol=1e-12) and both.iterations[0] == alone.iterations[0]
+
+
+def test_the_automatic_sweep_is_decided_once_for_the_whole_batch(monkeypatch):
+    """``sweep="auto"`` decides for the batch as given (:func:`~torchtraj.riccati.sweep_for_batch`), so that the
+    factorisations of the running instances alone, once the batch compacts, take the same sweep: a batch too large
+    for the parallel sweep never takes it, though its running instances fall below the bound, and is solved as with
+    ``"sequential"``; a batch below the bound takes it throughout."""
+    import torchtraj.riccati.factorization as factorization
+
+    parallel_rows = []
+    factorize_parallel = factorization.factorize_parallel
+
+    def counted(lqr, *args):
+        parallel_rows.append(lqr.B.shape[0])
+        return factorize_parallel(lqr, *args)
+
+    monkeypatch.setattr(factorization, "factorize_parallel", counted)
+    problem = tt.problems.get("pendulum").replace(horizon=12, u_init=torch.zeros(1, dtype=torch.float64),
+                                                 terminal_eq=None)
+    B = 160
+    assert sweep_for_batch(B, 12, 2, 1, "cpu") == "sequential" and sweep_for_batch(100, 12, 2, 1, "cpu") == "parallel"
+    x0 = tt.problems.sample_x0("pendulum", B, seed=0)
+    auto = tt.solve(problem, x0, "ipm", options=tt.IPOptions(sweep="auto"))
+    assert parallel_rows == []
+    sequential = tt.solve(problem, x0, "ipm", options=tt.IPOptions(sweep="sequential"))
+    assert (sequential.status == tt.Status.CONVERGED).all() and len(set(sequential.iterations.tolist())) > 3
+    assert torch.equal(auto.U, sequential.U) and torch.equal(auto.iterations, sequential.iterations)
+    small = tt.solve(problem, x0[:100], "ipm", options=tt.IPOptions(sweep="auto"))
+    assert parallel_rows[0] == 100 and len(parallel_rows) >= int(small.iterations.max())
 
 
 def test_the_parallel_in_time_sweep_takes_the_same_steps():

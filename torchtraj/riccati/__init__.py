@@ -47,6 +47,7 @@ The files, in the order they build on each other (``torchtraj.riccati.<file>``):
 from .factor import RiccatiFactor
 from .factorization import factorize, solve_lqr
 from .lqr import LQR, LQRSolution, LQRVectors
+from .parallel import sweep_for_batch
 from .propagation import default_rank_tolerance
 from .sanitize import all_finite
 
@@ -59,4 +60,5 @@ __all__ = [
     "default_rank_tolerance",
     "factorize",
     "solve_lqr",
+    "sweep_for_batch",
 ]

@@ -75,13 +75,8 @@ AUTO_MIN_HORIZON = 8
 def choose_sweep(lqr: LQR, sweep: str) -> str:
     """``"sequential"`` or ``"parallel"``: the sweep that :func:`~torchtraj.riccati.factorize` runs for ``sweep``.
 
-    ``"auto"`` takes the parallel sweep where it applies (no back-propagated rows) and from ``N ≥ 8``: on CPU
-    while ``B · ⌈log₂(N+1)⌉ · (nx+nu)² ≤ 5500``. The parallel sweep saves the sequential one's per-stage calls
-    but does about ``⌈log₂(N+1)⌉`` times its arithmetic, in batched solves of ``nx × nx`` systems; factorise and
-    solve were timed on one CPU core for ``nx, nu = 4, 2`` and ``2, 1``, ``B`` from 1 to 256 and ``N`` from 8 to
-    400, and the bound separates the two within the timings' noise (the crossover ``B`` at a given ``N`` falls
-    like ``1/(nx+nu)²``). On other devices, where every call is a kernel launch, the rule is the horizon alone:
-    a default reasoned from the calls, not a measurement."""
+    ``"auto"`` takes the parallel sweep where it applies (no back-propagated rows) and where
+    :func:`sweep_for_batch` says it pays for ``lqr``'s sizes."""
     if sweep not in SWEEPS:
         raise ValueError(f"sweep must be one of {', '.join(SWEEPS)}, not {sweep!r}")
     if sweep == "sequential":
@@ -94,9 +89,25 @@ def choose_sweep(lqr: LQR, sweep: str) -> str:
     if sweep == "parallel":
         return sweep
     B, N, nx, nu = lqr.B.shape
+    return sweep_for_batch(B, N, nx, nu, lqr.B.device)
+
+
+def sweep_for_batch(B: int, N: int, nx: int, nu: int, device: torch.device) -> str:
+    """The sweep that ``"auto"`` takes, where the parallel one applies, for a batch of ``B`` problems of horizon ``N``
+    with ``nx`` states and ``nu`` controls on ``device``: the parallel sweep from ``N ≥ 8``, on CPU while
+    ``B · ⌈log₂(N+1)⌉ · (nx+nu)² ≤ 5500``. The parallel sweep saves the sequential one's per-stage calls but does
+    about ``⌈log₂(N+1)⌉`` times its arithmetic, in batched solves of ``nx × nx`` systems; factorise and solve were
+    timed on one CPU core for ``nx, nu = 4, 2`` and ``2, 1``, ``B`` from 1 to 256 and ``N`` from 8 to 400, and the
+    bound separates the two within the timings' noise (the crossover ``B`` at a given ``N`` falls like
+    ``1/(nx+nu)²``). On other devices, where every call is a kernel launch, the rule is the horizon alone: a default
+    reasoned from the calls, not a measurement.
+
+    A solver that compacts its batch, or factorises a few instances' rows apart, decides once for the whole batch
+    (as the interior point does): deciding per factorisation would give an instance other round-off as the
+    instances beside it finish."""
     if N < AUTO_MIN_HORIZON:
         return "sequential"
-    if lqr.B.device.type != "cpu":
+    if torch.device(device).type != "cpu":
         return "parallel"
     work = B * N.bit_length() * (nx + nu) ** 2  # N.bit_length() = ⌈log₂(N+1)⌉, the levels of the scan
     return "parallel" if work <= AUTO_CPU_WORK else "sequential"

@@ -29,6 +29,7 @@ again, instances that already succeeded keeping their factor.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -36,9 +37,10 @@ import torch
 from torch import Tensor
 
 from ...core.compiled import matvec as _mv
+from ...core.constraints import Constraints
 from ...globalization.regularization import corrected_attempts
 from ...kkt import newton as kkt_newton
-from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize
+from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize, sweep_for_batch
 from .compaction import pick, write_rows
 from .iterate import Iterate, Model
 from .options import IPOptions
@@ -97,6 +99,18 @@ class Direction:
     K: Tensor
     ok: Tensor
     factor: Optional[RiccatiFactor] = None  # kept when asked for (a corrector reuses it)
+
+
+def batch_sweep(opts: IPOptions, cons: Constraints, B: int, N: int, nx: int, nu: int, device) -> IPOptions:
+    """``opts`` with ``sweep="auto"`` decided once for the batch of ``B`` (:func:`~torchtraj.riccati.sweep_for_batch`;
+    sequential where rows are back-propagated: stage equality rows, or terminal ones with
+    ``terminal_rows="back-propagation"``). A factorisation of the running or pending instances alone (the batch's
+    compaction, the corrections by rows) then takes the same sweep, so that an instance's round-off does not
+    depend on how many others are still iterating."""
+    if opts.sweep != "auto":
+        return opts
+    propagated = cons.me > 0 or (cons.meN > 0 and opts.terminal_rows == "back-propagation")
+    return dataclasses.replace(opts, sweep="sequential" if propagated else sweep_for_batch(B, N, nx, nu, device))
 
 
 def factorize_step(lqr: LQR, delta: Tensor, opts: IPOptions) -> RiccatiFactor:

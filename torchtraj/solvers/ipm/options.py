@@ -146,7 +146,11 @@ class IPOptions:
     #: The Riccati sweep of the Newton steps (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,
     #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; for problems without stage equality rows, whose
     #: back-propagation is sequential, and terminal rows with ``terminal_rows="range-space"``) or ``"auto"`` (parallel
-    #: where it applies and pays, by :func:`~torchtraj.riccati.parallel.choose_sweep`).
+    #: where it applies and pays for the batch, by :func:`~torchtraj.riccati.sweep_for_batch`, decided once a solve).
+    #: Both solve the same Newton system to round-off where it is factorised, but the parallel sweep asks every
+    #: stage's control Hessian to be positive definite (:mod:`~torchtraj.riccati.parallel`), a stronger test than
+    #: the sequential sweep's inertia: on a nonconvex problem it regularises where IPOPT would not (the minimum-time
+    #: quadrotor of ``tests/test_minimum_time.py``: 1000 iterations instead of 20), hence the default.
     sweep: str = "sequential"
     #: How the Newton steps hold terminal equality rows (:func:`~torchtraj.riccati.factorize`):
     #: ``"range-space"``, the unconstrained ``sweep`` and the rows' Schur complement

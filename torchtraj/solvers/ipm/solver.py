@@ -70,7 +70,7 @@ from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import kernel_of, uses_graphs
 from .line_search import line_search
-from .newton import direction, newton_lqr, regularized_direction
+from .newton import batch_sweep, direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
 from .scaling import scaled_problem, unscale
@@ -135,6 +135,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     x0, U0, X0, params = batch.x0, batch.U0, batch.X0, batch.params
     B, N, nx = x0.shape[0], problem.N, problem.nx
     cons = Constraints.of(problem)
+    opts = batch_sweep(opts, cons, B, N, nx, problem.nu, x0.device)
     tol = opts.tolerance_for(x0.dtype)
     if X0 is None:
         X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
