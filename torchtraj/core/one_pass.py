@@ -22,6 +22,7 @@ stages and one of the end points.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -31,6 +32,7 @@ from torch.func import jacrev, vjp, vmap
 
 from .batching import map_stage, map_state
 from .derivatives import _stacked_weights, _stage_points
+from .recorded import Recorded
 
 
 @dataclass
@@ -101,11 +103,14 @@ def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:
 
 
 def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, costate: Optional[Tensor] = None,
-                          nu=None, mu=None, nuN=None, muN=None) -> KKTExpansion:
+                          nu=None, mu=None, nuN=None, muN=None, record: bool = False) -> KKTExpansion:
     """The :class:`KKTExpansion` of ``problem`` at ``X (B, N+1, nx)``, ``U (B, N, nu)`` in one pass (module
     docstring): ``costate (B, N+1, nx)`` (``λ``) and the multipliers in the layout of
     :func:`~torchtraj.core.derivatives.problem_lagrangian_hessian` (missing ones zero), or ``costate=None`` and no
-    multipliers for the cost's own Hessian."""
+    multipliers for the cost's own Hessian. ``record``: replayed from its recorded operator graph
+    (:mod:`~torchtraj.core.recorded`; the same numbers, fewer calls)."""
+    if record:
+        return KKTExpansion(*_RECORDED_EXPANSION(problem, constraints, X, U, params, costate, nu, mu, nuN, muN))
     nx, nz = X.shape[-1], X.shape[-1] + U.shape[-1]
     me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
     Z = _stage_points(X, U)
@@ -169,8 +174,11 @@ class PointValues:
     gN: Tensor
 
 
-def problem_values(problem, constraints, X: Tensor, U: Tensor, params) -> PointValues:
-    """The :class:`PointValues` of ``problem`` at ``(X, U)``: one ``vmap`` of the stages, one of the end points."""
+def problem_values(problem, constraints, X: Tensor, U: Tensor, params, record: bool = False) -> PointValues:
+    """The :class:`PointValues` of ``problem`` at ``(X, U)``: one ``vmap`` of the stages, one of the end points;
+    ``record`` as :func:`problem_kkt_expansion`'s."""
+    if record:
+        return PointValues(*_RECORDED_VALUES(problem, constraints, X, U, params))
     me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
 
     def stage(x, u, p):
@@ -186,3 +194,12 @@ def problem_values(problem, constraints, X: Tensor, U: Tensor, params) -> PointV
     l, f, h, g = map_stage(stage, X[..., :-1, :], U, params)
     lN, hN, gN = map_state(terminal, X[..., -1, :], params)
     return PointValues(cost=l.sum(-1) + lN, f=f, h=h, g=g, hN=hN, gN=gN)
+
+
+def _fields(value) -> tuple:
+    return tuple(getattr(value, field.name) for field in dataclasses.fields(value))
+
+
+# one record per signature, shared by every solve in the process
+_RECORDED_EXPANSION = Recorded(lambda *args: _fields(problem_kkt_expansion(*args)))
+_RECORDED_VALUES = Recorded(lambda *args: _fields(problem_values(*args)))

@@ -139,10 +139,10 @@ class Expansion:
     J: Optional[Tensor] = None  # the objective, where the pass gave it
 
 
-def _general_expansion(problem: Problem, cons: Constraints, params, it: Iterate) -> Expansion:
+def _general_expansion(problem: Problem, cons: Constraints, params, it: Iterate, record: bool) -> Expansion:
     """One pass of ``torch.func`` over the batch and the stages
-    (:func:`~torchtraj.core.one_pass.problem_kkt_expansion`)."""
-    e = problem_kkt_expansion(problem, cons, it.X, it.U, params, it.lam, it.nu, it.y, it.nuN, it.yN)
+    (:func:`~torchtraj.core.one_pass.problem_kkt_expansion`; ``record``: replayed from its recorded graph)."""
+    e = problem_kkt_expansion(problem, cons, it.X, it.U, params, it.lam, it.nu, it.y, it.nuN, it.yN, record=record)
     knots = cons.ineq_knot_mask
     rows = ConstraintParts(g=e.g * knots, Gz=e.Gz * knots.unsqueeze(-1), h=e.h, Hz=e.Hz, gN=e.gN, GN=e.GN, hN=e.hN,
                            HN=e.HN)
@@ -188,7 +188,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     if base is None and problem.linear_quadratic:
         e = _linear_quadratic_expansion(problem, cons, params, it)
     elif base is None:
-        e = _general_expansion(problem, cons, params, it)
+        e = _general_expansion(problem, cons, params, it, opts.record and not opts.compile)
     else:
         e = _linear_quadratic_values(problem, cons, params, it, base)
     r = e.rows

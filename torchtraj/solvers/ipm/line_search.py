@@ -107,7 +107,7 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     Uc = it.U.unsqueeze(1) + a4 * d.dU.unsqueeze(1)
     sc = it.s.unsqueeze(1) + a4 * d.ds.unsqueeze(1)
     sNc = it.sN.unsqueeze(1) + alphas.unsqueeze(-1) * d.dsN.unsqueeze(1)
-    values = problem_values(problem, cons, Xc, Uc, params)
+    values = problem_values(problem, cons, Xc, Uc, params, record=opts.record)
     Jc = values.cost
     defects = values.f - Xc[..., 1:, :]
     parts = (defects, values.h, values.hN, (values.g + sc) * knots, values.gN + sNc)

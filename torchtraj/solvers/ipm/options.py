@@ -64,6 +64,10 @@ class IPOptions:
     max_state: float = 1e8
     #: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.core.compiled`).
     compile: bool = False
+    #: Replay the expansion and the line search's values from operator graphs recorded once per batch size
+    #: (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a fraction of a
+    #: second per shape. Pays for repeated solves of the same shapes (a controller's steps) and large batches.
+    record: bool = False
     #: On a GPU, replay the per-iteration kernels, the crossover's candidates and the implicit layer's Newton step
     #: and adjoint solve from CUDA graphs (:mod:`torchtraj.core.graphs`); no effect on a CPU or with ``compile``.
     cuda_graphs: bool = False

@@ -1,0 +1,128 @@
+"""Recorded kernels (torchtraj.core.recorded): a function's operator graph traced once per signature, simplified and
+replayed, with the eager call's results to the last bit and fewer operator calls."""
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj import problems
+from torchtraj.bench.ops import OperatorCounter
+from torchtraj.core import one_pass
+from torchtraj.core.constraints import Constraints
+from torchtraj.core.one_pass import problem_kkt_expansion, problem_values
+from torchtraj.core.recorded import TRACE_AT, Recorded
+
+F64 = torch.float64
+
+
+def _point(name: str, B: int, seed: int = 0):
+    """A random point of problem ``name`` with random multipliers (nonzero everywhere: every term counts)."""
+    p = problems.get(name)
+    cons = Constraints.of(p)
+    g = torch.Generator().manual_seed(seed)
+
+    def rand(*shape):
+        return torch.randn(*shape, dtype=F64, generator=g)
+
+    X, U = rand(B, p.N + 1, p.nx), rand(B, p.N, p.nu)
+    multipliers = (rand(B, p.N + 1, p.nx), rand(B, p.N, cons.me), rand(B, p.N, cons.mi).abs(), rand(B, cons.meN),
+                   rand(B, cons.miN).abs())
+    params = {k: v.unsqueeze(0) for k, v in p.params.items()}
+    return p, cons, X, U, params, multipliers
+
+
+def _same(a, b):
+    assert a.shape == b.shape and a.stride() == b.stride() and a.dtype == b.dtype
+    assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["pendulum", "cartpole", "car_3obs", "quadrotor2d"])
+def test_the_recorded_expansion_is_the_eager_one_to_the_last_bit_with_fewer_calls(name):
+    p, cons, X, U, params, w = _point(name, 3)
+    with torch.no_grad():
+        with OperatorCounter() as eager_calls:
+            eager = problem_kkt_expansion(p, cons, X, U, params, *w)
+        for _ in range(TRACE_AT):  # traced at the last of these
+            problem_kkt_expansion(p, cons, X, U, params, *w, record=True)
+        with OperatorCounter() as recorded_calls:
+            recorded = problem_kkt_expansion(p, cons, X, U, params, *w, record=True)
+        for field in ("cost", "Lz", "Lzz", "LNx", "LNxx", "f", "fz", "h", "Hz", "g", "Gz", "hN", "HN", "gN", "GN"):
+            _same(getattr(recorded, field), getattr(eager, field))
+        # values at other points and multipliers: the record is of the operators, not of the numbers
+        _, _, X2, U2, _, w2 = _point(name, 3, seed=1)
+        again = problem_kkt_expansion(p, cons, X2, U2, params, *w2, record=True)
+        _same(again.Lzz, problem_kkt_expansion(p, cons, X2, U2, params, *w2).Lzz)
+        values = problem_values(p, cons, X2, U2, params, record=True)
+        _same(values.f, problem_values(p, cons, X2, U2, params).f)
+    assert recorded_calls.total < 0.8 * eager_calls.total
+
+
+def test_control_flow_on_tensor_values_runs_eager():
+    """A trace on fake tensors cannot take a branch on a value: that signature runs the function itself, so each
+    call takes its own branch."""
+    def branching(x):
+        return x * 2.0 if bool(x.sum() > 0) else x - 1.0
+
+    f = Recorded(branching)
+    x = torch.ones(3, dtype=F64)
+    for _ in range(3):
+        assert torch.equal(f(x), x * 2.0) and torch.equal(f(-x), -x - 1.0)
+    assert f.traces == 1
+
+
+def test_repeated_subexpressions_do_not_alias_the_outputs():
+    """Common subexpressions are computed once, but outputs that the function returned as separate tensors stay
+    separate: writing into one leaves the other."""
+    f = Recorded(lambda x: (x * 2.0, x * 2.0, (x * 2.0)[1:]))
+    x = torch.arange(4, dtype=F64)
+    f(x)
+    a, b, c = f(x)
+    assert f.traces == 1
+    a.add_(1.0)
+    assert torch.equal(b, x * 2.0) and torch.equal(c, (x * 2.0)[1:])
+
+
+def test_a_signature_is_traced_once_at_its_second_call_and_autograd_runs_eager():
+    f = Recorded(lambda x, scale: (x.sin() * scale).sum(-1))
+    x = torch.rand(2, 5, dtype=F64)
+    f(x, 2.0)
+    assert f.traces == 0  # seen once: eager
+    for _ in range(3):
+        assert torch.equal(f(x, 2.0), (x.sin() * 2.0).sum(-1))
+    assert f.traces == 1
+    for other in ((x, 3.0), (x.t().contiguous().t(), 2.0), (torch.rand(4, 5, dtype=F64), 2.0)):  # a number,
+        f(*other)  # strides, a size: each another record
+        f(*other)
+    assert f.traces == 4
+    y = x.clone().requires_grad_()
+    f(y, 2.0).sum().backward()  # eager: autograd sees the operators
+    assert torch.allclose(y.grad, 2.0 * x.cos())
+    assert f.traces == 4
+
+
+@pytest.mark.parametrize("name,B", [("pendulum", 3), ("car_3obs", 2)])
+def test_an_interior_point_solve_with_recorded_kernels_is_the_eager_solve(name, B):
+    """``IPOptions.record``: the same iterates to the last bit; a second solve replays the first one's records."""
+    p = problems.get(name)
+    x0 = problems.sample_x0(name, B, 0)
+    options = tt.IPOptions(iterations=30)
+    eager = tt.solve(p, x0, "ipm", options=options)
+    recorded = tt.solve(p, x0, "ipm", options=tt.IPOptions(iterations=30, record=True))
+    traces = one_pass._RECORDED_EXPANSION.traces + one_pass._RECORDED_VALUES.traces
+    again = tt.solve(p, x0, "ipm", options=tt.IPOptions(iterations=30, record=True))
+    assert one_pass._RECORDED_EXPANSION.traces + one_pass._RECORDED_VALUES.traces == traces
+    for sol in (recorded, again):
+        for field in ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate"):
+            _same(getattr(sol, field), getattr(eager, field))
+
+
+def test_an_altro_solve_with_recorded_kernels_is_the_eager_solve():
+    """``ILQROptions.record`` (ALTRO's inner iLQR, as a control step takes it): the same answer to the last bit."""
+    p = problems.get("pendulum")
+    x0 = problems.sample_x0("pendulum", 3, 0)
+    options = tt.ALTROOptions(iterations_outer=3, iterations_inner=20)
+    eager = tt.solve(p, x0, "altro", options=options)
+    recorded = tt.solve(p, x0, "altro", options=tt.ALTROOptions(
+        iterations_outer=3, iterations_inner=20, ilqr=tt.ILQROptions(record=True)))
+    for field in ("X", "U", "K", "cost", "max_violation", "status", "iterations"):
+        _same(getattr(recorded, field), getattr(eager, field))

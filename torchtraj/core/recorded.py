@@ -1,0 +1,222 @@
+r"""Recorded kernels: a function's operator graph traced once per input signature, simplified, and replayed.
+
+An eager call of a ``torch.func`` transform of the user's functions (``vmap``, ``jacrev``, ``vjp``: the one-pass
+expansion, :mod:`torchtraj.core.one_pass`) runs the transforms' Python machinery on every call (levels, wrappers,
+batching rules) and issues every operator the derivative is made of, some of them more than once and some whose
+results nobody reads. :class:`Recorded` traces the function once per input signature with ``make_fx`` on fake
+tensors, functionalised (no in-place operators left), and simplifies the graph:
+
+* dead code elimination: operators whose results reach no output;
+* common subexpression elimination: an operator applied again to the same inputs (the transforms' repeated
+  views, broadcasts and products) is computed once;
+* view chains: a view of a view of ... a tensor is one ``as_strided`` of that tensor, with the size, strides and
+  offset the trace recorded (an input's strides and offset are part of the signature, and an operator's output
+  layout follows from its inputs').
+
+Replayed, the graph calls the remaining operators directly. They are the eager call's operators, on the same
+data and in the same order, less the duplicates: the results are the eager call's to the last bit
+(``tests/test_recorded.py``).
+
+The signature is every tensor argument's size, strides, storage offset, dtype and device, and every other
+argument by value (numbers, strings) or identity (a problem, its constraints: kept alive by the record, so that
+an identity is never reused). A function whose Python control flow reads tensor values (``if x > 0``, ``.item()``,
+``nonzero``) cannot be traced on fake tensors: the trace raises, and that signature runs eager from then on.
+Tensors the function closes over are recorded as constants, by reference. Calls that need autograd (an input
+that requires grad, under grad mode) and calls inside another transform or ``torch.compile`` run eager.
+
+A trace costs about a hundred eager calls of the function (a third of a second for the pendulum's expansion),
+so recording pays where the same shapes come back: a controller's steps, a training loop, a long solve. A
+signature is traced at its :data:`TRACE_AT`-th call, and each function keeps :data:`LIMIT` records (and call
+counts), the most recently used.
+"""
+
+from __future__ import annotations
+
+import collections
+from typing import Any, Callable
+
+import torch
+import torch.utils._pytree as pytree
+from torch.func import functionalize
+
+#: Records kept per function (input signatures: batch sizes, horizons, problems, dtypes, devices).
+LIMIT = 32
+#: A signature is traced at its second call: one seen once (a batch's size after some instances finished) runs
+#: eager and costs no trace.
+TRACE_AT = 2
+
+_EAGER = object()  # a signature whose trace failed: run the function itself
+
+_VIEWS = {
+    torch.ops.aten.view.default, torch.ops.aten._unsafe_view.default, torch.ops.aten.expand.default,
+    torch.ops.aten.select.int, torch.ops.aten.slice.Tensor, torch.ops.aten.unsqueeze.default,
+    torch.ops.aten.squeeze.dim, torch.ops.aten.squeeze.dims, torch.ops.aten.squeeze.default,
+    torch.ops.aten.transpose.int, torch.ops.aten.permute.default, torch.ops.aten.t.default,
+    torch.ops.aten.alias.default, torch.ops.aten.diagonal.default, torch.ops.aten.as_strided.default,
+    torch.ops.aten.unfold.default,
+}
+
+
+class Recorded:
+    """``fn`` recorded per input signature and replayed (module docstring). Call it as ``fn``; ``fn`` takes and
+    returns pytrees (tuples, lists, dicts, ``None``) of tensors and other values; its outputs must be tensors or
+    ``None``."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+        self.records: collections.OrderedDict = collections.OrderedDict()
+        self.traces = 0  # signatures traced (failed ones included)
+
+    def __call__(self, *args):
+        leaves, spec = pytree.tree_flatten(args)
+        if _must_run_eager(leaves):
+            return self.fn(*args)
+        key = (spec,) + tuple(_signature(leaf) for leaf in leaves)
+        record = self.records.get(key, 0)
+        if isinstance(record, int):  # the number of calls so far: traced at the TRACE_AT-th
+            record = self._trace(leaves, spec) if record + 1 >= TRACE_AT else record + 1
+            self.records[key] = record
+            if len(self.records) > LIMIT:
+                self.records.popitem(last=False)
+        self.records.move_to_end(key)
+        if isinstance(record, int):
+            return self.fn(*args)
+        graph, out_spec, _ = record
+        if graph is _EAGER:
+            return self.fn(*args)
+        return pytree.tree_unflatten(graph(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))), out_spec)
+
+    def _trace(self, leaves: list, spec) -> tuple:
+        """``(graph, output spec, the non-tensor arguments kept alive)``, or ``(_EAGER, None, ...)``."""
+        self.traces += 1
+        tensor_at = [i for i, leaf in enumerate(leaves) if isinstance(leaf, torch.Tensor)]
+        out_spec = []
+
+        def flat(*tensors):
+            full = list(leaves)
+            for i, t in zip(tensor_at, tensors):
+                full[i] = t
+            out, tree = pytree.tree_flatten(self.fn(*pytree.tree_unflatten(full, spec)))
+            out_spec.append(tree)
+            return out
+
+        kept = [leaf for leaf in leaves if not isinstance(leaf, torch.Tensor)]
+        tensors = [leaves[i] for i in tensor_at]
+        try:
+            from torch.fx.experimental.proxy_tensor import make_fx
+
+            graph = make_fx(functionalize(flat, remove="mutations"), tracing_mode="fake",
+                            _allow_non_fake_inputs=True)(*tensors)
+        except Exception:  # control flow on tensor values, an operator fake tensors lack: eager from now on
+            return _EAGER, None, kept
+        if not all(isinstance(v, torch.Tensor) or v is None for v in _output_values(graph)):
+            return _EAGER, None, kept
+        return simplify(graph), out_spec[-1], kept
+
+
+def _must_run_eager(leaves: list) -> bool:
+    if torch.compiler.is_compiling() or torch._C._functorch.peek_interpreter_stack() is not None:
+        return True
+    if any(isinstance(leaf, torch.Tensor) and leaf.is_cuda for leaf in leaves) \
+            and torch.cuda.is_current_stream_capturing():
+        return True
+    return torch.is_grad_enabled() and any(isinstance(leaf, torch.Tensor) and leaf.requires_grad for leaf in leaves)
+
+
+def _signature(leaf: Any) -> Any:
+    if isinstance(leaf, torch.Tensor):
+        return (tuple(leaf.shape), leaf.stride(), leaf.storage_offset(), leaf.dtype, leaf.device)
+    if leaf is None or isinstance(leaf, (bool, int, float, str, torch.dtype, torch.device)):
+        return (type(leaf), leaf)
+    return (type(leaf), id(leaf))
+
+
+def _output_values(graph: torch.fx.GraphModule) -> list:
+    out = next(n for n in graph.graph.nodes if n.op == "output")
+    return [node.meta.get("val") if isinstance(node, torch.fx.Node) else node for node in pytree.tree_leaves(out.args)]
+
+
+def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
+    """``graph`` (functional: no operator mutates a tensor) with dead code, repeated operators and view chains
+    removed (module docstring)."""
+    from torch.fx.passes.dialect.common.cse_pass import CSEPass
+
+    graph.graph.eliminate_dead_code()
+    graph.recompile()
+    groups = _storage_groups(graph)
+    mutating = {n.target.overloadpacket for n in graph.graph.nodes
+                if n.op == "call_function" and hasattr(n.target, "_schema") and n.target._schema.is_mutable}
+    graph = CSEPass(banned_ops=mutating)(graph).graph_module
+    _collapse_views(graph.graph)
+    _separate_outputs(graph.graph, groups)
+    graph.graph.eliminate_dead_code()
+    graph.graph.lint()
+    graph.recompile()
+    return graph
+
+
+def _output_nodes(graph: torch.fx.Graph) -> list:
+    out = next(n for n in graph.nodes if n.op == "output")
+    return pytree.tree_leaves(out.args)
+
+
+def _storage_groups(graph: torch.fx.GraphModule) -> list:
+    """Per output, the index of the first output that shares its storage (views of one tensor), from the trace."""
+    storages = []
+    for node in _output_nodes(graph.graph):
+        val = node.meta.get("val") if isinstance(node, torch.fx.Node) else None
+        storages.append(val.untyped_storage() if isinstance(val, torch.Tensor) else None)
+    return [next(j for j in range(i + 1) if storages[j] is not None and storages[j] is s) if s is not None else i
+            for i, s in enumerate(storages)]
+
+
+def _base(node):
+    while isinstance(node, torch.fx.Node) and node.op == "call_function" and node.target in _VIEWS:
+        node = node.args[0]
+    return node
+
+
+def _separate_outputs(graph: torch.fx.Graph, groups: list) -> None:
+    """Outputs that the eager function returned as separate tensors but that common subexpressions made views of
+    one get copies (a caller may write into one of them)."""
+    out = next(n for n in graph.nodes if n.op == "output")
+    leaves, spec = pytree.tree_flatten(out.args)
+    owner: dict = {}
+    for i, node in enumerate(leaves):
+        if not isinstance(node, torch.fx.Node):
+            continue
+        base = _base(node)
+        first = owner.setdefault(base, groups[i])
+        if first != groups[i]:
+            with graph.inserting_before(out):
+                copy = graph.call_function(torch.ops.aten.clone.default, (node,))
+            copy.meta = dict(node.meta)
+            leaves[i] = copy
+    out.args = pytree.tree_unflatten(leaves, spec)
+
+
+def _collapse_views(graph: torch.fx.Graph) -> None:
+    """Each view of a view (of a view ...) of a tensor as one ``as_strided`` of that tensor, from the sizes, strides
+    and offset the fake tensors recorded."""
+    for node in list(graph.nodes):
+        if node.op != "call_function" or node.target not in _VIEWS:
+            continue
+        parent = node.args[0]
+        if not (isinstance(parent, torch.fx.Node) and parent.op == "call_function" and parent.target in _VIEWS):
+            continue
+        root = parent
+        while root.op == "call_function" and root.target in _VIEWS:
+            root = root.args[0]
+        val = node.meta.get("val")
+        if not isinstance(val, torch.Tensor) or not _static(val):
+            continue
+        with graph.inserting_before(node):
+            strided = graph.call_function(torch.ops.aten.as_strided.default,
+                                          (root, tuple(val.shape), tuple(val.stride()), val.storage_offset()))
+        strided.meta = dict(node.meta)
+        node.replace_all_uses_with(strided)
+        graph.erase_node(node)
+
+
+def _static(val: torch.Tensor) -> bool:
+    return all(isinstance(s, int) for s in (*val.shape, *val.stride(), val.storage_offset()))
