@@ -103,6 +103,10 @@ class ILQROptions:
     #: ``torch.compile`` the per-iteration kernels (rollouts, objective, expansion, Riccati); the first solve of
     #: each problem and shape compiles them (:mod:`torchtraj.core.compiled`).
     compile: bool = False
+    #: Replay the expansion from its operator graph recorded once per batch size (:mod:`torchtraj.core.recorded`):
+    #: the same numbers with fewer, cheaper calls, after a trace of a fraction of a second per shape; pays for
+    #: repeated solves of the same shapes (a controller's steps). Read by ALTRO's and AL-iLQR's inner iLQR.
+    record: bool = False
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the backward pass (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,

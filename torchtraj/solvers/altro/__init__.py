@@ -29,8 +29,12 @@ from .solver import solve_altro
 
 #: ALTRO's settings for MPC: no projection (the applied control is clamped to its bounds anyway, and the projection
 #: adds 12 % (median) to 26 % (mean) to a pendulum step at B = 1) and Altro.jl's stopping tolerances
-#: (:meth:`ALTROOptions.fast`): a control step is a few warm-started iterations, not a solve to the optimum.
+#: (:meth:`ALTROOptions.fast`): a control step is a few warm-started iterations, not a solve to the optimum. The
+#: expansion is replayed from its recorded graph (``ILQROptions.record``), on the whole batch (``compact_below=0``):
+#: a controller's steps then repeat the same shapes, where the running instances' count varies from step to step.
 MPC_OPTIONS = ALTROOptions.fast(projection=False, problem_state_guess=False)
+MPC_OPTIONS = dataclasses.replace(MPC_OPTIONS, ilqr=dataclasses.replace(MPC_OPTIONS.ilqr, record=True,
+                                                                        compact_below=0.0))
 
 
 class ALTRO(Solver):

@@ -119,10 +119,12 @@ def _lift(t: Tensor, extra: int) -> Tensor:
 class AugmentedLagrangian:
     """``L_A`` of ``problem`` for fixed duals; same interface as :class:`~torchtraj.solvers.ilqr.CostObjective`."""
 
-    def __init__(self, constraints: Constraints, duals: Duals, square_root: bool = False):
+    def __init__(self, constraints: Constraints, duals: Duals, square_root: bool = False, record: bool = False):
         self.constraints = constraints
         #: also give the square-root pass the roots of the Hessian terms (``LQR.root``, eqs. 19-21)
         self.square_root = square_root
+        #: the expansion replayed from its recorded operator graph (``ILQROptions.record``)
+        self.record = record
         self.problem = constraints.problem
         self.duals = duals
         c = constraints
@@ -210,7 +212,7 @@ class AugmentedLagrangian:
         """LQR model of ``L_A`` around ``(X, U)`` (eqs. 5-12): the cost's Hessian and the dynamics' and rows'
         Jacobians from one ``torch.func`` pass (:func:`~torchtraj.core.one_pass.problem_kkt_expansion`)."""
         nx = X.shape[-1]
-        point = problem_kkt_expansion(self.problem, self.constraints, X, U, params)
+        point = problem_kkt_expansion(self.problem, self.constraints, X, U, params, record=self.record)
         H, g = point.Lzz, point.Lz
         lqr = LQR(A=point.fz[..., :nx], B=point.fz[..., nx:], Q=H[..., :nx, :nx], R=H[..., nx:, nx:],
                   S=H[..., nx:, :nx], QN=point.LNxx)

@@ -87,7 +87,7 @@ def solve_infeasible(problem: Problem, x0: Tensor, U0: Tensor, X0: Tensor, param
     d = stage.al.duals
     m = constraints.mi + constraints.me
     duals = Duals(d.stage[..., :m], d.terminal, d.stage_penalty[..., :m], d.terminal_penalty)
-    al = AugmentedLagrangian(constraints, duals, opts.square_root)
+    al = AugmentedLagrangian(constraints, duals, opts.square_root, opts.ilqr.record)
     original = ALStage(problem, al, stage.X, stage.U[..., :nu], stage.status, stage.al_done, stage.iterations,
                        stage.rows, stage.K[..., :nu, :], stage.stalled)
     return finish(original, x0, params, opts, method)

@@ -68,7 +68,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
     inner = opts.ilqr
     constraints = Constraints.of(problem)
     duals = warm if isinstance(warm, Duals) else initial_duals(constraints, opts, x0, warm)
-    al = AugmentedLagrangian(constraints, duals, opts.square_root)
+    al = AugmentedLagrangian(constraints, duals, opts.square_root, opts.ilqr.record)
     backward = factorize_sqrt if opts.square_root else riccati_backward(inner.sweep)
     measures = kernel(_measures, inner.compile)
     J = kernel(AugmentedLagrangian.value, inner.compile)(al, X, U, params)
@@ -121,7 +121,7 @@ def al_stage(problem: Problem, x0: Tensor, X: Tensor, U: Tensor, params, opts: A
         status = torch.where(exhausted, int(Status.MAX_ITERATIONS), status)
         stalled = stalled | (exhausted & converged)
         al_done = al_done | finished
-        al = AugmentedLagrangian(constraints, new_duals.where(update, al.duals), opts.square_root)
+        al = AugmentedLagrangian(constraints, new_duals.where(update, al.duals), opts.square_root, opts.ilqr.record)
         J = torch.where(update, J_updated, J)  # the objective changed with the duals
         outer_count = outer_count + update.long()
         inner_count = torch.where(update, 0, inner_count)
@@ -149,7 +149,7 @@ def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTRO
     kernel."""
     c, cN = al.row_values(X, U, params)
     duals = al.updated_duals(c, cN, opts.penalty_scaling, penalty_limit(opts.penalty_max, X.dtype), opts.dual_max)
-    updated = AugmentedLagrangian(al.constraints, duals, al.square_root).value(X, U, params)
+    updated = AugmentedLagrangian(al.constraints, duals, al.square_root, al.record).value(X, U, params)
     # the updated multipliers are the estimate λ + I_μ c whatever the penalty: its complementarity, and the sign of the
     # multipliers the rows held by L_A pull with (the estimate clamps a negative one)
     complementarity = al.complementarity(duals, c, cN)

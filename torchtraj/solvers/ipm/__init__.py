@@ -41,5 +41,10 @@ class IPM(Solver):
     def start_states(self, problem: Problem, batch: Batch, options: IPOptions) -> Tensor:
         return start_states(problem, batch, options)
 
+    def step_defaults(self) -> IPOptions:
+        """A control step's options: the defaults with recorded kernels (``IPOptions.record``) on the whole batch
+        (``compact_below=0``), so that a controller's steps repeat the same shapes."""
+        return IPOptions(record=True, compact_below=0.0)
+
 
 __all__ = ["IPM"]
