@@ -34,6 +34,7 @@ from .runs import (
     skip_reason,
     state_guess,
     with_compile,
+    with_record,
 )
 
 REFERENCE_SOLVERS = ("ipopt", "fatrop")
@@ -84,6 +85,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the solver's kernels (ILQROptions.compile); every row first runs untimed at "
                         "its own batch size, which compiles, and says how long that took")
+    p.add_argument("--record", action="store_true",
+                   help="replay the expansion from recorded operator graphs (IPOptions.record, ILQROptions.record; "
+                        "torchtraj.core.recorded): at B = 1 the warm-up solve records and the timed solve replays; "
+                        "at other batch sizes the timed solve includes its traces")
     p.add_argument("--cuda-graphs", action="store_true",
                    help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
                         "(IPOptions.cuda_graphs; no effect on a CPU)")
@@ -132,6 +137,9 @@ def _check(p: argparse.ArgumentParser, args) -> None:
     if args.barrier != "monotone" and not (args.grad and _has_option(args.method, "barrier_strategy")
                                            and not args.compile and not args.cuda_graphs):
         p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
+    if args.record and (args.method not in ("ipm", "altro", "al-ilqr") or args.ops or args.grad or args.compile):
+        p.error("--record goes with the timing rows of --method ipm, altro or al-ilqr (the methods with a record "
+                "option), without --ops, --grad and --compile")
     if args.ops and (args.grad or args.compile or args.profile):
         p.error("--ops goes without --grad, --compile and --profile")
     if args.ops_mpc_steps < 0:
@@ -311,6 +319,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         problem_options = problems.altro_options(problem.name) if augmented else options
         if args.compile:
             problem_options = with_compile(problem_options)
+        if args.record:
+            problem_options = with_record(problem_options)
         for batch in batches:
             ours = run_torchtraj(problem, method, batch, args.seed, problem_options, args.warmup_iterations)
             group = [ours]

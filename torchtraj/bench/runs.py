@@ -91,6 +91,13 @@ def compiled(options) -> bool:
     return bool(getattr(getattr(options, "ilqr", options), "compile", False))
 
 
+def with_record(options):
+    """``options`` with recorded kernels (``IPOptions.record``; ``ILQROptions.record``, for ALTRO its ``ilqr``'s)."""
+    if hasattr(options, "ilqr"):
+        return dataclasses.replace(options, ilqr=dataclasses.replace(options.ilqr, record=True))
+    return dataclasses.replace(options, record=True)
+
+
 def with_compile(options):
     """``options`` with compiled kernels (``ILQROptions.compile``, for ALTRO its ``ilqr``'s)."""
     if hasattr(options, "ilqr"):
