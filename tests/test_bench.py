@@ -104,6 +104,22 @@ def test_compile_flag_reaches_the_solver_options():
     assert bench_main.parser().parse_args(["--grad", "--compile"]).compile
 
 
+def test_record_flag_reaches_the_solver_options_and_its_rows_are_the_eager_ones(tmp_path):
+    from torchtraj.bench.runs import with_record
+
+    assert with_record(tt.ALTROOptions()).ilqr.record and with_record(tt.IPOptions()).record
+    with pytest.raises(SystemExit):  # a method without the option
+        main(["--method", "eilqr", "--record"], out=io.StringIO())
+    rows = []
+    for flags in ([], ["--record"]):
+        path = tmp_path / f"rows{len(flags)}.json"
+        code, text = run(["--method", "ipm", "--problems", "pendulum", "--batch", "1", "--no-reference", "--json",
+                          str(path)] + flags)
+        assert code == 0, text
+        rows.append(json.loads(path.read_text())["rows"][0])
+    assert rows[0]["costs"] == rows[1]["costs"] and rows[0]["iterations_max"] == rows[1]["iterations_max"]
+
+
 def test_mehrotra_rows_of_the_gradient_benchmark():
     """``--grad --method ipm --barrier mehrotra``: the linear_box rows run the IPM's Mehrotra mode and say so, and
     their gradients agree with central differences; the flag is refused where it would not apply."""
