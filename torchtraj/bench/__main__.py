@@ -87,8 +87,8 @@ def parser() -> argparse.ArgumentParser:
                         "its own batch size, which compiles, and says how long that took")
     p.add_argument("--record", action="store_true",
                    help="replay the expansion from recorded operator graphs (IPOptions.record, ILQROptions.record; "
-                        "torchtraj.core.recorded): at B = 1 the warm-up solve records and the timed solve replays; "
-                        "at other batch sizes the timed solve includes its traces")
+                        "torchtraj.core.recorded); a signature is traced at its TRACE_AT-th call, so the timed solve "
+                        "includes its traces (the records pay in repeated solves: MPC)")
     p.add_argument("--cuda-graphs", action="store_true",
                    help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
                         "(IPOptions.cuda_graphs; no effect on a CPU)")

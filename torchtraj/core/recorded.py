@@ -41,9 +41,9 @@ from torch.func import functionalize
 
 #: Records kept per function (input signatures: batch sizes, horizons, problems, dtypes, devices).
 LIMIT = 32
-#: A signature is traced at its second call: one seen once (a batch's size after some instances finished) runs
-#: eager and costs no trace.
-TRACE_AT = 2
+#: A signature is traced at its eighth call: one seen a few times only (a large batch's size for the iterations
+#: after some instances finished, a line search's rare number of trial steps) runs eager and costs no trace.
+TRACE_AT = 8
 
 _EAGER = object()  # a signature whose trace failed: run the function itself
 
