@@ -371,3 +371,25 @@ def test_shifted_curvature_and_the_weights_floor_converge_the_bounded_cartpole_s
     for i, start in enumerate(starts):
         ipopt = reference[str(start)]["cost"]
         assert abs(float(sol.cost[i]) - ipopt) / ipopt < 1e-6, (start, float(sol.cost[i]), ipopt)
+
+
+def test_the_curvature_tests_factorisation_is_reused_bit_for_bit(monkeypatch):
+    """Where every curved instance takes its curvature unshifted, :func:`with_curvature`'s factorisation is the
+    iteration's first backward pass: a solve that factorises again gets the same iterates to the last bit."""
+    from torchtraj.solvers.hm_ilqr import solver as hm_solver
+
+    problem = tt.problems.get("pendulum")
+    x0 = tt.problems.sample_x0("pendulum", 3, 0)
+    options = tt.HMILQROptions(iterations=60)
+    reused = tt.solve(problem, x0, "hm-ilqr", options=options)
+    iterate, passed = hm_solver.iterate, []
+
+    def refactorised(*args):
+        passed.append(args[-1] is not None)
+        return iterate(*args[:-1], None)
+
+    monkeypatch.setattr(hm_solver, "iterate", refactorised)
+    again = tt.solve(problem, x0, "hm-ilqr", options=options)
+    assert sum(passed) > len(passed) // 2  # most iterations had a factorisation to reuse
+    for field in ("X", "U", "K", "cost", "status", "iterations"):
+        assert torch.equal(getattr(again, field), getattr(reused, field))

@@ -104,13 +104,21 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts:
     backward pass at ``mu_V (B,)`` succeeds with it; elsewhere with the stage Hessians shifted by ``δ I``, the
     smallest ``δ = s δ*`` for ``s`` in ``shifts`` (increasing) with which it succeeds, ``δ*`` the largest negative
     eigenvalue of the curvature blocks in magnitude (objective module docstring, "Dynamics curvature"); the
-    Gauss-Newton model where none does. Returns the LQR and the instances that took the curvature."""
+    Gauss-Newton model where none does. Returns the LQR, the instances that took the curvature, and, where every
+    curved instance took it unshifted, the factorisation of the returned LQR at ``mu_V`` (else ``None``): the
+    iteration's first backward pass, which :func:`iterate` need not repeat."""
     nx = lqr.A.shape[-1]
     full = dataclasses.replace(lqr, Q=lqr.Q + curvature[..., :nx, :nx], R=lqr.R + curvature[..., nx:, nx:],
                                S=lqr.S + curvature[..., nx:, :nx])
-    use = curved & factorize(regularized(full, mu_V)).ok
+    c = curved.reshape(-1, 1, 1, 1)
+    tried = dataclasses.replace(lqr, Q=torch.where(c, full.Q, lqr.Q), R=torch.where(c, full.R, lqr.R),
+                                S=torch.where(c, full.S, lqr.S))
+    factor = factorize(regularized(tried, mu_V))  # the others' rows: their own model's (each row on its own)
+    use = curved & factor.ok
+    if not bool((curved & ~use).any()):  # a host synchronisation; every curved instance took its curvature
+        return tried, use, factor
     shift = torch.zeros_like(mu_V)
-    if shifts and bool((curved & ~use).any()):  # a host synchronisation only where a model failed
+    if shifts:
         worst = -torch.linalg.eigvalsh(0.5 * (curvature + curvature.transpose(-1, -2)))[..., 0].amin(-1)
         for s in shifts:
             pending = curved & ~use
@@ -122,7 +130,7 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts:
     full = shifted(full, shift)
     m = use.reshape(-1, 1, 1, 1)
     return dataclasses.replace(lqr, Q=torch.where(m, full.Q, lqr.Q), R=torch.where(m, full.R, lqr.R),
-                               S=torch.where(m, full.S, lqr.S)), use
+                               S=torch.where(m, full.S, lqr.S)), use, None
 
 
 def shifted(lqr, delta: Tensor):
@@ -134,9 +142,10 @@ def shifted(lqr, delta: Tensor):
 
 
 def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu_V, active, retry, opts,
-            weight_floor=None, curved=None) -> Trial:
+            weight_floor=None, curved=None, factor=None) -> Trial:
     """One iteration on the instances of ``active (B,)`` from the expansion ``(lqr, rhs, rows)`` at ``(X, U)``; those of
-    ``retry (B,)`` use CRLS (their ``mu_V`` is the start ``μ_V^0``), the others plain LS."""
+    ``retry (B,)`` use CRLS (their ``mu_V`` is the start ``μ_V^0``), the others plain LS. ``factor``: the
+    factorisation of ``lqr`` at ``mu_V`` where already made (:func:`with_curvature`), the first round's."""
     B = X.shape[0]
     steps = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
     rounds = 1 + max(0, math.ceil(math.log(opts.regularization_max / opts.regularization_initial)
@@ -153,7 +162,7 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
         pending = active & ~accepted.found & ~stationary & (retry | ~searched)
         if not bool(pending.any()):  # the round's host synchronisation
             break
-        factor = factorize(regularized(lqr, mu_V))
+        factor = factor if r == 0 and factor is not None else factorize(regularized(lqr, mu_V))
         sol = factor.solve(rhs, multipliers=r == 0)
         if r == 0:  # the KKT residual at the start point, with the multipliers of the first (least regularised) step
             z, zN = stepped_multipliers(rows, sol.dx, sol.du, objective.params.rlb)

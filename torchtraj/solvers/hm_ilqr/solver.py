@@ -131,13 +131,15 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         crls = s.rlb & opts.crls
         start_mu_V = torch.where(crls, torch.full_like(mu_V, opts.regularization_initial), mu_V)
         curved = active & s.rlb & ~flat
+        factor = None
         if opts.dynamics_curvature and bool(curved.any()):  # the iteration's second host synchronisation
-            lqr, curved = with_curvature(lqr, objective.dynamics_curvature(lqr, rhs, X, U, params, curved, nu, nuN),
-                                         curved, start_mu_V, opts.curvature_shifts)
+            lqr, curved, factor = with_curvature(
+                lqr, objective.dynamics_curvature(lqr, rhs, X, U, params, curved, nu, nuN), curved, start_mu_V,
+                opts.curvature_shifts)
         else:
             curved = torch.zeros_like(curved)
         t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
-                    defect_weight if opts.monotone_defect_weight else None, curved)
+                    defect_weight if opts.monotone_defect_weight else None, curved, factor)
         # the floor keeps the weights of steps of CRLS's first round (μ_V^0) only (options: monotone_defect_weight)
         keeps = active & t.took & (~crls | (t.mu_V <= start_mu_V))
         defect_weight = torch.where(keeps, torch.maximum(defect_weight, t.weight), defect_weight)
