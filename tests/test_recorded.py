@@ -131,3 +131,15 @@ def test_an_altro_solve_with_recorded_kernels_is_the_eager_solve():
         iterations_outer=3, iterations_inner=20, ilqr=tt.ILQROptions(record=True)))
     for field in ("X", "U", "K", "cost", "max_violation", "status", "iterations"):
         _same(getattr(recorded, field), getattr(eager, field))
+
+
+@pytest.mark.parametrize("method,options", [("eilqr", tt.EILQROptions), ("hm-ilqr", tt.HMILQROptions)])
+def test_the_other_methods_with_recorded_kernels_are_their_eager_solves(method, options):
+    """``EILQROptions.record`` and ``HMILQROptions.record`` (their control steps' default): the same answer to the
+    last bit."""
+    p = problems.get("pendulum")
+    x0 = problems.sample_x0("pendulum", 2, 0)
+    eager = tt.solve(p, x0, method, options=options(iterations=30))
+    recorded = tt.solve(p, x0, method, options=options(iterations=30, record=True))
+    for field in ("X", "U", "K", "cost", "max_violation", "status", "iterations"):
+        _same(getattr(recorded, field), getattr(eager, field))

@@ -48,8 +48,9 @@ class EILQR(Solver):
     def step_defaults(self) -> EILQROptions:
         """A control step's options: the paper's fixed weight (a few warm-started iterations a step track the moving
         optimum, no continuation), ten times stiffer than a solve's first (``w = 1e-3``, ``δ = 1e-4``); with
-        ``w = 1e-4`` three iterations a step did not swing the contract test's pendulum up."""
-        return EILQROptions(barrier_weight=1e-3, barrier_relaxation=1e-4, barrier_continuation=False)
+        ``w = 1e-4`` three iterations a step did not swing the contract test's pendulum up. The expansion is
+        replayed from its recorded graph (``record``): a controller's steps repeat the same shapes."""
+        return EILQROptions(barrier_weight=1e-3, barrier_relaxation=1e-4, barrier_continuation=False, record=True)
 
     def step_options(self, options, iterations, compile=False) -> EILQROptions:
         """The base's, never from the problem's state guess: a control step starts from the shifted controls of

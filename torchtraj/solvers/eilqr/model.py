@@ -108,10 +108,12 @@ def _slacks(cons: Constraints, X: Tensor, U: Tensor, params) -> tuple:
     return t, tN
 
 
-def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows, weights: Weights) -> Model:
+def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows, weights: Weights,
+           record: bool = False) -> Model:
     """Everything an iteration needs at ``it`` (module docstring): ``cons`` the problem's constraints, ``x0 (B, nx)``
     the given initial states, ``rows`` the free initial state's
-    :class:`~torchtraj.solvers.eilqr.initial_state.InitialState` or ``None``, ``weights`` the barrier's."""
+    :class:`~torchtraj.solvers.eilqr.initial_state.InitialState` or ``None``, ``weights`` the barrier's; ``record``:
+    the one-pass expansion replayed from its recorded graph (``EILQROptions.record``)."""
     X, U = it.X, it.U
     nx = X.shape[-1]
     # the barrier's multipliers come from the rows' values, the Lagrangian's Hessian from the multipliers: the values
@@ -120,7 +122,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor,
     mask = cons.ineq_knot_mask if cons.mi else X.new_zeros(U.shape[1], 0)
     zw, zwN = barrier_multipliers(Rows(t=t, G=None, tN=tN, GN=None, mask=mask), weights)
     z, zN = safeguarded(it.z, zw) * mask, safeguarded(it.zN, zwN)
-    e = problem_kkt_expansion(problem, cons, X, U, params, it.lam, it.nu, z, it.nuN, zN)
+    e = problem_kkt_expansion(problem, cons, X, U, params, it.lam, it.nu, z, it.nuN, zN, record=record)
     ineq = Rows(t=t, G=e.Gz, tN=tN, GN=e.GN, mask=mask)
     f, fz, h, Hz, hN, HN = e.f, e.fz, e.h, e.Hz, e.hN, e.HN
     # the cost gradient: the Lagrangian's less its multiplier terms (the right-hand side whose solve gives λ⁺, ν⁺;

@@ -132,6 +132,9 @@ class EILQROptions:
             ``X_init`` IPOPT's optimum in 219. A control step never takes it (:meth:`EILQR.step_options`).
         max_state: ``|x|`` above which an instance is ``DIVERGED``.
         compile: accepted for the control-step interface; eILQR has no compiled kernels and runs eagerly.
+        record: replay the expansion from its operator graph recorded once per batch size
+            (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a fraction
+            of a second per shape; pays for repeated solves of the same shapes (a controller's steps).
         verbose: log one line per iteration.
     """
 
@@ -172,6 +175,7 @@ class EILQROptions:
     problem_state_guess: bool = True
     max_state: float = 1e8
     compile: bool = False
+    record: bool = False
     verbose: bool = False
 
     def __post_init__(self):

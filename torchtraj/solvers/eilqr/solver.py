@@ -116,7 +116,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     rows = []
     memory = MeritMemory.empty(B, opts.nonmonotone_memory, x0)
     for step in range(opts.iterations + 1):
-        model = expand(problem, cons, params, it, x0, initial, weights)
+        model = expand(problem, cons, params, it, x0, initial, weights, opts.record)
         it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
         running = status == Status.RUNNING
         status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)

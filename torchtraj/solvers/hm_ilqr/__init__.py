@@ -39,7 +39,9 @@ class HMILQR(Solver):
         return start_states(problem, batch)
 
     def step_defaults(self) -> HMILQROptions:
-        return HMILQROptions.fast(al_iterations=0)
+        """A control step's options: :meth:`HMILQROptions.fast` without AL updates, the expansions replayed from
+        their recorded graphs (``record``: a controller's steps repeat the same shapes)."""
+        return HMILQROptions.fast(al_iterations=0, record=True)
 
 
 __all__ = ["HMILQR", "HMILQROptions"]

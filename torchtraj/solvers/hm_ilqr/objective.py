@@ -96,10 +96,12 @@ def _lift(t: Tensor, like: Tensor) -> Tensor:
 class HybridObjective:
     """``J_1`` / ``J_2`` of the module docstring for fixed stage parameters: value, equality residual, LQR model."""
 
-    def __init__(self, constraints: Constraints, params: StageParameters):
+    def __init__(self, constraints: Constraints, params: StageParameters, record: bool = False):
         self.constraints = c = constraints
         self.problem = constraints.problem
         self.params = params
+        #: the expansions replayed from their recorded graphs (``HMILQROptions.record``)
+        self.record = record
         #: ``(N, mi)``: 1 where a stage inequality row applies.
         self.knot_mask = c.ineq_knot_mask
         self.mi, self.miN, self.me, self.meN = c.mi, c.miN, c.me, c.meN
@@ -179,7 +181,7 @@ class HybridObjective:
         side are left to the caller."""
         nx = X.shape[-1]
         # the cost's Hessian with the dynamics' and the rows' Jacobians, in one pass
-        point = problem_kkt_expansion(self.problem, self.constraints, X, U, params)
+        point = problem_kkt_expansion(self.problem, self.constraints, X, U, params, record=self.record)
         f, A, Bm = point.f, point.fz[..., :nx], point.fz[..., nx:]
         H, g = point.Lzz, point.Lz
         HN, gN = point.LNxx, point.LNx
@@ -229,4 +231,5 @@ class HybridObjective:
         ``nu``, ``nuN``: the held rows' multipliers in the costates (:func:`~.shooting.costates`)."""
         lam = costates(lqr, rhs, nu, nuN) * curved.reshape(-1, 1, 1).to(X.dtype)
         lam = torch.where(torch.isfinite(lam), lam, torch.zeros_like(lam))
-        return problem_kkt_expansion(self.problem, self.constraints, X, U, params, lam).Lzz - self.cost_hessian
+        return problem_kkt_expansion(self.problem, self.constraints, X, U, params, lam, record=self.record).Lzz \
+            - self.cost_hessian

@@ -103,7 +103,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         lamE=like.new_zeros(B, problem.N, c.me), lamEN=like.new_zeros(B, c.meN),
         mu=like.new_full((B,), opts.penalty_initial), psi=like.new_full((B,), opts.barrier_initial),
         delta=like.new_full((B,), opts.relaxation_initial))
-    objective = HybridObjective(constraints, stage_params)
+    objective = HybridObjective(constraints, stage_params, opts.record)
     J = objective.value(X, U, params)
     D = gaps + objective.equality_residual(X, U, params)
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
@@ -194,7 +194,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         new.rlb = s.rlb | handover
         defect_weight = torch.where(handover, opts.defect_weight, defect_weight)
         held_before = objective.equality_residual(X, U, params)
-        objective = HybridObjective(constraints, new)
+        objective = HybridObjective(constraints, new, opts.record)
         J = torch.where(active, objective.value(X, U, params), J)  # the objective of the new parameters
         D = D - held_before + objective.equality_residual(X, U, params)  # handed over: the goal joins the defects
         status = torch.where(done, int(Status.CONVERGED), status)
