@@ -181,7 +181,7 @@ def test_slope_is_the_least_squares_fit():
 
 
 def test_ops_report_counts_the_solves_it_prints(tmp_path):
-    from torchtraj.bench.ops import OperatorCounter
+    from torchtraj.bench.ops import MPC_WARMUP, OperatorCounter
 
     path = tmp_path / "ops.json"
     code, text = run(["--ops", "--method", "al-ilqr", "--problems", "double_integrator", "--ops-horizons", "5", "10",
@@ -217,12 +217,13 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
     assert "first 2 iterations" in text
     assert data["header"]["torch"] == torch.__version__
 
-    # the MPC row: two control steps of the pendulum controller after one uncounted, counted here again
+    # the MPC row: two control steps of the pendulum controller after MPC_WARMUP uncounted, counted here again
     (step,) = data["mpc"]
     env = gym.make("torchtraj/Pendulum-v0").unwrapped
     policy = tt.MPC(env.problem(horizon=30), "al-ilqr", 3)
     obs, _ = env.reset(seed=0)
-    obs, *_ = env.step(policy(obs))
+    for _ in range(MPC_WARMUP):
+        obs, *_ = env.step(policy(obs))
     with OperatorCounter() as ops:
         for _ in range(2):
             obs, *_ = env.step(policy(obs))
