@@ -1,6 +1,8 @@
 """Recorded kernels (torchtraj.core.recorded): a function's operator graph traced once per signature, simplified and
 replayed, with the eager call's results to the last bit and fewer operator calls."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -143,3 +145,35 @@ def test_the_other_methods_with_recorded_kernels_are_their_eager_solves(method, 
     recorded = tt.solve(p, x0, method, options=options(iterations=30, record=True))
     for field in ("X", "U", "K", "cost", "max_violation", "status", "iterations"):
         _same(getattr(recorded, field), getattr(eager, field))
+
+
+def test_a_tensor_read_from_a_closure_keeps_the_function_eager():
+    """A replay holds the tensors it read by reference, so one read from a closure or from an argument whose
+    attributes can be reassigned (a reference trajectory that the caller replaces between calls) would go stale:
+    such a signature runs eager. Tensors of a frozen dataclass argument and literals the function makes are
+    recorded (an in-place change of the former is seen)."""
+    class Reference:
+        def __init__(self):
+            self.goal = torch.ones(3, dtype=F64)
+
+    @dataclasses.dataclass(frozen=True)
+    class Frozen:
+        goal: torch.Tensor
+
+    outside, frozen = Reference(), Frozen(torch.ones(3, dtype=F64))
+    closure = Recorded(lambda x: x - outside.goal)
+    argument = Recorded(lambda x, ref: x - ref.goal)
+    owned = Recorded(lambda x, ref: x - ref.goal + torch.tensor(2.0, dtype=F64))
+    x = torch.zeros(3, dtype=F64)
+    for _ in range(TRACE_AT):
+        closure(x)
+        argument(x, outside)
+        owned(x, frozen)
+    outside.goal = torch.full((3,), 5.0, dtype=F64)
+    assert torch.equal(closure(x), x - 5.0) and torch.equal(argument(x, outside), x - 5.0)
+    assert closure.traces == argument.traces == owned.traces == 1
+    for eager in (closure, argument):
+        assert not isinstance(next(iter(eager.records.values()))[0], torch.fx.GraphModule)
+    assert isinstance(next(iter(owned.records.values()))[0], torch.fx.GraphModule)
+    frozen.goal.mul_(2.0)
+    assert torch.equal(owned(x, frozen), x)  # 0 - 2 + 2: the frozen argument's tensor, changed in place

@@ -66,6 +66,8 @@ class Constraints:
     them as an argument, and its graph makes them again from ``graph_rebuilt_from`` (:mod:`torchtraj.core.graphs`)."""
 
     graph_rebuilt_from = ("problem", "ignored")
+    #: Its tensors are made once and never replaced, so a recorded kernel may hold them (:mod:`~.recorded`).
+    RECORDED_OWNER = True
 
     @classmethod
     def of(cls, problem: Problem, ignored: bool = False) -> "Constraints":

@@ -21,8 +21,15 @@ The signature is every tensor argument's size, strides, storage offset, dtype an
 argument by value (numbers, strings) or identity (a problem, its constraints: kept alive by the record, so that
 an identity is never reused). A function whose Python control flow reads tensor values (``if x > 0``, ``.item()``,
 ``nonzero``) cannot be traced on fake tensors: the trace raises, and that signature runs eager from then on.
-Tensors the function closes over are recorded as constants, by reference. Calls that need autograd (an input
-that requires grad, under grad mode) and calls inside another transform or ``torch.compile`` run eager.
+Calls that need autograd (an input that requires grad, under grad mode) and calls inside another transform or
+``torch.compile`` run eager.
+
+Tensors the function reads from elsewhere than its tensor arguments are recorded as constants, by reference: a
+change in place is seen by the replay, a tensor *replaced* by another object is not. So a signature is recorded
+only where every such constant is a literal the function makes (``torch.tensor(2.0)``) or belongs to an argument
+whose tensors cannot be replaced: a frozen dataclass (a :class:`~torchtraj.core.problem.Problem`'s bounds) or an
+object whose class says so (``RECORDED_OWNER = True``: the constraints layout). One that reads a tensor from a
+closure, a global or any other object (a user's reference trajectory, reassigned between calls) runs eager.
 
 A trace costs about a hundred eager calls of the function (a third of a second for the pendulum's expansion),
 so recording pays where the same shapes come back: a controller's steps, a training loop, a long solve. A
@@ -111,7 +118,57 @@ class Recorded:
             return _EAGER, None, kept
         if not all(isinstance(v, torch.Tensor) or v is None for v in _output_values(graph)):
             return _EAGER, None, kept
+        if _foreign_constants(graph, kept):
+            return _EAGER, None, kept
         return simplify(graph), out_spec[-1], kept
+
+
+def _owner(value) -> bool:
+    """Whether ``value``'s tensors cannot be replaced: a frozen dataclass, or a class with ``RECORDED_OWNER``."""
+    params = getattr(type(value), "__dataclass_params__", None)
+    return (params is not None and params.frozen) or getattr(type(value), "RECORDED_OWNER", False)
+
+
+def _owned_tensors(objects: list, depth: int = 3) -> set:
+    """The storages of the tensors held by those of ``objects`` that are owners (:func:`_owner`), in their
+    attributes and the dictionaries, sequences and owners these hold, ``depth`` levels deep."""
+    owned, seen = set(), set()
+
+    def visit(value, level):
+        if isinstance(value, torch.Tensor):
+            owned.add(value.untyped_storage().data_ptr())
+        elif level < depth and id(value) not in seen:
+            seen.add(id(value))
+            if isinstance(value, dict):
+                children = value.values()
+            elif isinstance(value, (list, tuple)):
+                children = value
+            elif _owner(value):
+                children = vars(value).values()
+            else:
+                return
+            for child in children:
+                visit(child, level + 1)
+
+    for obj in objects:
+        visit(obj, 0)
+    return owned
+
+
+def _foreign_constants(graph: torch.fx.GraphModule, kept: list) -> bool:
+    """Whether the trace read a tensor that is neither one of the arguments' objects' nor a literal it lifted."""
+    owned = None
+    for node in graph.graph.nodes:
+        if node.op != "get_attr":
+            continue
+        value = getattr(graph, node.target)
+        if not isinstance(value, torch.Tensor) or all(user.target == torch.ops.aten.lift_fresh_copy.default
+                                                      for user in node.users):
+            continue
+        owned = _owned_tensors(kept) if owned is None else owned
+        if value.untyped_storage().data_ptr() not in owned:
+            return True
+    return False
 
 
 def _must_run_eager(leaves: list) -> bool:
