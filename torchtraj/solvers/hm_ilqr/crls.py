@@ -105,15 +105,14 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts:
     smallest ``δ = s δ*`` for ``s`` in ``shifts`` (increasing) with which it succeeds, ``δ*`` the largest negative
     eigenvalue of the curvature blocks in magnitude (objective module docstring, "Dynamics curvature"); the
     Gauss-Newton model where none does. Returns the LQR, the instances that took the curvature, and, where every
-    curved instance took it unshifted, the factorisation of the returned LQR at ``mu_V`` (else ``None``): the
-    iteration's first backward pass, which :func:`iterate` need not repeat."""
+    curved instance took it (shifted or not), the factorisation of the returned LQR at ``mu_V`` (else ``None``):
+    the iteration's first backward pass, which :func:`iterate` need not repeat. Each attempt factorises the LQR it
+    would return if every instance still pending succeeded (the others' rows as they are: each row on its own)."""
     nx = lqr.A.shape[-1]
     full = dataclasses.replace(lqr, Q=lqr.Q + curvature[..., :nx, :nx], R=lqr.R + curvature[..., nx:, nx:],
                                S=lqr.S + curvature[..., nx:, :nx])
-    c = curved.reshape(-1, 1, 1, 1)
-    tried = dataclasses.replace(lqr, Q=torch.where(c, full.Q, lqr.Q), R=torch.where(c, full.R, lqr.R),
-                                S=torch.where(c, full.S, lqr.S))
-    factor = factorize(regularized(tried, mu_V))  # the others' rows: their own model's (each row on its own)
+    tried = _taking(lqr, full, curved)
+    factor = factorize(regularized(tried, mu_V))
     use = curved & factor.ok
     if not bool((curved & ~use).any()):  # a host synchronisation; every curved instance took its curvature
         return tried, use, factor
@@ -124,13 +123,24 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts:
             pending = curved & ~use
             if not bool(pending.any()):
                 break
-            ok = pending & factorize(regularized(shifted(full, s * worst.clamp_min(0)), mu_V)).ok
-            shift = torch.where(ok, s * worst.clamp_min(0), shift)
+            candidate = torch.where(pending, s * worst.clamp_min(0), shift)
+            tried = _taking(lqr, shifted(full, candidate), use | pending)
+            factor = factorize(regularized(tried, mu_V))
+            ok = pending & factor.ok
+            shift = torch.where(ok, candidate, shift)
             use = use | ok
-    full = shifted(full, shift)
-    m = use.reshape(-1, 1, 1, 1)
+        if bool((curved & ~use).any()):  # some fall back to Gauss-Newton: the last attempt's LQR is not theirs
+            factor = None
+    else:
+        factor = None
+    return _taking(lqr, shifted(full, shift), use), use, factor
+
+
+def _taking(lqr, full, take: Tensor):
+    """``lqr`` with the stage Hessians of ``full`` where ``take (B,)``."""
+    m = take.reshape(-1, 1, 1, 1)
     return dataclasses.replace(lqr, Q=torch.where(m, full.Q, lqr.Q), R=torch.where(m, full.R, lqr.R),
-                               S=torch.where(m, full.S, lqr.S)), use, None
+                               S=torch.where(m, full.S, lqr.S))
 
 
 def shifted(lqr, delta: Tensor):
