@@ -177,3 +177,20 @@ def test_a_tensor_read_from_a_closure_keeps_the_function_eager():
     assert isinstance(next(iter(owned.records.values()))[0], torch.fx.GraphModule)
     frozen.goal.mul_(2.0)
     assert torch.equal(owned(x, frozen), x)  # 0 - 2 + 2: the frozen argument's tensor, changed in place
+
+
+def test_signatures_seen_a_few_times_never_push_a_record_out():
+    """A controller whose problem is rebuilt at every step makes a new signature a step: their call counts are
+    kept apart from the records, so the steady signature's record stays."""
+    from torchtraj.core import recorded
+
+    f = Recorded(lambda x: x * 2.0)
+    steady = torch.ones(3, dtype=F64)
+    for _ in range(TRACE_AT):
+        f(steady)
+    for n in range(4 * recorded.LIMIT + 5):  # each another size, seen once
+        f(torch.ones(n + 4, dtype=F64))
+    assert f.traces == 1 and len(f.calls) == 4 * recorded.LIMIT
+    (record,) = f.records.values()  # the steady signature's, still there
+    assert isinstance(record[0], torch.fx.GraphModule)
+    assert torch.equal(f(steady), steady * 2.0) and f.traces == 1

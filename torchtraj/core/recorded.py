@@ -33,8 +33,8 @@ closure, a global or any other object (a user's reference trajectory, reassigned
 
 A trace costs about a hundred eager calls of the function (a third of a second for the pendulum's expansion),
 so recording pays where the same shapes come back: a controller's steps, a training loop, a long solve. A
-signature is traced at its :data:`TRACE_AT`-th call, and each function keeps :data:`LIMIT` records (and call
-counts), the most recently used.
+signature is traced at its :data:`TRACE_AT`-th call, and each function keeps :data:`LIMIT` records, the most
+recently used (and, apart, the call counts of four times as many signatures not yet traced).
 """
 
 from __future__ import annotations
@@ -71,7 +71,8 @@ class Recorded:
 
     def __init__(self, fn: Callable):
         self.fn = fn
-        self.records: collections.OrderedDict = collections.OrderedDict()
+        self.records: collections.OrderedDict = collections.OrderedDict()  # signature -> record
+        self.calls: collections.OrderedDict = collections.OrderedDict()  # signature -> calls, until traced
         self.traces = 0  # signatures traced (failed ones included)
 
     def __call__(self, *args):
@@ -79,15 +80,20 @@ class Recorded:
         if _must_run_eager(leaves):
             return self.fn(*args)
         key = (spec,) + tuple(_signature(leaf) for leaf in leaves)
-        record = self.records.get(key, 0)
-        if isinstance(record, int):  # the number of calls so far: traced at the TRACE_AT-th
-            record = self._trace(leaves, spec) if record + 1 >= TRACE_AT else record + 1
-            self.records[key] = record
+        record = self.records.get(key)
+        if record is None:
+            # counted apart from the records, so that signatures seen a few times (a controller whose problem is
+            # rebuilt with new parameters at every step) never push a record out
+            calls = self.calls.pop(key, 0) + 1
+            if calls < TRACE_AT:
+                self.calls[key] = calls
+                if len(self.calls) > 4 * LIMIT:
+                    self.calls.popitem(last=False)
+                return self.fn(*args)
+            record = self.records[key] = self._trace(leaves, spec)
             if len(self.records) > LIMIT:
                 self.records.popitem(last=False)
         self.records.move_to_end(key)
-        if isinstance(record, int):
-            return self.fn(*args)
         graph, out_spec, _ = record
         if graph is _EAGER:
             return self.fn(*args)
