@@ -194,3 +194,13 @@ def test_signatures_seen_a_few_times_never_push_a_record_out():
     (record,) = f.records.values()  # the steady signature's, still there
     assert isinstance(record[0], torch.fx.GraphModule)
     assert torch.equal(f(steady), steady * 2.0) and f.traces == 1
+
+
+def test_a_call_inside_a_transform_runs_eager():
+    f = Recorded(lambda x: x.sin() * 2.0)
+    xs = torch.rand(4, 3, dtype=F64)
+    for _ in range(TRACE_AT):
+        out = torch.func.vmap(f)(xs)
+    assert f.traces == 0 and torch.equal(out, xs.sin() * 2.0)
+    grad = torch.func.grad(lambda x: f(x).sum())(xs[0])
+    assert f.traces == 0 and torch.allclose(grad, 2.0 * xs[0].cos())

@@ -53,6 +53,8 @@ LIMIT = 32
 TRACE_AT = 8
 
 _EAGER = object()  # a signature whose trace failed: run the function itself
+# the torch.func transforms the call is inside (None: none); a function of torch's private API, so looked up softly
+_TRANSFORMS = getattr(torch._C._functorch, "peek_interpreter_stack", None)
 
 _VIEWS = {
     torch.ops.aten.view.default, torch.ops.aten._unsafe_view.default, torch.ops.aten.expand.default,
@@ -120,13 +122,12 @@ class Recorded:
 
             graph = make_fx(functionalize(flat, remove="mutations"), tracing_mode="fake",
                             _allow_non_fake_inputs=True)(*tensors)
+            if not all(isinstance(v, torch.Tensor) or v is None for v in _output_values(graph)) \
+                    or _foreign_constants(graph, kept):
+                return _EAGER, None, kept
+            return simplify(graph), out_spec[-1], kept
         except Exception:  # control flow on tensor values, an operator fake tensors lack: eager from now on
             return _EAGER, None, kept
-        if not all(isinstance(v, torch.Tensor) or v is None for v in _output_values(graph)):
-            return _EAGER, None, kept
-        if _foreign_constants(graph, kept):
-            return _EAGER, None, kept
-        return simplify(graph), out_spec[-1], kept
 
 
 def _owner(value) -> bool:
@@ -178,7 +179,7 @@ def _foreign_constants(graph: torch.fx.GraphModule, kept: list) -> bool:
 
 
 def _must_run_eager(leaves: list) -> bool:
-    if torch.compiler.is_compiling() or torch._C._functorch.peek_interpreter_stack() is not None:
+    if torch.compiler.is_compiling() or (_TRANSFORMS is not None and _TRANSFORMS() is not None):
         return True
     if any(isinstance(leaf, torch.Tensor) and leaf.is_cuda for leaf in leaves) \
             and torch.cuda.is_current_stream_capturing():
