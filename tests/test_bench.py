@@ -108,8 +108,8 @@ def test_record_flag_reaches_the_solver_options_and_its_rows_are_the_eager_ones(
     from torchtraj.bench.runs import with_record
 
     assert with_record(tt.ALTROOptions()).ilqr.record and with_record(tt.IPOptions()).record
-    with pytest.raises(SystemExit):  # a method without the option
-        main(["--method", "eilqr", "--record"], out=io.StringIO())
+    with pytest.raises(SystemExit):  # a method without the option (plain iLQR's expansion is not recorded)
+        main(["--method", "ilqr", "--record"], out=io.StringIO())
     rows = []
     for flags in ([], ["--record"]):
         path = tmp_path / f"rows{len(flags)}.json"
@@ -230,6 +230,21 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
     assert (step["method"], step["steps"], step["calls"], step["error"]) == ("al-ilqr", 2, ops.total, None)
     assert next(line for line in text.splitlines()[::-1] if line.startswith("al-ilqr ")).split() == [
         "al-ilqr", f"{ops.total / 2:.0f}"]
+
+
+def test_ops_record_counts_the_solves_again_with_recorded_kernels(tmp_path):
+    """``--ops --record``: each full solve again with ``record=True``, after an uncounted one that records: the
+    same iterations and status with fewer calls."""
+    path = tmp_path / "ops.json"
+    code, text = run(["--ops", "--record", "--method", "al-ilqr", "--problems", "pendulum_unconstrained",
+                      "--ops-horizons", "5", "--ops-iterations", "2", "--ops-mpc-steps", "0", "--json", str(path)])
+    assert code == 0, text
+    data = json.loads(path.read_text())
+    (plain,), (recorded,) = data["solves"], data["recorded"]
+    assert (recorded["method"], recorded["iterations"], recorded["status"]) == (
+        plain["method"], plain["iterations"], plain["status"])
+    assert recorded["calls"] < plain["calls"]
+    assert "with recorded kernels" in text
 
 
 def test_ops_sweep_of_whole_solves(tmp_path):

@@ -27,6 +27,7 @@ from . import ops, profile, table
 from .runs import (
     Row,
     batch_x0,
+    has_record,
     make_options,
     relative_difference,
     run_reference,
@@ -86,9 +87,10 @@ def parser() -> argparse.ArgumentParser:
                    help="torch.compile the solver's kernels (ILQROptions.compile); every row first runs untimed at "
                         "its own batch size, which compiles, and says how long that took")
     p.add_argument("--record", action="store_true",
-                   help="replay the expansion from recorded operator graphs (IPOptions.record, ILQROptions.record; "
+                   help="replay the expansion from recorded operator graphs (the options' record; "
                         "torchtraj.core.recorded); a signature is traced at its TRACE_AT-th call, so the timed solve "
-                        "includes its traces (the records pay in repeated solves: MPC)")
+                        "includes its traces (the records pay in repeated solves: MPC); with --ops, also count every "
+                        "full solve again with them, after an uncounted solve that records")
     p.add_argument("--cuda-graphs", action="store_true",
                    help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
                         "(IPOptions.cuda_graphs; no effect on a CPU)")
@@ -137,9 +139,10 @@ def _check(p: argparse.ArgumentParser, args) -> None:
     if args.barrier != "monotone" and not (args.grad and _has_option(args.method, "barrier_strategy")
                                            and not args.compile and not args.cuda_graphs):
         p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
-    if args.record and (args.method not in ("ipm", "altro", "al-ilqr") or args.ops or args.grad or args.compile):
-        p.error("--record goes with the timing rows of --method ipm, altro or al-ilqr (the methods with a record "
-                "option), without --ops, --grad and --compile")
+    if args.record and (args.grad or args.compile
+                        or not (args.ops or has_record(solvers.get(args.method)))):
+        p.error("--record goes with --ops, or with the timing rows of a method with a record option (ipm, altro, "
+                "al-ilqr, eilqr, hm-ilqr), without --grad and --compile")
     if args.ops and (args.grad or args.compile or args.profile):
         p.error("--ops goes without --grad, --compile and --profile")
     if args.ops_mpc_steps < 0:
@@ -233,7 +236,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         p.set_defaults(method=None)  # tells an explicit --method (even the timing rows' default, ilqr) from none
         chosen = p.parse_args(argv).method
         report = ops.run([chosen] if chosen else solvers.names(), args.problems or list(ops.DEFAULT_PROBLEMS),
-                         args.ops_horizons, args.ops_iterations, say, dtype, device, args.ops_mpc_steps)
+                         args.ops_horizons, args.ops_iterations, say, dtype, device, args.ops_mpc_steps,
+                         record=args.record)
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(report, f, indent=1)

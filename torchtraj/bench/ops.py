@@ -63,7 +63,7 @@ from .. import solvers
 from ..core.problem import Problem
 from ..core.status import Status
 from ..solve import solve
-from .runs import skip_reason, state_guess
+from .runs import has_record, skip_reason, state_guess, with_record
 
 DEFAULT_PROBLEMS = ("pendulum", "cartpole", "car_3obs")
 DEFAULT_HORIZONS = (25, 50, 100, 200)
@@ -143,6 +143,18 @@ def count_solve(problem: Problem, method, options=None, iteration_cap: Optional[
     except Exception as exc:  # one failing solve must not stop the report
         row.error = f"{type(exc).__name__}: {exc}"
     return row
+
+
+def count_recorded(problem: Problem, method) -> Count:
+    """:func:`count_solve` of ``method``'s default options with recorded kernels (``record=True``,
+    :mod:`torchtraj.core.recorded`), after one uncounted solve of the same problem that records them."""
+    solver = solvers.get(method)
+    options = with_record(solver.default_options())
+    try:
+        solve(problem, None, solver, X0=state_guess(solver, problem), options=options)
+    except Exception as exc:  # the counted solve reports it
+        del exc
+    return count_solve(problem, solver, options)
 
 
 @dataclass
@@ -268,11 +280,13 @@ def _sweep_header(horizons: Sequence[int]) -> str:
 
 # ---------------------------------------------------------------------------------------------- report
 def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], iterations: int,
-        say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None, mpc_steps: int = MPC_STEPS) -> dict:
+        say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None, mpc_steps: int = MPC_STEPS,
+        record: bool = False) -> dict:
     """Count, print the two tables as their rows come (``say``) and return the report as JSON-able data:
     ``header``, ``skipped`` (``[{problem, method, reason}]``), ``solves`` (:meth:`Count.to_json` each) and
     ``horizons`` (``problem``, ``iterations`` cap, ``rows``, ``slopes`` per method) and ``mpc``
-    (:meth:`StepCount.to_json` each; ``mpc_steps = 0``: none)."""
+    (:meth:`StepCount.to_json` each; ``mpc_steps = 0``: none). ``record``: also ``recorded``, the full solves again
+    with recorded kernels (:func:`count_recorded`), for the methods that have them."""
     header = {
         "methods": list(methods), "problems": list(names), "horizons": list(horizons), "sweep_iterations": iterations,
         "dtype": str(dtype).replace("torch.", ""), "device": str(torch.device(device or "cpu")),
@@ -299,6 +313,17 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
                 row = count_solve(problem_set.get(name, dtype=dtype, device=device), m)
                 say(format_count(row))
                 solves.append(row)
+    recorded = []
+    if record:
+        say()
+        say("the same solves with recorded kernels (record=True), each after an uncounted solve that records them")
+        say(_solve_header())
+    for name in names if record else ():
+        for m in methods:
+            if not skip_reason(m, built[name]) and has_record(solvers.get(m)):
+                row = count_recorded(problem_set.get(name, dtype=dtype, device=device), m)
+                say(format_count(row))
+                recorded.append(row)
 
     sweep_name = names[0]
     say()
@@ -337,6 +362,7 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
             steps.append(row)
     return {
         "header": header, "skipped": skipped, "solves": [r.to_json() for r in solves],
+        "recorded": [r.to_json() for r in recorded],
         "horizons": {"problem": sweep_name, "iterations": iterations, "rows": [r.to_json() for r in sweep],
                      "slopes": slopes},
         "mpc": [r.to_json() for r in steps],

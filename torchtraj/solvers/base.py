@@ -61,6 +61,9 @@ class Solver(abc.ABC):
     takes_duals: ClassVar[bool]
     starts_from_shifted_states: ClassVar[bool] = False
     kkt_point: ClassVar[bool] = True
+    #: Whether its options' ``record`` (for ALTRO, its ``ilqr``'s) replays its expansion from recorded graphs
+    #: (:mod:`torchtraj.core.recorded`).
+    records: ClassVar[bool] = False
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"

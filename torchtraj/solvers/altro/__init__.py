@@ -44,6 +44,7 @@ class ALTRO(Solver):
     name = "altro"
     options_class = ALTROOptions
     handles_constraints = True
+    records = True
     takes_state_guess = True
     takes_duals = True
 

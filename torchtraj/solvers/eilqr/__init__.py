@@ -35,6 +35,7 @@ class EILQR(Solver):
     name = "eilqr"
     options_class = EILQROptions
     handles_constraints = True
+    records = True
     takes_state_guess = True
     takes_duals = False
     starts_from_shifted_states = True

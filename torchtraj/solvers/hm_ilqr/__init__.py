@@ -28,6 +28,7 @@ class HMILQR(Solver):
     name = "hm-ilqr"
     options_class = HMILQROptions
     handles_constraints = True
+    records = True
     takes_state_guess = True
     takes_duals = False
     starts_from_shifted_states = True

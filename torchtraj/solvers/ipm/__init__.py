@@ -31,6 +31,7 @@ class IPM(Solver):
     name = "ipm"
     options_class = IPOptions
     handles_constraints = True
+    records = True
     takes_state_guess = True
     takes_duals = False
     starts_from_shifted_states = True
