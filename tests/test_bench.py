@@ -282,7 +282,7 @@ def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeyp
 
     seen = []
     empty = {"solves": [], "horizons": {"rows": []}}
-    monkeypatch.setattr(bench_ops, "run", lambda *args: seen.append(args[:4]) or empty)
+    monkeypatch.setattr(bench_ops, "run", lambda *args, **kwargs: seen.append(args[:4]) or empty)
     assert run(["--ops"])[0] == 0
     assert run(["--ops", "--method", "ilqr", "--ops-horizons", "5", "7", "--ops-iterations", "3"])[0] == 0
     assert seen == [(solvers.names(), ["pendulum", "cartpole", "car_3obs"], [25, 50, 100, 200], 5),
