@@ -27,7 +27,6 @@ from . import ops, profile, table
 from .runs import (
     Row,
     batch_x0,
-    has_record,
     make_options,
     relative_difference,
     run_reference,
@@ -140,7 +139,7 @@ def _check(p: argparse.ArgumentParser, args) -> None:
                                            and not args.compile and not args.cuda_graphs):
         p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
     if args.record and (args.grad or args.compile
-                        or not (args.ops or has_record(solvers.get(args.method)))):
+                        or not (args.ops or solvers.get(args.method).records)):
         p.error("--record goes with --ops, or with the timing rows of a method with a record option (ipm, altro, "
                 "al-ilqr, eilqr, hm-ilqr), without --grad and --compile")
     if args.ops and (args.grad or args.compile or args.profile):

@@ -91,11 +91,6 @@ def compiled(options) -> bool:
     return bool(getattr(getattr(options, "ilqr", options), "compile", False))
 
 
-def has_record(solver) -> bool:
-    """Whether ``solver``'s options have recorded kernels (``Solver.records``)."""
-    return solver.records
-
-
 def with_record(options):
     """``options`` with recorded kernels (``IPOptions.record``; ``ILQROptions.record``, for ALTRO its ``ilqr``'s)."""
     if hasattr(options, "ilqr"):

@@ -78,6 +78,8 @@ class Recorded:
         self.traces = 0  # signatures traced (failed ones included)
 
     def __call__(self, *args):
+        if torch.compiler.is_compiling():  # traced by torch.compile: the function itself, nothing of the record's
+            return self.fn(*args)
         leaves, spec = pytree.tree_flatten(args)
         if _must_run_eager(leaves):
             return self.fn(*args)
@@ -179,7 +181,7 @@ def _foreign_constants(graph: torch.fx.GraphModule, kept: list) -> bool:
 
 
 def _must_run_eager(leaves: list) -> bool:
-    if torch.compiler.is_compiling() or (_TRANSFORMS is not None and _TRANSFORMS() is not None):
+    if _TRANSFORMS is not None and _TRANSFORMS() is not None:
         return True
     if any(isinstance(leaf, torch.Tensor) and leaf.is_cuda for leaf in leaves) \
             and torch.cuda.is_current_stream_capturing():
@@ -196,8 +198,8 @@ def _signature(leaf: Any) -> Any:
 
 
 def _output_values(graph: torch.fx.GraphModule) -> list:
-    out = next(n for n in graph.graph.nodes if n.op == "output")
-    return [node.meta.get("val") if isinstance(node, torch.fx.Node) else node for node in pytree.tree_leaves(out.args)]
+    """The trace's value (a fake tensor, or what the function returned) of each output."""
+    return [node.meta.get("val") if isinstance(node, torch.fx.Node) else node for node in _output_nodes(graph.graph)]
 
 
 def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
@@ -219,17 +221,17 @@ def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
     return graph
 
 
+def _output(graph: torch.fx.Graph) -> torch.fx.Node:
+    return next(n for n in graph.nodes if n.op == "output")
+
+
 def _output_nodes(graph: torch.fx.Graph) -> list:
-    out = next(n for n in graph.nodes if n.op == "output")
-    return pytree.tree_leaves(out.args)
+    return pytree.tree_leaves(_output(graph).args)
 
 
 def _storage_groups(graph: torch.fx.GraphModule) -> list:
     """Per output, the index of the first output that shares its storage (views of one tensor), from the trace."""
-    storages = []
-    for node in _output_nodes(graph.graph):
-        val = node.meta.get("val") if isinstance(node, torch.fx.Node) else None
-        storages.append(val.untyped_storage() if isinstance(val, torch.Tensor) else None)
+    storages = [val.untyped_storage() if isinstance(val, torch.Tensor) else None for val in _output_values(graph)]
     return [next(j for j in range(i + 1) if storages[j] is not None and storages[j] is s) if s is not None else i
             for i, s in enumerate(storages)]
 
@@ -243,7 +245,7 @@ def _base(node):
 def _separate_outputs(graph: torch.fx.Graph, groups: list) -> None:
     """Outputs that the eager function returned as separate tensors but that common subexpressions made views of
     one get copies (a caller may write into one of them)."""
-    out = next(n for n in graph.nodes if n.op == "output")
+    out = _output(graph)
     leaves, spec = pytree.tree_flatten(out.args)
     owner: dict = {}
     for i, node in enumerate(leaves):
@@ -268,9 +270,7 @@ def _collapse_views(graph: torch.fx.Graph) -> None:
         parent = node.args[0]
         if not (isinstance(parent, torch.fx.Node) and parent.op == "call_function" and parent.target in _VIEWS):
             continue
-        root = parent
-        while root.op == "call_function" and root.target in _VIEWS:
-            root = root.args[0]
+        root = _base(parent)
         val = node.meta.get("val")
         if not isinstance(val, torch.Tensor) or not _static(val):
             continue

@@ -188,7 +188,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     if base is None and problem.linear_quadratic:
         e = _linear_quadratic_expansion(problem, cons, params, it)
     elif base is None:
-        e = _general_expansion(problem, cons, params, it, opts.record and not opts.compile)
+        e = _general_expansion(problem, cons, params, it, opts.record)
     else:
         e = _linear_quadratic_values(problem, cons, params, it, base)
     r = e.rows
