@@ -122,3 +122,35 @@ def test_entries_that_overflow_when_symmetrised_fail_their_instance_alone():
     inverse, finite = range_space._pseudo_inverse(blown, 1e-10)
     assert ok.all() and finite.tolist() == [True, False, True]
     torch.testing.assert_close(inverse[[0, 2]], alone[[0, 2]], rtol=0, atol=0)
+
+
+def test_gains_kept_unformed_are_the_factors_gains_row_by_row():
+    """A solver keeps each instance's last gains as their parts (TerminalGains) and forms them once: selected,
+    gathered and written row by row, beside gains already formed, they form the gains of the factors they came
+    from, bit for bit; and Σ_0's pseudo-inverse alone is the factorisation's first stage's."""
+    from torchtraj.riccati import range_space
+    from torchtraj.riccati.range_space import TerminalGains, formed, gains_of, select_gains
+    from torchtraj.solvers.ipm.compaction import gather_rows, write_rows
+
+    lqr, _ = random_lqr(B=4, N=7, nx=3, nu=2, mN=2, seed=13)
+    other, _ = random_lqr(B=4, N=7, nx=3, nu=2, mN=2, seed=14)
+    first, second = (factorize(x, terminal_rows="range-space") for x in (lqr, other))
+    assert isinstance(gains_of(first), TerminalGains) and torch.equal(gains_of(factorize(lqr)), factorize(lqr).K)
+    mask = torch.tensor([True, False, False, True])
+    torch.testing.assert_close(formed(select_gains(mask, first.gains, second.gains)),
+                               torch.where(mask.reshape(-1, 1, 1, 1), first.K, second.K), rtol=0, atol=0)
+    formed_gains = torch.randn_like(first.K)  # formed gains (an initial zero, a cross-over's) beside unformed ones
+    for mixed, want in ((select_gains(mask, first.gains, formed_gains), (first.K, formed_gains)),
+                        (select_gains(mask, formed_gains, first.gains), (formed_gains, first.K))):
+        torch.testing.assert_close(formed(mixed), torch.where(mask.reshape(-1, 1, 1, 1), *want), rtol=0, atol=0)
+    rows = torch.tensor([2, 0])
+    torch.testing.assert_close(formed(gather_rows(first.gains, rows)), first.K[rows], rtol=0, atol=0)
+    written = write_rows(_Holder(first.gains), rows, _Holder(second.gains[rows])).gains
+    torch.testing.assert_close(formed(written), first.K.index_copy(0, rows, second.K[rows]), rtol=0, atol=0)
+    everything, _ = range_space._pseudo_inverse(first.gains.sums, first.gains.tol)
+    torch.testing.assert_close(first.inverse, everything[:, 0], rtol=0, atol=0)
+
+
+@dataclasses.dataclass
+class _Holder:
+    gains: object

@@ -35,6 +35,12 @@ terminal rows by ``Π_kᵀ δx_k`` and the controls from stage ``k`` on can answ
 
 .. math::  K^c_k = K_k - k^h_k Σ_k^+ Π_k^T.
 
+A step needs none of them, only ``Σ_0⁺``, and the per-stage pseudo-inverses are the costliest part of the
+factorisation in a large batch (one small factorisation per stage and instance). So the factor holds the gains'
+parts (:class:`TerminalGains`) and forms them when they are read (``RangeSpaceFactor.K``); a solver that reports
+the gains of each instance's last step keeps the parts instead (:func:`select_gains`, rows by indexing) and forms
+the gains once, at the end (:func:`formed`).
+
 The factorisation's cost is the unconstrained sweep's plus two matrix products a stage (the chains of ``Π`` and
 ``δx^h``; with the parallel sweep, associative scans) and a constant number of calls for all stages at once; each
 solve is one unconstrained solve plus a constant number.
@@ -43,13 +49,14 @@ solve is one unconstrained solve plus a constant number.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional
 
 import torch
 from torch import Tensor
 
 from ..core.compiled import addmatmul, matmul
+from ..core.masks import where_rows
 from .factor import RiccatiFactor
 from .linalg import _cholesky_solve, _mT, _sym
 from .lqr import LQR, LQRSolution, LQRVectors
@@ -69,6 +76,58 @@ def applies(lqr: LQR, regularization: Optional[Tensor]) -> bool:
 
 
 @dataclass
+class TerminalGains:
+    """The constrained feedback gains ``K^c_k = K_k − k^h_k Σ_k⁺ Π_kᵀ`` (module docstring) before they are formed:
+    ``K (B, N, nu, nx)`` the unconstrained problem's gains, ``kh (B, N, nu, mN)``, ``Pi (B, N, nx, mN)`` the
+    ``Π_k`` of the stages, ``sums (B, N, mN, mN)`` the ``−Σ_k``, ``tol`` the rank tolerance of their
+    pseudo-inverses."""
+
+    K: Tensor
+    kh: Tensor
+    Pi: Tensor
+    sums: Tensor
+    tol: float
+
+    def value(self) -> Tensor:
+        """The gains ``(B, N, nu, nx)``."""
+        inverses, _ = _pseudo_inverse(self.sums, self.tol)
+        return self.K + self.kh @ (inverses @ _mT(self.Pi))
+
+    def parts(self) -> tuple:
+        return self.K, self.kh, self.Pi, self.sums
+
+    def __getitem__(self, rows) -> "TerminalGains":
+        """The gains of the instances ``rows`` (an index of the batch)."""
+        return TerminalGains(*(part[rows] for part in self.parts()), tol=self.tol)
+
+    def of(self, K: Tensor) -> "TerminalGains":
+        """Formed gains ``K`` in this form: no terminal part (``kh = Π = 0``, ``−Σ = I``), so that
+        :meth:`value` gives ``K`` back."""
+        eye = torch.eye(self.sums.shape[-1], dtype=K.dtype, device=K.device).expand_as(self.sums)
+        return TerminalGains(K, torch.zeros_like(self.kh), torch.zeros_like(self.Pi), eye, self.tol)
+
+
+def gains_of(factor) -> "Tensor | TerminalGains":
+    """The feedback gains of a factorisation, those of a :class:`RangeSpaceFactor` not yet formed."""
+    return factor.gains if isinstance(factor, RangeSpaceFactor) else factor.K
+
+
+def formed(gains) -> Tensor:
+    """The feedback gains of ``gains``, a tensor or :class:`TerminalGains`."""
+    return gains.value() if isinstance(gains, TerminalGains) else gains
+
+
+def select_gains(mask: Tensor, a, b):
+    """``a`` for the instances in ``mask (B,)``, ``b`` elsewhere, of gains that are tensors or
+    :class:`TerminalGains` (formed ones beside those in the other's form, :meth:`TerminalGains.of`)."""
+    if isinstance(a, Tensor) and isinstance(b, Tensor):
+        return where_rows(mask, a, b)
+    a = b.of(a) if isinstance(a, Tensor) else a
+    b = a.of(b) if isinstance(b, Tensor) else b
+    return TerminalGains(*(where_rows(mask, x, y) for x, y in zip(a.parts(), b.parts())), tol=a.tol)
+
+
+@dataclass
 class RangeSpaceFactor:
     """The factorisation of an LQR problem with terminal rows by the range-space method (module docstring).
 
@@ -77,11 +136,11 @@ class RangeSpaceFactor:
     value function's Hessians, ``ok (B,)``; the homogeneous columns (last dimension ``mN``):
     ``Pi (B, N+1, nx, mN)``, ``kh (B, N, nu, mN)``, ``dxh (B, N+1, nx, mN)``, ``duh (B, N, nu, mN)``,
     ``lamh (B, N+1, nx, mN)``; ``inverse (B, mN, mN)`` the pseudo-inverse of ``−Σ``; ``penalty (B, mN, nx)`` the
-    penalty's share of the rows' multipliers, ``ρ C⁺ᵀ``."""
+    penalty's share of the rows' multipliers, ``ρ C⁺ᵀ``. ``K`` forms the gains from ``gains`` at its first read."""
 
     inner: RiccatiFactor
     lqr: LQR
-    K: Tensor
+    gains: TerminalGains
     P: Tensor
     ok: Tensor
     Pi: Tensor
@@ -91,6 +150,14 @@ class RangeSpaceFactor:
     lamh: Tensor
     inverse: Tensor
     penalty: Tensor
+    _K: Optional[Tensor] = field(default=None, init=False, repr=False)
+
+    @property
+    def K(self) -> Tensor:
+        """The constrained feedback gains ``(B, N, nu, nx)``."""
+        if self._K is None:
+            self._K = self.gains.value()
+        return self._K
 
     def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True,
               initial_multiplier: Optional[Tensor] = None) -> LQRSolution:
@@ -260,8 +327,9 @@ def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, to
     lamh = Pi + inner.P @ dxh
     # −Σ_k = −Σ_{j ≥ k} T_j for the gains, all stages at once; −Σ_0 for the multipliers
     T = (_mT(Pi[:, 1:]) @ drive).neg()
-    inverses, finite = _pseudo_inverse(T.flip(1).cumsum(1).flip(1), tol)
-    K = inner.K + kh @ (inverses @ _mT(Pi[:, :-1]))
-    ok = inner.ok & finite.all(-1) & all_finite([K, dxh])
-    return RangeSpaceFactor(inner=inner, lqr=lqr, K=K, P=inner.P, ok=ok, Pi=Pi, kh=kh, dxh=dxh, duh=duh,
-                            lamh=lamh, inverse=inverses[:, 0], penalty=correction)
+    sums = T.flip(1).cumsum(1).flip(1)
+    inverse, finite = _pseudo_inverse(sums[:, 0], tol)
+    ok = inner.ok & finite & all_finite([kh, dxh])
+    gains = TerminalGains(K=inner.K, kh=kh, Pi=Pi[:, :-1], sums=sums, tol=tol)
+    return RangeSpaceFactor(inner=inner, lqr=lqr, gains=gains, P=inner.P, ok=ok, Pi=Pi, kh=kh, dxh=dxh, duh=duh,
+                            lamh=lamh, inverse=inverse, penalty=correction)

@@ -33,6 +33,7 @@ from ...core.masks import where_rows
 from ...globalization.regularization import corrected_attempts
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import RiccatiFactor, all_finite
+from ...riccati.range_space import TerminalGains, gains_of, select_gains
 from .initial_state import initial_step
 from .model import Iterate, Model
 from .options import EILQROptions
@@ -42,7 +43,9 @@ from .options import EILQROptions
 class Direction:
     """The step ``dX (B, N+1, nx)``, ``dU (B, N, nu)``, the new multiplier estimates ``lam``, ``nu``, ``nuN``,
     ``mu0``, ``z``, ``zN`` (shaped as the :class:`~torchtraj.solvers.eilqr.model.Iterate`'s), the gains
-    ``K (B, N, nu, nx)`` and ``ok (B,)``: positive definite reduced Hessians and a finite step."""
+    ``K (B, N, nu, nx)`` (with terminal rows by the range-space method their parts,
+    :class:`~torchtraj.riccati.range_space.TerminalGains`, formed when the solution is made) and ``ok (B,)``:
+    positive definite reduced Hessians and a finite step."""
 
     dX: Tensor
     dU: Tensor
@@ -52,7 +55,7 @@ class Direction:
     mu0: Tensor
     z: Tensor
     zN: Tensor
-    K: Tensor
+    K: "Tensor | TerminalGains"
     ok: Tensor
     #: the factorisation every instance's step came from (``None`` where the instances' steps come from several)
     factor: Optional[RiccatiFactor] = None
@@ -106,13 +109,14 @@ def _completed(factor, rhs, step, model: Model, it: Iterate) -> Direction:
     dz = torch.cat([step.dx[:, :-1], step.du], -1)
     z = (model.zw + model.sigma * (ineq.G @ dz.unsqueeze(-1)).squeeze(-1)) * ineq.mask
     zN = model.zwN + model.sigmaN * (ineq.GN @ step.dx[:, -1].unsqueeze(-1)).squeeze(-1)
-    return Direction(dX=step.dx, dU=step.du, lam=step.costate, nu=nu, nuN=nuN, mu0=mu0, z=z, zN=zN, K=factor.K,
+    return Direction(dX=step.dx, dU=step.du, lam=step.costate, nu=nu, nuN=nuN, mu0=mu0, z=z, zN=zN, K=gains_of(factor),
                      ok=ok, factor=factor)
 
 
 def pick_direction(mask: Tensor, new: Direction, old: Direction) -> Direction:
     """``new`` for the instances of ``mask (B,)``, ``old`` elsewhere (no single factorisation is left)."""
-    return Direction(**{f.name: where_rows(mask, getattr(new, f.name), getattr(old, f.name))
+    return Direction(**{f.name: select_gains(mask, new.K, old.K) if f.name == "K" else
+                        where_rows(mask, getattr(new, f.name), getattr(old, f.name))
                         for f in dataclasses.fields(Direction) if f.name != "factor"})
 
 

@@ -48,6 +48,7 @@ from ...core.solution import History, Solution
 from ...core.status import Status
 from ...kkt.merit import largest_violation
 from ...kkt.model import total_cost
+from ...riccati.range_space import formed, select_gains
 from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done, weights_for
 from .globalization import globalized_step
 from .initial_state import InitialState
@@ -149,7 +150,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         unresolved = take & (ls.alpha == 1.0) & (_largest(d.dX, d.dU) <= RESOLVED * torch.finfo(x0.dtype).eps
                                                    * (1 + _largest(it.X, it.U)))
         it = _step(it, d, ls.alpha, take)
-        K = where_rows(take, d.K, K)
+        K = select_gains(take, d.K, K)  # formed for the solution (range-space rows: once, at the end)
         last = torch.where(take & (eps > 0), eps, last)
         # Fig. 5's adaptive ε_reg: a step the merit refuses or cuts short asks for more regularisation (a shorter,
         # more gradient-like step) at the next iteration, a full one for less, down to none
@@ -180,7 +181,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                         model.J.min().item(), model.J.max().item(), model.error.max().item(),
                         gamma.max().item(), running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    return _solution(problem, it, K, status, iterations, rows, x0, params, initial, method)
+    return _solution(problem, it, formed(K), status, iterations, rows, x0, params, initial, method)
 
 
 def start_states(problem: Problem, batch: Batch, opts: EILQROptions) -> torch.Tensor:

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ...core.masks import where_rows
 from ...core.solution import History
+from ...riccati.range_space import TerminalGains, select_gains
 from .iterate import Iterate, Model
 
 
@@ -26,7 +27,11 @@ def pick(mask: Tensor, a, b):
     as a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factor, is kept where ``a`` and ``b`` share it, else
     ``None``)."""
     def one(x, y):
-        return where_rows(mask, x, y) if isinstance(x, Tensor) else (x if x is y else None)
+        if isinstance(x, Tensor):
+            return where_rows(mask, x, y)
+        if isinstance(x, TerminalGains):
+            return select_gains(mask, x, y)
+        return x if x is y else None
 
     return type(a)(**{f.name: one(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
 
@@ -36,7 +41,7 @@ def gather_rows(value, index: Tensor):
     stays ``None``)."""
     if value is None:
         return None
-    if isinstance(value, Tensor):
+    if isinstance(value, (Tensor, TerminalGains)):
         return value[index]
     return type(value)(**{f.name: getattr(value, f.name) if f.name == "knots"
                           else gather_rows(getattr(value, f.name), index) for f in fields(value)})
@@ -46,6 +51,9 @@ def write_rows(value, index: Tensor, rows):
     """The batch-first dataclass ``value`` with its rows ``index`` replaced by ``rows`` (a new object; a field that
     is no tensor, as a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factor, becomes ``None``)."""
     def one(x, y):
+        if isinstance(x, TerminalGains):
+            return TerminalGains(*(part.index_copy(0, index, row) for part, row in zip(x.parts(), y.parts())),
+                                 tol=x.tol)
         return x.index_copy(0, index, y) if isinstance(x, Tensor) else None
 
     return type(value)(**{f.name: one(getattr(value, f.name), getattr(rows, f.name)) for f in fields(value)})

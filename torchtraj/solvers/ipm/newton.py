@@ -41,6 +41,7 @@ from ...core.constraints import Constraints
 from ...globalization.regularization import corrected_attempts
 from ...kkt import newton as kkt_newton
 from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize, sweep_for_batch
+from ...riccati.range_space import TerminalGains, gains_of
 from .compaction import pick, write_rows
 from .iterate import Iterate, Model
 from .options import IPOptions
@@ -82,8 +83,9 @@ def newton_rhs(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, targe
 @dataclass
 class Direction:
     """The Newton step of every primal-dual variable (each shaped as its :class:`Iterate` field), the feedback
-    gains ``K (B, N, nu, nx)`` of the factorised system and ``ok (B,)``: its reduced Hessians were positive definite
-    and the step is finite."""
+    gains of the factorised system (``(B, N, nu, nx)``, or with terminal rows by the range-space method their
+    parts, :class:`~torchtraj.riccati.range_space.TerminalGains`, formed when the solution is made) and
+    ``ok (B,)``: its reduced Hessians were positive definite and the step is finite."""
 
     dX: Tensor
     dU: Tensor
@@ -96,7 +98,7 @@ class Direction:
     dlam: Tensor
     dnu: Tensor
     dnuN: Tensor
-    K: Tensor
+    K: "Tensor | TerminalGains"
     ok: Tensor
     factor: Optional[RiccatiFactor] = None  # kept when asked for (a corrector reuses it)
 
@@ -144,7 +146,7 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
     # the full step takes the multipliers y of g + s = 0 to z + Δz (stationarity in s)
     dy, dyN = (it.z + dz - it.y) * on, it.zN + dzN - it.yN
     return Direction(dX=dX, dU=dU, ds=ds, dsN=dsN, dz=dz, dzN=dzN, dy=dy, dyN=dyN, dlam=sol.costate, dnu=dnu,
-                     dnuN=dnuN, K=factor.K, ok=factor.ok & finite, factor=factor if keep_factor else None)
+                     dnuN=dnuN, K=gains_of(factor), ok=factor.ok & finite, factor=factor if keep_factor else None)
 
 
 def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last: Tensor, running: Tensor,

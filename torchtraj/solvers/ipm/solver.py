@@ -62,6 +62,7 @@ from ...core.problem import Problem
 from ...core.solution import Solution
 from ...core.status import Status
 from ...globalization.filter import Filter
+from ...riccati.range_space import formed, select_gains
 from .barrier import average_complementarity, mehrotra_step, monotone_update
 from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
@@ -203,8 +204,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         rounds = opts.crossover_start_rounds if start else opts.crossover_rounds
         trying = running & ((error <= opts.crossover_from) | start) if crossing and rounds > 0 else None
         if trying is not None and bool(trying.any()):
-            it, model, error, K, taken = cross_over(problem, cons, params, model, it, x0, base, opts, tol, error, K,
-                                                    trying, rounds, start)
+            it, model, error, K, taken = cross_over(problem, cons, params, model, it, x0, base, opts, tol, error,
+                                                    formed(K), trying, rounds, start)
             status = torch.where(taken > 0, int(Status.CONVERGED), status)
             iterations = iterations + taken.abs()  # each round solves a Newton system, as an iteration
             running = status == Status.RUNNING
@@ -213,7 +214,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             break
         if compacting and count <= opts.compact_below * running.shape[0]:
             # the finished instances' results are final: iterate on the running ones alone
-            now = Final.of(it, model, status, iterations, K)
+            now = Final.of(it, model, status, iterations, formed(K))
             final = gather_rows(now, torch.arange(running.shape[0], device=x0.device)) if final is None \
                 else final.write(index, now)  # the first: copies of the full batch's
             # what the history repeats for the instances that leave (its values at their final iterate)
@@ -285,7 +286,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         tiny = ls.tiny
         it = pick(take, ls.it, it)
         filt = pick(take, ls.filter, filt)
-        K = where_rows(take, d.K, K)
+        K = select_gains(take, d.K, K)  # formed for the solution (range-space rows: once, at the end)
         last = torch.where(take & (delta > 0), delta, last)
         missed = factored & ~ls.found
         # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance of the
@@ -324,5 +325,5 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                         model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),
                         running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    out = Final.of(it, model, status, iterations, K)
+    out = Final.of(it, model, status, iterations, formed(K))
     return (out if final is None else final.write(index, out)), cons, records
