@@ -110,8 +110,10 @@ def test_obstacle_problems_converge_through_restoration(name, reference):
     """From the problem set's own guess, default options: converged, a KKT point, in at most 1.5 times IPOPT's
     iterations, at IPOPT's optimum (car_escape from its waypoints, 74 iterations against IPOPT's 77, without a
     restoration phase; quadrotor2d, whose objective IPOPT scales by 0.026 (W&B 2006 §3.8) as the IPM now does,
-    in 533 against IPOPT's 375: unscaled, the IPM took 141 to a lower local optimum, 21.4956, that IPOPT
-    warm-started there keeps)."""
+    in 266 against IPOPT's 375 with its least-squares multipliers IPOPT's (two-sided bounds as one row: 660 to a
+    lower optimum, 21.591, with the two rows' own; unscaled, the IPM took 141 to a lower local optimum, 21.4956,
+    that IPOPT warm-started there keeps). quadrotor2d's path is sensitive: from guesses 1e-15 apart the IPM takes
+    263 to 290 iterations, to IPOPT's optimum or to 21.591 (IPOPT: 357 to 376, to its optimum)."""
     problem = tt.problems.get(name)
     sol = tt.solve(problem, method="ipm")
     ipopt = reference[name]["ipopt"]

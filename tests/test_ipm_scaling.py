@@ -71,3 +71,26 @@ def test_multipliers_are_the_problems(reference):
     for name, value in given.multipliers.items():
         torch.testing.assert_close(scaled.multipliers[name], 1000 * value, rtol=1e-4, atol=1e-3)
     assert float(scaled.kkt["stationarity"][0]) < 1e-6
+
+
+def test_two_sided_bounds_take_ipopts_least_squares_multipliers(monkeypatch):
+    """A variable bounded on both sides is one row of IPOPT's NLP (the problem set's references pose every bound so)
+    and two rows here: each enters the least-squares multiplier estimate with its share ½
+    (solvers/ipm/initialization.py), so that the first step is IPOPT's. quadrotor2d bounds both controls and the
+    pitch; with the two rows' own estimate its first controls were 0.013 off IPOPT's, 30 % of the step."""
+    pytest.importorskip("casadi")
+    from torchtraj.bench import reference
+    from torchtraj.core.constraints import Constraints
+
+    problem = tt.problems.get("quadrotor2d")
+    cons = Constraints.of(problem)
+    share = {name: cons.ineq_share[cons.ineq_blocks[name]].tolist() for name in ("state_ineq", "u_upper", "x_lower")}
+    assert share == {"state_ineq": [1.0], "u_upper": [0.5, 0.5], "x_lower": [0.5]}
+    options = reference.WarmStartable._ipopt_options
+    monkeypatch.setattr(reference.WarmStartable, "_ipopt_options",
+                        lambda self, **changes: options(self, max_iter=1, **changes))
+    first = reference.ReferenceSolver("quadrotor2d", "ipopt").solve()
+    assert first.iterations == 1
+    sol = tt.solve(problem, method="ipm", options=tt.IPOptions(iterations=1))
+    torch.testing.assert_close(sol.U[0], torch.tensor(first.U, dtype=torch.float64), rtol=0, atol=1e-6)
+    torch.testing.assert_close(sol.X[0], torch.tensor(first.X, dtype=torch.float64), rtol=0, atol=1e-6)

@@ -1,7 +1,7 @@
 """How tests/data/ipm_degenerate_row.json was made (not a test): IPOPT (CasADi, tol 1e-8, its defaults) on the
 double integrator of tests/test_ipm_safeguards.py (RK4, dt 0.1, N = 20, |u| ≤ 1, from (0.3, 0.1), the rollout of
-u = 0 as the guess) with the terminal row ``(x_N,0 − 1)² = 0``, whose gradient vanishes where it holds: its status,
-iterations and objective at each iterate.
+u = 0 as the guess; the bounds as two-sided rows, as the problem set's references pose them) with the terminal row
+``(x_N,0 − 1)² = 0``, whose gradient vanishes where it holds: its status, iterations and objective at each iterate.
 
     PYTHONPATH=. python tests/data/make_ipm_degenerate_row.py
 """
@@ -34,13 +34,14 @@ for k in range(N):
     rows.append(X[k + 1] - step(X[k], U[k]))
 cost += 10 * ca.sumsqr(X[N] - goal)
 rows += [X[0] - x0, (X[N][0] - 1) ** 2]
-solver = ca.nlpsol("degenerate", "ipopt", {"x": ca.vertcat(*X, *U), "f": cost, "g": ca.vertcat(*rows)},
+bounds = U  # |u| <= 1 as two-sided rows, as the problem set's references pose bounds (torchtraj.bench.reference)
+solver = ca.nlpsol("degenerate", "ipopt", {"x": ca.vertcat(*X, *U), "f": cost, "g": ca.vertcat(*rows, *bounds)},
                    {"ipopt": {"tol": 1e-8, "print_level": 0, "sb": "yes"}, "print_time": False})
 guess = [x0]
 for k in range(N):
     guess.append(np.asarray(step(guess[-1], 0.0)).ravel())
 result = solver(x0=np.concatenate([np.concatenate(guess), np.zeros(N)]),
-                lbx=[-np.inf] * (2 * (N + 1)) + [-1.0] * N, ubx=[np.inf] * (2 * (N + 1)) + [1.0] * N, lbg=0, ubg=0)
+                lbg=[0.0] * (2 * N + 3) + [-1.0] * N, ubg=[0.0] * (2 * N + 3) + [1.0] * N)
 stats = solver.stats()
 out = {"_about": "IPOPT on the double integrator with the degenerate terminal row (x_N0 - 1)^2 = 0; made by "
                  "tests/data/make_ipm_degenerate_row.py",

@@ -104,15 +104,30 @@ class Constraints:
             knot_mask[0, self.ineq_blocks[name]] = 0.0
         #: ``(N, mi)``: 1 where a stage inequality row applies at knot k.
         self.ineq_knot_mask = knot_mask
+        #: ``(mi,)``: the share of its constraint that a stage inequality row is, ½ for the two rows of a variable
+        #: bounded on both sides (one constraint ``l ≤ v ≤ u``, as an NLP solver's row with its two bounds), else 1.
+        self.ineq_share = torch.ones(self.mi, dtype=problem.dtype, device=problem.device)
+        for upper, lower in (("u_upper", "u_lower"), ("x_upper", "x_lower")):
+            ups, lows = (self._finite_list(getattr(problem, name)) for name in (upper, lower))
+            for name, entries in ((upper, ups), (lower, lows)):
+                start = self.ineq_blocks[name].start
+                for row, entry in enumerate(entries):
+                    if entry in ups and entry in lows:
+                        self.ineq_share[start + row] = 0.5
         if ignored:
             self.me = self.mi = self.meN = self.miN = 0
         self._bound_selection = self._bound_selection_of_rows()
 
     @staticmethod
+    def _finite_list(bound) -> list:
+        """The indices of the finite entries of ``bound`` (``None``: none)."""
+        return [] if bound is None else [i for i, v in enumerate(bound.tolist()) if abs(v) != float("inf")]
+
+    @staticmethod
     def _finite(bound):
         """Entries of ``bound`` that are finite: a slice when they are contiguous (a view), else an index tensor
         on the bound's device (a Python list would be copied to the device at every call)."""
-        rows = [] if bound is None else [i for i, v in enumerate(bound.tolist()) if abs(v) != float("inf")]
+        rows = Constraints._finite_list(bound)
         if not rows:
             return _Rows(slice(0, 0), 0)
         if rows == list(range(rows[0], rows[-1] + 1)):

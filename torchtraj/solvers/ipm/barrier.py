@@ -71,7 +71,8 @@ def mehrotra_step(model: Model, it: Iterate, predictor: Direction, lqr: LQR, del
     ``σ = min((μ_aff / μ̄)³, σ_max)`` with the average complementarity ``μ̄`` now and ``μ_aff`` after the largest
     predictor steps to the boundary, kept within ``[floor, ceiling (B,)]``; then the step for
     ``S z = μ − ΔS_aff Δz_aff``, taken whole to the fraction-to-boundary limits (no line search). A step that the
-    boundary cuts to round-off is not found, as after a failed line search. Returns ``(μ (B,), direction, step)``."""
+    boundary cuts to round-off, or to less than ε of the Newton step, is not found, as after a failed line search.
+    Returns ``(μ (B,), direction, step)``."""
     knots = model.knots
     a_p, a_d = fraction_to_boundary(it, predictor, torch.ones_like(delta))
     ap, ad = a_p.reshape(-1, 1, 1), a_d.reshape(-1, 1, 1)
@@ -86,6 +87,8 @@ def mehrotra_step(model: Model, it: Iterate, predictor: Direction, lqr: LQR, del
     d = direction(lqr, rhs, delta, model, it, mu, target, factor=factor)
     a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
     size, round_off = step_and_round_off(it, d)
-    stalled = (a_max * size <= round_off) & (size > round_off)
+    # cut to round-off: the step itself, or its fraction of the Newton step (a huge step cut below ε moves the point
+    # by barely more than round-off, iteration after iteration)
+    stalled = ((a_max * size <= round_off) & (size > round_off)) | (a_max < torch.finfo(a_max.dtype).eps)
     found = factored & d.ok & ~stalled
     return mu, d, Step(advance(it, d, a_max, a_dual, mu, knots, opts), a_max, found, filt)

@@ -184,7 +184,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
             base = Base(it.X, it.U, model)
         if step == 0 and opts.least_squares_multipliers and hooks.start is None:  # W&B §3.6, then re-expanded
-            it = least_squares_multipliers(model, it, status == Status.RUNNING, opts)
+            it = least_squares_multipliers(cons, model, it, status == Status.RUNNING, opts)
             model = expand_k(problem, cons, params, it, opts, base)
         if theta_max is None:
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
