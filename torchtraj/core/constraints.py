@@ -108,11 +108,12 @@ class Constraints:
         #: bounded on both sides (one constraint ``l ≤ v ≤ u``, as an NLP solver's row with its two bounds), else 1.
         self.ineq_share = torch.ones(self.mi, dtype=problem.dtype, device=problem.device)
         for upper, lower in (("u_upper", "u_lower"), ("x_upper", "x_lower")):
-            ups, lows = (self._finite_list(getattr(problem, name)) for name in (upper, lower))
-            for name, entries in ((upper, ups), (lower, lows)):
+            entries = {name: self._finite_list(getattr(problem, name)) for name in (upper, lower)}
+            both = set(entries[upper]) & set(entries[lower])
+            for name, finite in entries.items():
                 start = self.ineq_blocks[name].start
-                for row, entry in enumerate(entries):
-                    if entry in ups and entry in lows:
+                for row, entry in enumerate(finite):
+                    if entry in both:
                         self.ineq_share[start + row] = 0.5
         if ignored:
             self.me = self.mi = self.meN = self.miN = 0

@@ -100,6 +100,12 @@ class TerminalGains:
         """The gains of the instances ``rows`` (an index of the batch)."""
         return TerminalGains(*(part[rows] for part in self.parts()), tol=self.tol)
 
+    def index_copy(self, dim: int, index: Tensor, source: "TerminalGains") -> "TerminalGains":
+        """These gains with the instances ``index`` replaced by ``source``'s (``dim`` 0, the batch; as
+        :meth:`torch.Tensor.index_copy`)."""
+        return TerminalGains(*(part.index_copy(dim, index, row) for part, row in zip(self.parts(), source.parts())),
+                             tol=self.tol)
+
     def of(self, K: Tensor) -> "TerminalGains":
         """Formed gains ``K`` in this form: no terminal part (``kh = Π = 0``, ``−Σ = I``), so that
         :meth:`value` gives ``K`` back."""

@@ -51,10 +51,7 @@ def write_rows(value, index: Tensor, rows):
     """The batch-first dataclass ``value`` with its rows ``index`` replaced by ``rows`` (a new object; a field that
     is no tensor, as a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factor, becomes ``None``)."""
     def one(x, y):
-        if isinstance(x, TerminalGains):
-            return TerminalGains(*(part.index_copy(0, index, row) for part, row in zip(x.parts(), y.parts())),
-                                 tol=x.tol)
-        return x.index_copy(0, index, y) if isinstance(x, Tensor) else None
+        return x.index_copy(0, index, y) if isinstance(x, (Tensor, TerminalGains)) else None
 
     return type(value)(**{f.name: one(getattr(value, f.name), getattr(rows, f.name)) for f in fields(value)})
 
