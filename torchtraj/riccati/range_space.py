@@ -94,6 +94,7 @@ class TerminalGains:
         return self.K + self.kh @ (inverses @ _mT(self.Pi))
 
     def parts(self) -> tuple:
+        """The batch-first tensors ``(K, kh, Pi, sums)``."""
         return self.K, self.kh, self.Pi, self.sums
 
     def __getitem__(self, rows) -> "TerminalGains":
@@ -125,7 +126,8 @@ def formed(gains) -> Tensor:
 
 def select_gains(mask: Tensor, a, b):
     """``a`` for the instances in ``mask (B,)``, ``b`` elsewhere, of gains that are tensors or
-    :class:`TerminalGains` (formed ones beside those in the other's form, :meth:`TerminalGains.of`)."""
+    :class:`TerminalGains` (formed ones beside those in the other's form, :meth:`TerminalGains.of`); of two
+    tensors, :func:`~torchtraj.core.masks.where_rows`."""
     if isinstance(a, Tensor) and isinstance(b, Tensor):
         return where_rows(mask, a, b)
     a = b.of(a) if isinstance(a, Tensor) else a

@@ -29,7 +29,6 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from ...core.masks import where_rows
 from ...globalization.regularization import corrected_attempts
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import RiccatiFactor, all_finite
@@ -115,8 +114,7 @@ def _completed(factor, rhs, step, model: Model, it: Iterate) -> Direction:
 
 def pick_direction(mask: Tensor, new: Direction, old: Direction) -> Direction:
     """``new`` for the instances of ``mask (B,)``, ``old`` elsewhere (no single factorisation is left)."""
-    return Direction(**{f.name: select_gains(mask, new.K, old.K) if f.name == "K" else
-                        where_rows(mask, getattr(new, f.name), getattr(old, f.name))
+    return Direction(**{f.name: select_gains(mask, getattr(new, f.name), getattr(old, f.name))
                         for f in dataclasses.fields(Direction) if f.name != "factor"})
 
 

@@ -16,7 +16,6 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-from ...core.masks import where_rows
 from ...core.solution import History
 from ...riccati.range_space import TerminalGains, select_gains
 from .iterate import Iterate, Model
@@ -27,11 +26,7 @@ def pick(mask: Tensor, a, b):
     as a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factor, is kept where ``a`` and ``b`` share it, else
     ``None``)."""
     def one(x, y):
-        if isinstance(x, Tensor):
-            return where_rows(mask, x, y)
-        if isinstance(x, TerminalGains):
-            return select_gains(mask, x, y)
-        return x if x is y else None
+        return select_gains(mask, x, y) if isinstance(x, (Tensor, TerminalGains)) else (x if x is y else None)
 
     return type(a)(**{f.name: one(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})
 

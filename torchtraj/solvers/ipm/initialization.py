@@ -29,7 +29,7 @@ therefore enters with its share ``ω = ½`` (:attr:`~torchtraj.core.constraints.
 ``I + Gᵀ Ω G`` and ``y = z + Ω G w_x``, whose force ``Dᵀ (y_u − y_l) = Dᵀ D w_x`` is that row's multiplier. The
 gradient term ``Gᵀ z`` is IPOPT's (its two bound multipliers at 1 cancel, as the two rows' do). With the two rows'
 estimate the first step on ``quadrotor2d`` was 30 % longer than IPOPT's at the first stages and the solve reached
-another local optimum (21.59 against IPOPT's 26.64); with the shares it is IPOPT's to 1e-5
+another local optimum (21.59 against IPOPT's 26.64); with the shares it is IPOPT's to 1e-6
 (``tests/test_ipm_scaling.py``).
 """
 
