@@ -133,6 +133,19 @@ def test_quadrotor_point_to_point_at_ipopts_optimum():
     assert_ipm_at_ipopts_optimum("quadrotor_p2p")
 
 
+def test_the_parallel_sweep_takes_the_sequential_sweeps_inertia_test():
+    """The quadrotor's stage control Hessians are indefinite where its reduced ones are not: the parallel sweep's
+    elements refuse those factorisations and the sequential sweep takes them (``riccati.factorize``), so the parallel
+    sweep regularises where the sequential one does and takes its path (before the fallback: 1000 iterations)."""
+    mt = mtp.get("quadrotor_p2p")
+    sequential, parallel = (tt.solve(mt.problem, method="ipm", options=tt.IPOptions(sweep=sweep))
+                            for sweep in ("sequential", "parallel"))
+    assert parallel.status.tolist() == sequential.status.tolist() == [tt.Status.CONVERGED]
+    assert torch.equal(parallel.iterations, sequential.iterations)
+    assert torch.equal(parallel.history.regularization, sequential.history.regularization)
+    assert float(mt.duration(parallel.X)[0]) == pytest.approx(float(mt.duration(sequential.X)[0]), rel=1e-9)
+
+
 @pytest.mark.slow
 def test_cartpole_swing_at_ipopts_optimum():
     """FATROP's cart-pendulum swing in kind: IPOPT's optimum of the same discretisation (T = 4.0135 s), in a number of

@@ -139,6 +139,33 @@ def test_indefinite_stage_hessians_are_flagged():
     assert factorize(lqr).ok.tolist() == factorize(lqr, sweep="parallel").ok.tolist() == [True, True, False]
 
 
+def test_an_indefinite_stage_cost_that_the_dynamics_make_convex_takes_the_sequential_factor():
+    """Instance 1's ``R`` is indefinite at one stage while its reduced ``Q_uu = R + Bᵀ P B`` is positive definite: the
+    parallel elements refuse it and the sequential sweep factorises it (the same Newton system), so ``ok`` and the
+    solution are the sequential sweep's for every instance; the others keep their parallel factors bit for bit."""
+    lqr, rhs = random_lqr(B=3, N=8, nx=3, nu=2, seed=11)
+    sequential = factorize(lqr)
+    R = lqr.R.clone()
+    low_R, low_Quu = (torch.linalg.eigvalsh(a[1, 4]).min() for a in (R, sequential.Quu))
+    R[1, 4] -= 0.5 * (low_R + low_Quu) * torch.eye(2, dtype=torch.float64)  # R(1, 4)'s least eigenvalue < 0 < Q_uu's
+    R[2, 3] = -5.0 * torch.eye(2, dtype=torch.float64)  # indefinite for both sweeps
+    lqr = dataclasses.replace(lqr, R=R)
+    assert torch.linalg.eigvalsh(R[1, 4]).min() < 0
+    clean = factorize(dataclasses.replace(lqr, R=R.index_copy(0, torch.tensor([1, 2]), sequential.lqr.R[1:])),
+                      sweep="parallel")
+    sequential = factorize(lqr)
+    parallel = factorize(lqr, sweep="parallel")
+    assert isinstance(parallel, ParallelRiccatiFactor)
+    assert sequential.ok.tolist() == parallel.ok.tolist() == [True, True, False]
+    a, b = sequential.solve(rhs, multipliers=True), parallel.solve(rhs, multipliers=True)
+    for name in FIELDS:
+        assert relative(getattr(b, name)[:2], getattr(a, name)[:2]) < 1e-10, name
+    for name in ("K", "P", "Quu", "Qux", "chol"):
+        assert torch.equal(getattr(parallel, name)[1], getattr(sequential, name)[1]), name
+        assert torch.equal(getattr(parallel, name)[0], getattr(clean, name)[0]), name
+    assert torch.equal(b.du[0], clean.solve(rhs, multipliers=True).du[0])
+
+
 def calls(N, sweep):
     lqr, rhs = random_lqr(B=1, N=N, nx=2, nu=1, seed=8)
     with OperatorCounter() as ops:

@@ -29,7 +29,7 @@ from .bounds import _held_controls
 from .factor import RiccatiFactor
 from .linalg import _time_major
 from .lqr import LQR, LQRSolution, LQRVectors
-from .parallel import choose_sweep, factorize_parallel
+from .parallel import ParallelRiccatiFactor, choose_sweep, factorize_parallel
 from .propagation import _stage_rows, _terminal_constraint, default_rank_tolerance
 from .range_space import TERMINAL_ROWS, applies, factorize_range_space, penalised
 from .rows import factorize_rows
@@ -65,7 +65,8 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         unconstrained, correction = penalised(lqr, tol)
         return factorize_range_space(factorize(unconstrained, shift=shift, sweep=sweep), lqr, correction, tol)
     if sweep != "sequential" and choose_sweep(lqr, sweep) == "parallel":
-        return factorize_parallel(lqr, regularization, shift)
+        factor = factorize_parallel(lqr, regularization, shift)
+        return factor if regularization is not None else _sequential_where_refused(factor, lqr, shift)
     exact = regularization is None and not lqr.propagated
     lqr, finite, W, Hs = _sanitize_stacked(lqr, shift)
     Bsz, nu = lqr.B.shape[0], lqr.B.shape[-1]
@@ -84,6 +85,25 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
                              Qux=_time_major(Quxs), chol=chol, free=None, stage=None, terminal=None, exact=exact,
                              fixed=held, W=W.transpose(0, 1))
     return _factorize_propagated(lqr, finite, W, Hs, regularization, tol)
+
+
+def _sequential_where_refused(factor: ParallelRiccatiFactor, lqr: LQR,
+                              shift: Optional[Tensor]) -> ParallelRiccatiFactor:
+    """``factor`` with the instances it flags not ``ok`` factorised again by the sequential sweep.
+
+    The parallel sweep asks every stage's own control Hessian ``R̃`` to be positive definite as well as the
+    reduced ``Q_uu`` (:mod:`~torchtraj.riccati.parallel`); the sequential sweep asks only the latter, which is
+    the inertia test of the Newton system. An instance whose ``R̃`` is indefinite while every ``Q_uu`` is
+    positive definite (a nonconvex stage cost that the dynamics make convex) therefore takes the sequential
+    sweep's factor, and the verdict ``ok`` is the sequential sweep's for every instance. Without
+    ``regularization`` both sweeps factorise the same system, so the mixed factor solves it for all instances;
+    each instance's factor depends on its own data only. Costs one host synchronisation (the count of refused
+    instances) a factorisation."""
+    index = (~factor.ok).nonzero().squeeze(-1)
+    if index.numel() == 0:
+        return factor
+    rows = factorize(lqr.rows(index), shift=None if shift is None else shift[index])
+    return factor.with_rows(index, rows)
 
 
 def _factorize_propagated(lqr: LQR, finite: Tensor, W: Tensor, Hs: Tensor, regularization: Tensor,

@@ -151,10 +151,14 @@ class IPOptions:
     #: ``"parallel"`` (the associative-scan sweep, O(log N) deep; for problems without stage equality rows, whose
     #: back-propagation is sequential, and terminal rows with ``terminal_rows="range-space"``) or ``"auto"`` (parallel
     #: where it applies and pays for the batch, by :func:`~torchtraj.riccati.sweep_for_batch`, decided once a solve).
-    #: Both solve the same Newton system to round-off where it is factorised, but the parallel sweep asks every
-    #: stage's control Hessian to be positive definite (:mod:`~torchtraj.riccati.parallel`), a stronger test than
-    #: the sequential sweep's inertia: on a nonconvex problem it regularises where IPOPT would not (the minimum-time
-    #: quadrotor of ``tests/test_minimum_time.py``: 1000 iterations instead of 20), hence the default.
+    #: Both take the sequential sweep's inertia test: an instance whose stage control Hessian the parallel sweep
+    #: refuses is factorised by the sequential one (:func:`~torchtraj.riccati.factorize`). On well-conditioned
+    #: systems they solve the same Newton system to round-off, but the associative scan is not backward stable where
+    #: the barrier's ``Σ`` makes the system ill conditioned: with some stages' ``Q`` and ``R`` scaled by 1e10 (as
+    #: bounds active at a small ``μ`` do) its value function is 1e-5 from the sequential sweep's and its steps meet
+    #: the stationarity rows to a residual as large as their terms (relative 1.0; the sequential sweep's 2e-6). Paths
+    #: that run through such systems then differ (the Mehrotra run of ``tests/test_interior_point.py`` with an
+    #: unreachable goal: 1000 iterations instead of ending ``MAX_REGULARIZATION`` after 255), hence the default.
     sweep: str = "sequential"
     #: How the Newton steps hold terminal equality rows (:func:`~torchtraj.riccati.factorize`):
     #: ``"range-space"``, the unconstrained ``sweep`` and the rows' Schur complement
