@@ -92,6 +92,9 @@ class Model:
     complementarity: Tensor = None
     cost: Tensor = None
     base: tuple = None
+    #: ``max |z − w s(t)|`` ``(B,)``: how far the multipliers are from the barrier's own, the soft problem's
+    #: stationarity residual besides ``dual`` (its Lagrangian's gradient takes ``w s(t)``, not ``z``)
+    barrier_gap: Tensor = None
 
 
 def _amax(*parts: Tensor) -> Tensor:
@@ -171,4 +174,5 @@ def with_weight(model: Model, weights: Weights) -> Model:
     error = torch.maximum(torch.maximum(model.dual, model.primal), complementarity)
     J = model.cost + barrier_value(ineq, weights)
     return dataclasses.replace(model, J=J, lz=lz, lNx=lNx, Lzz=Lzz, LNxx=LNxx, zw=zw, zwN=zwN, sigma=sigma,
-                               sigmaN=sigmaN, complementarity=complementarity, error=error)
+                               sigmaN=sigmaN, complementarity=complementarity, error=error,
+                               barrier_gap=_amax(model.z - zw, model.zN - zwN))

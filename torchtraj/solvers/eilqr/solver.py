@@ -22,6 +22,9 @@ inequalities as soft barriers on the cost (:mod:`~torchtraj.solvers.eilqr.barrie
 An instance has converged where, at the last weight, the KKT error is below the tolerance or a full Newton step
 changes no variable by more than ten rounding errors of the iterate (the dtype can resolve no further step, and the
 error left is the rounding of the model); such a step at an earlier weight ends that stage. With the paper's fixed
+weight the KKT error is the soft problem's: besides the Lagrangian's stationarity with the multipliers ``z``, their
+distance ``|z − w s(t)|`` to the barrier's own (the t-scaled complementarity ``|t (z − w s(t))|`` of the hard
+problem lets them differ by ``tol / t``, which is 1 at an active row in float32). With the paper's fixed
 weight and the multipliers read off the barrier, that was the float32 case of the double integrator of
 ``tests/test_float32_barrier_methods.py``: an active row's barrier has the curvature ``z*² / w`` (``1e6`` for
 ``z* = 10`` at ``w = 1e-4``), so its gradient at the float32 point nearest the optimum is off by that curvature times
@@ -122,7 +125,11 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         running = status == Status.RUNNING
         status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
         last_stage = weights.weight <= final
-        status = torch.where(running & model.finite & last_stage & ((model.error <= tol) | unresolved),
+        # the paper's fixed weight solves the soft problem, whose stationarity takes the barrier's multipliers
+        # w s(t): the primal-dual z must be them to the tolerance (the t-scaled complementarity lets them differ
+        # by tol / t, 1e-5 / 1e-5 = 1 at an active row in float32)
+        error = model.error if opts.barrier_continuation else torch.maximum(model.error, model.barrier_gap)
+        status = torch.where(running & model.finite & last_stage & ((error <= tol) | unresolved),
                              int(Status.CONVERGED), status)
         # the barrier continuation: a stage whose KKT error is within κ_ε w (or whose step the dtype no longer
         # resolves) ends, the next weight's model differs only in the barrier's terms
