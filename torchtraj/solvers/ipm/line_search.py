@@ -21,19 +21,21 @@ entry.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
 from torch import Tensor
 
+from ...core.batching import param_rows
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
 from ...core.one_pass import problem_values
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...globalization.line_search import Accepted, backtrack
-from .compaction import pick
+from .compaction import gather_rows, pick
 from .iterate import Iterate, Model
 from .kernels import kernel_of
 from .newton import Direction
@@ -184,19 +186,30 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     first = []  # the first round's rejected full steps, for the second-order correction
     previous = [torch.zeros_like(pending)]  # was the last candidate of the previous round blocked by the filter
 
-    def acceptable(alphas):
-        accept, f_ok, blocked, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi, slope,
-                                                            filt, theta_max, theta_min, alphas, opts)
+    def acceptable(alphas, rows=None):  # `rows`: a later round's instances still looking, alone (eager)
+        if rows is None:
+            accept, f_ok, blocked, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi, slope,
+                                                                filt, theta_max, theta_min, alphas, opts)
+            last = previous[0]
+        else:
+            accept, f_ok, blocked, theta_c, parts = filter_test(
+                problem, cons, param_rows(params, rows), gather_rows(it, rows), gather_rows(d_rows, rows),
+                gather_rows(model, rows), *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
+                theta_max[rows], theta_min[rows], alphas, opts)
+            last = previous[0][rows]
         if not first:
             first.append((accept[:, 0], theta_c[:, 0], parts, blocked[:, 0]))
-        before = torch.cat([previous[0].unsqueeze(1), blocked[:, :-1]], 1)  # each candidate's predecessor
-        previous[0] = blocked[:, -1]
+        before = torch.cat([last.unsqueeze(1), blocked[:, :-1]], 1)  # each candidate's predecessor
+        previous[0] = blocked[:, -1] if rows is None else previous[0].index_copy(0, rows, blocked[:, -1])
         return accept, (f_ok, before)
+
+    eager = filter_test is trial  # compiled or graphed kernels keep the batch's shape
+    d_rows = dataclasses.replace(d, factor=None) if eager else None  # a factorisation is not gathered by rows
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
     steps = backtrack(a_max.unsqueeze(1) * powers, max(1, opts.line_search_parallel), acceptable, pending, start,
-                      sync_first=True)
+                      sync_first=True, by_rows=eager)
     found, alpha, (f_type, blocked) = steps.found, steps.alpha, steps.values
     shortened = found & ~tiny & (alpha < a_max)
     corrected = None
