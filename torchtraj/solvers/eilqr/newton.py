@@ -118,14 +118,47 @@ def pick_direction(mask: Tensor, new: Direction, old: Direction) -> Direction:
                         for f in dataclasses.fields(Direction) if f.name != "factor"})
 
 
-def regularized_direction(attempt: Callable[[Tensor], Direction], floor: Tensor, last: Tensor, running: Tensor,
+def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last: Tensor, running: Tensor,
                           opts: EILQROptions, regularize: bool = True) -> tuple:
     """The step of every ``running (B,)`` instance with the smallest ``ε`` from ``floor (B,)`` up whose reduced
     Hessians are positive definite (IPOPT's inertia correction from ``last (B,)``, the last nonzero ``ε`` that
     worked: :func:`~torchtraj.globalization.regularization.corrected_attempts`); ``regularize=False`` takes the
-    first attempt as it is. Returns ``(direction, ε (B,))``."""
+    first attempt as it is. ``attempt(ε)`` factorises and solves the batch, ``attempt(ε, rows)`` the instances
+    ``rows`` alone: the attempts after the first take only the instances still pending (one read of their count by
+    the host each), as in a large batch a few instances need a correction and the others' factorisations would be
+    made again to be thrown away. Each instance's arithmetic is the same. Returns ``(direction, ε (B,))``."""
+    def retry(eps: Tensor, pending: Tensor, step: Direction) -> Direction:
+        rows = pending.nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            return step
+        if rows.numel() == pending.shape[0]:  # every instance: no gathering
+            return pick_direction(pending, attempt(eps), step)
+        return write_direction(step, rows, attempt(eps, rows))
+
     return corrected_attempts(attempt, floor, last, running, opts, pick_direction,
-                              opts.regularization_attempts if regularize else 0)
+                              opts.regularization_attempts if regularize else 0, retry)
+
+
+def write_direction(step: Direction, rows: Tensor, new: Direction) -> Direction:
+    """``step`` with the instances ``rows (R,)`` replaced by ``new``'s (a direction of those instances alone; no
+    single factorisation is left)."""
+    return Direction(**{f.name: getattr(step, f.name).index_copy(0, rows, getattr(new, f.name))
+                        for f in dataclasses.fields(Direction) if f.name != "factor"})
+
+
+def instances(value, rows: Tensor):
+    """The instances ``rows (R,)`` of a :class:`~torchtraj.solvers.eilqr.model.Model` or
+    :class:`~torchtraj.solvers.eilqr.model.Iterate` (and the dataclasses and tuples they hold): every tensor is
+    batch first but the rows' knot mask ``(N, mi)``, which the batch shares."""
+    if value is None:
+        return None
+    if isinstance(value, Tensor):
+        return value[rows]
+    if isinstance(value, tuple):
+        return tuple(instances(v, rows) for v in value)
+    return dataclasses.replace(value, **{f.name: getattr(value, f.name) if f.name == "mask"
+                                         else instances(getattr(value, f.name), rows)
+                                         for f in dataclasses.fields(value)})
 
 
 def multiplier_size(d: Direction, free: bool) -> Tensor:

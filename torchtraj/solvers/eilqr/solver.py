@@ -57,7 +57,7 @@ from .globalization import globalized_step
 from .initial_state import InitialState
 from .merit import MeritMemory, model_infeasibility, penalty
 from .model import Iterate, expand, with_weight
-from .newton import direction, empty_multipliers, multiplier_size, regularized_direction
+from .newton import direction, empty_multipliers, instances, multiplier_size, regularized_direction
 from .options import EILQROptions
 
 logger = logging.getLogger("torchtraj")
@@ -145,8 +145,12 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         l1 = model_infeasibility(model, x0, it.X)
         if step == opts.iterations or not bool(running.any()):
             break
-        d, eps = regularized_direction(lambda e: direction(model, it, x0, e, opts.terminal_rows), floor, last,
-                                       running, opts, regularize=opts.globalization)
+        def attempt(e, rows=None):  # `rows`: the instances of a correction alone
+            if rows is None:
+                return direction(model, it, x0, e, opts.terminal_rows)
+            return direction(instances(model, rows), instances(it, rows), x0[rows], e[rows], opts.terminal_rows)
+
+        d, eps = regularized_direction(attempt, floor, last, running, opts, regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
         gamma = torch.where(factored, penalty(gamma, multiplier_size(d, initial is not None), opts), gamma)
         memory = memory.record(model.J, l1)
