@@ -48,7 +48,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, map_state
+from ...core.batching import map_stage, map_state, param_rows
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.line_search import Accepted, backtrack
@@ -158,18 +158,25 @@ def line_search(problem: Problem, cons: Constraints, params, X: Tensor, U: Tenso
                 initial: Optional[InitialState], d: Direction, merit0: Tensor, derivative: Tensor, gamma: Tensor,
                 pending: Tensor, steps: Tensor, opts: EILQROptions, weights: Weights) -> Accepted:
     """Backtracking over ``steps (L,)`` on the merit from ``merit0 (B,)`` with slope ``derivative (B,)``, for the
-    ``pending (B,)`` instances; all trial points of a round in one batched evaluation. Returns
+    ``pending (B,)`` instances; all trial points of a round in one batched evaluation, and a round after the first
+    of the instances still looking alone (with a fixed start: a free one's rows are not gathered). Returns
     :class:`~torchtraj.globalization.line_search.Accepted` with ``values = (merit (B,),)``."""
 
-    def evaluate(alphas: Tensor):
+    def evaluate(alphas: Tensor, rows: Optional[Tensor] = None):
         a = alphas.reshape(1, -1, 1, 1)
-        Xa = X.unsqueeze(1) + a * d.dX.unsqueeze(1)
-        Ua = U.unsqueeze(1) + a * d.dU.unsqueeze(1)
-        m = merit_at(problem, cons, params, Xa, Ua, x0, initial, gamma, weights)
-        accept = torch.isfinite(m) & (m <= armijo_bound(merit0, derivative, alphas, opts))
+        if rows is None:
+            at = (X, U, d.dX, d.dU, params, x0, gamma, weights, merit0, derivative)
+        else:
+            at = (X[rows], U[rows], d.dX[rows], d.dU[rows], param_rows(params, rows), x0[rows], gamma[rows],
+                  Weights(weights.weight[rows], weights.delta[rows]), merit0[rows], derivative[rows])
+        X_, U_, dX, dU, params_, x0_, gamma_, weights_, merit0_, derivative_ = at
+        Xa = X_.unsqueeze(1) + a * dX.unsqueeze(1)
+        Ua = U_.unsqueeze(1) + a * dU.unsqueeze(1)
+        m = merit_at(problem, cons, params_, Xa, Ua, x0_, initial, gamma_, weights_)
+        accept = torch.isfinite(m) & (m <= armijo_bound(merit0_, derivative_, alphas, opts))
         if not opts.globalization:
             accept = torch.ones_like(accept)
         return accept, (m,)
 
     start = Accepted(found=~pending, alpha=torch.zeros_like(merit0), values=(merit0,))
-    return backtrack(steps, opts.per_round, evaluate, pending, start)
+    return backtrack(steps, opts.per_round, evaluate, pending, start, by_rows=initial is None)
