@@ -35,11 +35,13 @@ import dataclasses
 import torch
 from torch import Tensor
 
+from ...core.batching import param_rows
 from ...globalization.line_search import Accepted
+from .continuation import Weights
 from .initial_state import InitialRows
 from .merit import armijo_bound, constraint_values, line_search, merit_at, slope, trial_steps
 from .model import Iterate, Model
-from .newton import Direction, direction, pick_direction, resolve
+from .newton import Direction, direction, instances, pick_direction, resolve, write_direction
 
 #: the direction's multiplier fields, moved as ``y ← y + α (y⁺ − y)``
 _MULTIPLIERS = ("lam", "nu", "nuN", "mu0", "z", "zN")
@@ -99,6 +101,24 @@ def corrected_step(problem, cons, params, model, it, x0, initial, d, p, alpha, e
     return dataclasses.replace(step, dX=p.dX + soc.dX - d.dX, dU=p.dU + soc.dU - d.dU, ok=soc.ok)
 
 
+def _correction(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, gamma, weights, need,
+                opts) -> tuple:
+    """The corrected step of :func:`corrected_step` and its merit ``(B,)``, for the instances ``need (B,)`` (the
+    others' are ``step``'s and a merit they do not read). Where ``d`` kept no factorisation (the inertia correction
+    mixed them) the corrected system is factorised again, for the instances that need it alone (a fixed start; one
+    read of their count by the host): each instance's arithmetic is the same."""
+    if d.factor is not None or initial is not None:
+        soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, opts.terminal_rows)
+        return soc, merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights)
+    rows = need.nonzero().squeeze(-1)
+    at_rows, it_rows, params_rows = instances(model, rows), instances(it, rows), param_rows(params, rows)
+    soc = corrected_step(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
+                         instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)
+    merit = merit_at(problem, cons, params_rows, it_rows.X + soc.dX, it_rows.U + soc.dU, x0[rows], None, gamma[rows],
+                     Weights(weights.weight[rows], weights.delta[rows]))
+    return write_direction(step, rows, soc), torch.zeros_like(gamma).index_copy(0, rows, merit)
+
+
 def _through(step: Direction, it: Iterate, alpha: Tensor) -> Direction:
     """The direction ``D`` whose move by ``alpha (B,)`` (``X + α D``, ``y + α (D_y − y)``) is ``step`` itself."""
     def inverse(t):
@@ -140,9 +160,8 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
         m = merit_at(problem, cons, params, it.X + step.dX, it.U + step.dU, x0, initial, gamma, weights)
         passed = waiting & torch.isfinite(m) & (m <= bound)
         if bool((waiting & ~passed).any()):
-            soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps,
-                                 opts.terminal_rows)
-            ms = merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights)
+            soc, ms = _correction(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps, gamma,
+                                  weights, waiting & ~passed, opts)
             taken = waiting & ~passed & soc.ok & torch.isfinite(ms) & (ms <= bound)
             step, m, passed = pick_direction(taken, soc, step), torch.where(taken, ms, m), passed | taken
         chosen = pick_direction(passed, _through(step, it, torch.full_like(merit0, float(a))), chosen)

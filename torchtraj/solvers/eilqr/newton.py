@@ -147,17 +147,18 @@ def write_direction(step: Direction, rows: Tensor, new: Direction) -> Direction:
 
 
 def instances(value, rows: Tensor):
-    """The instances ``rows (R,)`` of a :class:`~torchtraj.solvers.eilqr.model.Model` or
-    :class:`~torchtraj.solvers.eilqr.model.Iterate` (and the dataclasses and tuples they hold): every tensor is
-    batch first but the rows' knot mask ``(N, mi)``, which the batch shares."""
+    """The instances ``rows (R,)`` of a :class:`~torchtraj.solvers.eilqr.model.Model`,
+    :class:`~torchtraj.solvers.eilqr.model.Iterate` or :class:`Direction` (and the dataclasses and tuples they
+    hold): every tensor is batch first but the rows' knot mask ``(N, mi)``, which the batch shares; a direction's
+    factorisation is not taken apart (``None``)."""
     if value is None:
         return None
-    if isinstance(value, Tensor):
+    if isinstance(value, (Tensor, TerminalGains)):
         return value[rows]
     if isinstance(value, tuple):
         return tuple(instances(v, rows) for v in value)
     return dataclasses.replace(value, **{f.name: getattr(value, f.name) if f.name == "mask"
-                                         else instances(getattr(value, f.name), rows)
+                                         else None if f.name == "factor" else instances(getattr(value, f.name), rows)
                                          for f in dataclasses.fields(value)})
 
 
