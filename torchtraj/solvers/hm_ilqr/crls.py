@@ -54,11 +54,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage
+from ...core.batching import map_stage, param_rows
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
 from ...riccati import factorize
 from .multipliers import stepped_multipliers, with_multipliers
+from .objective import HybridObjective
 from .shooting import expected_change, merit_weight, model_change, rollout_segments, stationarity
 
 #: Changes of the merit below this many rounding errors of its value are not resolved (Wächter & Biegler 2006,
@@ -155,7 +156,10 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
             weight_floor=None, curved=None, factor=None) -> Trial:
     """One iteration on the instances of ``active (B,)`` from the expansion ``(lqr, rhs, rows)`` at ``(X, U)``; those of
     ``retry (B,)`` use CRLS (their ``mu_V`` is the start ``μ_V^0``), the others plain LS. ``factor``: the
-    factorisation of ``lqr`` at ``mu_V`` where already made (:func:`with_curvature`), the first round's."""
+    factorisation of ``lqr`` at ``mu_V`` where already made (:func:`with_curvature`), the first round's. A round after
+    the first factorises and searches for the instances still pending alone (one read of their count by the host): in
+    a large batch a few need a larger ``μ_V``, and the others' factorisations and trial points would be made again to
+    be thrown away. Each instance's arithmetic is the same."""
     B = X.shape[0]
     steps = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
     rounds = 1 + max(0, math.ceil(math.log(opts.regularization_max / opts.regularization_initial)
@@ -166,64 +170,46 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
     decrease = torch.zeros_like(J)
     used = torch.zeros_like(J)
     K = lqr.A.new_zeros(B, *lqr.B.shape[1:2], lqr.B.shape[-1], lqr.A.shape[-1])
-    starts = segments.starts
+    whole = _Instances(problem, objective, params, segments, X, U, J, D, lqr, rhs, weight_floor, curved)
     per_round = max(1, min(len(steps), 8192 // max(B, 1)))  # step sizes simulated together, as iLQR's search
     for r in range(rounds):
         pending = active & ~accepted.found & ~stationary & (retry | ~searched)
         if not bool(pending.any()):  # the round's host synchronisation
             break
-        factor = factor if r == 0 and factor is not None else factorize(regularized(lqr, mu_V))
-        sol = factor.solve(rhs, multipliers=r == 0)
-        if r == 0:  # the KKT residual at the start point, with the multipliers of the first (least regularised) step
+        if r == 0:
+            factor = factor if factor is not None else factorize(regularized(lqr, mu_V))
+            sol = factor.solve(rhs, multipliers=True)
+            # the KKT residual at the start point, with the multipliers of the first (least regularised) step
             z, zN = stepped_multipliers(rows, sol.dx, sol.du, objective.params.rlb)
             residual = stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), sol.nu, sol.nuN)
             nu, nuN = sol.nu, sol.nuN
-        dV1, dV2 = model_change(lqr, rhs, sol.dx, sol.du)
-        weight = merit_weight(dV1, dV2, D, opts.defect_weight)
-        if weight_floor is not None:  # never below the weight of an earlier iteration (no cycling between merits)
-            weight = torch.maximum(weight, weight_floor)
-        merit = J + weight * D
-        rounding = ROUNDING * torch.finfo(J.dtype).eps * merit.abs()
-        ok = factor.ok & torch.isfinite(dV1) & torch.isfinite(dV2)
-        full = -expected_change(steps[:1], dV1, dV2, D, weight)[:, 0]
-        decrease = torch.where(pending, full, decrease)
-        still = ok & (full < opts.expected_decrease_tolerance)
-        search = pending & ok
-        K = where_rows(pending, factor.K, K)
-
-        def ratio_test(alphas, sol=sol, factor=factor, dV1=dV1, dV2=dV2, weight=weight, merit=merit):
-            a = alphas.reshape(1, -1, 1, 1)
-            nodes = X[:, starts].unsqueeze(1) + a * sol.dx[:, starts].unsqueeze(1)
-            nodes[:, :, 0] = X[:, 0].unsqueeze(1)
-            ff = a * sol.k.unsqueeze(1)
-            Xc, Uc, Dc = rollout_segments(problem.dynamics, params, nodes, U, segments, X, factor.K, ff)
-            Dc = Dc + objective.equality_residual(Xc, Uc, params)
-            Jc = objective.value(Xc, Uc, params)
-            expected = expected_change(alphas, dV1, dV2, D, weight)
-            change = Jc + weight.unsqueeze(1) * Dc - merit.unsqueeze(1)
-            ratio = change / expected
-            bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
-            # a change the merit cannot resolve (module docstring, "Round-off") is accepted as the model says
-            unresolved = rounding.unsqueeze(1)
-            below = (-expected <= unresolved) & (change <= unresolved)
-            accept = (torch.isfinite(Jc) & torch.isfinite(Dc) & bounded & (expected < 0)
-                      & (((ratio > opts.line_search_lower) & (ratio < opts.line_search_upper)) | below))
-            if curved is not None:  # a Newton model's step is shortened only so far, then regularised
-                accept = accept & (~curved.unsqueeze(1) | (alphas >= opts.curvature_step_min).unsqueeze(0))
-            return accept, (Xc, Uc, Jc, Dc)
-
-        start = Accepted(found=accepted.found | ~search, alpha=accepted.alpha, values=accepted.values)
-        if opts.second_order_correction:
-            start = full_step_or_correction(problem, objective, params, segments, rhs, factor, sol, ratio_test,
-                                            steps[:1], search, start)
-            step = backtrack(steps[1:], per_round, ratio_test, search, start)
-        else:
-            step = backtrack(steps, per_round, ratio_test, search, start)
-        new = step.found & search
-        used = torch.where(new, weight, used)
-        stationary = stationary | (pending & ok & still & ~new)  # no step, and the model predicts none
-        accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, step.alpha, accepted.alpha),
-                            values=tuple(where_rows(new, a, b) for a, b in zip(step.values, accepted.values)))
+            out = _search_round(whole, factor, sol, pending, accepted, steps, per_round, opts)
+            decrease = torch.where(pending, out.full, decrease)
+            K = where_rows(pending, out.K, K)
+            new = out.step.found & out.search
+            used = torch.where(new, out.weight, used)
+            stationary = stationary | (pending & out.ok & out.still & ~new)
+            accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, out.step.alpha, accepted.alpha),
+                                values=tuple(where_rows(new, a, b) for a, b in zip(out.step.values, accepted.values)))
+        else:  # the pending instances alone
+            index = pending.nonzero().squeeze(-1)
+            sub = whole.rows(index)
+            sub_factor = factorize(regularized(sub.lqr, mu_V[index]))
+            sub_accepted = Accepted(found=accepted.found[index], alpha=accepted.alpha[index],
+                                    values=tuple(v[index] for v in accepted.values))
+            out = _search_round(sub, sub_factor, sub_factor.solve(sub.rhs), torch.ones_like(index, dtype=torch.bool),
+                                sub_accepted, steps, per_round, opts)
+            decrease = decrease.index_copy(0, index, out.full)
+            K = K.index_copy(0, index, out.K)
+            new_rows = out.step.found & out.search
+            new = zero.index_copy(0, index, new_rows)
+            used = used.index_copy(0, index, torch.where(new_rows, out.weight, used[index]))
+            stationary = stationary | zero.index_copy(0, index, out.ok & out.still & ~new_rows)
+            accepted = Accepted(
+                found=accepted.found | new,
+                alpha=accepted.alpha.index_copy(0, index, torch.where(new_rows, out.step.alpha, sub_accepted.alpha)),
+                values=tuple(v.index_copy(0, index, where_rows(new_rows, a, b))
+                             for v, a, b in zip(accepted.values, out.step.values, sub_accepted.values)))
         searched = searched | pending
         grow = pending & ~new & ~stationary & retry & (mu_V < opts.regularization_max)
         mu_V = torch.where(grow, (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max), mu_V)
@@ -233,6 +219,102 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
     failed = active & ~took & ~stationary
     return Trial(Xa, Ua, Ja, Da, took, active & stationary, failed, accepted.alpha, mu_V, K, decrease, residual, used,
                  nu, nuN)
+
+
+@dataclass
+class _Instances:
+    """What a round of :func:`iterate` reads per instance: the problem, its objective and parameters, the segments,
+    the point ``X``, ``U``, ``J``, ``D``, the LQR model ``lqr``, ``rhs``, the defect weight's floor and the curved
+    instances (``None``: none)."""
+
+    problem: object
+    objective: HybridObjective
+    params: dict
+    segments: object
+    X: Tensor
+    U: Tensor
+    J: Tensor
+    D: Tensor
+    lqr: object
+    rhs: object
+    weight_floor: object
+    curved: object
+
+    def rows(self, index: Tensor) -> "_Instances":
+        """The instances ``index (R,)`` alone."""
+        def take(v):
+            return None if v is None else v[index]
+
+        objective = self.objective
+        return _Instances(self.problem, objective.rows(index), param_rows(self.params, index), self.segments,
+                          self.X[index], self.U[index], self.J[index], self.D[index], self.lqr.rows(index),
+                          dataclasses.replace(self.rhs, **{f.name: take(getattr(self.rhs, f.name))
+                                                           for f in dataclasses.fields(self.rhs)}),
+                          take(self.weight_floor), take(self.curved))
+
+
+@dataclass
+class _Round:
+    """A round's outcome per instance: the factorisation's ``ok``, the model's decrease at ``α = 1`` ``full`` and
+    whether it is below the tolerance ``still``, the instances searched ``search``, the gains ``K``, the defect
+    weight ``weight`` and the line search's ``step``."""
+
+    ok: Tensor
+    full: Tensor
+    still: Tensor
+    search: Tensor
+    K: Tensor
+    weight: Tensor
+    step: Accepted
+
+
+def _search_round(at: _Instances, factor, sol, pending: Tensor, accepted: Accepted, steps: Tensor, per_round: int,
+                  opts) -> _Round:
+    """One round of :func:`iterate` on the instances ``at``: the step ``sol`` of ``factor``, its merit, and the line
+    search of the ``pending`` instances from ``accepted``, ``per_round`` step sizes a batched rollout."""
+    X, U, J, D, objective, params, segments, curved = (at.X, at.U, at.J, at.D, at.objective, at.params, at.segments,
+                                                       at.curved)
+    starts = segments.starts
+    dV1, dV2 = model_change(at.lqr, at.rhs, sol.dx, sol.du)
+    weight = merit_weight(dV1, dV2, D, opts.defect_weight)
+    if at.weight_floor is not None:  # never below the weight of an earlier iteration (no cycling between merits)
+        weight = torch.maximum(weight, at.weight_floor)
+    merit = J + weight * D
+    rounding = ROUNDING * torch.finfo(J.dtype).eps * merit.abs()
+    ok = factor.ok & torch.isfinite(dV1) & torch.isfinite(dV2)
+    full = -expected_change(steps[:1], dV1, dV2, D, weight)[:, 0]
+    still = ok & (full < opts.expected_decrease_tolerance)
+    search = pending & ok
+
+    def ratio_test(alphas, sol=sol):
+        a = alphas.reshape(1, -1, 1, 1)
+        nodes = X[:, starts].unsqueeze(1) + a * sol.dx[:, starts].unsqueeze(1)
+        nodes[:, :, 0] = X[:, 0].unsqueeze(1)
+        ff = a * sol.k.unsqueeze(1)
+        Xc, Uc, Dc = rollout_segments(at.problem.dynamics, params, nodes, U, segments, X, factor.K, ff)
+        Dc = Dc + objective.equality_residual(Xc, Uc, params)
+        Jc = objective.value(Xc, Uc, params)
+        expected = expected_change(alphas, dV1, dV2, D, weight)
+        change = Jc + weight.unsqueeze(1) * Dc - merit.unsqueeze(1)
+        ratio = change / expected
+        bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
+        # a change the merit cannot resolve (module docstring, "Round-off") is accepted as the model says
+        unresolved = rounding.unsqueeze(1)
+        below = (-expected <= unresolved) & (change <= unresolved)
+        accept = (torch.isfinite(Jc) & torch.isfinite(Dc) & bounded & (expected < 0)
+                  & (((ratio > opts.line_search_lower) & (ratio < opts.line_search_upper)) | below))
+        if curved is not None:  # a Newton model's step is shortened only so far, then regularised
+            accept = accept & (~curved.unsqueeze(1) | (alphas >= opts.curvature_step_min).unsqueeze(0))
+        return accept, (Xc, Uc, Jc, Dc)
+
+    start = Accepted(found=accepted.found | ~search, alpha=accepted.alpha, values=accepted.values)
+    if opts.second_order_correction:
+        start = full_step_or_correction(at.problem, objective, params, segments, at.rhs, factor, sol, ratio_test,
+                                        steps[:1], search, start)
+        step = backtrack(steps[1:], per_round, ratio_test, search, start)
+    else:
+        step = backtrack(steps, per_round, ratio_test, search, start)
+    return _Round(ok=ok, full=full, still=still, search=search, K=factor.K, weight=weight, step=step)
 
 
 def full_step_or_correction(problem, objective, params, segments, rhs, factor, sol, ratio_test, one, search,

@@ -41,6 +41,7 @@ curvature that failed (:mod:`~torchtraj.solvers.hm_ilqr.crls`).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
@@ -105,6 +106,12 @@ class HybridObjective:
         #: ``(N, mi)``: 1 where a stage inequality row applies.
         self.knot_mask = c.ineq_knot_mask
         self.mi, self.miN, self.me, self.meN = c.mi, c.miN, c.me, c.meN
+
+    def rows(self, index: Tensor) -> "HybridObjective":
+        """The objective of the instances ``index (R,)`` alone (their stage parameters)."""
+        params = StageParameters(**{f.name: getattr(self.params, f.name)[index]
+                                    for f in dataclasses.fields(StageParameters)})
+        return HybridObjective(self.constraints, params, self.record)
 
     # ------------------------------------------------------------------ the penalty of the inequality rows
     def penalty(self, g: Tensor, lam: Tensor, mask=None) -> tuple:
