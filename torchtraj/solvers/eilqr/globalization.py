@@ -107,10 +107,10 @@ def _correction(problem, cons, params, model, it, x0, initial, d, step, alpha, e
     others' are ``step``'s and a merit they do not read). Where ``d`` kept no factorisation (the inertia correction
     mixed them) the corrected system is factorised again, for the instances that need it alone (a fixed start; one
     read of their count by the host): each instance's arithmetic is the same."""
-    if d.factor is not None or initial is not None:
+    rows = None if d.factor is not None or initial is not None else need.nonzero().squeeze(-1)
+    if rows is None or rows.numel() == need.shape[0]:
         soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, opts.terminal_rows)
         return soc, merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights)
-    rows = need.nonzero().squeeze(-1)
     at_rows, it_rows, params_rows = instances(model, rows), instances(it, rows), param_rows(params, rows)
     soc = corrected_step(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
                          instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)

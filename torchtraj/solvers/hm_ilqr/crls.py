@@ -176,13 +176,15 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
         pending = active & ~accepted.found & ~stationary & (retry | ~searched)
         if not bool(pending.any()):  # the round's host synchronisation
             break
-        if r == 0:
-            factor = factor if factor is not None else factorize(regularized(lqr, mu_V))
-            sol = factor.solve(rhs, multipliers=True)
-            # the KKT residual at the start point, with the multipliers of the first (least regularised) step
-            z, zN = stepped_multipliers(rows, sol.dx, sol.du, objective.params.rlb)
-            residual = stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), sol.nu, sol.nuN)
-            nu, nuN = sol.nu, sol.nuN
+        index = None if r == 0 else pending.nonzero().squeeze(-1)
+        if index is None or index.numel() == B:  # the whole batch: no gathering
+            factor = factor if r == 0 and factor is not None else factorize(regularized(lqr, mu_V))
+            sol = factor.solve(rhs, multipliers=r == 0)
+            if r == 0:  # the KKT residual at the start point, with the multipliers of the first (least regularised)
+                # step
+                z, zN = stepped_multipliers(rows, sol.dx, sol.du, objective.params.rlb)
+                residual = stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), sol.nu, sol.nuN)
+                nu, nuN = sol.nu, sol.nuN
             out = _search_round(whole, factor, sol, pending, accepted, steps, per_round, opts)
             decrease = torch.where(pending, out.full, decrease)
             K = where_rows(pending, out.K, K)
@@ -192,7 +194,6 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
             accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, out.step.alpha, accepted.alpha),
                                 values=tuple(where_rows(new, a, b) for a, b in zip(out.step.values, accepted.values)))
         else:  # the pending instances alone
-            index = pending.nonzero().squeeze(-1)
             sub = whole.rows(index)
             sub_factor = factorize(regularized(sub.lqr, mu_V[index]))
             sub_accepted = Accepted(found=accepted.found[index], alpha=accepted.alpha[index],
