@@ -23,10 +23,13 @@ import torch
 from torch import Tensor
 
 
-def al_inequality(g: Tensor, lam: Tensor, mu: Tensor) -> tuple:
-    """Value, first and second derivative of the PHR term of rows ``g`` (all broadcast together)."""
+def al_inequality(g: Tensor, lam: Tensor, mu: Tensor, derivatives: bool = True) -> tuple:
+    """Value, first and second derivative of the PHR term of rows ``g`` (all broadcast together); ``(value,)`` alone
+    without ``derivatives``."""
     t = (lam + mu * g).clamp_min(0)
     value = (t * t - lam * lam) / (2 * mu)
+    if not derivatives:
+        return (value,)
     return value, t, torch.where(lam + mu * g > 0, mu, torch.zeros_like(t))
 
 

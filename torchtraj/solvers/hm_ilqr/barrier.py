@@ -30,13 +30,16 @@ import torch
 from torch import Tensor
 
 
-def relaxed_log_barrier(g: Tensor, psi: Tensor, delta: Tensor) -> tuple:
-    """Value, first and second derivative in ``g`` of ``B(g; ψ, δ)`` (all broadcast together)."""
+def relaxed_log_barrier(g: Tensor, psi: Tensor, delta: Tensor, derivatives: bool = True) -> tuple:
+    """Value, first and second derivative in ``g`` of ``B(g; ψ, δ)`` (all broadcast together); ``(value,)`` alone
+    without ``derivatives`` (a line search's trial points)."""
     z = -g
     log = z >= delta
     z_log = torch.where(log, z, torch.ones_like(z))  # the logarithm only where it is taken
     ext = (z - 2 * delta) / delta
     value = torch.where(log, -torch.log(z_log), 0.5 * (ext * ext - 1) - torch.log(delta))
+    if not derivatives:
+        return (psi * value,)
     d1 = torch.where(log, 1 / z_log, (2 * delta - z) / (delta * delta))
     d2 = torch.where(log, 1 / (z_log * z_log), 1 / (delta * delta))
     return psi * value, psi * d1, psi * d2

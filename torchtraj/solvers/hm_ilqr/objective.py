@@ -114,16 +114,17 @@ class HybridObjective:
         return HybridObjective(self.constraints, params, self.record)
 
     # ------------------------------------------------------------------ the penalty of the inequality rows
-    def penalty(self, g: Tensor, lam: Tensor, mask=None) -> tuple:
+    def penalty(self, g: Tensor, lam: Tensor, mask=None, derivatives: bool = True) -> tuple:
         """Value (summed over rows), ``P'`` and ``P''`` of rows ``g (B, *E, ..., m)`` with multipliers
-        ``lam (B, ..., m)``, each instance in its stage."""
+        ``lam (B, ..., m)``, each instance in its stage; ``(value,)`` alone without ``derivatives``."""
         s = self.params
         lam = _lift(lam, g)
         mu, psi, delta, rlb = (_lift(v, g) for v in (s.mu, s.psi, s.delta, s.rlb))
-        out = [torch.where(rlb, b, a) for a, b in zip(al_inequality(g, lam, mu), relaxed_log_barrier(g, psi, delta))]
+        out = [torch.where(rlb, b, a) for a, b in zip(al_inequality(g, lam, mu, derivatives),
+                                                      relaxed_log_barrier(g, psi, delta, derivatives))]
         if mask is not None:
             out = [v * mask for v in out]
-        return out[0].sum(-1), out[1], out[2]
+        return (out[0].sum(-1), *out[1:])
 
     def equality_penalty(self, h: Tensor, lam: Tensor) -> tuple:
         """Value (summed over rows), ``P'``, ``P''`` of the AL terms of equality rows ``h (B, *E, ..., m)``; zero for
@@ -150,9 +151,10 @@ class HybridObjective:
         """``J_[·]`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``."""
         J = total_cost(self.problem, X, U, params)
         if self.mi:
-            J = J + self.penalty(self.stage_ineq(X, U, params), self.params.lam, self.knot_mask)[0].sum(-1)
+            g = self.stage_ineq(X, U, params)
+            J = J + self.penalty(g, self.params.lam, self.knot_mask, derivatives=False)[0].sum(-1)
         if self.miN:
-            J = J + self.penalty(self.terminal_ineq(X, params), self.params.lamN)[0]
+            J = J + self.penalty(self.terminal_ineq(X, params), self.params.lamN, derivatives=False)[0]
         if self.me:
             J = J + self.equality_penalty(self.stage_eq(X, U, params), self.params.lamE)[0].sum(-1)
         if self.meN:
