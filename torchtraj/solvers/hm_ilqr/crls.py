@@ -176,8 +176,8 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
         pending = active & ~accepted.found & ~stationary & (retry | ~searched)
         if not bool(pending.any()):  # the round's host synchronisation
             break
-        index = None if r == 0 else pending.nonzero().squeeze(-1)
-        if index is None or index.numel() == B:  # the whole batch: no gathering
+        index = None if r == 0 else _pending_rows(pending)
+        if index is None:  # the whole batch
             factor = factor if r == 0 and factor is not None else factorize(regularized(lqr, mu_V))
             sol = factor.solve(rhs, multipliers=r == 0)
             if r == 0:  # the KKT residual at the start point, with the multipliers of the first (least regularised)
@@ -220,6 +220,12 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
     failed = active & ~took & ~stationary
     return Trial(Xa, Ua, Ja, Da, took, active & stationary, failed, accepted.alpha, mu_V, K, decrease, residual, used,
                  nu, nuN)
+
+
+def _pending_rows(pending: Tensor):
+    """The indices of the ``pending (B,)`` instances, ``None`` where they are the whole batch (no gathering)."""
+    index = pending.nonzero().squeeze(-1)
+    return None if index.numel() == pending.shape[0] else index
 
 
 @dataclass
