@@ -64,7 +64,7 @@ def test_eilqr_corrections_on_rows(monkeypatch, rounds_of_rows):
     assert rounds_of_rows and max(rounds_of_rows) < X0.shape[0], rounds_of_rows
     whole_batch_rounds(monkeypatch, merit)
     attempts = newton.corrected_attempts
-    monkeypatch.setattr(newton, "corrected_attempts", lambda *args: attempts(*args[:-1]))  # no retry: whole batch
+    monkeypatch.setattr(newton, "corrected_attempts", lambda *args: attempts(*args[:-1]))  # no write: whole batch
 
     def whole_correction(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, gamma, weights, need,
                          opts):

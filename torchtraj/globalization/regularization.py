@@ -51,7 +51,7 @@ def inertia_correction(delta: Tensor, last: Tensor, first: float, minimum: float
 
 
 def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: Tensor, opts, pick: Callable,
-                       attempts: int, retry: Optional[Callable] = None) -> tuple:
+                       attempts: int, write: Optional[Callable] = None) -> tuple:
     """IPOPT's inertia correction for a batch: the step of every ``running (B,)`` instance with the smallest
     ``δ_w`` from ``floor (B,)`` up whose reduced Hessians are positive definite.
 
@@ -59,9 +59,12 @@ def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: 
     old)`` takes ``new`` on ``mask``; ``last (B,)`` is the last nonzero ``δ_w`` that worked; ``opts`` holds the
     schedule's ``regularization_first``, ``_min``, ``_decrease``, ``_increase_first``, ``_increase`` and ``_max``.
     At most ``attempts`` attempts follow the first. An instance whose ``δ_w`` passes ``regularization_max`` or whose
-    attempts run out keeps its last, failed, step. ``retry(δ_w, pending, step)``, given, makes the attempts after
-    the first: the step with the ``pending (B,)`` instances' rows attempted again (on those rows alone, where the
-    solver can gather them). Returns ``(step, δ_w (B,))``."""
+    attempts run out keeps its last, failed, step. ``write(step, rows, new)``, given, makes the attempts after the
+    first on the pending instances' rows alone: ``attempt(δ_w, rows)`` factorises and solves the instances ``rows
+    (R,)`` and ``write`` puts their step into ``step`` (one read of their count by the host each; the whole batch
+    where every instance is pending). In a large batch a few instances need a correction, and the others'
+    factorisations would be made again to be thrown away; each instance's arithmetic is the same.
+    Returns ``(step, δ_w (B,))``."""
     delta = floor
     step = attempt(delta)
     pending = running & ~step.ok
@@ -73,6 +76,18 @@ def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: 
                                     opts.regularization_increase)
         delta = torch.where(pending, larger, delta)
         pending = pending & (delta <= opts.regularization_max)
-        step = pick(pending, attempt(delta), step) if retry is None else retry(delta, pending, step)
+        step = pick(pending, attempt(delta), step) if write is None else \
+            _attempt_rows(attempt, delta, pending, step, pick, write)
         pending = pending & ~step.ok
     return step, delta
+
+
+def _attempt_rows(attempt: Callable, delta: Tensor, pending: Tensor, step, pick: Callable, write: Callable):
+    """``step`` with the ``pending (B,)`` instances attempted again at ``delta``, on their rows alone
+    (:func:`corrected_attempts`' ``write``)."""
+    rows = pending.nonzero().squeeze(-1)
+    if rows.numel() == 0:
+        return step
+    if rows.numel() == pending.shape[0]:  # every instance: no gathering
+        return pick(pending, attempt(delta), step)
+    return write(step, rows, attempt(delta, rows))

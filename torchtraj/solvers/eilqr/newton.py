@@ -124,19 +124,10 @@ def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last
     Hessians are positive definite (IPOPT's inertia correction from ``last (B,)``, the last nonzero ``ε`` that
     worked: :func:`~torchtraj.globalization.regularization.corrected_attempts`); ``regularize=False`` takes the
     first attempt as it is. ``attempt(ε)`` factorises and solves the batch, ``attempt(ε, rows)`` the instances
-    ``rows`` alone: the attempts after the first take only the instances still pending (one read of their count by
-    the host each), as in a large batch a few instances need a correction and the others' factorisations would be
-    made again to be thrown away. Each instance's arithmetic is the same. Returns ``(direction, ε (B,))``."""
-    def retry(eps: Tensor, pending: Tensor, step: Direction) -> Direction:
-        rows = pending.nonzero().squeeze(-1)
-        if rows.numel() == 0:
-            return step
-        if rows.numel() == pending.shape[0]:  # every instance: no gathering
-            return pick_direction(pending, attempt(eps), step)
-        return write_direction(step, rows, attempt(eps, rows))
-
+    ``rows`` alone, which the attempts after the first take (``corrected_attempts``' ``write``, here
+    :func:`write_direction`). Returns ``(direction, ε (B,))``."""
     return corrected_attempts(attempt, floor, last, running, opts, pick_direction,
-                              opts.regularization_attempts if regularize else 0, retry)
+                              opts.regularization_attempts if regularize else 0, write_direction)
 
 
 def write_direction(step: Direction, rows: Tensor, new: Direction) -> Direction:

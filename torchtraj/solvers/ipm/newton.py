@@ -154,18 +154,8 @@ def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last
     """The step of every ``running (B,)`` instance with the smallest ``δ_w`` (from ``floor (B,)``) whose system is
     positive definite, by IPOPT's inertia correction
     (:func:`~torchtraj.globalization.regularization.corrected_attempts`; ``last (B,)``: the last nonzero ``δ_w`` that
-    was); ``attempt(δ_w)`` factorises and solves the batch. ``by_rows``: ``attempt(δ_w, rows)`` factorises and
-    solves the instances ``rows`` alone, and the corrections after the first attempt take only the instances still
-    pending (one read of their count by the host each): in a large batch a few instances need a correction, and
-    the others' factorisations would be made again to be thrown away. Each instance's arithmetic is the same.
+    was); ``attempt(δ_w)`` factorises and solves the batch. ``by_rows``: the attempts after the first take the
+    pending instances alone, ``attempt(δ_w, rows)`` (``corrected_attempts``' ``write``, here :func:`write_rows`).
     Returns ``(direction, δ_w (B,))``."""
-    def retry(delta: Tensor, pending: Tensor, step: Direction) -> Direction:
-        rows = pending.nonzero().squeeze(-1)
-        if rows.numel() == 0:
-            return step
-        if rows.numel() == pending.shape[0]:  # every instance: no gathering
-            return pick(pending, attempt(delta), step)
-        return write_rows(step, rows, attempt(delta, rows))
-
     return corrected_attempts(attempt, floor, last, running, opts, pick, opts.regularization_attempts,
-                              retry if by_rows else None)
+                              write_rows if by_rows else None)
