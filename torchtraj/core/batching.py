@@ -9,6 +9,7 @@ number of extra dimensions E (time steps, line-search candidates). :func:`map_st
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable, Mapping, Optional
 
@@ -27,6 +28,22 @@ def shared_param(value: Tensor) -> bool:
 def param_rows(params: Params, index: Tensor) -> dict:
     """The rows ``index`` of the batched parameters; a shared one stays an expanded view (and shared)."""
     return {k: v[:1].expand(index.shape[0], *v.shape[1:]) if shared_param(v) else v[index] for k, v in params.items()}
+
+
+def rows_of(value, index: Tensor, shared: tuple = (), dropped: tuple = ()):
+    """The instances ``index (R,)`` of a batch-first value: a tensor (or another object indexed as one, as the
+    range-space gains), a tuple of such values, or a dataclass of them, field by field; ``None`` stays ``None``.
+    The fields named in ``shared`` hold per-stage values that the batch shares and are kept whole; those named in
+    ``dropped`` (a factorisation, which is not taken apart) become ``None``."""
+    if value is None:
+        return None
+    if isinstance(value, tuple):
+        return tuple(rows_of(v, index, shared, dropped) for v in value)
+    if hasattr(value, "__getitem__"):
+        return value[index]
+    return type(value)(**{f.name: getattr(value, f.name) if f.name in shared
+                          else None if f.name in dropped else rows_of(getattr(value, f.name), index, shared, dropped)
+                          for f in dataclasses.fields(value)})
 
 
 def _split_params(params: Params) -> tuple[dict, dict, bool]:

@@ -29,6 +29,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
+from ...core.batching import rows_of
 from ...globalization.regularization import corrected_attempts
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import RiccatiFactor, all_finite
@@ -139,18 +140,10 @@ def write_direction(step: Direction, rows: Tensor, new: Direction) -> Direction:
 
 def instances(value, rows: Tensor):
     """The instances ``rows (R,)`` of a :class:`~torchtraj.solvers.eilqr.model.Model`,
-    :class:`~torchtraj.solvers.eilqr.model.Iterate` or :class:`Direction` (and the dataclasses and tuples they
-    hold): every tensor is batch first but the rows' knot mask ``(N, mi)``, which the batch shares; a direction's
+    :class:`~torchtraj.solvers.eilqr.model.Iterate` or :class:`Direction`
+    (:func:`~torchtraj.core.batching.rows_of`): the rows' knot mask ``(N, mi)`` is the batch's, a direction's
     factorisation is not taken apart (``None``)."""
-    if value is None:
-        return None
-    if isinstance(value, (Tensor, TerminalGains)):
-        return value[rows]
-    if isinstance(value, tuple):
-        return tuple(instances(v, rows) for v in value)
-    return dataclasses.replace(value, **{f.name: getattr(value, f.name) if f.name == "mask"
-                                         else None if f.name == "factor" else instances(getattr(value, f.name), rows)
-                                         for f in dataclasses.fields(value)})
+    return rows_of(value, rows, shared=("mask",), dropped=("factor",))
 
 
 def multiplier_size(d: Direction, free: bool) -> Tensor:

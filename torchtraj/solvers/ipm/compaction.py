@@ -16,6 +16,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from ...core.batching import rows_of
 from ...core.solution import History
 from ...riccati.range_space import TerminalGains, select_gains
 from .iterate import Iterate, Model
@@ -32,14 +33,10 @@ def pick(mask: Tensor, a, b):
 
 
 def gather_rows(value, index: Tensor):
-    """The rows ``index`` of a batch-first tensor or dataclass (:class:`Model`'s ``knots`` is per stage; ``None``
-    stays ``None``)."""
-    if value is None:
-        return None
-    if isinstance(value, (Tensor, TerminalGains)):
-        return value[index]
-    return type(value)(**{f.name: getattr(value, f.name) if f.name == "knots"
-                          else gather_rows(getattr(value, f.name), index) for f in fields(value)})
+    """The rows ``index`` of a batch-first tensor or dataclass (:func:`~torchtraj.core.batching.rows_of`;
+    :class:`Model`'s ``knots`` is per stage; a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factorisation
+    becomes ``None``)."""
+    return rows_of(value, index, shared=("knots",), dropped=("factor",))
 
 
 def write_rows(value, index: Tensor, rows):

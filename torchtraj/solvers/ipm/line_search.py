@@ -21,7 +21,6 @@ entry.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -193,7 +192,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
             last = previous[0]
         else:
             accept, f_ok, blocked, theta_c, parts = filter_test(
-                problem, cons, param_rows(params, rows), gather_rows(it, rows), gather_rows(d_rows, rows),
+                problem, cons, param_rows(params, rows), gather_rows(it, rows), gather_rows(d, rows),
                 gather_rows(model, rows), *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
                 theta_max[rows], theta_min[rows], alphas, opts)
             last = previous[0][rows]
@@ -204,7 +203,6 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         return accept, (f_ok, before)
 
     eager = filter_test is trial  # compiled or graphed kernels keep the batch's shape
-    d_rows = dataclasses.replace(d, factor=None) if eager else None  # a factorisation is not gathered by rows
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated

@@ -106,7 +106,7 @@ def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate,
                                        theta_min, need, a_max, first, lqr, delta, x0, opts)
     sub = second_order_correction(
         problem, cons, param_rows(params, rows), gather_rows(it, rows),
-        gather_rows(dataclasses.replace(d, factor=None), rows), gather_rows(model, rows),
+        gather_rows(d, rows), gather_rows(model, rows),
         *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
         *(v[rows] for v in (theta_max, theta_min, need, a_max)), tuple(t[rows] for t in first), lqr.rows(rows),
         delta[rows], x0[rows], opts)
