@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+import torch
 from torch import Tensor
 
 
@@ -89,7 +90,11 @@ class LQR:
 
 
 def _views_of_blocks(lqr: LQR) -> bool:
-    """Whether ``A`` … ``S`` of ``lqr`` are the blocks of its stacked ``W`` and ``H`` (:meth:`LQR.from_blocks`)."""
+    """Whether ``A`` … ``S`` of ``lqr`` are the blocks of its stacked ``W`` and ``H`` (:meth:`LQR.from_blocks`).
+    Traced by ``torch.compile``, which cannot compare data pointers (a graph break in every kernel that makes an
+    LQR), never: the blocks are stacked again, in the compiled kernel's fused loops."""
+    if torch.compiler.is_compiling():
+        return False
     W, H, nx = lqr.W, lqr.H, lqr.A.shape[-1]
     if H is None or W.shape[-2] != nx or W.shape[:2] != H.shape[:2]:
         return False

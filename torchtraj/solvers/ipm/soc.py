@@ -16,7 +16,9 @@ to the boundary ``α^{soc}`` is tried with the filter test of the line search; a
 ``θ(w + α^{soc} Δw^{soc}) > κ_soc θ`` of the previous trial (``soc_decrease`` κ_soc = 0.99). An accepted corrected
 step is taken instead of any shorter step of the original direction. The Armijo test of a corrected step uses its
 own ``α^{soc}`` times the original slope (W&B use ``α_max``); the corrections reuse the step's factorisation where
-the step kept it (eager solves), else the system is factorised again.
+the step kept it (eager solves), else the system is factorised again: once for all corrections eager, in each
+correction's step with compiled kernels (``IPOptions.compile``), which run the corrections in the kernels of the
+iteration's own step, boundary and trial point.
 """
 
 from __future__ import annotations
@@ -28,12 +30,14 @@ import torch
 from torch import Tensor
 
 from ...core.batching import param_rows
+from ...core.compiled import kernel
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...riccati import LQR
 from .compaction import gather_rows, pick, write_rows
 from .iterate import Iterate, Model
+from .kernels import uses_graphs
 from .line_search import advance, fraction_to_boundary, trial
 from .newton import Direction, direction, factorize_step, newton_rhs
 from .options import IPOptions
@@ -54,6 +58,13 @@ def _scaled(alpha: Tensor, value: Tensor) -> Tensor:
     return alpha.reshape(-1, *[1] * (value.dim() - 1)) * value
 
 
+def _laid_out_as(value: Tensor, like: Tensor) -> Tensor:
+    """``value`` with the strides of ``like`` (a compiled kernel is specialised to its inputs' strides)."""
+    if value.stride() == like.stride():
+        return value
+    return torch.empty_strided(like.shape, like.stride(), dtype=like.dtype, device=like.device).copy_(value)
+
+
 def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
                             mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
                             theta_min: Tensor, need: Tensor, a_max: Tensor, first: tuple, lqr: LQR, delta: Tensor,
@@ -65,7 +76,11 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
     c_soc = tuple(_scaled(a_max, c) + t[:, 0] for c, t in zip(current, first))
     theta_old = torch.cat([t[:, 0].reshape(t.shape[0], -1).abs() for t in first], -1).sum(-1)
-    factor = d.factor if d.factor is not None else factorize_step(lqr, delta, opts)
+    # compiled kernels (no factorisation kept): each correction's step, its boundary and its trial point in the
+    # kernels of the iteration's own step and line search; eager: the step's factorisation, else one made here
+    compiled = opts.compile and not uses_graphs(opts, it.X.device)
+    run = (lambda fn: kernel(fn, True)) if compiled else (lambda fn: fn)
+    factor = None if compiled else d.factor if d.factor is not None else factorize_step(lqr, delta, opts)
     found = torch.zeros_like(need)
     alpha, f_type, best = torch.zeros_like(mu), torch.zeros_like(need), d
     a_dual = torch.zeros_like(mu)
@@ -74,12 +89,19 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         if not bool(active.any()):
             break
         defects, h, hN, gs, gsN = c_soc
-        corrected = dataclasses.replace(model, f=defects + it.X[:, 1:], h=h, hN=hN, g=(gs - it.s) * knots,
-                                        gN=gsN - it.sN)
-        step = direction(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, factor=factor)
-        a_soc, a_dual_soc = fraction_to_boundary(it, step, tau)
-        accept, f_ok, _, theta_c, parts = trial(problem, cons, params, it, step, model, mu, phi, slope, filt, theta_max,
-                                             theta_min, a_soc.unsqueeze(1), opts)
+        values = dict(f=defects + it.X[:, 1:], h=h, hN=hN, g=(gs - it.s) * knots, gN=gsN - it.sN)
+        if compiled:  # laid out as the step's own (views of the expansion's rows): the same compiled kernels
+            values = {name: _laid_out_as(value, getattr(model, name)) for name, value in values.items()}
+        corrected = dataclasses.replace(model, **values)
+        step = run(direction)(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, None, factor,
+                              False, opts.sweep, opts.terminal_rows)
+        a_soc, a_dual_soc = run(fraction_to_boundary)(it, step, tau)
+        # compiled: the one trial point as many times as a line-search round has candidates, laid out as a round's
+        # step sizes (line_search.line_search, globalization.line_search.backtrack): the round's kernel
+        alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
+            :, :max(1, opts.line_search_parallel)].contiguous() if compiled else a_soc.unsqueeze(1)
+        accept, f_ok, _, theta_c, parts = run(trial)(problem, cons, params, it, step, model, mu, phi, slope, filt,
+                                                     theta_max, theta_min, alphas, opts)
         new = active & accept[:, 0] & step.ok
         found = found | new
         alpha, a_dual = torch.where(new, a_soc, alpha), torch.where(new, a_dual_soc, a_dual)
@@ -89,7 +111,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         theta_old = theta_c[:, 0]
         c_soc = tuple(_scaled(a_soc, c) + t[:, 0] for c, t in zip(c_soc, parts))
     return Correction(found=found, alpha=alpha, f_type=f_type,
-                      it=advance(it, best, alpha, a_dual, mu, knots, opts))
+                      it=run(advance)(it, best, alpha, a_dual, mu, knots, opts))
 
 
 def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,

@@ -1,0 +1,81 @@
+"""The interior point's compiled kernels (``IPOptions(compile=True)``, torchtraj.core.compiled).
+
+Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve is one graph (a graph
+break splits a kernel into pieces, each with its own call overhead) traced once (the second-order corrections reuse
+the kernels of the iteration's step and line search instead of specialisations of their own), and the solve is the
+eager one. ``-m slow``: the same solve compiled by inductor, against eager.
+"""
+
+import shutil
+
+import pytest
+import torch
+from torch._dynamo.utils import counters
+
+import torchtraj as tt
+from torchtraj.core import compiled
+from torchtraj.solvers.ipm import soc
+from torchtraj.solvers.ipm import solver as ipm_solver
+
+pytest.importorskip("torch._inductor")
+
+
+def pendulum():
+    return tt.problems.get("pendulum").replace(horizon=30)
+
+
+def assert_same_solution(a: tt.Solution, b: tt.Solution, tol: float):
+    assert torch.equal(a.status, b.status) and torch.equal(a.iterations, b.iterations)
+    for x, y in ((a.X, b.X), (a.U, b.U), (a.cost, b.cost), (a.costate, b.costate)):
+        torch.testing.assert_close(x, y, atol=tol, rtol=0)
+
+
+def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(monkeypatch):
+    original = torch.compile
+
+    def captured(fn, **kwargs):  # Dynamo's graphs, run as captured (no inductor)
+        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
+
+    corrections = []
+    correct = ipm_solver.second_order_correction
+
+    def counted(*args):
+        corrections.append(int(args[12].sum()))  # the instances that need one
+        return correct(*args)
+
+    eager_factorizations = []
+    factorize_step = soc.factorize_step
+
+    def eager_factorization(*args):
+        eager_factorizations.append(args)
+        return factorize_step(*args)
+
+    monkeypatch.setattr(soc, "factorize_step", eager_factorization)
+    monkeypatch.setattr(torch, "compile", captured)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    monkeypatch.setattr(ipm_solver, "second_order_correction", counted)
+    x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
+    torch._dynamo.reset()
+    counters.clear()
+    try:
+        solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
+        frames, breaks, kernels = counters["frames"]["total"], dict(counters["graph_break"]), len(compiled._KERNELS)
+    finally:
+        torch._dynamo.reset()
+    assert sum(corrections) > 0, "the solve should take second-order corrections"
+    assert not breaks, breaks
+    assert not eager_factorizations, "the corrections' steps should be made in the compiled kernels"
+    assert kernels >= 5 and frames == kernels, (frames, kernels)
+    assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-9)
+
+
+@pytest.mark.slow  # compiling the kernels takes minutes on two cores
+@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
+                    reason="torch.compile's CPU backend needs a C++ compiler")
+def test_compiled_interior_point_matches_eager():
+    x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
+    compiled_solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
+    eager = tt.solve(pendulum(), x0, "ipm")
+    assert bool((eager.status == tt.Status.CONVERGED).all())
+    # inductor's fused arithmetic rounds otherwise than the library calls; the iterations stay the same
+    assert_same_solution(compiled_solution, eager, tol=1e-7)
