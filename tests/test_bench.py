@@ -104,6 +104,31 @@ def test_compile_flag_reaches_the_solver_options():
     assert bench_main.parser().parse_args(["--grad", "--compile"]).compile
 
 
+def test_compiled_rows_report_the_run_that_compiled_them(tmp_path, monkeypatch):
+    """``--compile``: the untimed run of the batch that compiles the kernels is timed and reported next to the
+    timed row and in the throughput line (the kernels captured by Dynamo and run as captured, to keep it short)."""
+    from torchtraj.core import compiled
+
+    original = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: original(fn, backend="eager", dynamic=False))
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    path = tmp_path / "rows.json"
+    try:
+        code, text = run(["--problems", "pendulum_unconstrained", "--batch", "2", "--no-reference", "--compile",
+                          "--json", str(path)] + LOOSE)
+    finally:
+        torch._dynamo.reset()
+    assert code == 0, text
+    (row,) = json.loads(path.read_text())["rows"]
+    assert row["compile_seconds"] > 0 and row["seconds"] > 0
+    assert f"which compiled the kernels: {row['compile_seconds']:.1f} s" in text
+    assert f"the untimed run before, which compiled them, took {row['compile_seconds']:.1f} s" in text
+    # an eager row has none
+    code, text = run(["--problems", "pendulum_unconstrained", "--batch", "2", "--no-reference", "--json", str(path)]
+                     + LOOSE)
+    assert json.loads(path.read_text())["rows"][0]["compile_seconds"] is None and "compiled" not in text
+
+
 def test_record_flag_reaches_the_solver_options_and_its_rows_are_the_eager_ones(tmp_path):
     from torchtraj.bench.runs import with_record
 

@@ -188,6 +188,8 @@ def _throughput(name: str, rows: list, largest: int) -> str:
     if ours is None or ours.error:
         return f"throughput {name}: no torchtraj result at B={largest}"
     text = f"throughput {name}: {ours.method} {ours.ms_per_instance:.3f} ms/instance at B={largest}"
+    if ours.compile_seconds is not None:
+        text += f" (compiled kernels; the untimed run before, which compiled them, took {ours.compile_seconds:.1f} s)"
     if fatrop is None or fatrop.error:
         return text + "; no FATROP result to compare"
     ratio = ours.ms_per_instance / fatrop.ms_per_instance
@@ -337,6 +339,9 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                 if ipopt is not None and row is not ipopt:
                     row.vs_ipopt = relative_difference(row, ipopt)
                 say(table.format_row(row))
+                if row.compile_seconds is not None:
+                    say(f"  (the untimed run of this batch before it, which compiled the kernels: "
+                        f"{row.compile_seconds:.1f} s)")
             problem_rows += group
             bar.update(converged=torch.tensor(ours.instance_ok or [False], dtype=torch.bool),
                        violation=ours.max_violation, problem=problem.name)

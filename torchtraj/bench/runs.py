@@ -49,6 +49,9 @@ class Row:
     ms_per_instance: float = float("nan")
     #: max over the compared instances of ``|J − J_ipopt| / |J_ipopt|`` (None where not compared).
     vs_ipopt: Optional[float] = None
+    #: compiled kernels: seconds of the untimed run of the whole batch before the timed one, which compiles them
+    #: (the kernels that already have a graph for these shapes in this process take none).
+    compile_seconds: Optional[float] = None
     error: Optional[str] = None
 
     def to_json(self) -> dict:
@@ -129,7 +132,10 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
         else:
             warm = dataclasses.replace(options, iterations_outer=1, iterations_inner=warmup_iterations)
         if compiled(options):
+            start = time.perf_counter()
             solve(problem, x0, method, X0=X0, options=options)
+            _sync(problem.device)
+            row.compile_seconds = time.perf_counter() - start
         else:
             solve(problem, None, method, X0=X0, options=warm)
         _sync(problem.device)
