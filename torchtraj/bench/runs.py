@@ -47,6 +47,9 @@ class Row:
     instance_ok: list = field(default_factory=list)
     seconds: float = float("nan")
     ms_per_instance: float = float("nan")
+    #: with compiled kernels, the untimed run of the whole batch before the timed one (it compiles what this batch
+    #: size needs: everything at the first, only the kernels that specialise to B later).
+    compiling_seconds: float = float("nan")
     #: max over the compared instances of ``|J − J_ipopt| / |J_ipopt|`` (None where not compared).
     vs_ipopt: Optional[float] = None
     error: Optional[str] = None
@@ -118,7 +121,8 @@ def _sync(device: torch.device) -> None:
 def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
                   warmup_iterations: int) -> Row:
     """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch. With compiled
-    kernels (``ILQROptions.compile``), which specialise to the batch size, the warm-up is the whole batch."""
+    kernels (``ILQROptions.compile``), some of which specialise to the batch size, the warm-up is the whole batch,
+    and its duration is the row's ``compiling_seconds``."""
     method = solvers.get(method)
     row = Row(problem.name, method.name, batch)
     try:
@@ -129,7 +133,10 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
         else:
             warm = dataclasses.replace(options, iterations_outer=1, iterations_inner=warmup_iterations)
         if compiled(options):
+            start = time.perf_counter()
             solve(problem, x0, method, X0=X0, options=options)
+            _sync(problem.device)
+            row.compiling_seconds = time.perf_counter() - start
         else:
             solve(problem, None, method, X0=X0, options=warm)
         _sync(problem.device)

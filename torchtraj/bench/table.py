@@ -40,6 +40,8 @@ def format_row(row: Row) -> str:
     # B = 1: the cost itself to 10 significant digits; else the median over instances
     cost = _num(row.costs[0], ".10g") if row.instances == 1 else _num(row.cost_median, ".6g")
     status = ", ".join(f"{k} {v}" for k, v in row.status.items())
+    if row.compiling_seconds == row.compiling_seconds:  # not NaN: compiled kernels
+        status += f"; untimed compiling run {row.compiling_seconds:.1f} s"
     return _line(lead + [
         str(row.instances), f"{row.iterations_median:g}/{row.iterations_max}", cost,
         _num(row.max_violation, ".1e"), _num(row.seconds, ".3f"), _num(row.ms_per_instance, ".3f"),
