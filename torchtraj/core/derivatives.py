@@ -27,7 +27,8 @@ the mapped function instead: its points are independent, so the pullback of the 
 point's output is row ``i`` of every point's Jacobian (:func:`_pullback_rows`; the Hessian is the same on the
 gradient, itself the pullback of ones). With PyTorch 2.13, ``jacrev`` inside ``vmap`` specialises the traced graph
 to the batch size: the batching rules of the backward operations (``slice_backward``, ``cat``) read concrete sizes.
-The pullbacks run outside ``vmap``, on the batch's tensors, and give the same numbers to the last bit.
+The pullbacks run outside ``vmap``, on the batch's tensors, and are the products ``jacrev`` forms (traced with
+Dynamo's eager backend, the same numbers to the last bit).
 """
 
 from __future__ import annotations
