@@ -2,7 +2,9 @@
 
 Default run: the MPC policy's warm-started ALTRO steps on a short horizon, and a float32 ALTRO solve with a failing
 instance. ``-m slow``: ALTRO to convergence with its projection. Each first call compiles its kernels (about a minute
-on two cores), so the problems are short.
+on two cores), so the problems are short. The batch dimension is compiled dynamic: a second batch size compiles
+nothing new for iLQR (``test_one_compilation_serves_every_batch_size``), and ``mark_batch`` marks the batch's tensors
+alone.
 """
 
 import dataclasses
@@ -13,6 +15,9 @@ import torch
 
 import torchtraj as tt
 from torchtraj import envs
+from torchtraj.core.compiled import mark_batch
+from torchtraj.core.constraints import Constraints
+from torchtraj.solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
 
 pytest.importorskip("torch._inductor")
 pytestmark = pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
@@ -78,3 +83,37 @@ def test_compiled_float32_altro_matches_eager_and_isolates_a_failing_instance():
     # case: up to about 5e-3), the cost to float32's resolution of it
     torch.testing.assert_close(compiled.U[keep], eager.U[keep], atol=5e-3, rtol=0)
     torch.testing.assert_close(compiled.cost[keep], eager.cost[keep], atol=1e-5, rtol=1e-5)
+
+
+def _marked(t: torch.Tensor) -> bool:
+    return 0 in getattr(t, "_dynamo_weak_dynamic_indices", ())  # what torch._dynamo.maybe_mark_dynamic sets
+
+
+def test_mark_batch_marks_the_batch_dimension_alone():
+    problem = small_pendulum()  # N = 8: a knot mask (8, m) beside a batch of 3
+    constraints = Constraints.of(problem)
+    x0 = torch.zeros(3, 2, dtype=torch.float64)
+    al = AugmentedLagrangian(constraints, Duals.initial(constraints, 3, 1.0, x0))
+    params = {"mass": torch.ones(3, dtype=torch.float64)}
+    steps = torch.ones(5, dtype=torch.float64)
+    mark_batch((problem, al, params, x0, torch.zeros(3, 9, 2, dtype=torch.float64), steps, 1e-6, None), {})
+    assert _marked(x0) and _marked(params["mass"]) and _marked(al.duals.stage) and _marked(al.duals.terminal)
+    assert not _marked(steps) and not _marked(al.knot_mask)
+    assert not any(_marked(t) for t in (problem.u_lower, problem.u_upper, constraints.ineq_knot_mask))
+
+
+@pytest.mark.slow  # compiling the iLQR kernels takes about a minute on two cores
+def test_one_compilation_serves_every_batch_size():
+    torch._dynamo.reset()  # no graph from an earlier test: the B = 2 solve compiles the kernels
+    counters = torch._dynamo.utils.counters
+    problem = small_pendulum()
+    opts = tt.ILQROptions(iterations=10)
+    graphs = {}
+    for B in (2, 3):
+        x0 = tt.problems.sample_x0("pendulum", B, seed=B)
+        eager = tt.solve(problem, x0, "ilqr", options=opts)
+        before = counters["stats"]["unique_graphs"]
+        compiled = tt.solve(problem, x0, "ilqr", options=dataclasses.replace(opts, compile=True))
+        graphs[B] = counters["stats"]["unique_graphs"] - before
+        assert_same_solution(eager, compiled)
+    assert graphs[2] > 0 and graphs[3] == 0, graphs

@@ -16,20 +16,44 @@ Compiled by inductor into fused loops, it takes 3.5 ms (``python -m torchtraj.be
 The loops over iterations, the masks and the host synchronisations stay in Python, so the solver's logic is the
 same code in both modes and its answers agree to rounding (``tests/test_compiled.py``).
 
-Costs: the first call of each kernel for a new problem, batch size, horizon or dtype traces and compiles it (tens
-of seconds; minutes for a whole ALTRO step on two cores), which pays off only for repeated solves with the same
-shapes — an MPC policy, a training loop. Compiled code is specialised to shapes (``dynamic=False``); each kernel
-keeps up to :data:`RECOMPILE_LIMIT` specialisations (problems × shapes × dtypes) before falling back to eager:
-the first compiled kernel raises ``torch._dynamo.config.recompile_limit`` to it (a process-wide setting).
-A C++ compiler is needed on CPU (inductor's requirement).
+Costs: the first call of each kernel for a new problem, horizon, dtype or batch size it specialises to traces and
+compiles it (tens of seconds; minutes for a whole ALTRO step on two cores), which pays off only for repeated solves —
+an MPC policy, a training loop.
+
+The batch dimension is compiled dynamic: before each call, dim 0 of the arguments' tensors that carry the batch is
+marked with ``torch._dynamo.maybe_mark_dynamic`` (:func:`mark_batch`); every other size (horizon, state, control and
+constraint sizes, the line search's step sizes) stays static, as the Riccati sweeps and rollouts unroll Python loops
+over the horizon and choose their contractions by size (:func:`matmul`). ``torch.compile(dynamic=None)`` (automatic
+dynamic) was the alternative: it compiles again at the second batch size seen, and would make any other size that
+changed between two calls symbolic too. ``maybe_mark_dynamic``, not ``mark_dynamic``: a kernel whose traced code
+specialises the batch size does so without an error, and compiles once per batch size as before. Dynamo specialises
+sizes 0 and 1, so B = 1 always has graphs of its own.
+
+Which kernels one compilation serves for every B ≥ 2 (``tests/test_compiled.py``): iLQR's (rollout, objective,
+iteration, gains and costates), the rollouts, and the IPM's step measures, Newton direction and step. The others
+still compile once per batch size, because ``torch.func.vmap``'s batching rules in PyTorch 2.13 read concrete sizes
+of a vmapped tensor, which specialises the graph to B: ``torch.cat`` of per-instance vectors (the stacked constraint
+rows of :class:`~torchtraj.core.constraints.Constraints`: ALTRO's objective, violation and iterations, the IPM's
+trial points) and the backward operations of ``jacrev`` inside ``vmap`` (:mod:`torchtraj.core.one_pass`: the IPM's
+and ALTRO's expansions). :mod:`torchtraj.core.derivatives` avoids the second for iLQR's expansion (its module
+docstring). A user's function that concatenates per-instance vectors has the same effect.
+
+Each kernel keeps up to :data:`RECOMPILE_LIMIT` specialisations (problems × horizons × dtypes, and batch sizes where
+the kernel specialises them) before falling back to eager: the first compiled kernel raises
+``torch._dynamo.config.recompile_limit`` to it (a process-wide setting). A C++ compiler is needed on CPU (inductor's
+requirement).
 """
 
 from __future__ import annotations
 
+import types
 from typing import Callable
 
 import torch
 from torch import Tensor
+
+from .constraints import Constraints
+from .problem import Problem
 
 #: Contractions up to this length are written as broadcast products and sums when traced (:func:`matmul`).
 FUSED_CONTRACTION = 8
@@ -58,7 +82,61 @@ def _compile(fn: Callable) -> Callable:
     # a process-wide setting (a patch around each call would cost 40 µs a call), raised only, never lowered
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
-    return torch.compile(fn, dynamic=False, options={"cpp_wrapper": True})
+    compiled = torch.compile(fn, dynamic=False, options={"cpp_wrapper": True})
+
+    def batch_dynamic(*args, **kwargs):
+        mark_batch(args, kwargs)
+        return compiled(*args, **kwargs)
+
+    return batch_dynamic
+
+
+def mark_batch(*args) -> None:
+    """Mark dim 0 of the tensors in ``args`` that carry the batch dynamic for ``torch.compile``.
+
+    The tensors are those in ``args``' containers (tuples, lists, dicts) and in the
+    attributes of the objects among them (an augmented Lagrangian's multipliers, the IPM's iterate and model
+    dataclasses), except a :class:`~torchtraj.core.problem.Problem` or :class:`~torchtraj.core.constraints.Constraints`:
+    their tensors (bounds, default parameters, knot masks) are the problem's, shared by every instance. The batch
+    size B is the most common dim 0 among them (the iterates, multipliers and parameters all have it); a tensor whose
+    dim 0 is another size (a knot mask ``(N, m)``, a vector of step sizes) stays static. Where such a size equals B by
+    chance, its mark does no harm: a marked dim gets a symbol of its own (no duck shaping), which the kernel's first
+    use of it against a static size specialises, or which stays symbolic in a graph correct for any value.
+    """
+    tensors: list = []
+    _collect(args, tensors, set())
+    if not tensors:
+        return
+    counts: dict = {}
+    for t in tensors:
+        counts[t.shape[0]] = counts.get(t.shape[0], 0) + 1
+    batch = max(counts, key=counts.__getitem__)
+    if batch < 2:  # Dynamo specialises sizes 0 and 1 whatever the mark
+        return
+    for t in tensors:
+        if t.shape[0] == batch:
+            torch._dynamo.maybe_mark_dynamic(t, 0)
+
+
+def _collect(value, tensors: list, seen: set) -> None:
+    # by hand rather than with torch.utils._pytree, whose flattening took 27 µs of the 41 µs a call of an ALTRO
+    # iteration's arguments took (12 µs by hand)
+    if isinstance(value, Tensor):
+        if value.dim():
+            tensors.append(value)
+    elif isinstance(value, (tuple, list)):
+        for v in value:
+            _collect(v, tensors, seen)
+    elif isinstance(value, dict):
+        for v in value.values():
+            _collect(v, tensors, seen)
+    elif (value is None or isinstance(value, (bool, int, float, str, Problem, Constraints, type, types.ModuleType))
+          or callable(value)):
+        return
+    elif hasattr(value, "__dict__") and id(value) not in seen:
+        seen.add(id(value))
+        for v in vars(value).values():
+            _collect(v, tensors, seen)
 
 
 def matmul(a: Tensor, b: Tensor) -> Tensor:

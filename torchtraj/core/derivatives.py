@@ -20,6 +20,15 @@ Python or 0-dim scalars through Python decompositions (``torch._refs``) under fo
 measures 4-6x slower than ``vmap(jacrev(·))`` on the problem set's models (pendulum RK4
 Jacobian at 30 points: 12.3 ms against 2.2 ms; a stage-cost Hessian: ``jacfwd(jacrev)``
 6.1 ms, ``jacrev(jacrev)`` 1.4 ms). The results are the same to rounding.
+
+Traced by ``torch.compile`` (:mod:`torchtraj.core.compiled`, whose kernels take the batch size as a symbol),
+:func:`stage_jacobian`, :func:`terminal_jacobian`, :func:`stage_hessian` and :func:`terminal_hessian` differentiate
+the mapped function instead: its points are independent, so the pullback of the unit vector ``e_i`` on every
+point's output is row ``i`` of every point's Jacobian (:func:`_pullback_rows`; the Hessian is the same on the
+gradient, itself the pullback of ones). With PyTorch 2.13, ``jacrev`` inside ``vmap`` specialises the traced graph
+to the batch size: the batching rules of the backward operations (``slice_backward``, ``cat``) read concrete sizes.
+The pullbacks run outside ``vmap``, on the batch's tensors, and are the products ``jacrev`` forms (traced with
+Dynamo's eager backend, the same numbers to the last bit).
 """
 
 from __future__ import annotations
@@ -29,7 +38,7 @@ from typing import Callable, Iterator, Mapping
 
 import torch
 from torch import Tensor
-from torch.func import jacrev
+from torch.func import jacrev, vjp
 
 from .batching import map_stage, map_state
 from .compiled import matvec
@@ -70,6 +79,29 @@ def _value_gradient_hessian(g: Callable) -> Callable:
     return wrapped
 
 
+def _pullback_rows(F: Callable, Z: Tensor):
+    """Values ``(..., m)`` and Jacobians ``(..., m, n)`` of ``F: (..., n) -> (..., m)``, a per-point function mapped
+    over the points ``Z``: the pullback of ``e_i`` on every point is row ``i`` of each point's Jacobian."""
+    out, pull = vjp(F, Z)
+    m = out.shape[-1]
+    if m == 0:
+        return out, out.new_zeros(*out.shape, Z.shape[-1])
+    eye = torch.eye(m, dtype=out.dtype, device=out.device)
+    return out, torch.stack([pull(eye[i].expand_as(out))[0] for i in range(m)], -2)
+
+
+def _pullback_hessian(F: Callable, Z: Tensor):
+    """Values ``(...)``, gradients ``(..., n)`` and Hessians ``(..., n, n)`` of ``F: (..., n) -> (...)``, a scalar
+    per-point function mapped over the points ``Z`` (:func:`_pullback_rows` of its gradient)."""
+    def gradient(Z_):
+        value, pull = vjp(F, Z_)
+        return pull(torch.ones_like(value))[0], value
+
+    grad, pull, value = vjp(gradient, Z, has_aux=True)
+    eye = torch.eye(Z.shape[-1], dtype=grad.dtype, device=grad.device)
+    return value, grad, torch.stack([pull(eye[i].expand_as(grad))[0] for i in range(Z.shape[-1])], -2)
+
+
 def _stage_points(X: Tensor, U: Tensor) -> Tensor:
     return torch.cat([X[:, : U.shape[1]], U], -1)
 
@@ -77,25 +109,32 @@ def _stage_points(X: Tensor, U: Tensor) -> Tensor:
 def stage_jacobian(fn: Callable, X: Tensor, U: Tensor, params: Params):
     """Values ``(B, N, m)`` and Jacobians ``(B, N, m, nx+nu)`` of ``fn(x, u, p)`` at every stage."""
     nx = X.shape[-1]
-    g = _value_and_jacobian(_on_z(fn, nx))
     Z = _stage_points(X, U)
-    return map_state(g, Z, params)
+    if torch.compiler.is_compiling():
+        return _pullback_rows(lambda Z_: map_state(_on_z(fn, nx), Z_, params), Z)
+    return map_state(_value_and_jacobian(_on_z(fn, nx)), Z, params)
 
 
 def terminal_jacobian(fn: Callable, xN: Tensor, params: Params):
     """Values ``(B, m)`` and Jacobians ``(B, m, nx)`` of ``fn(x, p)`` at ``xN (B, nx)``."""
+    if torch.compiler.is_compiling():
+        return _pullback_rows(lambda X_: map_state(fn, X_, params), xN)
     return map_state(_value_and_jacobian(fn), xN, params)
 
 
 def stage_hessian(fn: Callable, X: Tensor, U: Tensor, params: Params):
     """Value ``(B, N)``, gradient ``(B, N, nz)`` and Hessian ``(B, N, nz, nz)`` of a scalar ``fn(x, u, p)``."""
     nx = X.shape[-1]
-    g = _value_gradient_hessian(_on_z(fn, nx))
-    return map_state(g, _stage_points(X, U), params)
+    Z = _stage_points(X, U)
+    if torch.compiler.is_compiling():
+        return _pullback_hessian(lambda Z_: map_state(_on_z(fn, nx), Z_, params), Z)
+    return map_state(_value_gradient_hessian(_on_z(fn, nx)), Z, params)
 
 
 def terminal_hessian(fn: Callable, xN: Tensor, params: Params):
     """Value ``(B,)``, gradient ``(B, nx)`` and Hessian ``(B, nx, nx)`` of a scalar ``fn(x, p)``."""
+    if torch.compiler.is_compiling():
+        return _pullback_hessian(lambda X_: map_state(fn, X_, params), xN)
     return map_state(_value_gradient_hessian(fn), xN, params)
 
 

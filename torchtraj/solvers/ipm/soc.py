@@ -59,10 +59,13 @@ def _scaled(alpha: Tensor, value: Tensor) -> Tensor:
 
 
 def _laid_out_as(value: Tensor, like: Tensor) -> Tensor:
-    """``value`` with the strides of ``like`` (a compiled kernel is specialised to its inputs' strides)."""
-    if value.stride() == like.stride():
+    """``value`` with the strides and storage offset of ``like``: a compiled kernel is specialised to its inputs'
+    strides, and with a dynamic batch to the equalities between their offsets."""
+    if value.stride() == like.stride() and value.storage_offset() == like.storage_offset():
         return value
-    return torch.empty_strided(like.shape, like.stride(), dtype=like.dtype, device=like.device).copy_(value)
+    extent = like.storage_offset() + 1 + sum((n - 1) * st for n, st in zip(like.shape, like.stride()) if n > 0)
+    out = like.new_empty(extent).as_strided(like.shape, like.stride(), like.storage_offset())
+    return out.copy_(value)
 
 
 def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
