@@ -32,7 +32,7 @@ from torch import Tensor
 from ...core.constraints import Constraints
 from ...globalization.filter import Filter
 from ...riccati import LQR
-from .expansion import complementarity_error
+from .expansion import complementarity_of, complementarity_parts
 from .iterate import Iterate, Model
 from .line_search import Step, advance, fraction_to_boundary, step_and_round_off
 from .newton import Direction, direction, factorize_step, newton_rhs
@@ -45,9 +45,10 @@ def monotone_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
     ``forced (B,)`` (very small search directions); resets the filter of the instances it updates. Returns ``(μ,
     filter)``."""
     floor = tol / 10.0
+    # what does not depend on μ, once for the four rounds
+    others, parts = torch.maximum(model.dual_error, model.primal_error), complementarity_parts(cons, it, opts)
     for _ in range(4):
-        error = torch.maximum(torch.maximum(model.dual_error, model.primal_error),
-                              complementarity_error(cons, it, mu, opts))
+        error = torch.maximum(others, complementarity_of(parts, mu, cons.ineq_knot_mask))
         solved = error <= opts.barrier_tolerance_factor * mu
         if forced is not None:
             solved, forced = solved | forced, None

@@ -229,13 +229,23 @@ VALUE_FIELDS = ("J", "Lz", "LNx", "f", "g", "h", "gN", "hN", "theta", "violation
 
 def complementarity_error(cons: Constraints, it: Iterate, mu: Tensor, opts: IPOptions) -> Tensor:
     """``‖S z − μ‖∞ / s_c`` ``(B,)`` (IPOPT eq. 5); rows off at a knot do not count."""
+    return complementarity_of(complementarity_parts(cons, it, opts), mu, cons.ineq_knot_mask)
+
+
+def complementarity_parts(cons: Constraints, it: Iterate, opts: IPOptions) -> tuple:
+    """What :func:`complementarity_error` reads of the iterate, for any number of ``μ``: ``(S z, S_N z_N, s_c)``."""
     knots = cons.ineq_knot_mask
-    m = mu.reshape(-1, 1, 1)
-    stage = (it.s * it.z - m) * knots
-    terminal = it.sN * it.zN - mu.unsqueeze(-1)
     n = max(cons.mi * cons.problem.N + cons.miN, 1)
     s_max = opts.scaling_threshold
     s_c = torch.clamp(flat_abs(it.z * knots, it.zN).sum(-1) / n, min=s_max) / s_max
+    return it.s * it.z, it.sN * it.zN, s_c
+
+
+def complementarity_of(parts: tuple, mu: Tensor, knots: Tensor) -> Tensor:
+    """:func:`complementarity_error` from its :func:`complementarity_parts`."""
+    products, productsN, s_c = parts
+    stage = (products - mu.reshape(-1, 1, 1)) * knots
+    terminal = productsN - mu.unsqueeze(-1)
     return flat_abs(stage, terminal).amax(-1) / s_c
 
 
