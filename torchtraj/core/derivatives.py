@@ -83,11 +83,9 @@ def _pullback_rows(F: Callable, Z: Tensor):
     """Values ``(..., m)`` and Jacobians ``(..., m, n)`` of ``F: (..., n) -> (..., m)``, a per-point function mapped
     over the points ``Z``: the pullback of ``e_i`` on every point is row ``i`` of each point's Jacobian."""
     out, pull = vjp(F, Z)
-    m = out.shape[-1]
-    if m == 0:
+    if out.shape[-1] == 0:
         return out, out.new_zeros(*out.shape, Z.shape[-1])
-    eye = torch.eye(m, dtype=out.dtype, device=out.device)
-    return out, torch.stack([pull(eye[i].expand_as(out))[0] for i in range(m)], -2)
+    return out, _rows(pull, out)
 
 
 def _pullback_hessian(F: Callable, Z: Tensor):
@@ -98,8 +96,14 @@ def _pullback_hessian(F: Callable, Z: Tensor):
         return pull(torch.ones_like(value))[0], value
 
     grad, pull, value = vjp(gradient, Z, has_aux=True)
-    eye = torch.eye(Z.shape[-1], dtype=grad.dtype, device=grad.device)
-    return value, grad, torch.stack([pull(eye[i].expand_as(grad))[0] for i in range(Z.shape[-1])], -2)
+    return value, grad, _rows(pull, grad)
+
+
+def _rows(pull: Callable, out: Tensor) -> Tensor:
+    """The Jacobians ``(..., m, n)`` whose rows are the pullbacks ``pull`` of each unit vector ``e_i`` on every
+    point's output ``out (..., m)``."""
+    eye = torch.eye(out.shape[-1], dtype=out.dtype, device=out.device)
+    return torch.stack([pull(eye[i].expand_as(out))[0] for i in range(out.shape[-1])], -2)
 
 
 def _stage_points(X: Tensor, U: Tensor) -> Tensor:

@@ -37,7 +37,6 @@ from torch import Tensor
 
 from ...core.batching import param_rows
 from ...globalization.line_search import Accepted
-from .continuation import Weights
 from .initial_state import InitialRows
 from .merit import armijo_bound, constraint_values, line_search, merit_at, slope, trial_steps
 from .model import Iterate, Model
@@ -115,7 +114,7 @@ def _correction(problem, cons, params, model, it, x0, initial, d, step, alpha, e
     soc = corrected_step(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
                          instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)
     merit = merit_at(problem, cons, params_rows, it_rows.X + soc.dX, it_rows.U + soc.dU, x0[rows], None, gamma[rows],
-                     Weights(weights.weight[rows], weights.delta[rows]))
+                     instances(weights, rows))
     return write_direction(step, rows, soc), torch.zeros_like(gamma).index_copy(0, rows, merit)
 
 

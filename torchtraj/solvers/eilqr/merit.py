@@ -48,7 +48,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, map_state, param_rows
+from ...core.batching import map_stage, map_state, param_rows, rows_of
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.line_search import Accepted, backtrack
@@ -168,7 +168,7 @@ def line_search(problem: Problem, cons: Constraints, params, X: Tensor, U: Tenso
             at = (X, U, d.dX, d.dU, params, x0, gamma, weights, merit0, derivative)
         else:
             at = (X[rows], U[rows], d.dX[rows], d.dU[rows], param_rows(params, rows), x0[rows], gamma[rows],
-                  Weights(weights.weight[rows], weights.delta[rows]), merit0[rows], derivative[rows])
+                  rows_of(weights, rows), merit0[rows], derivative[rows])
         X_, U_, dX, dU, params_, x0_, gamma_, weights_, merit0_, derivative_ = at
         Xa = X_.unsqueeze(1) + a * dX.unsqueeze(1)
         Ua = U_.unsqueeze(1) + a * dU.unsqueeze(1)

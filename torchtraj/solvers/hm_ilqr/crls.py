@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, param_rows
+from ...core.batching import map_stage, param_rows, rows_of
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
 from ...riccati import factorize
@@ -186,31 +186,22 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
                 residual = stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), sol.nu, sol.nuN)
                 nu, nuN = sol.nu, sol.nuN
             out = _search_round(whole, factor, sol, pending, accepted, steps, per_round, opts)
-            decrease = torch.where(pending, out.full, decrease)
-            K = where_rows(pending, out.K, K)
-            new = out.step.found & out.search
-            used = torch.where(new, out.weight, used)
-            stationary = stationary | (pending & out.ok & out.still & ~new)
-            accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, out.step.alpha, accepted.alpha),
-                                values=tuple(where_rows(new, a, b) for a, b in zip(out.step.values, accepted.values)))
-        else:  # the pending instances alone
+        else:  # the pending instances alone, written into a round of the whole batch (the others not searched)
             sub = whole.rows(index)
             sub_factor = factorize(regularized(sub.lqr, mu_V[index]))
             sub_accepted = Accepted(found=accepted.found[index], alpha=accepted.alpha[index],
                                     values=tuple(v[index] for v in accepted.values))
             out = _search_round(sub, sub_factor, sub_factor.solve(sub.rhs), torch.ones_like(index, dtype=torch.bool),
                                 sub_accepted, steps, per_round, opts)
-            decrease = decrease.index_copy(0, index, out.full)
-            K = K.index_copy(0, index, out.K)
-            new_rows = out.step.found & out.search
-            new = zero.index_copy(0, index, new_rows)
-            used = used.index_copy(0, index, torch.where(new_rows, out.weight, used[index]))
-            stationary = stationary | zero.index_copy(0, index, out.ok & out.still & ~new_rows)
-            accepted = Accepted(
-                found=accepted.found | new,
-                alpha=accepted.alpha.index_copy(0, index, torch.where(new_rows, out.step.alpha, sub_accepted.alpha)),
-                values=tuple(v.index_copy(0, index, where_rows(new_rows, a, b))
-                             for v, a, b in zip(accepted.values, out.step.values, sub_accepted.values)))
+            out = out.on_batch(index, _Round(ok=zero, full=decrease, still=zero, search=zero, K=K, weight=used,
+                                             step=Accepted(found=zero, alpha=accepted.alpha, values=accepted.values)))
+        decrease = torch.where(pending, out.full, decrease)
+        K = where_rows(pending, out.K, K)
+        new = out.step.found & out.search
+        used = torch.where(new, out.weight, used)
+        stationary = stationary | (pending & out.ok & out.still & ~new)
+        accepted = Accepted(found=accepted.found | new, alpha=torch.where(new, out.step.alpha, accepted.alpha),
+                            values=tuple(where_rows(new, a, b) for a, b in zip(out.step.values, accepted.values)))
         searched = searched | pending
         grow = pending & ~new & ~stationary & retry & (mu_V < opts.regularization_max)
         mu_V = torch.where(grow, (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max), mu_V)
@@ -249,15 +240,9 @@ class _Instances:
 
     def rows(self, index: Tensor) -> "_Instances":
         """The instances ``index (R,)`` alone."""
-        def take(v):
-            return None if v is None else v[index]
-
-        objective = self.objective
-        return _Instances(self.problem, objective.rows(index), param_rows(self.params, index), self.segments,
+        return _Instances(self.problem, self.objective.rows(index), param_rows(self.params, index), self.segments,
                           self.X[index], self.U[index], self.J[index], self.D[index], self.lqr.rows(index),
-                          dataclasses.replace(self.rhs, **{f.name: take(getattr(self.rhs, f.name))
-                                                           for f in dataclasses.fields(self.rhs)}),
-                          take(self.weight_floor), take(self.curved))
+                          rows_of(self.rhs, index), rows_of(self.weight_floor, index), rows_of(self.curved, index))
 
 
 @dataclass
@@ -273,6 +258,17 @@ class _Round:
     K: Tensor
     weight: Tensor
     step: Accepted
+
+    def on_batch(self, index: Tensor, fill: "_Round") -> "_Round":
+        """This round of the instances ``index (R,)`` as a round of the whole batch, ``fill``'s values elsewhere."""
+        def put(base: Tensor, rows: Tensor) -> Tensor:
+            return base.index_copy(0, index, rows)
+
+        step = Accepted(found=put(fill.step.found, self.step.found), alpha=put(fill.step.alpha, self.step.alpha),
+                        values=tuple(put(b, v) for b, v in zip(fill.step.values, self.step.values)))
+        return _Round(ok=put(fill.ok, self.ok), full=put(fill.full, self.full), still=put(fill.still, self.still),
+                      search=put(fill.search, self.search), K=put(fill.K, self.K),
+                      weight=put(fill.weight, self.weight), step=step)
 
 
 def _search_round(at: _Instances, factor, sol, pending: Tensor, accepted: Accepted, steps: Tensor, per_round: int,

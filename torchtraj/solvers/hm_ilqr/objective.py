@@ -41,14 +41,13 @@ curvature that failed (:mod:`~torchtraj.solvers.hm_ilqr.crls`).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, map_state
+from ...core.batching import map_stage, map_state, rows_of
 from ...core.constraints import Constraints
 from ...core.one_pass import problem_kkt_expansion
 from ...kkt.model import total_cost
@@ -109,9 +108,7 @@ class HybridObjective:
 
     def rows(self, index: Tensor) -> "HybridObjective":
         """The objective of the instances ``index (R,)`` alone (their stage parameters)."""
-        params = StageParameters(**{f.name: getattr(self.params, f.name)[index]
-                                    for f in dataclasses.fields(StageParameters)})
-        return HybridObjective(self.constraints, params, self.record)
+        return HybridObjective(self.constraints, rows_of(self.params, index), self.record)
 
     # ------------------------------------------------------------------ the penalty of the inequality rows
     def penalty(self, g: Tensor, lam: Tensor, mask=None, derivatives: bool = True) -> tuple:

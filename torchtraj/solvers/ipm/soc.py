@@ -82,7 +82,6 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     # compiled kernels (no factorisation kept): each correction's step, its boundary and its trial point in the
     # kernels of the iteration's own step and line search; eager: the step's factorisation, else one made here
     compiled = opts.compile and not uses_graphs(opts, it.X.device)
-    run = (lambda fn: kernel(fn, True)) if compiled else (lambda fn: fn)
     factor = None if compiled else d.factor if d.factor is not None else factorize_step(lqr, delta, opts)
     found = torch.zeros_like(need)
     alpha, f_type, best = torch.zeros_like(mu), torch.zeros_like(need), d
@@ -96,15 +95,16 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         if compiled:  # laid out as the step's own (views of the expansion's rows): the same compiled kernels
             values = {name: _laid_out_as(value, getattr(model, name)) for name, value in values.items()}
         corrected = dataclasses.replace(model, **values)
-        step = run(direction)(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, None, factor,
-                              False, opts.sweep, opts.terminal_rows)
-        a_soc, a_dual_soc = run(fraction_to_boundary)(it, step, tau)
+        rhs = newton_rhs(corrected, it, mu, x0, nx)
+        step = kernel(direction, compiled)(lqr, rhs, delta, corrected, it, mu, None, factor, False, opts.sweep,
+                                           opts.terminal_rows)
+        a_soc, a_dual_soc = kernel(fraction_to_boundary, compiled)(it, step, tau)
         # compiled: the one trial point as many times as a line-search round has candidates, laid out as a round's
         # step sizes (line_search.line_search, globalization.line_search.backtrack): the round's kernel
         alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
             :, :max(1, opts.line_search_parallel)].contiguous() if compiled else a_soc.unsqueeze(1)
-        accept, f_ok, _, theta_c, parts = run(trial)(problem, cons, params, it, step, model, mu, phi, slope, filt,
-                                                     theta_max, theta_min, alphas, opts)
+        accept, f_ok, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu, phi,
+                                                                  slope, filt, theta_max, theta_min, alphas, opts)
         new = active & accept[:, 0] & step.ok
         found = found | new
         alpha, a_dual = torch.where(new, a_soc, alpha), torch.where(new, a_dual_soc, a_dual)
@@ -114,7 +114,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         theta_old = theta_c[:, 0]
         c_soc = tuple(_scaled(a_soc, c) + t[:, 0] for c, t in zip(c_soc, parts))
     return Correction(found=found, alpha=alpha, f_type=f_type,
-                      it=run(advance)(it, best, alpha, a_dual, mu, knots, opts))
+                      it=kernel(advance, compiled)(it, best, alpha, a_dual, mu, knots, opts))
 
 
 def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
