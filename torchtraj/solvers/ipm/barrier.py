@@ -47,7 +47,8 @@ def monotone_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
     floor = tol / 10.0
     # what does not depend on μ, once for the four rounds
     others, parts = torch.maximum(model.dual_error, model.primal_error), complementarity_parts(cons, it, opts)
-    for _ in range(4):
+    updated = torch.zeros_like(running)
+    for round_ in range(4):
         error = torch.maximum(others, complementarity_of(parts, mu, cons.ineq_knot_mask))
         solved = error <= opts.barrier_tolerance_factor * mu
         if forced is not None:
@@ -55,8 +56,12 @@ def monotone_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
         update = running & solved & (mu > floor)
         smaller = torch.clamp(torch.minimum(opts.barrier_decrease * mu, mu ** opts.barrier_power), min=floor)
         mu = torch.where(update, smaller, mu)
-        filt = filt.reset(update)
-    return mu, filt
+        updated = updated | update
+        # a round that updates no instance leaves μ, and so every later round, as it was: one host read ends them
+        if round_ < 3 and not bool(update.any()):
+            break
+    # emptying a filter twice empties it once: one reset for the rounds
+    return mu, filt.reset(updated)
 
 
 def average_complementarity(s: Tensor, sN: Tensor, z: Tensor, zN: Tensor, knots: Tensor) -> Tensor:
