@@ -102,6 +102,47 @@ def test_mark_batch_marks_the_batch_dimension_alone():
     assert not any(_marked(t) for t in (problem.u_lower, problem.u_upper, constraints.ineq_knot_mask))
 
 
+def test_one_capture_of_each_altro_kernel_serves_every_batch_size(monkeypatch):
+    """ALTRO's kernels (the AL objective and violation, the iLQR iteration, the multiplier update) take the batch as
+    a symbol: a batch of 3 after one of 2 captures no graph, and none breaks (Dynamo's capture alone, its "eager"
+    backend), with the eager answers."""
+    from torch._dynamo.utils import counters
+
+    from torchtraj.core import compiled
+
+    original = torch.compile
+
+    def captured(fn, **kwargs):
+        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
+
+    monkeypatch.setattr(torch, "compile", captured)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    problem = tt.problems.get("pendulum").replace(horizon=12)
+    opts = tt.ALTROOptions(iterations_outer=3)
+    compiled_opts = dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True))
+    torch._dynamo.reset()
+    counters.clear()
+    graphs = {}
+    try:
+        for B in (2, 3):
+            x0 = tt.problems.sample_x0("pendulum", B, seed=B)
+            before = counters["stats"]["unique_graphs"]
+            solution = tt.solve(problem, x0, "altro", options=compiled_opts)
+            graphs[B] = counters["stats"]["unique_graphs"] - before
+            assert_same_solution(solution, tt.solve(problem, x0, "altro", options=opts))
+        breaks = dict(counters["graph_break"])
+    finally:
+        torch._dynamo.reset()
+    assert not breaks, breaks
+    assert graphs[2] >= 5 and graphs[3] == 0, graphs
+
+
+def test_applied_inequality_rows_are_the_knot_masks_ones():
+    for name in tt.problems.names():
+        constraints = Constraints(tt.problems.get(name))
+        assert constraints.applied_ineq_rows == int(constraints.ineq_knot_mask.sum()), name
+
+
 @pytest.mark.slow  # compiling the iLQR kernels takes about a minute on two cores
 def test_one_compilation_serves_every_batch_size():
     torch._dynamo.reset()  # no graph from an earlier test: the B = 2 solve compiles the kernels

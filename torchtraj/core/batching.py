@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable, Mapping, Optional
+from typing import Callable, Mapping, Optional, Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 from torch.func import vmap
 
@@ -23,6 +24,24 @@ Params = Mapping[str, Tensor]
 def shared_param(value: Tensor) -> bool:
     """Whether a batched parameter is one instance's value for all: expanded from it (stride 0), or B = 1."""
     return value.shape[0] == 1 or value.stride(0) == 0
+
+
+def concat(parts: Sequence[Tensor]) -> Tensor:
+    """``torch.cat(parts)`` of a per-instance function's vectors (along their first dimension). Traced by
+    ``torch.compile``, it is written as zero pads and a sum: in PyTorch 2.13, ``cat``'s batching rule under ``vmap``
+    reads the concrete batch size, which would specialise a kernel compiled with a dynamic batch dimension
+    (:mod:`torchtraj.core.compiled`) to it; a pad's does not. The same values (a zero added is exact)."""
+    if not torch.compiler.is_compiling() or not any(p.shape[0] for p in parts):
+        return torch.cat(list(parts))
+    parts = [p for p in parts if p.shape[0]]  # an empty one adds nothing (and may be an unbatched constant)
+    if len(parts) == 1:
+        return parts[0]
+    total, start, out = sum(p.shape[0] for p in parts), 0, None
+    for p in parts:
+        padded = F.pad(p, [0, 0] * (p.dim() - 1) + [start, total - start - p.shape[0]])
+        out = padded if out is None else out + padded
+        start += p.shape[0]
+    return out
 
 
 def param_rows(params: Params, index: Tensor) -> dict:

@@ -29,14 +29,16 @@ changed between two calls symbolic too. ``maybe_mark_dynamic``, not ``mark_dynam
 specialises the batch size does so without an error, and compiles once per batch size as before. Dynamo specialises
 sizes 0 and 1, so B = 1 always has graphs of its own.
 
-Which kernels one compilation serves for every B ≥ 2 (``tests/test_compiled.py``): iLQR's (rollout, objective,
-iteration, gains and costates), the rollouts, and the IPM's step measures, Newton direction and step. The others
-still compile once per batch size, because ``torch.func.vmap``'s batching rules in PyTorch 2.13 read concrete sizes
-of a vmapped tensor, which specialises the graph to B: ``torch.cat`` of per-instance vectors (the stacked constraint
-rows of :class:`~torchtraj.core.constraints.Constraints`: ALTRO's objective, violation and iterations, the IPM's
-trial points) and the backward operations of ``jacrev`` inside ``vmap`` (:mod:`torchtraj.core.one_pass`: the IPM's
-and ALTRO's expansions). :mod:`torchtraj.core.derivatives` avoids the second for iLQR's expansion (its module
-docstring). A user's function that concatenates per-instance vectors has the same effect.
+Every kernel of iLQR, ALTRO (its AL objective, violation and multiplier update) and the interior point is compiled
+once for every B ≥ 2 (``tests/test_compiled.py``, ``tests/test_compiled_ipm.py``). Two things in their code keep it
+so, because ``torch.func.vmap``'s batching rules in PyTorch 2.13 read concrete sizes of a vmapped tensor, which
+specialises a graph to B: per-instance vectors are joined by :func:`~torchtraj.core.batching.concat` (zero pads and a
+sum when traced) rather than ``torch.cat`` (the stacked constraint rows of
+:class:`~torchtraj.core.constraints.Constraints` and of the augmented Lagrangian), and the expansions differentiate
+the mapped functions by pullbacks outside ``vmap`` (:mod:`torchtraj.core.derivatives` for iLQR,
+:mod:`torchtraj.core.one_pass` for the interior point and ALTRO) rather than by ``jacrev`` inside it, whose backward
+operations (``slice_backward``, ``cat``) have the same effect. A user's function that concatenates per-instance
+vectors with ``torch.cat`` specialises the kernels that evaluate it to B again (one compilation per batch size).
 
 Each kernel keeps up to :data:`RECOMPILE_LIMIT` specialisations (problems × horizons × dtypes, and batch sizes where
 the kernel specialises them) before falling back to eager: the first compiled kernel raises

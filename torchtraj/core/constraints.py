@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .batching import map_stage, map_state
+from .batching import concat, map_stage, map_state
 from .problem import Problem
 
 STAGE_INEQ_BLOCKS = ("stage_ineq", "u_upper", "u_lower", "state_ineq", "x_upper", "x_lower")
@@ -104,6 +104,8 @@ class Constraints:
             knot_mask[0, self.ineq_blocks[name]] = 0.0
         #: ``(N, mi)``: 1 where a stage inequality row applies at knot k.
         self.ineq_knot_mask = knot_mask
+        #: the number of ones in it (the state rows do not apply at knot 0), known without reading the device
+        self.applied_ineq_rows = self.mi * problem.N - sum(counts[name] for name in STATE_BLOCKS)
         #: ``(mi,)``: the share of its constraint that a stage inequality row is, ½ for the two rows of a variable
         #: bounded on both sides (one constraint ``l ≤ v ≤ u``, as an NLP solver's row with its two bounds), else 1.
         self.ineq_share = torch.ones(self.mi, dtype=problem.dtype, device=problem.device)
@@ -183,7 +185,7 @@ class Constraints:
             parts.append(x[self.x_upper_idx.index] - prob.x_upper[self.x_upper_idx.index])
         if self.x_lower_idx:
             parts.append(prob.x_lower[self.x_lower_idx.index] - x[self.x_lower_idx.index])
-        return torch.cat(parts) if parts else x.new_zeros(0)
+        return concat(parts) if parts else x.new_zeros(0)
 
     def terminal_eq(self, x: Tensor, p) -> Tensor:
         return x.new_zeros(0) if self.problem.terminal_eq is None else self.problem.terminal_eq(x, p)

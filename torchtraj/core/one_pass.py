@@ -18,6 +18,10 @@ the separate passes to the last bit.
 
 :func:`problem_values` is the same point's values alone (a line search's trial points), in one ``vmap`` of the
 stages and one of the end points.
+
+Traced by ``torch.compile`` (:mod:`torchtraj.core.compiled`), the same derivatives come from pullbacks of the mapped
+Lagrangian, outside ``vmap`` (:func:`_pullback_expansion`), as in :mod:`torchtraj.core.derivatives`: ``jacrev``
+inside ``vmap`` would specialise the compiled kernel to the batch size. They agree with the eager ones to rounding.
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vjp, vmap
 
-from .batching import map_stage, map_state
+from .batching import concat, map_stage, map_state
 from .derivatives import _stacked_weights, _stage_points
 from .recorded import Recorded
 
@@ -71,7 +75,7 @@ def _gradient_and_rows_jacobian(fn: Callable, rows_through_hessian: bool) -> Cal
     def through_hessian(v):
         def first(v_):
             grad, (value, rows) = jacrev(fn, has_aux=True)(v_)
-            stacked = torch.cat([grad, *rows])
+            stacked = concat([grad, *rows])
             return stacked, (stacked, value)
 
         jac, (stacked, value) = jacrev(first, has_aux=True)(v)
@@ -81,7 +85,7 @@ def _gradient_and_rows_jacobian(fn: Callable, rows_through_hessian: bool) -> Cal
         def first(v_):
             def stacked(u):
                 L, (value, rows) = fn(u)
-                return torch.cat([L.reshape(1), *rows]), value
+                return concat([L.reshape(1), *rows]), value
 
             out, pullback, value = vjp(stacked, v_, has_aux=True)
             basis = torch.eye(out.shape[0], dtype=out.dtype, device=out.device)
@@ -93,9 +97,39 @@ def _gradient_and_rows_jacobian(fn: Callable, rows_through_hessian: bool) -> Cal
             return grad, (grad, out[1:], rows_jac, value)
 
         hessian, (grad, rows, rows_jac, value) = jacrev(first, has_aux=True)(v)
-        return value, torch.cat([grad, rows]), torch.cat([hessian, rows_jac])
+        return value, concat([grad, rows]), concat([hessian, rows_jac])
 
     return through_hessian if rows_through_hessian else own_pullbacks
+
+
+def _pullback_expansion(lagrangian_at: Callable, V: Tensor, n: int, params):
+    """What :func:`_gradient_and_rows_jacobian`'s ``own_pullbacks`` gives at every point of ``V (B, *E, n + w)``
+    (points ``v = V[..., :n]``, weights ``V[..., n:]``; ``lagrangian_at(vw, p)`` the point's Lagrangian of ``v``),
+    differentiating the mapped function instead: its points are independent, so the pullback of ``e_i`` on every
+    point's output is row ``i`` of every point's Jacobian, as in
+    :func:`~torchtraj.core.derivatives.stage_jacobian`'s compiled path. Traced by ``torch.compile``, ``jacrev``
+    inside ``vmap`` would specialise the kernel to the batch size (:mod:`~torchtraj.core.compiled`); these pullbacks
+    run outside it."""
+    W = V[..., n:]
+
+    def outputs(P: Tensor):  # (L, rows) and the cost at every point
+        def point(vw, p):
+            L, (value, rows) = lagrangian_at(vw, p)(vw[:n])
+            return concat([L.reshape(1), *rows]), value
+
+        return map_state(point, torch.cat([P, W], -1), params)
+
+    def first(P: Tensor):
+        out, pull, value = vjp(outputs, P, has_aux=True)
+        eye = torch.eye(out.shape[-1], dtype=out.dtype, device=out.device)
+        grad, *rows_jac = (pull(eye[i].expand_as(out))[0] for i in range(out.shape[-1]))
+        rows_jac = torch.stack(rows_jac, -2) if rows_jac else P.new_zeros(*P.shape[:-1], 0, n)
+        return grad, (grad, out[..., 1:], rows_jac, value)
+
+    _, pull, (grad, rows, rows_jac, value) = vjp(first, V[..., :n], has_aux=True)
+    eye = torch.eye(n, dtype=grad.dtype, device=grad.device)
+    hessian = torch.stack([pull(eye[i].expand_as(grad))[0] for i in range(n)], -2)
+    return value, torch.cat([grad, rows], -1), torch.cat([hessian, rows_jac], -2)
 
 
 def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:
@@ -122,7 +156,7 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
         stage_w, terminal_w = _stacked_weights(constraints, X, U, costate, nu, mu, nuN, muN)
         stage_in, terminal_in = torch.cat([Z, stage_w], -1), torch.cat([X[:, -1], terminal_w], -1)
 
-    def stage(zw, p):
+    def stage_lagrangian(zw, p):  # the point's Lagrangian as a function of z = (x, u), its weights fixed
         lam = v = m = None
         if costate is not None:
             w = zw[nz:]
@@ -136,9 +170,9 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
             out = _weighted(_weighted(_weighted(cost, lam, f), v, h), m, g)
             return out, (cost, (f, h, g))
 
-        return _gradient_and_rows_jacobian(lagrangian, costate is None)(zw[:nz])
+        return lagrangian
 
-    def terminal(xw, p):
+    def terminal_lagrangian(xw, p):
         v = m = None
         if costate is not None:
             v, m = xw[nx:nx + meN], xw[nx + meN:]
@@ -149,10 +183,18 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
             g = constraints.terminal_ineq(x, p) if miN else x.new_zeros(0)
             return _weighted(_weighted(cost, v, h), m, g), (cost, (h, g))
 
-        return _gradient_and_rows_jacobian(lagrangian, costate is None)(xw[:nx])
+        return lagrangian
 
-    l, rows, jac = map_state(stage, stage_in, params)
-    lN, rowsN, jacN = map_state(terminal, terminal_in, params)
+    if torch.compiler.is_compiling():
+        l, rows, jac = _pullback_expansion(stage_lagrangian, stage_in, nz, params)
+        lN, rowsN, jacN = _pullback_expansion(terminal_lagrangian, terminal_in, nx, params)
+    else:
+        by_hessian = costate is None
+        l, rows, jac = map_state(
+            lambda zw, p: _gradient_and_rows_jacobian(stage_lagrangian(zw, p), by_hessian)(zw[:nz]), stage_in, params)
+        lN, rowsN, jacN = map_state(
+            lambda xw, p: _gradient_and_rows_jacobian(terminal_lagrangian(xw, p), by_hessian)(xw[:nx]), terminal_in,
+            params)
     Lz, f, h, g = rows.split([nz, nx, me, mi], -1)
     Lzz, fz, Hz, Gz = jac.split([nz, nx, me, mi], -2)
     LNx, hN, gN = rowsN.split([nx, meN, miN], -1)

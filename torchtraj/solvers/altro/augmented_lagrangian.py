@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, map_state
+from ...core.batching import concat, map_stage, map_state
 from ...core.constraints import Constraints
 from ...core.derivatives import stage_jacobian, terminal_jacobian
 from ...core.one_pass import problem_kkt_expansion
@@ -134,7 +134,7 @@ class AugmentedLagrangian:
         self.is_ineq = torch.arange(c.mi + c.me, device=self.problem.device) < c.mi
         self.is_ineqN = torch.arange(c.miN + c.meN, device=self.problem.device) < c.miN
         #: number of inequality rows that apply (the mean multiplier of :meth:`complementarity`)
-        self.ineq_rows = int((self.knot_mask * self.is_ineq).sum()) + c.miN
+        self.ineq_rows = c.applied_ineq_rows + c.miN  # no host read: the constructor runs in compiled kernels
 
     def rows(self, index: Tensor) -> "AugmentedLagrangian":
         """``L_A`` of the instances ``index`` of the batch (their duals)."""
@@ -144,10 +144,10 @@ class AugmentedLagrangian:
 
     # the stacked per-instance constraint functions
     def stage_fn(self, x: Tensor, u: Tensor, p) -> Tensor:
-        return torch.cat([self.constraints.stage_ineq(x, u, p), self.constraints.stage_eq(x, u, p)])
+        return concat([self.constraints.stage_ineq(x, u, p), self.constraints.stage_eq(x, u, p)])
 
     def terminal_fn(self, x: Tensor, p) -> Tensor:
-        return torch.cat([self.constraints.terminal_ineq(x, p), self.constraints.terminal_eq(x, p)])
+        return concat([self.constraints.terminal_ineq(x, p), self.constraints.terminal_eq(x, p)])
 
     @property
     def m(self) -> int:

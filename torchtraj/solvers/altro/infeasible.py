@@ -19,7 +19,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, rollout
+from ...core.batching import concat, map_stage, rollout
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from .augmented_lagrangian import AugmentedLagrangian, Duals
@@ -39,7 +39,7 @@ def slack_problem(problem: Problem, slack_cost: float) -> Problem:
         return cost(x, u[:nu], p) + 0.5 * slack_cost * (s @ s)
 
     def stage_eq(x, u, p):
-        return u[nu:] if eq is None else torch.cat([eq(x, u[:nu], p), u[nu:]])
+        return u[nu:] if eq is None else concat([eq(x, u[:nu], p), u[nu:]])
 
     def stage_ineq(x, u, p):
         return ineq(x, u[:nu], p)
