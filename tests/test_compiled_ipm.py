@@ -107,3 +107,32 @@ def test_one_capture_of_each_kernel_serves_every_batch_size(monkeypatch):
     finally:
         torch._dynamo.reset()
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
+
+
+def test_compiled_solves_leave_finished_instances_behind(monkeypatch):
+    """With a dynamic batch dimension the compiled kernels iterate the running instances alone
+    (``IPOptions.compact_below``), down to two of them, with the eager answers."""
+    original = torch.compile
+
+    def captured(fn, **kwargs):
+        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
+
+    sizes = []
+    mark = compiled.mark_batch
+
+    def seen(*args):
+        sizes.append(int(args[0][0].X.shape[0]) if args[0] and hasattr(args[0][0], "X") else None)
+        return mark(*args)
+
+    monkeypatch.setattr(torch, "compile", captured)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    monkeypatch.setattr(compiled, "mark_batch", seen)
+    x0 = tt.problems.sample_x0("pendulum", 8, seed=1)
+    torch._dynamo.reset()
+    try:
+        solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
+    finally:
+        torch._dynamo.reset()
+    batches = {s for s in sizes if s is not None}
+    assert max(batches) == 8 and 2 <= min(batches) < 8, batches  # never one: B = 1 has graphs of its own
+    assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)

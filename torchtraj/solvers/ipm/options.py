@@ -72,8 +72,9 @@ class IPOptions:
     #: and adjoint solve from CUDA graphs (:mod:`torchtraj.core.graphs`); no effect on a CPU or with ``compile``.
     cuda_graphs: bool = False
     #: Once the running instances are at most this share of the batch being iterated, the next iterations run
-    #: on them alone (:mod:`torchtraj.solvers.ipm.compaction`); ``0`` never. Off with ``compile`` and CUDA graphs,
-    #: whose kernels are specialised to the batch size.
+    #: on them alone (:mod:`torchtraj.solvers.ipm.compaction`); ``0`` never. Off with CUDA graphs, whose kernels
+    #: are specialised to the batch size; with ``compile``, down to two instances (the kernels' batch dimension is
+    #: dynamic from two on).
     compact_below: float = 0.75
     #: ``"monotone"``: the Fiacco-McCormick update with the filter line search (IPOPT's and FATROP's default).
     #: ``"mehrotra"``: Mehrotra's predictor-corrector (IPOPT's ``mehrotra_algorithm``: the probing barrier parameter,

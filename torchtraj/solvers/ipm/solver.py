@@ -170,7 +170,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     records = []  # the history's rows (compaction.full_history)
     theta_max = theta_min = None
     base = None
-    compacting = opts.compact_below > 0 and not opts.compile and not uses_graphs(opts, x0.device)
+    compacting = opts.compact_below > 0 and not uses_graphs(opts, x0.device)
+    # compiled kernels take any batch of two or more (a dynamic dimension) but have graphs of their own for one
+    fewest = 2 if opts.compile else 1
     crossing = opts.crossover and problem.linear_quadratic and cons.mi + cons.miN > 0
     # from the unconstrained optimum only where every row is a control bound: with state rows the active-set
     # updates can go round in circles (the oscillator of the tests: eight sets without settling)
@@ -212,7 +214,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         count = int(running.sum())
         if step == opts.iterations or count == 0:
             break
-        if compacting and count <= opts.compact_below * running.shape[0]:
+        if compacting and fewest <= count <= opts.compact_below * running.shape[0]:
             # the finished instances' results are final: iterate on the running ones alone
             now = Final.of(it, model, status, iterations, formed(K))
             final = gather_rows(now, torch.arange(running.shape[0], device=x0.device)) if final is None \
@@ -228,6 +230,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 tiny_steps = (v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0,
                                                 error, running, ceiling, budget, tiny_steps))
             params = param_rows(params, keep)
+            if opts.compile:  # laid out as every expansion is: a gathered model would need graphs of its own
+                model = expand_k(problem, cons, params, it, opts, base)
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
         else:
