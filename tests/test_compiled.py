@@ -137,6 +137,42 @@ def test_one_capture_of_each_altro_kernel_serves_every_batch_size(monkeypatch):
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
 
 
+def test_compiled_altro_iterates_the_running_instances_alone(monkeypatch):
+    """Compiled iLQR iterations leave the finished instances behind (``ILQROptions.compact_below``) down to two
+    instances, with no graph for the smaller batches and the eager answers (Dynamo's capture alone)."""
+    from torch._dynamo.utils import counters
+
+    from torchtraj.core import compiled
+    from torchtraj.iterations import ilqr
+
+    original, on_rows, sizes = torch.compile, ilqr._on_rows, []
+
+    def captured(fn, **kwargs):
+        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
+
+    def counted(iteration, rows, *args):
+        sizes.append(rows.numel())
+        return on_rows(iteration, rows, *args)
+
+    monkeypatch.setattr(torch, "compile", captured)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    monkeypatch.setattr(ilqr, "_on_rows", counted)
+    problem = tt.problems.get("pendulum").replace(horizon=12)
+    opts = tt.ALTROOptions(iterations_outer=4)
+    x0 = tt.problems.sample_x0("pendulum", 8, seed=1)
+    torch._dynamo.reset()
+    try:
+        solution = tt.solve(problem, x0, "altro", options=dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True)))
+        graphs_at_8 = counters["stats"]["unique_graphs"]
+        tt.solve(problem, x0[:6], "altro", options=dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True)))
+        graphs_at_6 = counters["stats"]["unique_graphs"] - graphs_at_8
+    finally:
+        torch._dynamo.reset()
+    assert sizes and min(sizes) >= 2 and max(sizes) < 8, sizes
+    assert graphs_at_6 == 0
+    assert_same_solution(solution, tt.solve(problem, x0, "altro", options=opts))
+
+
 def test_applied_inequality_rows_are_the_knot_masks_ones():
     for name in tt.problems.names():
         constraints = Constraints(tt.problems.get(name))

@@ -94,8 +94,8 @@ class ILQROptions:
     line_search_parallel: int = 0
     #: Once the running instances are at most this share of the batch, an iteration runs on their rows alone
     #: (gathered with their parameters and multipliers; the others are returned unchanged as always): the answers are
-    #: the same, bit for bit, and the finished instances stop costing arithmetic. ``0``: never; off with ``compile``
-    #: (its kernels are specialised to the batch size).
+    #: the same, bit for bit, and the finished instances stop costing arithmetic. ``0``: never; with ``compile``, on
+    #: two running instances or more (the kernels' batch dimension is dynamic from two on).
     compact_below: float = 0.75
     #: Divergence limits on the cost and on |x| (``max_cost_value``, ``max_state_value``).
     max_cost: float = 1e8
@@ -257,9 +257,10 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
     cost_tolerance = opts.cost_tolerance if cost_tolerance is None else cost_tolerance
     iteration = kernel(_iteration, opts.compile)
     backward = backward or riccati_backward(opts.sweep)
-    if opts.compact_below > 0 and not opts.compile and active.shape[0] > 1:
+    if opts.compact_below > 0 and active.shape[0] > 1:
         rows = active.nonzero().squeeze(-1)  # the iteration's host synchronisation
-        if 0 < rows.numel() <= opts.compact_below * active.shape[0]:
+        # compiled kernels take any batch of two or more (a dynamic dimension) but have graphs of their own for one
+        if (2 if opts.compile else 1) <= rows.numel() <= opts.compact_below * active.shape[0]:
             return _on_rows(iteration, rows, problem, objective, params, x0, X, U, J, rho, drho, active, opts,
                             backward, cost_tolerance)
     return iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts, backward, cost_tolerance)
