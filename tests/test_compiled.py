@@ -173,6 +173,36 @@ def test_compiled_altro_iterates_the_running_instances_alone(monkeypatch):
     assert_same_solution(solution, tt.solve(problem, x0, "altro", options=opts))
 
 
+def test_concat_joins_per_instance_rows_as_cat_does_and_keeps_the_batch_dynamic():
+    """``batching.concat`` traced (zero pads and a sum) gives ``torch.cat``'s rows, vectors and matrices alike,
+    skips empty parts, and a vmapped function using it is captured once for batches of 2 and 3; with ``torch.cat``
+    the capture is specialised to each batch size."""
+    from torch._dynamo.utils import counters
+    from torch.func import vmap
+
+    from torchtraj.core.batching import concat
+
+    def rows(join):
+        def per_instance(x):
+            matrix = torch.outer(x[:2], x)
+            return join([x[:2].sin(), x.new_zeros(0), x * 2.0]), join([matrix, -matrix[:1]])
+        return lambda X: vmap(per_instance)(X)
+
+    graphs = {}
+    for join in (concat, torch.cat):
+        torch._dynamo.reset()
+        counters.clear()
+        fn = torch.compile(rows(join), backend="eager", dynamic=False)
+        for B in (2, 3):
+            X = torch.randn(B, 3, dtype=torch.float64)
+            torch._dynamo.maybe_mark_dynamic(X, 0)
+            for got, expected in zip(fn(X), rows(torch.cat)(X)):
+                torch.testing.assert_close(got, expected, atol=0, rtol=0)
+        graphs[join] = counters["stats"]["unique_graphs"]
+    torch._dynamo.reset()
+    assert graphs[concat] == 1 and graphs[torch.cat] == 2, graphs
+
+
 def test_applied_inequality_rows_are_the_knot_masks_ones():
     for name in tt.problems.names():
         constraints = Constraints(tt.problems.get(name))
