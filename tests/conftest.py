@@ -18,3 +18,25 @@ def reference() -> dict:
     for IPOPT), plus ``reference["pendulum_batch_seed0_ipopt"]`` (costs, iterations of 64 instances)."""
     with open(DATA / "reference.json") as f:
         return json.load(f)
+
+
+@pytest.fixture
+def dynamo_capture(monkeypatch):
+    """``torch.compile`` as Dynamo's capture alone (its ``"eager"`` backend: the graphs run as captured, in seconds,
+    no inductor), with no compiled kernel or graph left from an earlier test. Yields Dynamo's counters, cleared."""
+    import torch
+    from torch._dynamo.utils import counters
+
+    from torchtraj.core import compiled
+
+    original = torch.compile
+
+    def captured(fn, **kwargs):
+        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
+
+    monkeypatch.setattr(torch, "compile", captured)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    torch._dynamo.reset()
+    counters.clear()
+    yield counters
+    torch._dynamo.reset()

@@ -3,8 +3,9 @@
 Default run: the MPC policy's warm-started ALTRO steps on a short horizon, and a float32 ALTRO solve with a failing
 instance. ``-m slow``: ALTRO to convergence with its projection. Each first call compiles its kernels (about a minute
 on two cores), so the problems are short. The batch dimension is compiled dynamic: a second batch size compiles
-nothing new for iLQR (``test_one_compilation_serves_every_batch_size``), and ``mark_batch`` marks the batch's tensors
-alone.
+nothing new for iLQR (``test_one_compilation_serves_every_batch_size``, inductor) nor for ALTRO (Dynamo's capture
+alone, the ``dynamo_capture`` fixture: seconds), compiled iterations run on the running instances' rows, and
+``mark_batch`` marks the batch's tensors alone.
 """
 
 import dataclasses
@@ -102,74 +103,45 @@ def test_mark_batch_marks_the_batch_dimension_alone():
     assert not any(_marked(t) for t in (problem.u_lower, problem.u_upper, constraints.ineq_knot_mask))
 
 
-def test_one_capture_of_each_altro_kernel_serves_every_batch_size(monkeypatch):
+def test_one_capture_of_each_altro_kernel_serves_every_batch_size(dynamo_capture):
     """ALTRO's kernels (the AL objective and violation, the iLQR iteration, the multiplier update) take the batch as
-    a symbol: a batch of 3 after one of 2 captures no graph, and none breaks (Dynamo's capture alone, its "eager"
-    backend), with the eager answers."""
-    from torch._dynamo.utils import counters
-
-    from torchtraj.core import compiled
-
-    original = torch.compile
-
-    def captured(fn, **kwargs):
-        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
-
-    monkeypatch.setattr(torch, "compile", captured)
-    monkeypatch.setattr(compiled, "_KERNELS", {})
+    a symbol: a batch of 3 after one of 2 captures no graph, and none breaks (Dynamo's capture alone), with the eager
+    answers."""
     problem = tt.problems.get("pendulum").replace(horizon=12)
     opts = tt.ALTROOptions(iterations_outer=3)
     compiled_opts = dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True))
-    torch._dynamo.reset()
-    counters.clear()
     graphs = {}
-    try:
-        for B in (2, 3):
-            x0 = tt.problems.sample_x0("pendulum", B, seed=B)
-            before = counters["stats"]["unique_graphs"]
-            solution = tt.solve(problem, x0, "altro", options=compiled_opts)
-            graphs[B] = counters["stats"]["unique_graphs"] - before
-            assert_same_solution(solution, tt.solve(problem, x0, "altro", options=opts))
-        breaks = dict(counters["graph_break"])
-    finally:
-        torch._dynamo.reset()
-    assert not breaks, breaks
+    for B in (2, 3):
+        x0 = tt.problems.sample_x0("pendulum", B, seed=B)
+        before = dynamo_capture["stats"]["unique_graphs"]
+        solution = tt.solve(problem, x0, "altro", options=compiled_opts)
+        graphs[B] = dynamo_capture["stats"]["unique_graphs"] - before
+        assert_same_solution(solution, tt.solve(problem, x0, "altro", options=opts))
+    assert not dynamo_capture["graph_break"], dict(dynamo_capture["graph_break"])
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
 
 
-def test_compiled_altro_iterates_the_running_instances_alone(monkeypatch):
+def test_compiled_altro_iterates_the_running_instances_alone(monkeypatch, dynamo_capture):
     """Compiled iLQR iterations leave the finished instances behind (``ILQROptions.compact_below``) down to two
     instances, with no graph for the smaller batches and the eager answers (Dynamo's capture alone)."""
-    from torch._dynamo.utils import counters
-
-    from torchtraj.core import compiled
     from torchtraj.iterations import ilqr
 
-    original, on_rows, sizes = torch.compile, ilqr._on_rows, []
-
-    def captured(fn, **kwargs):
-        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
+    on_rows, sizes = ilqr._on_rows, []
 
     def counted(iteration, rows, *args):
         sizes.append(rows.numel())
         return on_rows(iteration, rows, *args)
 
-    monkeypatch.setattr(torch, "compile", captured)
-    monkeypatch.setattr(compiled, "_KERNELS", {})
     monkeypatch.setattr(ilqr, "_on_rows", counted)
     problem = tt.problems.get("pendulum").replace(horizon=12)
     opts = tt.ALTROOptions(iterations_outer=4)
+    compiled_opts = dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True))
     x0 = tt.problems.sample_x0("pendulum", 8, seed=1)
-    torch._dynamo.reset()
-    try:
-        solution = tt.solve(problem, x0, "altro", options=dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True)))
-        graphs_at_8 = counters["stats"]["unique_graphs"]
-        tt.solve(problem, x0[:6], "altro", options=dataclasses.replace(opts, ilqr=tt.ILQROptions(compile=True)))
-        graphs_at_6 = counters["stats"]["unique_graphs"] - graphs_at_8
-    finally:
-        torch._dynamo.reset()
+    solution = tt.solve(problem, x0, "altro", options=compiled_opts)
+    graphs_at_8 = dynamo_capture["stats"]["unique_graphs"]
+    tt.solve(problem, x0[:6], "altro", options=compiled_opts)
+    assert dynamo_capture["stats"]["unique_graphs"] == graphs_at_8
     assert sizes and min(sizes) >= 2 and max(sizes) < 8, sizes
-    assert graphs_at_6 == 0
     assert_same_solution(solution, tt.solve(problem, x0, "altro", options=opts))
 
 

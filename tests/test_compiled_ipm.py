@@ -10,7 +10,6 @@ import shutil
 
 import pytest
 import torch
-from torch._dynamo.utils import counters
 
 import torchtraj as tt
 from torchtraj.core import compiled
@@ -30,12 +29,7 @@ def assert_same_solution(a: tt.Solution, b: tt.Solution, tol: float):
         torch.testing.assert_close(x, y, atol=tol, rtol=0)
 
 
-def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(monkeypatch):
-    original = torch.compile
-
-    def captured(fn, **kwargs):  # Dynamo's graphs, run as captured (no inductor)
-        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
-
+def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(monkeypatch, dynamo_capture):
     corrections = []
     correct = ipm_solver.second_order_correction
 
@@ -51,17 +45,11 @@ def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(mon
         return factorize_step(*args)
 
     monkeypatch.setattr(soc, "factorize_step", eager_factorization)
-    monkeypatch.setattr(torch, "compile", captured)
-    monkeypatch.setattr(compiled, "_KERNELS", {})
     monkeypatch.setattr(ipm_solver, "second_order_correction", counted)
     x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
-    torch._dynamo.reset()
-    counters.clear()
-    try:
-        solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
-        frames, breaks, kernels = counters["frames"]["total"], dict(counters["graph_break"]), len(compiled._KERNELS)
-    finally:
-        torch._dynamo.reset()
+    solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
+    frames, kernels = dynamo_capture["frames"]["total"], len(compiled._KERNELS)
+    breaks = dict(dynamo_capture["graph_break"])
     assert sum(corrections) > 0, "the solve should take second-order corrections"
     assert not breaks, breaks
     assert not eager_factorizations, "the corrections' steps should be made in the compiled kernels"
@@ -81,42 +69,25 @@ def test_compiled_interior_point_matches_eager():
     assert_same_solution(compiled_solution, eager, tol=1e-7)
 
 
-def test_one_capture_of_each_kernel_serves_every_batch_size(monkeypatch):
+def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
     """The batch dimension is dynamic in every kernel of the interior point: a batch of 3 after one of 2 captures no
     graph (the constraint rows and the expansion's derivatives are written so that ``vmap`` reads no concrete batch
     size, :func:`torchtraj.core.batching.concat` and :mod:`torchtraj.core.one_pass`), with the eager answers."""
-    original = torch.compile
-
-    def captured(fn, **kwargs):
-        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
-
-    monkeypatch.setattr(torch, "compile", captured)
-    monkeypatch.setattr(compiled, "_KERNELS", {})
-    torch._dynamo.reset()
-    counters.clear()
     graphs = {}
-    try:
-        for B in (2, 3):
-            x0 = tt.problems.sample_x0("pendulum", B, seed=B)
-            before = counters["stats"]["unique_graphs"]
-            solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
-            graphs[B] = counters["stats"]["unique_graphs"] - before
-            # traced, the expansion's derivatives are pullbacks of the mapped functions, not jacrev inside vmap: the
-            # same derivatives, rounded otherwise (the states agree to 2e-9 where the tolerance is 1e-8)
-            assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
-    finally:
-        torch._dynamo.reset()
+    for B in (2, 3):
+        x0 = tt.problems.sample_x0("pendulum", B, seed=B)
+        before = dynamo_capture["stats"]["unique_graphs"]
+        solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
+        graphs[B] = dynamo_capture["stats"]["unique_graphs"] - before
+        # traced, the expansion's derivatives are pullbacks of the mapped functions, not jacrev inside vmap: the
+        # same derivatives, rounded otherwise (the states agree to 2e-9 where the tolerance is 1e-8)
+        assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
 
 
-def test_compiled_solves_leave_finished_instances_behind(monkeypatch):
+def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_capture):
     """With a dynamic batch dimension the compiled kernels iterate the running instances alone
     (``IPOptions.compact_below``), down to two of them, with the eager answers."""
-    original = torch.compile
-
-    def captured(fn, **kwargs):
-        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
-
     sizes = []
     mark = compiled.mark_batch
 
@@ -124,15 +95,9 @@ def test_compiled_solves_leave_finished_instances_behind(monkeypatch):
         sizes.append(int(args[0][0].X.shape[0]) if args[0] and hasattr(args[0][0], "X") else None)
         return mark(*args)
 
-    monkeypatch.setattr(torch, "compile", captured)
-    monkeypatch.setattr(compiled, "_KERNELS", {})
     monkeypatch.setattr(compiled, "mark_batch", seen)
     x0 = tt.problems.sample_x0("pendulum", 8, seed=1)
-    torch._dynamo.reset()
-    try:
-        solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
-    finally:
-        torch._dynamo.reset()
+    solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
     batches = {s for s in sizes if s is not None}
     assert max(batches) == 8 and 2 <= min(batches) < 8, batches  # never one: B = 1 has graphs of its own
     assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
