@@ -60,6 +60,10 @@ from .problem import Problem
 #: Contractions up to this length are written as broadcast products and sums when traced (:func:`matmul`).
 FUSED_CONTRACTION = 8
 
+#: The smallest batch a kernel's dynamic batch dimension serves: Dynamo specialises sizes 0 and 1 whatever the mark,
+#: so a batch of one has graphs of its own (and a compiled solve does not compact its batch below this).
+DYNAMIC_FROM = 2
+
 #: Specialisations kept per kernel (Dynamo's default of 8 is reached by three MPC tasks in one process).
 RECOMPILE_LIMIT = 64
 
@@ -113,7 +117,7 @@ def mark_batch(*args) -> None:
     for t in tensors:
         counts[t.shape[0]] = counts.get(t.shape[0], 0) + 1
     batch = max(counts, key=counts.__getitem__)
-    if batch < 2:  # Dynamo specialises sizes 0 and 1 whatever the mark
+    if batch < DYNAMIC_FROM:
         return
     for t in tensors:
         if t.shape[0] == batch:

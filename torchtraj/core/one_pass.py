@@ -35,7 +35,7 @@ from torch import Tensor
 from torch.func import jacrev, vjp, vmap
 
 from .batching import concat, map_stage, map_state
-from .derivatives import _stacked_weights, _stage_points
+from .derivatives import _rows, _stacked_weights, _stage_points
 from .recorded import Recorded
 
 
@@ -127,9 +127,7 @@ def _pullback_expansion(lagrangian_at: Callable, V: Tensor, n: int, params):
         return grad, (grad, out[..., 1:], rows_jac, value)
 
     _, pull, (grad, rows, rows_jac, value) = vjp(first, V[..., :n], has_aux=True)
-    eye = torch.eye(n, dtype=grad.dtype, device=grad.device)
-    hessian = torch.stack([pull(eye[i].expand_as(grad))[0] for i in range(n)], -2)
-    return value, torch.cat([grad, rows], -1), torch.cat([hessian, rows_jac], -2)
+    return value, torch.cat([grad, rows], -1), torch.cat([_rows(pull, grad), rows_jac], -2)
 
 
 def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:

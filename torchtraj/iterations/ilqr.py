@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from ..core.batching import closed_loop_rollout, param_rows
-from ..core.compiled import kernel
+from ..core.compiled import DYNAMIC_FROM, kernel
 from ..core.masks import where_rows
 from ..core.problem import Problem
 from ..core.status import Status
@@ -259,8 +259,8 @@ def ilqr_step(problem, objective, params, x0, X, U, J, rho, drho, active, opts: 
     backward = backward or riccati_backward(opts.sweep)
     if opts.compact_below > 0 and active.shape[0] > 1:
         rows = active.nonzero().squeeze(-1)  # the iteration's host synchronisation
-        # compiled kernels take any batch of two or more (a dynamic dimension) but have graphs of their own for one
-        if (2 if opts.compile else 1) <= rows.numel() <= opts.compact_below * active.shape[0]:
+        fewest = DYNAMIC_FROM if opts.compile else 1  # compiled kernels have graphs of their own for one instance
+        if fewest <= rows.numel() <= opts.compact_below * active.shape[0]:
             return _on_rows(iteration, rows, problem, objective, params, x0, X, U, J, rho, drho, active, opts,
                             backward, cost_tolerance)
     return iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts, backward, cost_tolerance)

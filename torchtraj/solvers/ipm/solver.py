@@ -55,7 +55,7 @@ import torch
 
 from ...core.batch import Batch
 from ...core.batching import param_rows, rollout
-from ...core.compiled import kernel
+from ...core.compiled import DYNAMIC_FROM, kernel
 from ...core.constraints import Constraints, multiplier_blocks
 from ...core.masks import where_rows
 from ...core.problem import Problem
@@ -171,8 +171,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     theta_max = theta_min = None
     base = None
     compacting = opts.compact_below > 0 and not uses_graphs(opts, x0.device)
-    # compiled kernels take any batch of two or more (a dynamic dimension) but have graphs of their own for one
-    fewest = 2 if opts.compile else 1
+    fewest = DYNAMIC_FROM if opts.compile else 1  # compiled kernels have graphs of their own for one instance
     crossing = opts.crossover and problem.linear_quadratic and cons.mi + cons.miN > 0
     # from the unconstrained optimum only where every row is a control bound: with state rows the active-set
     # updates can go round in circles (the oscillator of the tests: eight sets without settling)
