@@ -7,7 +7,7 @@ import torch
 from test_riccati import dense_kkt, random_lqr
 
 from torchtraj.riccati import factorize
-from torchtraj.riccati.range_space import RangeSpaceFactor
+from torchtraj.riccati.range_space import RangeSpaceFactor, feedforward_of
 
 
 @pytest.mark.parametrize("sweep", ["sequential", "parallel"])
@@ -154,3 +154,35 @@ def test_gains_kept_unformed_are_the_factors_gains_row_by_row():
 @dataclasses.dataclass
 class _Holder:
     gains: object
+
+
+def test_empty_stage_rows_take_the_range_space_method_and_the_feedforward_goes_with_the_constrained_gains():
+    """Stage rows with no row (``C (B, N, 0, nx)``, how HM-iLQR's model carries them beside a goal) are no stage
+    rows: the range-space method takes the LQR and solves it as without them. Its ``k`` goes with the unconstrained
+    gains; :func:`feedforward_of` is the one of the constrained gains ``K``, the back-propagation's ``k``, so that a
+    closed-loop rollout ``δu = k + K δx`` of the linear model retraces the step."""
+    lqr, rhs = random_lqr(B=3, N=7, nx=3, nu=2, mN=2, seed=13)
+    B, N, nx, nu = 3, 7, 3, 2
+    empty = dataclasses.replace(lqr, C=lqr.A.new_zeros(B, N, 0, nx), D=lqr.A.new_zeros(B, N, 0, nu),
+                                mask=lqr.A.new_zeros(B, N, 0))
+    rhs_empty = dataclasses.replace(rhs, e=lqr.A.new_zeros(B, N, 0))
+    factor = factorize(empty, terminal_rows="range-space")
+    assert isinstance(factor, RangeSpaceFactor) and bool(factor.ok.all())
+    alone = factorize(lqr, terminal_rows="range-space")
+    got, want = factor.solve(rhs_empty, multipliers=True), alone.solve(rhs, multipliers=True)
+    for name in ("dx", "du", "k", "costate", "nuN"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+    reference = factorize(empty)  # the back-propagation
+    assert not isinstance(reference, RangeSpaceFactor)
+    step = reference.solve(rhs_empty, multipliers=True)
+    k = feedforward_of(factor, got)
+    torch.testing.assert_close(k, step.k, rtol=1e-8, atol=1e-9)
+    assert torch.equal(feedforward_of(reference, step), step.k)
+    torch.testing.assert_close(factor.K, reference.K, rtol=1e-8, atol=1e-9)
+    assert not torch.allclose(got.k, step.k, rtol=1e-6, atol=1e-6)  # the unconstrained gains' feedforward
+    # the closed-loop recursion of the linear model from the step's δx_0 with (k, K) gives the step
+    dx = got.dx[:, 0]
+    for t in range(N):
+        du = k[:, t] + (factor.K[:, t] @ dx.unsqueeze(-1)).squeeze(-1)
+        torch.testing.assert_close(du, got.du[:, t], rtol=1e-8, atol=1e-9)
+        dx = (lqr.A[:, t] @ dx.unsqueeze(-1) + lqr.B[:, t] @ du.unsqueeze(-1)).squeeze(-1) + rhs.c[:, t]

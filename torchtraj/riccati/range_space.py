@@ -71,8 +71,14 @@ PENALTY = 10.0
 
 
 def applies(lqr: LQR, regularization: Optional[Tensor]) -> bool:
-    """Whether the range-space method takes ``lqr``'s rows: terminal rows only, no declared bounds, no ``ρ``."""
-    return lqr.CN is not None and lqr.C is None and lqr.bounds is None and regularization is None
+    """Whether the range-space method takes ``lqr``'s rows: terminal rows only (stage rows absent or none, ``C``
+    of zero rows), no declared bounds, no ``ρ``."""
+    return (lqr.CN is not None and not _has_stage_rows(lqr) and lqr.bounds is None
+            and regularization is None)
+
+
+def _has_stage_rows(lqr: LQR) -> bool:
+    return lqr.C is not None and lqr.C.shape[-2] > 0
 
 
 @dataclass
@@ -117,6 +123,15 @@ class TerminalGains:
 def gains_of(factor) -> "Tensor | TerminalGains":
     """The feedback gains of a factorisation, those of a :class:`RangeSpaceFactor` not yet formed."""
     return factor.gains if isinstance(factor, RangeSpaceFactor) else factor.K
+
+
+def feedforward_of(factor, sol: LQRSolution) -> Tensor:
+    """The feedforward ``k (B, N, nu)`` that goes with ``factor.K``, ``δu_k = k_k + K_k δx_k`` along the step
+    ``sol`` (a closed-loop rollout's): ``sol.k`` itself, but for a :class:`RangeSpaceFactor`, whose ``sol.k`` goes
+    with the unconstrained gains (``inner.K``), ``δu − K δx`` with the constrained gains ``K``."""
+    if not isinstance(factor, RangeSpaceFactor):
+        return sol.k
+    return sol.du - (factor.K @ sol.dx[:, :-1].unsqueeze(-1)).squeeze(-1)
 
 
 def formed(gains) -> Tensor:
@@ -171,7 +186,9 @@ class RangeSpaceFactor:
               initial_multiplier: Optional[Tensor] = None) -> LQRSolution:
         """Solve for ``rhs``: the unconstrained solution, the multipliers ``ν = −Σ⁺ r`` of the terminal rows and
         the homogeneous columns times ``ν`` (module docstring). The step is computed whatever ``forward`` (``ν``
-        needs ``δx_N``); no rows are left at the fixed initial state, so ``initial_multiplier`` does not apply."""
+        needs ``δx_N``); no rows are left at the fixed initial state, so ``initial_multiplier`` does not apply.
+        The feedforward ``k`` is the unconstrained gains' (``δu = k + inner.K δx``); that of the constrained gains
+        ``K`` is :func:`feedforward_of`'s."""
         lqr = self.lqr
         base = self.inner.solve(dataclasses.replace(rhs, e=None, eN=None), multipliers=multipliers)
         residual = (_active_rows(lqr) @ base.dx[:, -1].unsqueeze(-1)).squeeze(-1)
@@ -305,17 +322,18 @@ def _active_rows(lqr: LQR) -> Tensor:
 
 def penalised(lqr: LQR, tol: float) -> tuple:
     """The unconstrained problem that :func:`factorize_range_space` factorises: ``lqr`` without its terminal rows
-    and with the penalty ``Q_N + ρ Π`` (module docstring), ``ρ (B,)`` ``PENALTY`` times the Hessian's largest
-    entry (at least 1) and ``Π = C⁺ C`` the projector onto the rows' span, ``C⁺`` their pseudo-inverse at the rank
-    tolerance (zero for an instance whose rows are not finite: its ``Σ`` fails); and the multipliers' correction
-    ``ρ C⁺ᵀ (B, mN, nx)``."""
+    (and its stage rows, of which there are none) and with the penalty ``Q_N + ρ Π`` (module docstring), ``ρ (B,)``
+    ``PENALTY`` times the Hessian's largest entry (at least 1) and ``Π = C⁺ C`` the projector onto the rows' span,
+    ``C⁺`` their pseudo-inverse at the rank tolerance (zero for an instance whose rows are not finite: its ``Σ``
+    fails); and the multipliers' correction ``ρ C⁺ᵀ (B, mN, nx)``."""
     C = _active_rows(lqr)
     H = torch.cat([lqr.Q.flatten(1), lqr.R.flatten(1), lqr.S.flatten(1), lqr.QN.flatten(1)], -1)
     rho = (PENALTY * H.abs().amax(-1).clamp_min(1.0)).reshape(-1, 1, 1)
     finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
     pinv = torch.linalg.pinv(torch.where(finite, C, 0.0), rtol=tol)
     projector = pinv @ C.nan_to_num()
-    return dataclasses.replace(lqr, CN=None, maskN=None, QN=lqr.QN + rho * projector), rho * _mT(pinv)
+    return (dataclasses.replace(lqr, C=None, D=None, mask=None, CN=None, maskN=None, QN=lqr.QN + rho * projector),
+            rho * _mT(pinv))
 
 
 def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, tol: float) -> RangeSpaceFactor:

@@ -58,6 +58,7 @@ from ...core.batching import map_stage, param_rows, rows_of
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
 from ...riccati import factorize
+from ...riccati.range_space import feedforward_of
 from .multipliers import stepped_multipliers, with_multipliers
 from .objective import HybridObjective
 from .shooting import expected_change, merit_weight, model_change, rollout_segments, stationarity
@@ -100,7 +101,14 @@ def regularized(lqr, mu_V: Tensor):
                                W=None, H=None)
 
 
-def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts: tuple = ()) -> tuple:
+def factorized(lqr, mu_V: Tensor, terminal_rows: str):
+    """The backward pass of :func:`regularized` ``(lqr, mu_V)``, its terminal rows held as ``terminal_rows`` says
+    (:attr:`~torchtraj.solvers.hm_ilqr.options.HMILQROptions.terminal_rows`)."""
+    return factorize(regularized(lqr, mu_V), terminal_rows=terminal_rows)
+
+
+def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, terminal_rows: str,
+                   shifts: tuple = ()) -> tuple:
     """``lqr`` with the stage Hessians' ``curvature (B, N, nz, nz)`` added where ``curved (B,)``: as it is where the
     backward pass at ``mu_V (B,)`` succeeds with it; elsewhere with the stage Hessians shifted by ``δ I``, the
     smallest ``δ = s δ*`` for ``s`` in ``shifts`` (increasing) with which it succeeds, ``δ*`` the largest negative
@@ -113,7 +121,7 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts:
     full = dataclasses.replace(lqr, Q=lqr.Q + curvature[..., :nx, :nx], R=lqr.R + curvature[..., nx:, nx:],
                                S=lqr.S + curvature[..., nx:, :nx])
     tried = _taking(lqr, full, curved)
-    factor = factorize(regularized(tried, mu_V))
+    factor = factorized(tried, mu_V, terminal_rows)
     use = curved & factor.ok
     if not bool((curved & ~use).any()):  # a host synchronisation; every curved instance took its curvature
         return tried, use, factor
@@ -126,7 +134,7 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, shifts:
                 break
             candidate = torch.where(pending, s * worst.clamp_min(0), shift)
             tried = _taking(lqr, shifted(full, candidate), use | pending)
-            factor = factorize(regularized(tried, mu_V))
+            factor = factorized(tried, mu_V, terminal_rows)
             ok = pending & factor.ok
             shift = torch.where(ok, candidate, shift)
             use = use | ok
@@ -178,7 +186,7 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
             break
         index = None if r == 0 else _pending_rows(pending)
         if index is None:  # the whole batch
-            factor = factor if r == 0 and factor is not None else factorize(regularized(lqr, mu_V))
+            factor = factor if r == 0 and factor is not None else factorized(lqr, mu_V, opts.terminal_rows)
             sol = factor.solve(rhs, multipliers=r == 0)
             if r == 0:  # the KKT residual at the start point, with the multipliers of the first (least regularised)
                 # step
@@ -188,7 +196,7 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
             out = _search_round(whole, factor, sol, pending, accepted, steps, per_round, opts)
         else:  # the pending instances alone, written into a round of the whole batch (the others not searched)
             sub = whole.rows(index)
-            sub_factor = factorize(regularized(sub.lqr, mu_V[index]))
+            sub_factor = factorized(sub.lqr, mu_V[index], opts.terminal_rows)
             sub_accepted = Accepted(found=accepted.found[index], alpha=accepted.alpha[index],
                                     values=tuple(v[index] for v in accepted.values))
             out = _search_round(sub, sub_factor, sub_factor.solve(sub.rhs), torch.ones_like(index, dtype=torch.bool),
@@ -293,7 +301,7 @@ def _search_round(at: _Instances, factor, sol, pending: Tensor, accepted: Accept
         a = alphas.reshape(1, -1, 1, 1)
         nodes = X[:, starts].unsqueeze(1) + a * sol.dx[:, starts].unsqueeze(1)
         nodes[:, :, 0] = X[:, 0].unsqueeze(1)
-        ff = a * sol.k.unsqueeze(1)
+        ff = a * feedforward_of(factor, sol).unsqueeze(1)
         Xc, Uc, Dc = rollout_segments(at.problem.dynamics, params, nodes, U, segments, X, factor.K, ff)
         Dc = Dc + objective.equality_residual(Xc, Uc, params)
         Jc = objective.value(Xc, Uc, params)

@@ -157,6 +157,14 @@ class HMILQROptions:
     #: second-order defects: on ``sample_x0("cartpole", 64, 0)`` starts 18, 19, 36 it reached 3.1e8, 1.5e11 and
     #: 1.6e6 (costates of at most 6) and CRLS then took ``μ_V`` of 0.1 to 1 for hundreds of iterations.
     monotone_defect_weight: bool = True
+    #: How the backward pass holds the terminal equality rows of the RLB stage (the goal; :func:`~torchtraj.riccati.
+    #: factorize`): ``"range-space"``, the unconstrained sweep and the rows' Schur complement
+    #: (:mod:`~torchtraj.riccati.range_space`, the interior point's and eILQR's default), where the problem has no
+    #: stage equality rows; ``"back-propagation"``, the constraint back-propagation (Laurenzi et al. §II-B/C, two
+    #: SVDs a stage) always. Both solve the same LQR problem and give the same constrained gains; they differ in
+    #: round-off and in the inertia test: the range-space method asks for a positive definite ``Q_uu`` at every
+    #: stage (with the rows' projector added to ``Q_N``), the back-propagation on the controls the rows leave free.
+    terminal_rows: str = "range-space"
     #: Converged (no step needed) when the predicted decrease is below this.
     expected_decrease_tolerance: float = 1e-16
     #: Divergence limits on the objective and on |x|.
@@ -170,6 +178,10 @@ class HMILQROptions:
     record: bool = False
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
+
+    def __post_init__(self):
+        if self.terminal_rows not in ("range-space", "back-propagation"):
+            raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {self.terminal_rows!r}")
 
     @classmethod
     def fast(cls, **changes) -> "HMILQROptions":

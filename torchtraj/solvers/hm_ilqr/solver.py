@@ -52,10 +52,9 @@ from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
 from ...kkt.model import total_cost
-from ...riccati import factorize
 from .augmented_lagrangian import increased_penalty, updated_multipliers
 from .barrier import updated_barrier
-from .crls import iterate, regularized, with_curvature
+from .crls import factorized, iterate, with_curvature
 from .multipliers import stepped_multipliers, with_multipliers
 from .objective import HybridObjective, StageParameters
 from .options import HMILQROptions
@@ -135,7 +134,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         if opts.dynamics_curvature and bool(curved.any()):  # the iteration's second host synchronisation
             lqr, curved, factor = with_curvature(
                 lqr, objective.dynamics_curvature(lqr, rhs, X, U, params, curved, nu, nuN), curved, start_mu_V,
-                opts.curvature_shifts)
+                opts.terminal_rows, opts.curvature_shifts)
         else:
             curved = torch.zeros_like(curved)
         t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
@@ -157,7 +156,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         start = X, U, J, D
         X, U, J, D = t.X, t.U, t.J, t.D
         if bool(kkt.any()):  # the step's point must pass the test as well, or the start point is returned
-            back = kkt & ~(_stepped_stationarity(objective, X, U, params, segments) <= tol.stationarity)
+            back = kkt & ~(_stepped_stationarity(objective, X, U, params, segments, opts.terminal_rows)
+                          <= tol.stationarity)
             X, U, J, D = (where_rows(back, before, after) for before, after in zip(start, (X, U, J, D)))
         iterations = iterations + active.long()
         # regularisation: CRLS keeps what it reached; plain LS follows its schedule
@@ -209,7 +209,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
             logger.info("hm-ilqr %4d  cost %.10g  violation %.2e  rlb %d  running %d", it,
                         float(rows[-1]["cost"].max()), float(violation.max()), int(s.rlb.sum()), int(active.sum()))
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    return _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method)
+    return _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method,
+                     opts.terminal_rows)
 
 
 def _finite(new, old, active):
@@ -254,35 +255,36 @@ def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb,
                            psi=torch.where(update_rlb, psi, s.psi), delta=torch.where(update_rlb, delta, s.delta))
 
 
-def _final_step(objective, X, U, params, segments) -> tuple:
+def _final_step(objective, X, U, params, segments, terminal_rows: str) -> tuple:
     """``(lqr, rhs, rows, factor, step, z, zN)`` at ``(X, U)``: the expansion, the unregularised LQR step with its
     multipliers and the inequality rows' multipliers ``z⁺`` corrected along it
     (:mod:`~torchtraj.solvers.hm_ilqr.multipliers`), what a solution reports."""
     lqr, rhs, f, rows = objective.expand(X, U, params)
     rhs.c = defects(f, X, segments)
-    factor = factorize(regularized(lqr, X.new_zeros(X.shape[0])))
+    factor = factorized(lqr, X.new_zeros(X.shape[0]), terminal_rows)
     step = factor.solve(rhs, multipliers=True)
     z, zN = stepped_multipliers(rows, step.dx, step.du, objective.params.rlb)
     return lqr, rhs, rows, factor, step, z, zN
 
 
-def _stepped_stationarity(objective, X, U, params, segments) -> Tensor:
+def _stepped_stationarity(objective, X, U, params, segments, terminal_rows: str) -> Tensor:
     """The stationarity residual ``(B,)`` at ``(X, U)`` with the multipliers a solution there reports: the last
     step of a converged instance is taken from a point that passed the test, and the Gauss-Newton model (no
     curvature of the dynamics) can leave the new point less stationary (quadrotor2d's ``sample_x0`` starts 38, 50
     and 53: 2.1e-7 before the step, 1.1e-6 after, above the certificate's 1e-6)."""
-    lqr, rhs, rows, _, step, z, zN = _final_step(objective, X, U, params, segments)
+    lqr, rhs, rows, _, step, z, zN = _final_step(objective, X, U, params, segments, terminal_rows)
     return stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), step.nu, step.nuN)
 
 
-def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method):
+def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method,
+              terminal_rows: str):
     """Gains, costates and multipliers at the final point (one more expansion and LQR solve), and the
     :class:`Solution`."""
     # the equality rows' multipliers ν of the LQR step at the final point; the costates from the Lagrangian's
     # stationarity in the states, λ_N = q_N + C_Nᵀ ν_N, λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k (q holds the inequality
     # rows' P'), which at a converged point is the Riccati costate without its step terms; the inequality rows'
     # multipliers corrected along that step
-    lqr, rhs, ineq_rows, factor, step, z, zN = _final_step(objective, X, U, params, segments)
+    lqr, rhs, ineq_rows, factor, step, z, zN = _final_step(objective, X, U, params, segments, terminal_rows)
     ineq, ineqN = objective.multipliers(X, U, params)
     ineq, ineqN = ineq if z is None else z, ineqN if zN is None else zN
     rhs = with_multipliers(rhs, ineq_rows, X.shape[-1], z, zN)
