@@ -93,6 +93,34 @@ def test_instances_the_start_does_not_settle_go_on_with_the_interior_point_itera
     assert float((one.U - full.U).abs().max()) < 1e-9
 
 
+def test_the_least_squares_multipliers_are_estimated_for_the_instances_the_start_does_not_settle(monkeypatch):
+    """The start's first candidate holds no row and reads no multiplier, so the least-squares estimate of the
+    multipliers (W&B §3.6: a factorisation of the batch and an expansion) waits for it: none where every instance
+    ends there, the unsettled instances' alone where one round leaves some (they iterate from it as before)."""
+    from torchtraj.solvers.ipm import solver as ipm_solver
+
+    calls = []
+    estimate = ipm_solver.least_squares_multipliers
+
+    def spy(cons, model, it, running, opts):
+        calls.append(running.clone())
+        return estimate(cons, model, it, running, opts)
+
+    monkeypatch.setattr(ipm_solver, "least_squares_multipliers", spy)
+    problem = double_integrator()
+    x0 = _starts()
+    full = tt.solve(problem, x0, method="ipm")
+    assert bool(full.converged.all()) and calls == []
+    one = tt.solve(problem, x0, method="ipm", options=tt.IPOptions(crossover_start_rounds=1))
+    free = ~(full.U.abs() > 1.0 - 1e-9).flatten(1).any(-1)
+    assert len(calls) == 1 and torch.equal(calls[0], ~free)
+    assert bool(one.converged.all()) and float((one.U - full.U).abs().max()) < 1e-9
+    # a problem with a state row takes no start: the estimate comes first, for every instance
+    calls.clear()
+    tt.solve(oscillator(linear_quadratic=True), OSCILLATOR_X0, method="ipm")
+    assert len(calls) == 1 and bool(calls[0].all())
+
+
 def test_a_batch_crosses_over_as_each_instance_alone():
     """The crossover gathers the instances it tries: every instance's answer is its own solve's, with a failing
     instance (a NaN in its state) in the batch."""

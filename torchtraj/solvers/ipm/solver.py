@@ -66,7 +66,7 @@ from ...riccati.range_space import formed, select_gains
 from .barrier import average_complementarity, mehrotra_step, monotone_update
 from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
-from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error
+from .expansion import VALUE_FIELDS, Base, expand, flat_abs, initial_iterate, kkt_error
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import kernel_of, uses_graphs
@@ -184,7 +184,10 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
             base = Base(it.X, it.U, model)
-        if step == 0 and opts.least_squares_multipliers and hooks.start is None:  # W&B §3.6, then re-expanded
+        # W&B §3.6, then re-expanded; where the crossover starts from the unconstrained optimum, after it, for the
+        # instances it did not end (its first candidate holds no row and reads no multiplier)
+        estimating = step == 0 and opts.least_squares_multipliers and hooks.start is None
+        if estimating and not starting:
             it = least_squares_multipliers(cons, model, it, status == Status.RUNNING, opts)
             model = expand_k(problem, cons, params, it, opts, base)
         if theta_max is None:
@@ -210,6 +213,12 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             status = torch.where(taken > 0, int(Status.CONVERGED), status)
             iterations = iterations + taken.abs()  # each round solves a Newton system, as an iteration
             running = status == Status.RUNNING
+        if estimating and starting and bool(running.any()):
+            it = least_squares_multipliers(cons, model, it, running, opts)
+            estimated = expand_k(problem, cons, params, it, opts, base)
+            model = dataclasses.replace(model, **{name: where_rows(running, getattr(estimated, name),
+                                                                   getattr(model, name)) for name in VALUE_FIELDS})
+            error = torch.where(running, kkt_error(cons, model, it, opts), error)
         count = int(running.sum())
         if step == opts.iterations or count == 0:
             break
