@@ -322,7 +322,9 @@ def _search_round(at: _Instances, factor, sol, pending: Tensor, accepted: Accept
     if opts.second_order_correction:
         start = full_step_or_correction(at.problem, objective, params, segments, at.rhs, factor, sol, ratio_test,
                                         steps[:1], search, start)
-        step = backtrack(steps[1:], per_round, ratio_test, search, start)
+        # a round only where an instance still searches (one host read): after an accepted full step or correction
+        # the first round's candidates would be simulated to be thrown away
+        step = backtrack(steps[1:], per_round, ratio_test, search, start, sync_first=True)
     else:
         step = backtrack(steps, per_round, ratio_test, search, start)
     return _Round(ok=ok, full=full, still=still, search=search, K=factor.K, weight=weight, step=step)
@@ -334,6 +336,9 @@ def full_step_or_correction(problem, objective, params, segments, rhs, factor, s
     accepted (module docstring, "Second-order correction"); ``start`` elsewhere. ``one`` is ``α = 1`` as ``(1,)``."""
     accept, values = ratio_test(one)
     full = accept[:, 0] & search & ~start.found
+    if not bool((search & ~start.found & ~full).any()):  # no correction needed (one host read)
+        return Accepted(found=start.found | full, alpha=torch.where(full, torch.ones_like(start.alpha), start.alpha),
+                        values=tuple(where_rows(full, a[:, 0], c) for a, c in zip(values, start.values)))
     Xc, Uc = values[0][:, 0], values[1][:, 0]
     # the trial point's own defects and held rows, C(w + p), added to C(w): the same factor solves for p + q
     k = segments.starts[1:] - 1
