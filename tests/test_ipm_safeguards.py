@@ -95,6 +95,31 @@ def test_the_filter_is_reset_after_successive_steps_it_blocked():
     assert not bool(torch.isinf(count_steps(wd, taken, step, watching, filt, off)[1].entries).all())
 
 
+def test_the_filter_reset_keeps_the_entry_of_the_point_the_step_leaves():
+    """IPOPT empties the filter when it accepts the trial point, then augments it with the point the step leaves
+    (an h-type step): the entries held before the line search go, the one it added stays."""
+    opts = tt.IPOptions()
+    like = torch.zeros(2, 1, dtype=F64)
+    before = Filter.empty(2, 4, like).add(torch.tensor([True, True]), torch.tensor([1.0, 1.0], dtype=F64),
+                                          torch.tensor([2.0, 2.0], dtype=F64))
+    added = before.add(torch.tensor([True, False]), torch.tensor([0.5, 0.5], dtype=F64),
+                       torch.tensor([1.5, 1.5], dtype=F64))  # instance 0's step was h-type, instance 1's f-type
+    wd = Watchdog(shortened=torch.zeros(2, dtype=torch.long), trials=torch.zeros(2, dtype=torch.long), it=None,
+                  phi=like[:, 0], slope=like[:, 0], theta=like[:, 0], alpha=like[:, 0], last=like[:, 0],
+                  blocked=torch.full((2,), opts.filter_reset_trigger - 1, dtype=torch.long),
+                  resets=torch.zeros(2, dtype=torch.long))
+    taken, watching = torch.tensor([True, True]), torch.tensor([False, False])
+    step = Step(it=None, alpha=like[:, 0] + 1, found=taken, filter=added, shortened=torch.tensor([True, True]),
+                blocked=torch.tensor([True, True]))
+    wd, after = count_steps(wd, taken, step, watching, before, opts)
+    assert wd.resets.tolist() == [1, 1]
+    finite = torch.isfinite(after.entries).all(-1)
+    assert finite.sum(-1).tolist() == [1, 0]
+    assert after.entries[0][finite[0]].tolist() == [[0.5, 1.5]]
+    # the kept entry is the newest of the ring: it is overwritten last
+    assert after.slot.tolist() == added.slot.tolist()
+
+
 def double_integrator(**rows) -> tt.Problem:
     goal = torch.tensor([1.0, 0.0], dtype=F64)
     return tt.Problem(

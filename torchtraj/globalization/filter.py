@@ -32,6 +32,16 @@ class Filter:
         """The filters of the instances in ``mask (B,)`` emptied."""
         return Filter(torch.where(mask.reshape(-1, 1, 1), float("inf"), self.entries), torch.where(mask, 0, self.slot))
 
+    def reset_before(self, mask: Tensor, before: "Filter") -> "Filter":
+        """The filters of the instances in ``mask (B,)`` emptied of the entries they held at ``before`` (this filter
+        before its last :meth:`add`), keeping the entry added since: IPOPT's filter reset heuristic empties the filter
+        when it accepts the trial point, before the filter is augmented with the point the step leaves."""
+        size = self.entries.shape[1]
+        added = self.slot > before.slot
+        newest = torch.nn.functional.one_hot((self.slot - 1) % size, size).to(torch.bool) & added.unsqueeze(-1)
+        clear = mask.unsqueeze(-1) & ~newest
+        return Filter(torch.where(clear.unsqueeze(-1), float("inf"), self.entries), self.slot)
+
     def acceptable(self, theta: Tensor, phi: Tensor) -> Tensor:
         """Candidates ``(B, L)`` not dominated by an entry."""
         t, p = self.entries[..., 0].unsqueeze(1), self.entries[..., 1].unsqueeze(1)

@@ -293,7 +293,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 ls = merge_steps(watching, watch, ls)
                 last = torch.where(returned, wd.last, last)
             wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
-                factored), ls.filter, opts)
+                factored), filt, opts)
         take = factored & ls.found
         tiny = ls.tiny
         it = pick(take, ls.it, it)

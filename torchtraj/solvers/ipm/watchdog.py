@@ -20,7 +20,10 @@ starts).
 = 5): where, in ``filter_reset_trigger`` successive iterations, the last trial point rejected before the step
 taken passed the sufficient-decrease (or Armijo) test and was rejected by the filter alone, the filter holds
 entries that block progress that the barrier problem would accept: it is emptied, at most ``filter_resets``
-times per instance.
+times per instance. As in IPOPT's code (``FilterLSAcceptor``), the reset comes when the trial point is accepted,
+before the filter is augmented with the point the step leaves, so that entry stays. IPOPT's code never counts its
+resets (its ``n_filter_resets_`` stays 0, so ``max_filter_resets`` does not bind); this one caps them as the
+option's documentation says.
 """
 
 from __future__ import annotations
@@ -103,16 +106,18 @@ def watched_step(problem: Problem, cons, params, it: Iterate, d: Direction, mode
     return step, wd, give_up
 
 
-def count_steps(wd: Watchdog, taken: Tensor, step: Step, watching: Tensor, filt: Filter, opts: IPOptions) -> tuple:
+def count_steps(wd: Watchdog, taken: Tensor, step: Step, watching: Tensor, before: Filter, opts: IPOptions) -> tuple:
     """After the line search: the counts of shortened steps and of steps the filter blocked of the instances that
     ``taken (B,)`` a regular step, and the filter reset where the latter reaches ``filter_reset_trigger`` (at most
-    ``filter_resets`` times). Returns ``(watchdog, filter)``."""
+    ``filter_resets`` times): ``step.filter`` emptied of the entries of ``before``, the filter the line search
+    started from (IPOPT resets it on accepting the trial point, then adds the entry of the point the step leaves).
+    Returns ``(watchdog, filter)``."""
     regular = taken & ~watching
     shortened = torch.where(regular, torch.where(step.shortened, wd.shortened + 1, 0), wd.shortened)
     blocked = torch.where(regular, torch.where(step.blocked, wd.blocked + 1, 0), wd.blocked)
     reset = (blocked >= opts.filter_reset_trigger) & (wd.resets < opts.filter_resets)
     return replace(wd, shortened=shortened, blocked=torch.where(reset, 0, blocked),
-                   resets=wd.resets + reset.long()), filt.reset(reset)
+                   resets=wd.resets + reset.long()), step.filter.reset_before(reset, before)
 
 
 def merge_steps(mask: Tensor, a: Step, b: Step) -> Step:
