@@ -120,6 +120,34 @@ def test_the_filter_reset_keeps_the_entry_of_the_point_the_step_leaves():
     assert after.slot.tolist() == added.slot.tolist()
 
 
+def test_the_solver_asks_for_a_reset_only_where_a_count_can_reach_its_trigger(monkeypatch):
+    """The iteration reads, with its other host reads, whether a count of blocked steps is one short of the
+    trigger; only then does ``count_steps`` compute a reset. On the cart-pendulum swing the filter is reset at
+    the sixth iteration (its first five steps were blocked): the same iterates as when every step may reset."""
+    from torchtraj.bench import minimum_time_problems
+    from torchtraj.solvers.ipm import solver as ipm_solver
+
+    problem = minimum_time_problems.get("cartpole_swing").problem
+    options = tt.IPOptions(iterations=8)
+    calls, count = [], ipm_solver.count_steps
+
+    def always(*args):
+        calls.append(args[-1])
+        wd, filt = count(*args[:-1], True)
+        resets.append(int(wd.resets.sum()))
+        return wd, filt
+
+    resets = []
+    monkeypatch.setattr(ipm_solver, "count_steps", always)
+    every = tt.solve(problem, method="ipm", options=options)
+    asked = list(calls)
+    monkeypatch.setattr(ipm_solver, "count_steps", count)
+    gated = tt.solve(problem, method="ipm", options=options)
+    assert resets[-1] == 1 and asked[:4] == [False] * 4 and asked[5] is True
+    assert torch.equal(every.X, gated.X) and torch.equal(every.U, gated.U)
+    assert torch.equal(every.history.step_size, gated.history.step_size)
+
+
 def double_integrator(**rows) -> tt.Problem:
     goal = torch.tensor([1.0, 0.0], dtype=F64)
     return tt.Problem(

@@ -180,6 +180,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     ceiling = opts.mehrotra_mu_max_factor * average_complementarity(it.s, it.sN, it.z, it.zN, cons.ineq_knot_mask)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     may_return = may_watch = False  # a watchdog runs / may start (known at the last iteration's synchronisation)
+    may_reset = opts.filter_reset_trigger <= 1  # a filter reset may come at this step (the same synchronisation)
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
@@ -293,7 +294,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 ls = merge_steps(watching, watch, ls)
                 last = torch.where(returned, wd.last, last)
             wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
-                factored), filt, opts)
+                factored), filt, opts, may_reset)
         take = factored & ls.found
         tiny = ls.tiny
         it = pick(take, ls.it, it)
@@ -305,12 +306,14 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         # convergence test, ‖c‖_∞ (steps at round-off: those keep the larger-δ_w path)
         entering = missed & (model.primal_error > tol) if restoring else None
         # the iteration's one synchronisation with the host: restoration entries, tiny steps, and for the next
-        # iteration whether a watchdog runs (its return) or may start (the restoration and the barrier update only
-        # stop watchdogs, so these stay supersets)
+        # iteration whether a watchdog runs (its return) or may start, and whether a filter reset may come (a
+        # count one short of its trigger; the restoration and the barrier update only stop watchdogs and leave the
+        # counts of blocked steps, so these stay supersets)
         never = torch.zeros((), dtype=torch.bool, device=x0.device)
-        enter_any, tiny_any, may_return, may_watch = torch.stack([
+        enter_any, tiny_any, may_return, may_watch, may_reset = torch.stack([
             never if entering is None else entering.any(), never if tiny is None else tiny.any(),
-            wd.running().any(), (wd.running() | (wd.shortened >= opts.watchdog_trigger)).any()]).tolist()
+            wd.running().any(), (wd.running() | (wd.shortened >= opts.watchdog_trigger)).any(),
+            (wd.blocked >= opts.filter_reset_trigger - 1).any()]).tolist()
         if tiny_any:
             small = tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
             tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)

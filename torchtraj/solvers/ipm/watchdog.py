@@ -106,15 +106,19 @@ def watched_step(problem: Problem, cons, params, it: Iterate, d: Direction, mode
     return step, wd, give_up
 
 
-def count_steps(wd: Watchdog, taken: Tensor, step: Step, watching: Tensor, before: Filter, opts: IPOptions) -> tuple:
+def count_steps(wd: Watchdog, taken: Tensor, step: Step, watching: Tensor, before: Filter, opts: IPOptions,
+                may_reset: bool = True) -> tuple:
     """After the line search: the counts of shortened steps and of steps the filter blocked of the instances that
     ``taken (B,)`` a regular step, and the filter reset where the latter reaches ``filter_reset_trigger`` (at most
     ``filter_resets`` times): ``step.filter`` emptied of the entries of ``before``, the filter the line search
     started from (IPOPT resets it on accepting the trial point, then adds the entry of the point the step leaves).
-    Returns ``(watchdog, filter)``."""
+    ``may_reset``: false where no instance's count can reach the trigger at this step (the caller knows it from
+    the counts before it: they grow by one at most). Returns ``(watchdog, filter)``."""
     regular = taken & ~watching
     shortened = torch.where(regular, torch.where(step.shortened, wd.shortened + 1, 0), wd.shortened)
     blocked = torch.where(regular, torch.where(step.blocked, wd.blocked + 1, 0), wd.blocked)
+    if not may_reset:
+        return replace(wd, shortened=shortened, blocked=blocked), step.filter
     reset = (blocked >= opts.filter_reset_trigger) & (wd.resets < opts.filter_resets)
     return replace(wd, shortened=shortened, blocked=torch.where(reset, 0, blocked),
                    resets=wd.resets + reset.long()), step.filter.reset_before(reset, before)
