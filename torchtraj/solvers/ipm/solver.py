@@ -220,6 +220,10 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             model = dataclasses.replace(model, **{name: where_rows(running, getattr(estimated, name),
                                                                    getattr(model, name)) for name in VALUE_FIELDS})
             error = torch.where(running, kkt_error(cons, model, it, opts), error)
+            done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
+            status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
+            status = torch.where(running & model.finite & done, int(Status.CONVERGED), status)
+            running = status == Status.RUNNING
         count = int(running.sum())
         if step == opts.iterations or count == 0:
             break
