@@ -70,6 +70,12 @@ TERMINAL_ROWS = ("back-propagation", "range-space")
 PENALTY = 10.0
 
 
+def check_terminal_rows(value: str) -> None:
+    """Raise where ``value`` is none of :data:`TERMINAL_ROWS` (a solver option's check)."""
+    if value not in TERMINAL_ROWS:
+        raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {value!r}")
+
+
 def applies(lqr: LQR, regularization: Optional[Tensor]) -> bool:
     """Whether the range-space method takes ``lqr``'s rows: terminal rows only (stage rows absent or none, ``C``
     of zero rows), no declared bounds, no ``ρ``."""

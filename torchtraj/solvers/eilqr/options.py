@@ -16,6 +16,8 @@ from typing import Callable, Optional, Sequence, Union
 
 import torch
 
+from ...riccati.range_space import check_terminal_rows
+
 
 @dataclass
 class EILQROptions:
@@ -192,8 +194,7 @@ class EILQROptions:
         if self.nonmonotone_memory < 1:
             raise ValueError(f"nonmonotone_memory must be at least 1 (1: the monotone test), "
                              f"got {self.nonmonotone_memory}")
-        if self.terminal_rows not in ("range-space", "back-propagation"):
-            raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {self.terminal_rows!r}")
+        check_terminal_rows(self.terminal_rows)
         if not 0 < self.backtracking < 1:
             raise ValueError(f"backtracking must lie in (0, 1), got {self.backtracking}")
         if self.initial_eq is not None and self.free_initial_state is False:

@@ -29,6 +29,8 @@ from typing import Optional
 
 import torch
 
+from ...riccati.range_space import check_terminal_rows
+
 
 @dataclass
 class HMILQROptions:
@@ -180,8 +182,7 @@ class HMILQROptions:
     verbose: bool = False
 
     def __post_init__(self):
-        if self.terminal_rows not in ("range-space", "back-propagation"):
-            raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {self.terminal_rows!r}")
+        check_terminal_rows(self.terminal_rows)
 
     @classmethod
     def fast(cls, **changes) -> "HMILQROptions":

@@ -7,6 +7,8 @@ from typing import Optional
 
 import torch
 
+from ...riccati.range_space import check_terminal_rows
+
 
 @dataclass
 class IPOptions:
@@ -173,8 +175,7 @@ class IPOptions:
     def __post_init__(self):
         if self.sweep not in ("sequential", "parallel", "auto"):
             raise ValueError(f"sweep must be 'sequential', 'parallel' or 'auto', not {self.sweep!r}")
-        if self.terminal_rows not in ("range-space", "back-propagation"):
-            raise ValueError(f"terminal_rows must be 'range-space' or 'back-propagation', not {self.terminal_rows!r}")
+        check_terminal_rows(self.terminal_rows)
         if self.scaling not in ("gradient-based", "none"):
             raise ValueError(f"scaling must be 'gradient-based' or 'none', not {self.scaling!r}")
         if self.barrier_strategy not in ("monotone", "mehrotra"):
