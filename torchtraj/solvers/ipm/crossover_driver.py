@@ -29,7 +29,7 @@ from ...core.masks import where_rows
 from ...core.problem import Problem
 from . import crossover
 from .compaction import gather_rows, pick
-from .expansion import VALUE_FIELDS, Base, expand, kkt_error
+from .expansion import VALUE_FIELDS, Base, expand, kkt_error, with_values
 from .iterate import Iterate, Model
 from .kernels import kernel_of, uses_graphs
 from .options import IPOptions
@@ -112,6 +112,5 @@ def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model
     new_model = kernel_of(expand, opts, x0.device)(problem, cons, params, ended.point, opts, base)
     new_error = kkt_error(cons, new_model, ended.point, opts)
     accept = trying & ended.ok & new_model.finite & (new_error <= tol)
-    values = {name: where_rows(accept, getattr(new_model, name), getattr(model, name)) for name in VALUE_FIELDS}
-    return (pick(accept, ended.point, it), dataclasses.replace(model, **values), torch.where(accept, new_error, error),
+    return (pick(accept, ended.point, it), with_values(accept, new_model, model), torch.where(accept, new_error, error),
             where_rows(accept, ended.K, K), torch.where(accept, taken, -taken))

@@ -30,6 +30,7 @@ follows by products with them.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
@@ -47,6 +48,7 @@ from ...core.derivatives import (
     terminal_hessian,
     terminal_jacobian,
 )
+from ...core.masks import where_rows
 from ...core.one_pass import problem_kkt_expansion
 from ...core.problem import Problem
 from ...kkt.merit import violation_of
@@ -225,6 +227,12 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
 #: Hessians are the problem's constants).
 VALUE_FIELDS = ("J", "Lz", "LNx", "f", "g", "h", "gN", "hN", "theta", "violation", "dual_error", "primal_error",
                 "finite")
+
+
+def with_values(mask: Tensor, new: Model, model: Model) -> Model:
+    """``model`` with the point-dependent fields (:data:`VALUE_FIELDS`) of ``new`` where ``mask (B,)``."""
+    return dataclasses.replace(model, **{name: where_rows(mask, getattr(new, name), getattr(model, name))
+                                         for name in VALUE_FIELDS})
 
 
 def complementarity_error(cons: Constraints, it: Iterate, mu: Tensor, opts: IPOptions) -> Tensor:

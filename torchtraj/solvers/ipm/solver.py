@@ -66,7 +66,7 @@ from ...riccati.range_space import formed, select_gains
 from .barrier import average_complementarity, mehrotra_step, monotone_update
 from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
-from .expansion import VALUE_FIELDS, Base, expand, flat_abs, initial_iterate, kkt_error
+from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error, with_values
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import kernel_of, uses_graphs
@@ -181,6 +181,13 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     may_return = may_watch = False  # a watchdog runs / may start (known at the last iteration's synchronisation)
     may_reset = opts.filter_reset_trigger <= 1  # a filter reset may come at this step (the same synchronisation)
+
+    def tested(params, model, it, status, running):  # the KKT error, and the running instances that end here
+        error = kkt_error(cons, model, it, opts)
+        status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
+        done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
+        return error, torch.where(running & model.finite & done, int(Status.CONVERGED), status)
+
     for step in range(opts.iterations + 1):
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
@@ -195,10 +202,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
             theta_max, theta_min = opts.theta_max_factor * theta_0, opts.theta_min_factor * theta_0
         running = status == Status.RUNNING
-        error = kkt_error(cons, model, it, opts)
-        status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
-        done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
-        status = torch.where(running & model.finite & done, int(Status.CONVERGED), status)
+        error, status = tested(params, model, it, status, running)
         if budgeted and step < opts.iterations:  # a budget (Hooks), or iterations a restoration phase took
             status = torch.where(running & (iterations >= budget) & (status == Status.RUNNING),
                                  int(Status.MAX_ITERATIONS), status)
@@ -216,13 +220,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             running = status == Status.RUNNING
         if estimating and starting and bool(running.any()):
             it = least_squares_multipliers(cons, model, it, running, opts)
-            estimated = expand_k(problem, cons, params, it, opts, base)
-            model = dataclasses.replace(model, **{name: where_rows(running, getattr(estimated, name),
-                                                                   getattr(model, name)) for name in VALUE_FIELDS})
-            error = torch.where(running, kkt_error(cons, model, it, opts), error)
-            done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
-            status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
-            status = torch.where(running & model.finite & done, int(Status.CONVERGED), status)
+            model = with_values(running, expand_k(problem, cons, params, it, opts, base), model)
+            estimated_error, status = tested(params, model, it, status, running)
+            error = torch.where(running, estimated_error, error)
             running = status == Status.RUNNING
         count = int(running.sum())
         if step == opts.iterations or count == 0:
