@@ -22,12 +22,10 @@ from __future__ import annotations
 
 from typing import Optional
 
-import torch
 from torch import Tensor
 
 from .bounds import _held_controls
 from .factor import RiccatiFactor
-from .linalg import _time_major
 from .lqr import LQR, LQRSolution, LQRVectors
 from .parallel import ParallelRiccatiFactor, choose_sweep, factorize_parallel
 from .propagation import _stage_rows, _terminal_constraint, default_rank_tolerance
@@ -76,14 +74,11 @@ def factorize(lqr: LQR, regularization: Optional[Tensor] = None, rank_tolerance:
         regularization = lqr.A.new_zeros(Bsz)
     held = _held_controls(lqr, dtype) if lqr.bounds is not None else None
     if not lqr.propagated:
-        Ps, Ks, Quus, Quxs, chols, oks = factorize_stages(W, Hs, lqr.QN, regularization, held)
+        P, K, Quu, Qux, chol, ok = factorize_stages(W, Hs, lqr.QN, regularization, held)
         if nu == 1:
-            chol, ok = finish_single(_time_major(chols), oks)
-        else:
-            chol, ok = _time_major(chols), torch.stack(oks, 1).all(1)
-        return RiccatiFactor(lqr=lqr, K=_time_major(Ks), P=Ps, ok=finite & ok, Quu=_time_major(Quus),
-                             Qux=_time_major(Quxs), chol=chol, free=None, stage=None, terminal=None, exact=exact,
-                             fixed=held, W=W.transpose(0, 1))
+            chol, ok = finish_single(chol, ok)
+        return RiccatiFactor(lqr=lqr, K=K, P=P, ok=finite & ok, Quu=Quu, Qux=Qux, chol=chol, free=None, stage=None,
+                             terminal=None, exact=exact, fixed=held, W=W.transpose(0, 1))
     return _factorize_propagated(lqr, finite, W, Hs, regularization, tol)
 
 

@@ -5,8 +5,9 @@ A stage of a sweep works on tiny matrices, so its cost is the number of calls, n
 that does not depend on the recursion is therefore done for all stages at once, before or after the loop: the
 stage blocks are split into per-stage views by one ``unbind`` (not one indexing call per block and stage), the
 right-hand sides are stacked and transposed once, the expected decrease ``ΔV`` and the gains' stationarity terms
-are batched over the horizon. Vectors are carried as columns ``(B, n, 1)``, so that each product with its addend is
-one ``baddbmm``. With the stage blocks ``W_k = [A_k B_k]``, ``H_k`` and ``E_k = [I; K_k]`` (ALTRO, Howell et al.
+are batched over the horizon; the matrix sweep writes each stage's results into views of buffers allocated once,
+so that no stage joins, splits or stacks blocks. Vectors are carried as columns ``(B, n, 1)``, so that each
+product with its addend is one ``baddbmm``. With the stage blocks ``W_k = [A_k B_k]``, ``H_k`` and ``E_k = [I; K_k]`` (ALTRO, Howell et al.
 2019 eqs. 14-16), the matrix sweep is, per stage,
 
 .. math::
@@ -57,13 +58,19 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
 
     ``W (N, B, nx, nx+nu)`` and ``Hs (N, B, nx+nu, nx+nu)`` the time-major stage blocks, ``QN (B, nx, nx)``,
     ``ρ (B,)``, ``held (B, N, nu)`` the controls that declared bounds hold (``None``: none). Returns
-    ``P (B, N+1, nx, nx)`` (a view of a time-major buffer) and lists over the stages ``(K, Quu, Qux, chol, ok)``;
-    ``chol`` the Cholesky factors of the reduced
-    Hessians (``nu = 1``: the reduced Hessian negated, whose root :func:`finish_single` takes); ``ok`` per stage,
-    ``(B,)`` booleans (``nu = 1``: ``(B, 1, 1)``)."""
+    ``(P (B, N+1, nx, nx), K (B, N, nu, nx), Q_uu, Q_ux, chol, ok)``, batch-first views of time-major buffers;
+    ``chol`` the Cholesky factors of the reduced Hessians (``nu = 1``: the reduced Hessian negated, whose root
+    :func:`finish_single` takes) and ``ok``: ``nu = 1`` the stages' tests, time-major ``(N, B, 1, 1)``, else
+    ``(B,)``.
+
+    Each stage writes its results into buffers allocated once (:class:`_Buffers`), whose per-stage blocks are
+    views made once for the horizon: ``H`` holds ``Q_ux`` and ``Q_uu``, the gains are the lower rows of the buffer
+    of ``E_k = [I; K_k]`` (its identity rows set once) and ``E_kᵀ`` is a view of it, so that a stage of a single
+    control is nine calls: two products for ``H``, four for the gain, two for ``X = E_kᵀ H E_k`` and one for
+    ``X + Xᵀ``, with no joining, splitting or stacking."""
     N, Bsz, nx, n = W.shape
     nu = n - nx
-    eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
+    buf = _Buffers(W, N, Bsz, nx, nu, (W, Hs, QN, rho))
     rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
     minus_rho = -rho
     # the sweep carries 2 P_k = X + Xᵀ (X = E_kᵀ H E_k), the symmetrisation without its halving, and takes P_k W_k as
@@ -76,40 +83,79 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
         held_diag = _stages(torch.diag_embed(held))
         free_rows = _stages(free.unsqueeze(-1))
     minus_one = W.new_full((), -1.0)
-    P2 = QN + QN
-    Ps, Ks, Quus, Quxs, chols, oks = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N, [None] * N
-    Ps[N] = P2
+    chols, oks = [None] * N, [None] * N
+    buf.put(buf.P[N], torch.add, QN, QN)
     for t in range(N - 1, -1, -1):
-        H = addmatmul(Hss[t], WTs[t], matmul(P2, Ws[t]))
-        Qux, Quu = H[:, nx:].split([nx, nu], -1)
-        rows = Qux
+        H = buf.put(buf.H[t], buf.addmatmul, Hss[t], WTs[t], buf.matmul(buf.P[t + 1], Ws[t]))
+        Qux = rows = buf.Qux[t]
         if nu == 1:  # K = Q_ux / −(Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
-            negative = torch.sub(minus_rho, Quu)
+            negative = torch.sub(minus_rho, buf.Quu[t])
             if held is not None:  # the held controls out of the free ones' system
                 negative = negative * outer[t] - held_diag[t]
                 rows = Qux * free_rows[t]
-            ok = negative < 0
-            L = torch.where(ok, negative, minus_one)
-            K = rows / L
+            ok = buf.put(buf.ok[t], torch.lt, negative, 0)
+            buf.put(buf.K[t], torch.div, rows, buf.put(buf.chol[t], torch.where, ok, negative, minus_one))
         else:
-            Hu = Quu + rho
+            Hu = buf.Quu[t] + rho
             if held is not None:
                 Hu = Hu * outer[t] + held_diag[t]
                 rows = Qux * free_rows[t]
-            L, info = _cholesky(Hu)
-            ok = info == 0
-            K = -_cholesky_solve(rows, L)
-        E = torch.cat([eye_x, K], -2)
-        X = matmul(_mT(E), matmul(H, E))
-        P2 = X + _mT(X)
-        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t], oks[t] = P2, K, Quu, Qux, L, ok
-    return _time_major(Ps) * 0.5, Ks, Quus, Quxs, chols, oks
+            chols[t], info = _cholesky(Hu)
+            oks[t] = info == 0
+            buf.put(buf.K[t], torch.neg, _cholesky_solve(rows, chols[t]))
+        buf.put(buf.P[t], torch.add, buf.put(buf.X[t], buf.matmul, buf.ET[t], buf.matmul(H, buf.E[t])), buf.XT[t])
+    chol, ok = (buf.chols, buf.oks) if nu == 1 else (_time_major(chols), torch.stack(oks, 1).all(1))
+    K, Quu, Qux = buf.stacked()
+    return buf.Ps * 0.5, K, Quu, Qux, chol, ok
 
 
-def finish_single(chol: Tensor, ok: list) -> tuple:
+class _Buffers:
+    """The time-major outputs of :func:`factorize_stages` and the per-stage views it reads and writes, each made
+    once for the horizon (one ``unbind`` a block, not one indexing call a stage).
+
+    Eager and without autograd a stage's call writes its buffer itself (``out=``, :meth:`put`); a batched product
+    written so may take another of the library's kernels than one into a new tensor, so a result can differ from
+    that of an unbuffered sweep in its last bits. Traced by ``torch.compile`` or under autograd (where ``out=`` takes
+    no part) the call's result is copied in, and the products are :mod:`torchtraj.core.compiled`'s."""
+
+    def __init__(self, W: Tensor, N: int, Bsz: int, nx: int, nu: int, inputs: tuple):
+        n = nx + nu
+        self.direct = not torch.compiler.is_compiling() and not (
+            torch.is_grad_enabled() and any(t.requires_grad for t in inputs))
+        self.matmul, self.addmatmul = (torch.bmm, torch.baddbmm) if self.direct else (matmul, addmatmul)
+        Hb = W.new_empty(N, Bsz, n, n)
+        Eb = W.new_empty(N, Bsz, n, nx)
+        Eb[..., :nx, :] = torch.eye(nx, dtype=W.dtype, device=W.device)
+        Xb = W.new_empty(N, Bsz, nx, nx)
+        Pb = W.new_empty(N + 1, Bsz, nx, nx)
+        Kb, Quub, Quxb = Eb[..., nx:, :], Hb[..., nx:, nx:], Hb[..., nx:, :nx]
+        self.H, self.E, self.ET, self.X, self.XT = Hb.unbind(0), Eb.unbind(0), _mT(Eb).unbind(0), Xb.unbind(0), \
+            _mT(Xb).unbind(0)
+        self.P, self.K, self.Quu, self.Qux = Pb.unbind(0), Kb.unbind(0), Quub.unbind(0), Quxb.unbind(0)
+        self._stacked = (Kb, Quub, Quxb)
+        self.Ps = Pb.transpose(0, 1)
+        if nu == 1:
+            Lb = W.new_empty(N, Bsz, 1, 1)
+            okb = torch.empty(N, Bsz, 1, 1, dtype=torch.bool, device=W.device)
+            self.chol, self.ok = Lb.unbind(0), okb.unbind(0)
+            self.chols, self.oks = Lb.transpose(0, 1), okb
+
+    def stacked(self) -> tuple:
+        """``(K, Q_uu, Q_ux)``, each a batch-first view of a contiguous time-major copy: the stages' blocks are
+        strided views of ``E`` and ``H``, and the later sweeps' products read them as the stacked lists were."""
+        return tuple(a.contiguous().transpose(0, 1) for a in self._stacked)
+
+    def put(self, out: Tensor, op, *args) -> Tensor:
+        """``op(*args)`` written into ``out``, which is returned."""
+        if self.direct:
+            return op(*args, out=out)
+        return out.copy_(op(*args))
+
+
+def finish_single(chol: Tensor, ok: Tensor) -> tuple:
     """``nu = 1``: the Cholesky factors ``(B, N, 1, 1)`` from the stacked negated reduced Hessians, and
-    ``ok (B,)``."""
-    return chol.neg().sqrt(), torch.stack(ok, 1).all(1).reshape(-1)
+    ``ok (B,)`` from the time-major ``ok (N, B, 1, 1)`` of the stages."""
+    return chol.neg().sqrt(), ok.all(0).reshape(-1)
 
 
 def stage_terms(W: Tensor, P: Tensor, K: Tensor, Quu: Tensor, Qux: Tensor, q: Tensor, r: Tensor, c: Tensor) -> tuple:
