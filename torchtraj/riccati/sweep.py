@@ -7,8 +7,8 @@ stage blocks are split into per-stage views by one ``unbind`` (not one indexing 
 right-hand sides are stacked and transposed once, the expected decrease ``ΔV`` and the gains' stationarity terms
 are batched over the horizon; the matrix sweep writes each stage's results into views of buffers allocated once,
 so that no stage joins, splits or stacks blocks. Vectors are carried as columns ``(B, n, 1)``, so that each
-product with its addend is one ``baddbmm``. With the stage blocks ``W_k = [A_k B_k]``, ``H_k`` and ``E_k = [I; K_k]`` (ALTRO, Howell et al.
-2019 eqs. 14-16), the matrix sweep is, per stage,
+product with its addend is one ``baddbmm``. With the stage blocks ``W_k = [A_k B_k]``, ``H_k`` and
+``E_k = [I; K_k]`` (ALTRO, Howell et al. 2019 eqs. 14-16), the matrix sweep is, per stage,
 
 .. math::
 
