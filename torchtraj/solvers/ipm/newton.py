@@ -129,6 +129,8 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
     ``sweep`` and ``terminal_rows`` (``IPOptions``), solve it and recover ``Δs``, ``Δz`` (FATROP eq. 8) for the
     complementarity ``μ`` or ``target`` (:func:`newton_rhs`)."""
     factor = factorize(lqr, shift=delta, sweep=sweep, terminal_rows=terminal_rows) if factor is None else factor
+    if _none_factorised(factor):  # an attempt of the inertia correction that failed for every instance
+        return _failed(it, factor, keep_factor)
     sol = factor.solve(rhs, multipliers=True)
     dX, dU = sol.dx, sol.du
     dw = torch.cat([dX[:, :-1], dU], -1)
@@ -147,6 +149,23 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
     dy, dyN = (it.z + dz - it.y) * on, it.zN + dzN - it.yN
     return Direction(dX=dX, dU=dU, ds=ds, dsN=dsN, dz=dz, dzN=dzN, dy=dy, dyN=dyN, dlam=sol.costate, dnu=dnu,
                      dnuN=dnuN, K=gains_of(factor), ok=factor.ok & finite, factor=factor if keep_factor else None)
+
+
+def _none_factorised(factor: RiccatiFactor) -> bool:
+    """Whether no instance's system is positive definite, read where a host read costs nothing: eager and on a
+    CPU (a traced kernel or a captured graph cannot read it, and on an accelerator it would wait for the device)."""
+    ok = factor.ok
+    return ok.device.type == "cpu" and not torch.compiler.is_compiling() and not bool(ok.any())
+
+
+def _failed(it: Iterate, factor: RiccatiFactor, keep_factor: bool) -> Direction:
+    """The step of an attempt that no instance passed: zero, not ``ok``; its solve would be thrown away (the
+    inertia correction takes an attempt's step only where it is ``ok``, and an instance whose attempts all fail
+    stops without one)."""
+    zero = torch.zeros_like
+    return Direction(dX=zero(it.X), dU=zero(it.U), ds=zero(it.s), dsN=zero(it.sN), dz=zero(it.z), dzN=zero(it.zN),
+                     dy=zero(it.y), dyN=zero(it.yN), dlam=zero(it.lam), dnu=zero(it.nu), dnuN=zero(it.nuN),
+                     K=gains_of(factor), ok=factor.ok, factor=factor if keep_factor else None)
 
 
 def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last: Tensor, running: Tensor,
