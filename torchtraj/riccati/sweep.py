@@ -68,9 +68,11 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
     of ``E_k = [I; K_k]`` (its identity rows set once) and ``E_kᵀ`` is a view of it, so that a stage of a single
     control is nine calls: two products for ``H``, four for the gain, two for ``X = E_kᵀ H E_k`` and one for
     ``X + Xᵀ``, with no joining, splitting or stacking."""
+    if torch.compiler.is_compiling() or (torch.is_grad_enabled() and any(t.requires_grad for t in (W, Hs, QN, rho))):
+        return _factorize_stages_traced(W, Hs, QN, rho, held)
     N, Bsz, nx, n = W.shape
     nu = n - nx
-    buf = _Buffers(W, N, Bsz, nx, nu, (W, Hs, QN, rho))
+    buf = _Buffers(W, N, Bsz, nx, nu)
     rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
     minus_rho = -rho
     # the sweep carries 2 P_k = X + Xᵀ (X = E_kᵀ H E_k), the symmetrisation without its halving, and takes P_k W_k as
@@ -109,20 +111,71 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
     return buf.Ps * 0.5, K, Quu, Qux, chol, ok
 
 
+def _factorize_stages_traced(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optional[Tensor]):
+    """:func:`factorize_stages` traced by ``torch.compile`` or under autograd: the same recursion with new tensors
+    for every stage's results, stacked after the loop (writes into views of buffers make a compiled kernel's batch
+    size static, and ``out=`` takes no part in autograd)."""
+    N, Bsz, nx, n = W.shape
+    nu = n - nx
+    eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
+    rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
+    minus_rho = -rho
+    # the sweep carries 2 P_k = X + Xᵀ (X = E_kᵀ H E_k), the symmetrisation without its halving, and takes P_k W_k as
+    # (2 P_k)(W_k / 2): scaling by a power of two is exact, so every P_k, H and K is the one of sym(X), one call a stage
+    # fewer, and the stack of them is halved once
+    Ws, WTs, Hss = (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.unbind(0)
+    if held is not None:
+        free = 1.0 - held
+        outer = _stages(free.unsqueeze(-1) * free.unsqueeze(-2))
+        held_diag = _stages(torch.diag_embed(held))
+        free_rows = _stages(free.unsqueeze(-1))
+    minus_one = W.new_full((), -1.0)
+    P2 = QN + QN
+    Ps, Ks, Quus, Quxs, chols, oks = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N, [None] * N
+    Ps[N] = P2
+    for t in range(N - 1, -1, -1):
+        H = addmatmul(Hss[t], WTs[t], matmul(P2, Ws[t]))
+        Qux, Quu = H[:, nx:].split([nx, nu], -1)
+        rows = Qux
+        if nu == 1:  # K = Q_ux / −(Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
+            negative = torch.sub(minus_rho, Quu)
+            if held is not None:  # the held controls out of the free ones' system
+                negative = negative * outer[t] - held_diag[t]
+                rows = Qux * free_rows[t]
+            ok = negative < 0
+            L = torch.where(ok, negative, minus_one)
+            K = rows / L
+        else:
+            Hu = Quu + rho
+            if held is not None:
+                Hu = Hu * outer[t] + held_diag[t]
+                rows = Qux * free_rows[t]
+            L, info = _cholesky(Hu)
+            ok = info == 0
+            K = -_cholesky_solve(rows, L)
+        E = torch.cat([eye_x, K], -2)
+        X = matmul(_mT(E), matmul(H, E))
+        P2 = X + _mT(X)
+        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t], oks[t] = P2, K, Quu, Qux, L, ok
+    ok = torch.stack(oks, 0) if nu == 1 else torch.stack(oks, 1).all(1)
+    chol = _time_major(chols)
+    return _time_major(Ps) * 0.5, _time_major(Ks), _time_major(Quus), _time_major(Quxs), chol, ok
+
+
+
+
 class _Buffers:
     """The time-major outputs of :func:`factorize_stages` and the per-stage views it reads and writes, each made
     once for the horizon (one ``unbind`` a block, not one indexing call a stage).
 
-    Eager and without autograd a stage's call writes its buffer itself (``out=``, :meth:`put`); a batched product
-    written so may take another of the library's kernels than one into a new tensor, so a result can differ from
-    that of an unbuffered sweep in its last bits. Traced by ``torch.compile`` or under autograd (where ``out=`` takes
-    no part) the call's result is copied in, and the products are :mod:`torchtraj.core.compiled`'s."""
+    A stage's call writes its buffer itself (``out=``, :meth:`put`); a batched product written so may take another of
+    the library's kernels than one into a new tensor, so a result can differ from that of the traced sweep
+    (:func:`_factorize_stages_traced`) in its last bits."""
 
-    def __init__(self, W: Tensor, N: int, Bsz: int, nx: int, nu: int, inputs: tuple):
+    matmul, addmatmul = staticmethod(torch.bmm), staticmethod(torch.baddbmm)
+
+    def __init__(self, W: Tensor, N: int, Bsz: int, nx: int, nu: int):
         n = nx + nu
-        self.direct = not torch.compiler.is_compiling() and not (
-            torch.is_grad_enabled() and any(t.requires_grad for t in inputs))
-        self.matmul, self.addmatmul = (torch.bmm, torch.baddbmm) if self.direct else (matmul, addmatmul)
         Hb = W.new_empty(N, Bsz, n, n)
         Eb = W.new_empty(N, Bsz, n, nx)
         Eb[..., :nx, :] = torch.eye(nx, dtype=W.dtype, device=W.device)
@@ -145,11 +198,10 @@ class _Buffers:
         strided views of ``E`` and ``H``, and the later sweeps' products read them as the stacked lists were."""
         return tuple(a.contiguous().transpose(0, 1) for a in self._stacked)
 
-    def put(self, out: Tensor, op, *args) -> Tensor:
+    @staticmethod
+    def put(out: Tensor, op, *args) -> Tensor:
         """``op(*args)`` written into ``out``, which is returned."""
-        if self.direct:
-            return op(*args, out=out)
-        return out.copy_(op(*args))
+        return op(*args, out=out)
 
 
 def finish_single(chol: Tensor, ok: Tensor) -> tuple:
