@@ -53,6 +53,23 @@ def _columns(v: Tensor) -> tuple:
     return v.unsqueeze(-1).unbind(1)
 
 
+def _stage_inputs(W: Tensor, Hs: Tensor, rho: Tensor, held: Optional[Tensor]) -> tuple:
+    """What both matrix sweeps read per stage, made once for the horizon: ``(ρ I, −ρ I, W_k / 2, W_kᵀ, H_k, (outer,
+    held_diag, free_rows), −1)``, the held controls' terms per stage (each ``None`` without ``held``).
+
+    The sweep carries ``2 P_k = X + Xᵀ`` (``X = E_kᵀ H E_k``), the symmetrisation without its halving, and takes
+    ``P_k W_k`` as ``(2 P_k)(W_k / 2)``: scaling by a power of two is exact, so every ``P_k``, ``H`` and ``K`` is the
+    one of ``sym(X)``, one call a stage fewer, and the stack of them is halved once."""
+    Bsz, nu = W.shape[1], W.shape[-1] - W.shape[-2]
+    rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
+    held_terms = (None, None, None)
+    if held is not None:
+        free = 1.0 - held
+        held_terms = (_stages(free.unsqueeze(-1) * free.unsqueeze(-2)), _stages(torch.diag_embed(held)),
+                      _stages(free.unsqueeze(-1)))
+    return (rho, -rho, (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.unbind(0), held_terms, W.new_full((), -1.0))
+
+
 def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optional[Tensor]):
     """The matrix sweep without back-propagated rows.
 
@@ -73,18 +90,7 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
     N, Bsz, nx, n = W.shape
     nu = n - nx
     buf = _Buffers(W, N, Bsz, nx, nu)
-    rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
-    minus_rho = -rho
-    # the sweep carries 2 P_k = X + Xᵀ (X = E_kᵀ H E_k), the symmetrisation without its halving, and takes P_k W_k as
-    # (2 P_k)(W_k / 2): scaling by a power of two is exact, so every P_k, H and K is the one of sym(X), one call a stage
-    # fewer, and the stack of them is halved once
-    Ws, WTs, Hss = (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.unbind(0)
-    if held is not None:
-        free = 1.0 - held
-        outer = _stages(free.unsqueeze(-1) * free.unsqueeze(-2))
-        held_diag = _stages(torch.diag_embed(held))
-        free_rows = _stages(free.unsqueeze(-1))
-    minus_one = W.new_full((), -1.0)
+    rho, minus_rho, Ws, WTs, Hss, (outer, held_diag, free_rows), minus_one = _stage_inputs(W, Hs, rho, held)
     chols, oks = [None] * N, [None] * N
     buf.put(buf.P[N], torch.add, QN, QN)
     for t in range(N - 1, -1, -1):
@@ -118,18 +124,7 @@ def _factorize_stages_traced(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, hel
     N, Bsz, nx, n = W.shape
     nu = n - nx
     eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
-    rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
-    minus_rho = -rho
-    # the sweep carries 2 P_k = X + Xᵀ (X = E_kᵀ H E_k), the symmetrisation without its halving, and takes P_k W_k as
-    # (2 P_k)(W_k / 2): scaling by a power of two is exact, so every P_k, H and K is the one of sym(X), one call a stage
-    # fewer, and the stack of them is halved once
-    Ws, WTs, Hss = (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.unbind(0)
-    if held is not None:
-        free = 1.0 - held
-        outer = _stages(free.unsqueeze(-1) * free.unsqueeze(-2))
-        held_diag = _stages(torch.diag_embed(held))
-        free_rows = _stages(free.unsqueeze(-1))
-    minus_one = W.new_full((), -1.0)
+    rho, minus_rho, Ws, WTs, Hss, (outer, held_diag, free_rows), minus_one = _stage_inputs(W, Hs, rho, held)
     P2 = QN + QN
     Ps, Ks, Quus, Quxs, chols, oks = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N, [None] * N
     Ps[N] = P2
@@ -160,8 +155,6 @@ def _factorize_stages_traced(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, hel
     ok = torch.stack(oks, 0) if nu == 1 else torch.stack(oks, 1).all(1)
     chol = _time_major(chols)
     return _time_major(Ps) * 0.5, _time_major(Ks), _time_major(Quus), _time_major(Quxs), chol, ok
-
-
 
 
 class _Buffers:
