@@ -5,10 +5,16 @@ classical Maratos example on the circle), started on the circle at the angle 0.5
 tangent, so the full Newton step leaves the circle, its ``θ`` grows, and the filter rejects it. With the correction
 every step is taken whole; without it the line search halves the second step. Either way the solution is the
 analytic optimum ``x_N = (1, 0)``, ``u_k = (1/2, 0)``, cost ``−1 + 10⁻³ · 2 · (1/2)² = −0.9995``.
+
+The filter's augmentation (W&B 2006 step A-7): a step that met the switching and Armijo conditions adds no entry,
+whichever test accepted it. IPOPT's first iteration on the minimum-time cart-pendulum swing (its log, default
+options: ``4.15e-01f``, two trial points) is such a step at ``θ = 3.14``, far above ``θ_min``, so that its filter
+stays empty; the IPM takes the same step size there and must leave its filter empty too.
 """
 
 import math
 
+import pytest
 import torch
 from small_problems import powell_circle
 
@@ -46,3 +52,23 @@ def test_least_squares_multipliers_take_ipopts_path(reference):
     assert abs(float(estimated.cost[0]) - ipopt["cost"]) / ipopt["cost"] < 1e-8
     assert int(estimated.iterations[0]) <= ipopt["iterations"] < int(zero.iterations[0])
     assert abs(float(zero.cost[0]) - ipopt["cost"]) / ipopt["cost"] > 0.5
+
+
+def test_a_step_that_meets_the_switching_and_armijo_conditions_adds_no_filter_entry(monkeypatch):
+    """The cart-pendulum swing's first iteration (module docstring): IPOPT's step size 0.415, and no filter entry
+    (an entry there blocked the next steps: the filter was reset at the sixth iteration and the solve took 129
+    iterations, not 105)."""
+    from torchtraj.bench import minimum_time_problems
+    from torchtraj.solvers.ipm import solver as ipm_solver
+
+    steps, search = [], ipm_solver.line_search
+
+    def recorded(*args, **kwargs):
+        steps.append(search(*args, **kwargs))
+        return steps[-1]
+
+    monkeypatch.setattr(ipm_solver, "line_search", recorded)
+    tt.solve(minimum_time_problems.get("cartpole_swing").problem, method="ipm", options=tt.IPOptions(iterations=1))
+    (step,) = steps
+    assert bool(step.found[0]) and float(step.alpha[0]) == pytest.approx(0.415, abs=5e-4)
+    assert bool(torch.isinf(step.filter.entries).all())

@@ -41,6 +41,7 @@ from kkt import kkt_residuals
 from small_problems import powell_circle
 
 import torchtraj as tt
+from torchtraj import problems
 from torchtraj.globalization.filter import Filter
 from torchtraj.solvers.ipm.line_search import Step
 from torchtraj.solvers.ipm.watchdog import Watchdog, count_steps
@@ -122,28 +123,28 @@ def test_the_filter_reset_keeps_the_entry_of_the_point_the_step_leaves():
 
 def test_the_solver_asks_for_a_reset_only_where_a_count_can_reach_its_trigger(monkeypatch):
     """The iteration reads, with its other host reads, whether a count of blocked steps is one short of the
-    trigger; only then does ``count_steps`` compute a reset. On the cart-pendulum swing the filter is reset at
-    the sixth iteration (its first five steps were blocked): the same iterates as when every step may reset."""
-    from torchtraj.bench import minimum_time_problems
+    trigger; only then does ``count_steps`` compute a reset. On car_3obs the filter blocks the steps of iterations
+    28 to 32 and is reset at the 32nd: the reset is asked for there alone, and the iterates are the same as when
+    every step may reset."""
     from torchtraj.solvers.ipm import solver as ipm_solver
 
-    problem = minimum_time_problems.get("cartpole_swing").problem
-    options = tt.IPOptions(iterations=8)
-    calls, count = [], ipm_solver.count_steps
+    problem = problems.get("car_3obs")
+    options = tt.IPOptions(iterations=32)
+    calls, before, resets, count = [], [], [], ipm_solver.count_steps
 
     def always(*args):
         calls.append(args[-1])
+        before.append(int(args[0].blocked.max()))
         wd, filt = count(*args[:-1], True)
         resets.append(int(wd.resets.sum()))
         return wd, filt
 
-    resets = []
     monkeypatch.setattr(ipm_solver, "count_steps", always)
     every = tt.solve(problem, method="ipm", options=options)
-    asked = list(calls)
     monkeypatch.setattr(ipm_solver, "count_steps", count)
     gated = tt.solve(problem, method="ipm", options=options)
-    assert resets[-1] == 1 and asked[:4] == [False] * 4 and asked[5] is True
+    assert resets[-1] == 1 and resets[-2] == 0
+    assert calls == [b >= options.filter_reset_trigger - 1 for b in before] and sum(calls) == 1
     assert torch.equal(every.X, gated.X) and torch.equal(every.U, gated.U)
     assert torch.equal(every.history.step_size, gated.history.step_size)
 

@@ -11,8 +11,10 @@ to zero: the largest primal step ``α_max`` and, for ``z``, its own step ``α_z`
 .. math::  ∇φ^T Δ < 0 \quad\text{and}\quad α (−∇φ^T Δ)^{s_φ} > δ\, θ^{s_θ}
 
 with ``θ ≤ θ_min`` it is an f-type step and must meet the Armijo condition ``φ(α) ≤ φ + η_φ α ∇φ^T Δ``; otherwise
-it must decrease ``θ`` or ``φ`` sufficiently, ``θ(α) ≤ (1 − γ_θ) θ`` or ``φ(α) ≤ φ − γ_φ θ``, and the filter is
-augmented with ``((1 − γ_θ) θ, φ − γ_φ θ)`` after the step. The step sizes are evaluated in rounds of
+it must decrease ``θ`` or ``φ`` sufficiently, ``θ(α) ≤ (1 − γ_θ) θ`` or ``φ(α) ≤ φ − γ_φ θ``. After the step the
+filter is augmented with ``((1 − γ_θ) θ, φ − γ_φ θ)`` unless the step met both the switching and the Armijo
+condition (W&B 2006 step A-7, whichever of the two tests accepted it: a step of ``θ > θ_min`` that happens to meet
+them adds no entry either, as in IPOPT). The step sizes are evaluated in rounds of
 ``line_search_parallel``, every instance and step size of a round in one batched evaluation (multiple shooting
 needs no rollout) by the shared driver :func:`~torchtraj.globalization.line_search.backtrack`; the full step is
 usually accepted in the first round. A step below round-off (IPOPT's tiny step) is taken whole, with no filter
@@ -97,10 +99,11 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     reference barrier objective ``phi``, its slope ``slope`` (:func:`step_measures`) and ``model.theta``; the
     switching and Armijo conditions take ``test_alphas (B, l)`` where given (the watchdog's stored step size).
 
-    Returns ``accept (B, l)``, ``f_type (B, l)``: the step is an f-type step that met the Armijo condition
-    (no filter entry is added for those), ``blocked (B, l)``: rejected by the filter alone (the filter reset
-    heuristic counts those), the candidates' ``θ (B, l)`` and their residuals ``(defects, h, hN, g + s, gN + sN)``
-    (``(B, l, ...)`` each; a second-order correction starts from them)."""
+    Returns ``accept (B, l)``, ``unfiltered (B, l)``: the step met the switching and the Armijo conditions (no
+    filter entry is added for those, whether or not ``θ ≤ θ_min`` made it an f-type step), ``blocked (B, l)``:
+    rejected by the filter alone (the filter reset heuristic counts those), the candidates' ``θ (B, l)`` and their
+    residuals ``(defects, h, hN, g + s, gN + sN)`` (``(B, l, ...)`` each; a second-order correction starts from
+    them)."""
     B, L = alphas.shape
     knots = model.knots
     a4 = alphas.reshape(B, L, 1, 1)
@@ -129,7 +132,9 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     finite = torch.isfinite(theta_c) & torch.isfinite(phi_c)
     sufficient = finite & (theta_c <= theta_max.unsqueeze(1)) & torch.where(f_type, armijo, decrease)
     acceptable = filt.acceptable(theta_c, phi_c)
-    return sufficient & acceptable, f_type & armijo, sufficient & ~acceptable, theta_c, parts
+    # no filter entry after a step that met the switching and Armijo conditions, whichever test accepted it (W&B
+    # 2006 step A-7 and IPOPT's UpdateForNextIteration: the θ ≤ θ_min of an f-type step does not enter)
+    return sufficient & acceptable, switching & armijo, sufficient & ~acceptable, theta_c, parts
 
 
 def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor, knots: Tensor,
@@ -187,11 +192,11 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
 
     def acceptable(alphas, rows=None):  # `rows`: a later round's instances still looking, alone (eager)
         if rows is None:
-            accept, f_ok, blocked, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi, slope,
-                                                                filt, theta_max, theta_min, alphas, opts)
+            accept, unfiltered, blocked, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi,
+                                                                      slope, filt, theta_max, theta_min, alphas, opts)
             last = previous[0]
         else:
-            accept, f_ok, blocked, theta_c, parts = filter_test(
+            accept, unfiltered, blocked, theta_c, parts = filter_test(
                 problem, cons, param_rows(params, rows), gather_rows(it, rows), gather_rows(d, rows),
                 gather_rows(model, rows), *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
                 theta_max[rows], theta_min[rows], alphas, opts)
@@ -200,7 +205,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
             first.append((accept[:, 0], theta_c[:, 0], parts, blocked[:, 0]))
         before = torch.cat([last.unsqueeze(1), blocked[:, :-1]], 1)  # each candidate's predecessor
         previous[0] = blocked[:, -1] if rows is None else previous[0].index_copy(0, rows, blocked[:, -1])
-        return accept, (f_ok, before)
+        return accept, (unfiltered, before)
 
     eager = filter_test is trial  # compiled or graphed kernels keep the batch's shape
 
@@ -208,7 +213,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
     steps = backtrack(a_max.unsqueeze(1) * powers, max(1, opts.line_search_parallel), acceptable, pending, start,
                       sync_first=True, by_rows=eager)
-    found, alpha, (f_type, blocked) = steps.found, steps.alpha, steps.values
+    found, alpha, (unfiltered, blocked) = steps.found, steps.alpha, steps.values
     shortened = found & ~tiny & (alpha < a_max)
     corrected = None
     if correct is not None and first:
@@ -217,11 +222,11 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         if bool(need.any()):
             corrected = correct(need, a_max, phi, slope, parts)
             alpha = torch.where(corrected.found, corrected.alpha, alpha)
-            f_type = torch.where(corrected.found, corrected.f_type, f_type)
+            unfiltered = torch.where(corrected.found, corrected.unfiltered, unfiltered)
             blocked = torch.where(corrected.found, blocked_first, blocked)
             shortened = shortened & ~corrected.found
             found = found | corrected.found
-    filt = filt.add(found & ~f_type, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
+    filt = filt.add(found & ~unfiltered, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
     new_it = kernel_of(advance, opts, it.X.device)(it, d, alpha, a_dual, mu, model.knots, opts)
     if corrected is not None:
         new_it = pick(corrected.found, corrected.it, new_it)

@@ -45,12 +45,12 @@ from .options import IPOptions
 
 @dataclass
 class Correction:
-    """Per instance: a corrected step was accepted ``found (B,)``, its size ``alpha (B,)``, whether it was an f-type
-    step ``f_type (B,)``, and the iterate after it ``it``."""
+    """Per instance: a corrected step was accepted ``found (B,)``, its size ``alpha (B,)``, whether it met the
+    switching and Armijo conditions ``unfiltered (B,)`` (no filter entry), and the iterate after it ``it``."""
 
     found: Tensor
     alpha: Tensor
-    f_type: Tensor
+    unfiltered: Tensor
     it: Iterate
 
 
@@ -84,7 +84,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     compiled = opts.compile and not uses_graphs(opts, it.X.device)
     factor = None if compiled else d.factor if d.factor is not None else factorize_step(lqr, delta, opts)
     found = torch.zeros_like(need)
-    alpha, f_type, best = torch.zeros_like(mu), torch.zeros_like(need), d
+    alpha, unfiltered, best = torch.zeros_like(mu), torch.zeros_like(need), d
     a_dual = torch.zeros_like(mu)
     active = need
     for _ in range(opts.second_order_corrections):
@@ -103,17 +103,18 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         # step sizes (line_search.line_search, globalization.line_search.backtrack): the round's kernel
         alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
             :, :max(1, opts.line_search_parallel)].contiguous() if compiled else a_soc.unsqueeze(1)
-        accept, f_ok, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu, phi,
-                                                                  slope, filt, theta_max, theta_min, alphas, opts)
+        accept, no_entry, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu,
+                                                                      phi, slope, filt, theta_max, theta_min, alphas,
+                                                                      opts)
         new = active & accept[:, 0] & step.ok
         found = found | new
         alpha, a_dual = torch.where(new, a_soc, alpha), torch.where(new, a_dual_soc, a_dual)
-        f_type = torch.where(new, f_ok[:, 0], f_type)
+        unfiltered = torch.where(new, no_entry[:, 0], unfiltered)
         best = pick(new, step, best)
         active = active & ~new & step.ok & (theta_c[:, 0] <= opts.soc_decrease * theta_old)
         theta_old = theta_c[:, 0]
         c_soc = tuple(_scaled(a_soc, c) + t[:, 0] for c, t in zip(c_soc, parts))
-    return Correction(found=found, alpha=alpha, f_type=f_type,
+    return Correction(found=found, alpha=alpha, unfiltered=unfiltered,
                       it=kernel(advance, compiled)(it, best, alpha, a_dual, mu, knots, opts))
 
 
@@ -137,5 +138,5 @@ def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate,
         delta[rows], x0[rows], opts)
     return Correction(found=torch.zeros_like(need).index_copy(0, rows, sub.found),
                       alpha=torch.zeros_like(mu).index_copy(0, rows, sub.alpha),
-                      f_type=torch.zeros_like(need).index_copy(0, rows, sub.f_type),
+                      unfiltered=torch.zeros_like(need).index_copy(0, rows, sub.unfiltered),
                       it=write_rows(it, rows, sub.it))

@@ -8,13 +8,13 @@ objective ``φ^W``, slope ``∇φ^{W T} Δ^W``, ``θ^W`` and step ``α^W_max``, 
 iterations (``watchdog_trial_iter_max`` = 3) the full step ``α_max`` (fraction to boundary) is taken *without* a
 line search. At each of them the trial point is tested against the stored point (the switching, Armijo and
 sufficient-decrease conditions with ``θ^W``, ``φ^W``, ``α^W_max`` and its slope, and the filter): where it passes,
-the step is accepted as a regular one (the filter is augmented with ``w^W``'s entry unless it is an f-type step) and
-the watchdog ends. Where none of them passes, the iterate returns to ``w^W``, whose next iteration backtracks along
-its direction (recomputed there: it is the stored one but for ``δ_w``, which may have moved; IPOPT backtracks
-within the same iteration). A barrier update ends a watchdog where it stands (its reference ``φ^W`` belongs to the
-old ``μ``), as does a trial point that is not finite, or one where no Newton step is found (back to ``w^W``: the
-full steps of a swing-up can run off in three iterations, cartpole_unconstrained from one of its ``sample_x0``
-starts).
+the step is accepted as a regular one (the filter is augmented with ``w^W``'s entry unless it met the switching and
+Armijo conditions) and the watchdog ends. Where none of them passes, the iterate returns to ``w^W``, whose next
+iteration backtracks along its direction (recomputed there: it is the stored one but for ``δ_w``, which may have
+moved; IPOPT backtracks within the same iteration). A barrier update ends a watchdog where it stands (its reference
+``φ^W`` belongs to the old ``μ``), as does a trial point that is not finite, or one where no Newton step is found
+(back to ``w^W``: the full steps of a swing-up can run off in three iterations, cartpole_unconstrained from one of
+its ``sample_x0`` starts).
 
 **Filter reset heuristic** (W&B §3.2's companion in IPOPT: ``filter_reset_trigger`` = 5, ``max_filter_resets``
 = 5): where, in ``filter_reset_trigger`` successive iterations, the last trial point rejected before the step
@@ -90,13 +90,14 @@ def watched_step(problem: Problem, cons, params, it: Iterate, d: Direction, mode
                  slope=torch.where(starting, slope, wd.slope), theta=torch.where(starting, model.theta, wd.theta),
                  alpha=torch.where(starting, a_max, wd.alpha), last=torch.where(starting, last, wd.last))
     reference = replace(model, theta=wd.theta)
-    accept, f_ok, _, theta_c, _ = trial(problem, cons, params, it, d, reference, mu, wd.phi, wd.slope, filt,
+    accept, unfiltered, _, theta_c, _ = trial(problem, cons, params, it, d, reference, mu, wd.phi, wd.slope, filt,
                                         theta_max, theta_min, a_max.unsqueeze(1), opts, wd.alpha.unsqueeze(1))
     accepted = watching & accept[:, 0]
     trials = wd.trials + watching.long()
     finite = torch.isfinite(theta_c[:, 0])
     give_up = watching & ~accepted & ((trials > opts.watchdog_trials) | ~finite)
-    filt = filt.add(accepted & ~f_ok[:, 0], (1.0 - opts.filter_theta) * wd.theta, wd.phi - opts.filter_phi * wd.theta)
+    filt = filt.add(accepted & ~unfiltered[:, 0], (1.0 - opts.filter_theta) * wd.theta,
+                    wd.phi - opts.filter_phi * wd.theta)
     moved = advance(it, d, a_max, a_dual, mu, model.knots, opts)
     new_it = pick(give_up, wd.it, moved)
     wd = replace(wd, trials=torch.where(watching, trials, wd.trials)).stop(accepted | give_up)
