@@ -104,6 +104,7 @@ def test_compile_flag_reaches_the_solver_options():
     assert bench_main.parser().parse_args(["--grad", "--compile"]).compile
 
 
+@pytest.mark.slow  # a minute of Dynamo tracing; the default run keeps the compiled kernels' own tests
 def test_compiled_rows_report_the_run_that_compiled_them(tmp_path, monkeypatch):
     """``--compile``: the untimed run of the batch that compiles the kernels is timed and reported next to the
     timed row and in the throughput line (the kernels captured by Dynamo and run as captured, to keep it short)."""

@@ -121,6 +121,7 @@ def test_one_capture_of_each_altro_kernel_serves_every_batch_size(dynamo_capture
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
 
 
+@pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the test above
 def test_compiled_altro_iterates_the_running_instances_alone(monkeypatch, dynamo_capture):
     """Compiled iLQR iterations leave the finished instances behind (``ILQROptions.compact_below``) down to two
     instances, with no graph for the smaller batches and the eager answers (Dynamo's capture alone)."""

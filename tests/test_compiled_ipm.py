@@ -85,6 +85,7 @@ def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
 
 
+@pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the two tests above
 def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_capture):
     """With a dynamic batch dimension the compiled kernels iterate the running instances alone
     (``IPOptions.compact_below``), down to two of them, with the eager answers."""
