@@ -245,3 +245,20 @@ def test_altro_expansion_from_one_pass_is_the_separate_passes():
                           (rhs.q, want_rhs.q + grad[..., :nx]), (rhs.r, want_rhs.r + grad[..., nx:]),
                           (rhs.qN, want_rhs.qN + (CN.mT @ (duals.terminal + wN * cN).unsqueeze(-1)).squeeze(-1))]:
         torch.testing.assert_close(got, expected, rtol=0, atol=0)
+
+
+def test_a_stage_mapper_evaluates_as_map_stage_with_shared_and_batched_parameters():
+    """``stage_mapper(fn, params)`` (a rollout's steps: the parameters split once) gives ``map_stage``'s values to the
+    last bit, for parameters shared by the batch (expanded) and per instance, with and without extra dimensions."""
+    from torchtraj.core.batching import map_stage, stage_mapper
+
+    g = torch.Generator().manual_seed(3)
+    fn = tt.rk4(lambda x, u, p: torch.stack([x[1], (u[0] - p["k"] * torch.sin(x[0])) / p["m"]]), 0.1)
+    shared, mass = (torch.tensor([v], dtype=torch.float64).expand(3) for v in (2.0, 0.5))
+    batched = torch.rand(3, generator=g, dtype=torch.float64) + 1
+    for params in ({"k": shared, "m": mass}, {"k": batched, "m": mass}, {"k": batched, "m": batched}):
+        step = stage_mapper(fn, params)
+        for lead in ((3,), (3, 4)):
+            X = torch.randn(*lead, 2, generator=g, dtype=torch.float64)
+            U = torch.randn(*lead, 1, generator=g, dtype=torch.float64)
+            assert torch.equal(step(X, U), map_stage(fn, X, U, params))

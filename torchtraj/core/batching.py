@@ -74,10 +74,10 @@ def _split_params(params: Params) -> tuple[dict, dict, bool]:
     return p, p_dims, len(shared) == len(params)
 
 
-def _map(fn: Callable, tensors: tuple, params: Params) -> Tensor:
+def _map(fn: Callable, tensors: tuple, params: Params, split: Optional[tuple] = None) -> Tensor:
     lead = tensors[0].shape[:-1]
     B, E = lead[0], math.prod(lead[1:])
-    p, p_dims, all_shared = _split_params(params)
+    p, p_dims, all_shared = _split_params(params) if split is None else split
     n_in = len(tensors)
     if all_shared:
         # every parameter shared: close over them rather than pass the dict through vmap, whose
@@ -105,6 +105,14 @@ def _restore(out, lead, flat_batch: bool):
 def map_stage(fn: Callable, X: Tensor, U: Tensor, params: Params) -> Tensor:
     """``fn(x, u, p)`` on ``X (B, *E, nx)``, ``U (B, *E, nu)`` with ``params`` batched over B."""
     return _map(fn, (X, U), params)
+
+
+def stage_mapper(fn: Callable, params: Params) -> Callable:
+    """``(X, U) ↦ map_stage(fn, X, U, params)`` for repeated calls with the same ``params`` (the steps of a
+    rollout): the parameters are split into shared and batched ones once (a view of each shared one), not at every
+    call."""
+    split = _split_params(params)
+    return lambda X, U: _map(fn, (X, U), params, split)
 
 
 def map_state(fn: Callable, X: Tensor, params: Params) -> Tensor:

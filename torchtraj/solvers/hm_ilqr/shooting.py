@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage
+from ...core.batching import stage_mapper
 from ...core.compiled import matvec
 from ...riccati.sweep import costate_stages
 
@@ -88,6 +88,7 @@ def rollout_segments(dynamics, params, nodes: Tensor, U: Tensor, segments: Segme
     extra = len(lead) - 1
     x = nodes
     xs, us = [x], []
+    step = stage_mapper(dynamics, params)
     for j in range(L):  # all segments at once: the sequential depth is L
         k = (segments.starts + j).clamp(max=N - 1)  # steps past N (a shorter last segment) are discarded below
         u = U[:, k].reshape(U.shape[0], *([1] * extra), M, U.shape[-1])
@@ -98,7 +99,7 @@ def rollout_segments(dynamics, params, nodes: Tensor, U: Tensor, segments: Segme
             Xr = X_ref[:, k].reshape(X_ref.shape[0], *([1] * extra), M, X_ref.shape[-1])
             u = u + matvec(Kk, x - Xr)
         u = u.expand(*lead, M, U.shape[-1])
-        x = map_stage(dynamics, x, u, params)
+        x = step(x, u)
         xs.append(x)
         us.append(u)
     states = torch.stack(xs, -2)  # (B, *E, M, L+1, nx)
