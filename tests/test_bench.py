@@ -207,7 +207,7 @@ def test_slope_is_the_least_squares_fit():
 
 
 def test_ops_report_counts_the_solves_it_prints(tmp_path):
-    from torchtraj.bench.ops import MPC_WARMUP, OperatorCounter
+    from torchtraj.bench.ops import MPC_WARMUP, OperatorCounter, with_horizon
 
     path = tmp_path / "ops.json"
     code, text = run(["--ops", "--method", "al-ilqr", "--problems", "double_integrator", "--ops-horizons", "5", "10",
@@ -242,6 +242,19 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
                             f"{expected:.1f}"]
     assert "first 2 iterations" in text
     assert data["header"]["torch"] == torch.__version__
+
+    # past the setup: iterations 3 and 4 alone, a solve capped at 4 less one capped at 2, counted here again
+    later = sweep["past_setup"]
+    solver = tt.solvers.get("al-ilqr")
+    for row, short in zip(later["rows"], (five, ten)):
+        problem = with_horizon(problems.get("double_integrator"), row["horizon"])
+        with OperatorCounter() as ops:
+            sol = tt.solve(problem, method=solver, options=solver.step_options(solver.default_options(), 4))
+        assert row["calls"] == ops.total - short["calls"]
+        assert row["iterations"] == int(sol.iterations.max()) - short["iterations"] > 0
+    first, second = (r["calls_per_iteration"] for r in later["rows"])
+    assert later["slopes"] == {"al-ilqr": pytest.approx((second - first) / 5)}
+    assert "past the setup on double_integrator: calls per iteration of iterations 3 to 4 alone" in text
 
     # the MPC row: two control steps of the pendulum controller after MPC_WARMUP uncounted, counted here again
     (step,) = data["mpc"]

@@ -37,7 +37,10 @@ solve capped at the first ``--ops-iterations`` iterations (the method's
 :meth:`~torchtraj.solvers.base.Solver.step_options`: a full solve at N = 200 under the counter takes minutes), its
 calls per iteration, and the least-squares slope of calls per iteration over N (:func:`slope`): the calls each
 added stage costs an iteration. A capped solve's calls per iteration include the solve's setup (and ALTRO's
-projection stage) spread over those few iterations, so they read higher than a full solve's.
+projection stage) spread over those few iterations, so they read higher than a full solve's. So the sweep counts the
+same solves capped at twice as many iterations too, and reports past the setup (:func:`past_setup`): the calls of
+iterations ``k+1`` to ``2k`` alone (the longer solve's calls less the shorter's, over the iterations between them),
+and their slope over N, the calls an added stage costs an iteration once the solve has started.
 
 Last, the MPC row (:func:`count_mpc`): for each method that handles constraints, the calls per control step of
 the pendulum environment's warm-started controller (N = 30, 3 iterations a step, B = 1) over 10 steps of its
@@ -230,6 +233,16 @@ def slope(horizons: Sequence[float], values: Sequence[float]) -> Optional[float]
     return sum((h - mean_n) * (v - mean_v) for h, v in zip(horizons, values)) / spread
 
 
+def past_setup(short: Count, long: Count) -> Count:
+    """The calls of the iterations that ``long`` made past ``short`` (the same solve capped at fewer iterations):
+    ``long``'s calls and iterations less ``short``'s (none where ``long`` made no more iterations)."""
+    row = Count(long.problem, long.method, long.horizon, long.iteration_cap, status=long.status,
+                error=long.error or short.error)
+    if row.error is None and long.iterations is not None and short.iterations is not None:
+        row.calls, row.iterations = long.calls - short.calls, long.iterations - short.iterations
+    return row
+
+
 # ---------------------------------------------------------------------------------------------- text
 def _line(cells, widths, right) -> str:
     return "  ".join(c.rjust(w) if r else c.ljust(w) for c, w, r in zip(cells, widths, right)).rstrip()
@@ -332,23 +345,27 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
     say(f"horizon sweep on {sweep_name} (the same time step, the control guess resampled): calls per iteration "
         f"{over}; calls/stage: the least-squares slope over N")
     say(_sweep_header(horizons))
-    sweep, slopes = [], {}
+    sweep, slopes, swept = [], {}, []
     for m in methods:
         if skip_reason(m, built[sweep_name]):
             continue
         solver = solvers.get(m)
-        options = solver.step_options(solver.default_options(), iterations) if iterations else None
-        rows = [count_solve(with_horizon(problem_set.get(sweep_name, dtype=dtype, device=device), n), solver,
-                            options, iteration_cap=iterations or None) for n in horizons]
-        good = [r for r in rows if r.calls_per_iteration is not None]
-        fitted = None if len(good) < len(rows) else slope([r.horizon for r in good],
-                                                          [r.calls_per_iteration for r in good])
-        slopes[solver.name] = fitted
-        say(format_sweep(solver.name, rows, fitted, horizons))
-        for r in rows:
-            if r.error:
-                say(f"  {solver.name} N={r.horizon}: ERROR {r.error.splitlines()[0]}")
+        rows = _sweep_rows(solver, sweep_name, horizons, iterations, dtype, device)
+        slopes[solver.name] = _say_sweep(solver.name, rows, horizons, say)
         sweep += rows
+        swept.append((solver, rows))
+    later, later_slopes = [], {}
+    if iterations:
+        say()
+        say(f"past the setup on {sweep_name}: calls per iteration of iterations {iterations + 1} to "
+            f"{2 * iterations} alone (the solve capped at {2 * iterations} less the one capped at {iterations}); "
+            f"calls/stage: the least-squares slope over N")
+        say(_sweep_header(horizons))
+        for solver, rows in swept:
+            longer = _sweep_rows(solver, sweep_name, horizons, 2 * iterations, dtype, device)
+            differences = [past_setup(short, long) for short, long in zip(rows, longer)]
+            later_slopes[solver.name] = _say_sweep(solver.name, differences, horizons, say)
+            later += differences
     steps = []
     if mpc_steps:
         say()
@@ -364,11 +381,32 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
         "header": header, "skipped": skipped, "solves": [r.to_json() for r in solves],
         "recorded": [r.to_json() for r in recorded],
         "horizons": {"problem": sweep_name, "iterations": iterations, "rows": [r.to_json() for r in sweep],
-                     "slopes": slopes},
+                     "slopes": slopes,
+                     "past_setup": {"rows": [r.to_json() for r in later], "slopes": later_slopes}},
         "mpc": [r.to_json() for r in steps],
     }
 
 
+def _sweep_rows(solver, name: str, horizons: Sequence[int], iterations: int, dtype, device) -> list:
+    """The counts of ``solver`` on problem ``name`` at each horizon, capped at ``iterations`` (0: whole solves)."""
+    options = solver.step_options(solver.default_options(), iterations) if iterations else None
+    return [count_solve(with_horizon(problem_set.get(name, dtype=dtype, device=device), n), solver, options,
+                        iteration_cap=iterations or None) for n in horizons]
+
+
+def _say_sweep(method: str, rows: Sequence[Count], horizons: Sequence[int], say) -> Optional[float]:
+    """Print one line of a horizon table (and the rows' errors); return its slope."""
+    good = [r for r in rows if r.calls_per_iteration is not None]
+    fitted = None if len(good) < len(rows) else slope([r.horizon for r in good],
+                                                      [r.calls_per_iteration for r in good])
+    say(format_sweep(method, rows, fitted, horizons))
+    for r in rows:
+        if r.error:
+            say(f"  {method} N={r.horizon}: ERROR {r.error.splitlines()[0]}")
+    return fitted
+
+
 def failed(report: dict) -> bool:
     """Whether some counted solve or control step of ``report`` (:func:`run`) raised."""
-    return any(r["error"] for r in report["solves"] + report["horizons"]["rows"] + report.get("mpc", []))
+    later = report["horizons"].get("past_setup", {}).get("rows", [])
+    return any(r["error"] for r in report["solves"] + report["horizons"]["rows"] + later + report.get("mpc", []))
