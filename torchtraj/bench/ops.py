@@ -66,6 +66,7 @@ from .. import solvers
 from ..core.problem import Problem
 from ..core.status import Status
 from ..solve import solve
+from .ops_text import format_count, format_sweep, solve_header, sweep_header
 from .runs import skip_reason, state_guess, with_record
 
 DEFAULT_PROBLEMS = ("pendulum", "cartpole", "car_3obs")
@@ -243,54 +244,6 @@ def past_setup(short: Count, long: Count) -> Count:
     return row
 
 
-# ---------------------------------------------------------------------------------------------- text
-def _line(cells, widths, right) -> str:
-    return "  ".join(c.rjust(w) if r else c.ljust(w) for c, w, r in zip(cells, widths, right)).rstrip()
-
-
-def _num(value: Optional[float], fmt: str) -> str:
-    return "-" if value is None else format(value, fmt)
-
-
-SOLVE_COLUMNS = (("problem", 22, False), ("method", 7, False), ("N", 4, True), ("iters", 6, True),
-                 ("calls/solve", 12, True), ("calls/iter", 11, True), ("status", 0, False))
-_WIDTHS, _RIGHT = [w for _, w, _ in SOLVE_COLUMNS], [r for _, _, r in SOLVE_COLUMNS]
-
-
-def _solve_header() -> str:
-    titles = _line([t for t, _, _ in SOLVE_COLUMNS], _WIDTHS, _RIGHT)
-    return titles + "\n" + "-" * len(titles)
-
-
-def format_count(row: Count) -> str:
-    lead = [row.problem, row.method, str(row.horizon)]
-    if row.error:
-        return _line(lead, _WIDTHS, _RIGHT) + "  ERROR " + row.error.splitlines()[0]
-    cells = [str(row.iterations), str(row.calls), _num(row.calls_per_iteration, ".0f"), row.status]
-    return _line(lead + cells, _WIDTHS, _RIGHT)
-
-
-def format_sweep(method: str, rows: Sequence[Count], fitted: Optional[float], horizons: Sequence[int]) -> str:
-    """One line of the horizon table: calls per iteration at each horizon, then the slope."""
-    by_n = {r.horizon: r for r in rows}
-    cells = [method]
-    for n in horizons:
-        r = by_n.get(n)
-        cells.append("ERROR" if r is None or r.error else _num(r.calls_per_iteration, ".0f"))
-    cells.append(_num(fitted, ".1f"))
-    return _line(cells, _sweep_widths(horizons), [False] + [True] * (len(horizons) + 1))
-
-
-def _sweep_widths(horizons: Sequence[int]) -> list:
-    return [7] + [max(8, len(f"N={n}")) for n in horizons] + [11]
-
-
-def _sweep_header(horizons: Sequence[int]) -> str:
-    titles = _line(["method"] + [f"N={n}" for n in horizons] + ["calls/stage"], _sweep_widths(horizons),
-                   [False] + [True] * (len(horizons) + 1))
-    return titles + "\n" + "-" * len(titles)
-
-
 # ---------------------------------------------------------------------------------------------- report
 def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], iterations: int,
         say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None, mpc_steps: int = MPC_STEPS,
@@ -317,7 +270,7 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
             for m in dict.fromkeys(s["method"] for s in which)))
     say()
     say("full solves from the problem's x0, each method's default options")
-    say(_solve_header())
+    say(solve_header())
     solves = []
     for name in names:
         for m in methods:
@@ -330,7 +283,7 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
     if record:
         say()
         say("the same solves with recorded kernels (record=True), each after an uncounted solve that records them")
-        say(_solve_header())
+        say(solve_header())
         for name in names:
             for m in methods:
                 if not skip_reason(m, built[name]) and solvers.get(m).records:
@@ -344,7 +297,7 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
             f"spread over those" if iterations else "over whole solves with the method's default options")
     say(f"horizon sweep on {sweep_name} (the same time step, the control guess resampled): calls per iteration "
         f"{over}; calls/stage: the least-squares slope over N")
-    say(_sweep_header(horizons))
+    say(sweep_header(horizons))
     sweep, slopes, swept = [], {}, []
     for m in methods:
         if skip_reason(m, built[sweep_name]):
@@ -360,7 +313,7 @@ def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], i
         say(f"past the setup on {sweep_name}: calls per iteration of iterations {iterations + 1} to "
             f"{2 * iterations} alone (the solve capped at {2 * iterations} less the one capped at {iterations}); "
             f"calls/stage: the least-squares slope over N")
-        say(_sweep_header(horizons))
+        say(sweep_header(horizons))
         for solver, rows in swept:
             longer = _sweep_rows(solver, sweep_name, horizons, 2 * iterations, dtype, device)
             differences = [past_setup(short, long) for short, long in zip(rows, longer)]

@@ -1,0 +1,56 @@
+"""The text tables of ``python -m torchtraj.bench --ops`` (:mod:`torchtraj.bench.ops`): one line per counted
+solve, one per method of a horizon sweep."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Optional, Sequence
+
+if TYPE_CHECKING:
+    from .ops import Count
+
+
+def _line(cells, widths, right) -> str:
+    return "  ".join(c.rjust(w) if r else c.ljust(w) for c, w, r in zip(cells, widths, right)).rstrip()
+
+
+def _num(value: Optional[float], fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+SOLVE_COLUMNS = (("problem", 22, False), ("method", 7, False), ("N", 4, True), ("iters", 6, True),
+                 ("calls/solve", 12, True), ("calls/iter", 11, True), ("status", 0, False))
+_WIDTHS, _RIGHT = [w for _, w, _ in SOLVE_COLUMNS], [r for _, _, r in SOLVE_COLUMNS]
+
+
+def solve_header() -> str:
+    titles = _line([t for t, _, _ in SOLVE_COLUMNS], _WIDTHS, _RIGHT)
+    return titles + "\n" + "-" * len(titles)
+
+
+def format_count(row: Count) -> str:
+    lead = [row.problem, row.method, str(row.horizon)]
+    if row.error:
+        return _line(lead, _WIDTHS, _RIGHT) + "  ERROR " + row.error.splitlines()[0]
+    cells = [str(row.iterations), str(row.calls), _num(row.calls_per_iteration, ".0f"), row.status]
+    return _line(lead + cells, _WIDTHS, _RIGHT)
+
+
+def format_sweep(method: str, rows: Sequence[Count], fitted: Optional[float], horizons: Sequence[int]) -> str:
+    """One line of the horizon table: calls per iteration at each horizon, then the slope."""
+    by_n = {r.horizon: r for r in rows}
+    cells = [method]
+    for n in horizons:
+        r = by_n.get(n)
+        cells.append("ERROR" if r is None or r.error else _num(r.calls_per_iteration, ".0f"))
+    cells.append(_num(fitted, ".1f"))
+    return _line(cells, _sweep_widths(horizons), [False] + [True] * (len(horizons) + 1))
+
+
+def _sweep_widths(horizons: Sequence[int]) -> list:
+    return [7] + [max(8, len(f"N={n}")) for n in horizons] + [11]
+
+
+def sweep_header(horizons: Sequence[int]) -> str:
+    titles = _line(["method"] + [f"N={n}" for n in horizons] + ["calls/stage"], _sweep_widths(horizons),
+                   [False] + [True] * (len(horizons) + 1))
+    return titles + "\n" + "-" * len(titles)
