@@ -1,12 +1,9 @@
 """The text tables of ``python -m torchtraj.bench --ops`` (:mod:`torchtraj.bench.ops`): one line per counted
-solve, one per method of a horizon sweep."""
+solve, one per method of a horizon sweep (rows: :class:`~torchtraj.bench.ops.Count`)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Optional, Sequence
-
-if TYPE_CHECKING:
-    from .ops import Count
+from typing import Optional, Sequence
 
 
 def _line(cells, widths, right) -> str:
