@@ -10,7 +10,8 @@ from same_solutions import assert_same_solutions
 import torchtraj as tt
 from torchtraj import problems
 from torchtraj.bench.ops import OperatorCounter
-from torchtraj.core import one_pass
+from torchtraj.core import batching, one_pass
+from torchtraj.core.batching import closed_loop_rollout
 from torchtraj.core.constraints import Constraints
 from torchtraj.core.one_pass import problem_kkt_expansion, problem_values
 from torchtraj.core.recorded import TRACE_AT, Recorded
@@ -103,6 +104,45 @@ def test_a_signature_is_traced_once_at_its_trace_at_th_call_and_autograd_runs_ea
     f(y, 2.0).sum().backward()  # eager: autograd sees the operators
     assert torch.allclose(y.grad, 2.0 * x.cos())
     assert f.traces == 4
+
+
+def test_views_of_one_buffer_at_other_offsets_share_a_record_and_read_their_own_elements():
+    """The signature leaves out the storage offset: a collapsed view chain (``as_strided``) is replayed relative to
+    its tensor's own offset, so that the stages of a rollout, views one stage apart in a buffer, share a record."""
+    f = Recorded(lambda x: x.t()[1:].t() * 2.0)  # a view of a view: one strided view of x in the record
+    buffer = torch.rand(6, 3, 4, dtype=F64)
+    stages = buffer.unbind(0)  # (3, 4) views at offsets 0, 12, 24, ...
+    for _ in range(TRACE_AT):
+        f(stages[0])
+    assert f.traces == 1
+    with OperatorCounter() as calls:
+        replayed = [f(stage) for stage in stages]
+    for stage, out in zip(stages, replayed):
+        assert torch.equal(out, stage[:, 1:] * 2.0)
+    assert f.traces == 1 and calls.total == 2 * len(stages)  # the strided view and the product, replayed
+
+
+@pytest.mark.parametrize("name", ["pendulum", "cartpole"])
+def test_a_recorded_rollout_is_the_eager_one_to_the_last_bit_in_fewer_calls(name):
+    """``closed_loop_rollout(..., record=True)`` (the line search of iLQR and ALTRO with ``ILQROptions.record``):
+    each stage replayed from one record, the eager rollout's states and controls to the last bit."""
+    p = problems.get(name)
+    g = torch.Generator().manual_seed(0)
+    B, E, N = 2, 3, p.N
+    x0 = p.x0.expand(B, E, p.nx) + 0.1 * torch.randn(B, E, p.nx, dtype=F64, generator=g)
+    U = 0.5 * torch.randn(B, E, N, p.nu, dtype=F64, generator=g)
+    X_ref = torch.randn(B, N + 1, p.nx, dtype=F64, generator=g)
+    K = 0.1 * torch.randn(B, N, p.nu, p.nx, dtype=F64, generator=g)
+    params = {k: v.unsqueeze(0).expand(B, *v.shape) for k, v in p.params.items()}
+    with OperatorCounter() as eager_calls:
+        X, Us = closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K)
+    traces = batching._RECORDED_STAGE_STEP.traces
+    closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)  # traced at the TRACE_AT-th stage
+    with OperatorCounter() as recorded_calls:
+        Xr, Ur = closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)
+    assert batching._RECORDED_STAGE_STEP.traces - traces <= 2  # the first stage's start, and the others
+    assert torch.equal(Xr, X) and torch.equal(Ur, Us)
+    assert recorded_calls.total < 0.8 * eager_calls.total
 
 
 @pytest.mark.parametrize("name,B", [("pendulum", 3), ("car_3obs", 2)])

@@ -9,15 +9,17 @@ tensors, functionalised (no in-place operators left), and simplifies the graph:
 * dead code elimination: operators whose results reach no output;
 * common subexpression elimination: an operator applied again to the same inputs (the transforms' repeated
   views, broadcasts and products) is computed once;
-* view chains: a view of a view of ... a tensor is one ``as_strided`` of that tensor, with the size, strides and
-  offset the trace recorded (an input's strides and offset are part of the signature, and an operator's output
-  layout follows from its inputs').
+* view chains: a view of a view of ... a tensor is one ``as_strided`` of that tensor, with the size and strides
+  the trace recorded (an input's strides are part of the signature, and an operator's output layout follows from
+  its inputs'), its offset relative to the tensor's own (:func:`strided`), so that inputs at other offsets in
+  their storages (the stages of a rollout, views of one buffer) share a record.
 
-Replayed, the graph calls the remaining operators directly. They are the eager call's operators, on the same
-data and in the same order, less the duplicates: the results are the eager call's to the last bit
-(``tests/test_recorded.py``).
+Replayed, the graph calls the remaining operators directly, through the library's public functions where one
+takes the operator's arguments (``torch.mul`` for ``aten.mul.Tensor``: the same operator, with a faster argument
+parser than an ``OpOverload`` call). They are the eager call's operators, on the same data and in the same order,
+less the duplicates: the results are the eager call's to the last bit (``tests/test_recorded.py``).
 
-The signature is every tensor argument's size, strides, storage offset, dtype and device, and every other
+The signature is every tensor argument's size, strides, dtype and device, and every other
 argument by value (numbers, strings) or identity (a problem, its constraints: kept alive by the record, so that
 an identity is never reused). A function whose Python control flow reads tensor values (``if x > 0``, ``.item()``,
 ``nonzero``) cannot be traced on fake tensors: the trace raises, and that signature runs eager from then on.
@@ -44,6 +46,7 @@ from typing import Any, Callable
 
 import torch
 import torch.utils._pytree as pytree
+from torch import Tensor
 from torch.func import functionalize
 
 #: Records kept per function (input signatures: batch sizes, horizons, problems, dtypes, devices).
@@ -101,7 +104,8 @@ class Recorded:
         graph, out_spec, _ = record
         if graph is _EAGER:
             return self.fn(*args)
-        return pytree.tree_unflatten(graph(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))), out_spec)
+        return pytree.tree_unflatten(graph.forward(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))),
+                                     out_spec)
 
     def _trace(self, leaves: list, spec) -> tuple:
         """``(graph, output spec, the non-tensor arguments kept alive)``, or ``(_EAGER, None, ...)``."""
@@ -190,8 +194,8 @@ def _must_run_eager(leaves: list) -> bool:
 
 
 def _signature(leaf: Any) -> Any:
-    if isinstance(leaf, torch.Tensor):
-        return (tuple(leaf.shape), leaf.stride(), leaf.storage_offset(), leaf.dtype, leaf.device)
+    if isinstance(leaf, torch.Tensor):  # not the storage offset: the replay's strided views are relative
+        return (tuple(leaf.shape), leaf.stride(), leaf.dtype, leaf.device)
     if leaf is None or isinstance(leaf, (bool, int, float, str, torch.dtype, torch.device)):
         return (type(leaf), leaf)
     return (type(leaf), id(leaf))
@@ -214,11 +218,77 @@ def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
                 if n.op == "call_function" and hasattr(n.target, "_schema") and n.target._schema.is_mutable}
     graph = CSEPass(banned_ops=mutating)(graph).graph_module
     _collapse_views(graph.graph)
+    _drop_identity_views(graph.graph)
     _separate_outputs(graph.graph, groups)
     graph.graph.eliminate_dead_code()
+    _relative_strides(graph.graph)
+    _public_functions(graph.graph)
     graph.graph.lint()
     graph.recompile()
     return graph
+
+
+def strided(base: Tensor, size: tuple, stride: tuple, shift: int) -> Tensor:
+    """``base``'s elements at ``size``, ``stride``, starting ``shift`` elements after ``base``'s own first one:
+    a strided view whose offset follows ``base``'s, wherever ``base`` lies in its storage."""
+    return torch.as_strided(base, size, stride, base.storage_offset() + shift)
+
+
+def _relative_strides(graph: torch.fx.Graph) -> None:
+    """Each ``as_strided`` as a :func:`strided` view of its argument, its offset relative to the argument's
+    (from the trace), so that a replay of inputs at other offsets in their storages reads their own elements: a
+    rollout's stages are views of one buffer at offsets one stage apart."""
+    for node in list(graph.nodes):
+        if node.op != "call_function" or node.target != torch.ops.aten.as_strided.default:
+            continue
+        base, size, stride, *offset = node.args
+        val, base_val = node.meta.get("val"), base.meta.get("val") if isinstance(base, torch.fx.Node) else None
+        if not (isinstance(val, torch.Tensor) and isinstance(base_val, torch.Tensor) and _static(val)
+                and _static(base_val)):
+            raise _NotRecordable("a strided view whose offsets the trace did not fix")
+        node.target = strided
+        node.args = (base, size, stride, val.storage_offset() - base_val.storage_offset())
+
+
+class _NotRecordable(Exception):
+    pass
+
+
+def _public_functions(graph: torch.fx.Graph) -> None:
+    """Operators replayed through the library's public functions (``torch.mul``, ``Tensor.view``), which call the
+    same operator: an ``OpOverload`` call matches its Python arguments against the schema on every call, a public
+    function's parser is compiled, and a graph of small tensors spends most of its time in these calls."""
+    for node in graph.nodes:
+        if node.op == "call_function" and set(node.kwargs) <= _PUBLIC_KEYWORDS:
+            node.target = _PUBLIC.get(node.target, node.target)
+
+
+def _public_table() -> dict:
+    """``{operator overload: public function}`` for the overloads whose public function takes the schema's
+    arguments under the same names and positions (the rest are replayed as overloads)."""
+    aten = torch.ops.aten
+    table = {aten.view.default: torch.Tensor.view, aten.expand.default: torch.Tensor.expand,
+             aten.as_strided.default: torch.as_strided}
+    for name, overloads in {
+        "mul": ("Tensor", "Scalar"), "add": ("Tensor",), "sub": ("Tensor",), "div": ("Tensor",), "neg": ("default",),
+        "sin": ("default",), "cos": ("default",), "tan": ("default",), "exp": ("default",), "log": ("default",),
+        "sqrt": ("default",), "rsqrt": ("default",), "tanh": ("default",), "sigmoid": ("default",),
+        "abs": ("default",), "reciprocal": ("default",), "pow": ("Tensor_Scalar", "Tensor_Tensor"),
+        "select": ("int",), "permute": ("default",), "transpose": ("int",), "unsqueeze": ("default",),
+        "squeeze": ("dim",), "diagonal": ("default",), "stack": ("default",), "cat": ("default",),
+        "sum": ("dim_IntList",), "amax": ("default",), "where": ("self",), "clone": ("default",),
+        "mm": ("default",), "bmm": ("default",), "baddbmm": ("default",), "addmm": ("default",),
+        "split_with_sizes": ("default",), "remainder": ("Scalar", "Tensor"), "maximum": ("default",),
+        "minimum": ("default",), "lt": ("Scalar", "Tensor"), "gt": ("Scalar", "Tensor"), "le": ("Scalar", "Tensor"),
+        "ge": ("Scalar", "Tensor"), "eq": ("Scalar", "Tensor"),
+    }.items():
+        for overload in overloads:
+            table[getattr(getattr(aten, name), overload)] = getattr(torch, name)
+    return table
+
+
+_PUBLIC = _public_table()
+_PUBLIC_KEYWORDS = {"alpha", "beta", "dtype", "memory_format"}
 
 
 def _output(graph: torch.fx.Graph) -> torch.fx.Node:
@@ -280,6 +350,20 @@ def _collapse_views(graph: torch.fx.Graph) -> None:
         strided.meta = dict(node.meta)
         node.replace_all_uses_with(strided)
         graph.erase_node(node)
+
+
+def _drop_identity_views(graph: torch.fx.Graph) -> None:
+    """Views that return their tensor as it is (``vmap``'s ``permute`` of a batched vector to its own order) are
+    that tensor: their uses read it."""
+    for node in list(graph.nodes):
+        if node.op != "call_function" or node.target not in _VIEWS or not isinstance(node.args[0], torch.fx.Node):
+            continue
+        val, base_val = node.meta.get("val"), node.args[0].meta.get("val")
+        if isinstance(val, torch.Tensor) and isinstance(base_val, torch.Tensor) and _static(val) \
+                and _static(base_val) and (val.shape, val.stride(), val.storage_offset()) \
+                == (base_val.shape, base_val.stride(), base_val.storage_offset()):
+            node.replace_all_uses_with(node.args[0])
+            graph.erase_node(node)
 
 
 def _static(val: torch.Tensor) -> bool:

@@ -103,9 +103,10 @@ class ILQROptions:
     #: ``torch.compile`` the per-iteration kernels (rollouts, objective, expansion, Riccati); the first solve of
     #: each problem and shape compiles them (:mod:`torchtraj.core.compiled`).
     compile: bool = False
-    #: Replay the expansion from its operator graph recorded once per batch size (:mod:`torchtraj.core.recorded`):
-    #: the same numbers with fewer, cheaper calls, after a trace of a fraction of a second per shape; pays for
-    #: repeated solves of the same shapes (a controller's steps). Read by ALTRO's and AL-iLQR's inner iLQR.
+    #: Replay the expansion and the line search's rollout stages from their operator graphs recorded once per
+    #: batch size (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a
+    #: fraction of a second per shape; pays for repeated solves of the same shapes (a controller's steps). Read by
+    #: ALTRO's and AL-iLQR's inner iLQR.
     record: bool = False
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
@@ -129,12 +130,12 @@ def _scaled_step(d: Tensor, U: Tensor) -> Tensor:
     return (d.abs() / (U.abs() + 1.0)).amax(-1).mean(-1)
 
 
-def _candidates(problem, params, x0, X, U, K, d, alphas):
+def _candidates(problem, params, x0, X, U, K, d, alphas, record: bool = False):
     """Closed-loop rollouts ``u = U + α d + K (x − X)`` for every ``α`` at once: ``(B, L, ...)``."""
     B, L = U.shape[0], alphas.shape[0]
     starts = x0.unsqueeze(1).expand(B, L, x0.shape[-1])
     feedforward = U.unsqueeze(1) + alphas.reshape(1, L, 1, 1) * d.unsqueeze(1)
-    return closed_loop_rollout(problem.dynamics, starts, feedforward, params, X, K)
+    return closed_loop_rollout(problem.dynamics, starts, feedforward, params, X, K, record=record)
 
 
 def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active, opts: ILQROptions):
@@ -157,7 +158,7 @@ def _line_search(problem, objective, params, x0, X, U, J, K, d, dV1, dV2, active
         else:
             o, p = objective.rows(rows), param_rows(params, rows)
             x0_, X_, U_, K_, d_, J_, dV1_, dV2_ = (v[rows] for v in (x0, X, U, K, d, J, dV1, dV2))
-        Xc, Uc = _candidates(problem, p, x0_, X_, U_, K_, d_, alphas)
+        Xc, Uc = _candidates(problem, p, x0_, X_, U_, K_, d_, alphas, opts.record)
         Jc = o.value(Xc, Uc, p)  # (B, l)
         expected = -(alphas * dV1_.unsqueeze(1) + alphas**2 * dV2_.unsqueeze(1))
         actual = J_.unsqueeze(1) - Jc

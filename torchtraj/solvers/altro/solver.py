@@ -65,7 +65,7 @@ def solve_altro(problem: Problem, batch: Batch, options: Optional[ALTROOptions] 
         X0 = problem.X_init.expand(batch.B, *problem.X_init.shape)
     if X0 is not None:
         return solve_infeasible(problem, x0, U0, X0, params, opts, method, duals)
-    X = kernel(rollout, opts.ilqr.compile)(problem.dynamics, x0, U0, params)
+    X = kernel(rollout, opts.ilqr.compile)(problem.dynamics, x0, U0, params, opts.ilqr.record)
     return run_altro(problem, x0, X, U0, params, opts, method, duals)
 
 

@@ -302,7 +302,8 @@ def _search_round(at: _Instances, factor, sol, pending: Tensor, accepted: Accept
         nodes = X[:, starts].unsqueeze(1) + a * sol.dx[:, starts].unsqueeze(1)
         nodes[:, :, 0] = X[:, 0].unsqueeze(1)
         ff = a * feedforward_of(factor, sol).unsqueeze(1)
-        Xc, Uc, Dc = rollout_segments(at.problem.dynamics, params, nodes, U, segments, X, factor.K, ff)
+        Xc, Uc, Dc = rollout_segments(at.problem.dynamics, params, nodes, U, segments, X, factor.K, ff,
+                                      objective.record)
         Dc = Dc + objective.equality_residual(Xc, Uc, params)
         Jc = objective.value(Xc, Uc, params)
         expected = expected_change(alphas, dV1, dV2, D, weight)

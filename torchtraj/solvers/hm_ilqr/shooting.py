@@ -75,20 +75,21 @@ def defects(f: Tensor, X: Tensor, segments: Segments) -> Tensor:
 
 
 def rollout_segments(dynamics, params, nodes: Tensor, U: Tensor, segments: Segments, X_ref=None, K=None,
-                     feedforward=None):
+                     feedforward=None, record: bool = False):
     """Integrate every segment from its node under ``u_k = U_k + feedforward_k + K_k (x_k − X_ref_k)``.
 
     ``nodes (B, *E, M, nx)`` (node 0 is ``x_0``), ``U (B, N, nu)``, ``feedforward (B, *E, N, nu)`` (the
     ``α k_ff`` of each candidate), ``X_ref (B, N+1, nx)``, ``K (B, N, nu, nx)``; without ``K`` the controls are
     ``U`` (Algorithm 1's initial forward pass). Returns ``X (B, *E, N+1, nx)``, the applied ``U (B, *E, N, nu)``
-    and the sum of squared defects ``Σ dᵀd`` ``(B, *E)`` between each segment's end and the next node.
+    and the sum of squared defects ``Σ dᵀd`` ``(B, *E)`` between each segment's end and the next node. ``record``:
+    each step replayed from its recorded graph (:func:`~torchtraj.core.batching.stage_mapper`).
     """
     L, M, N = segments.L, segments.M, segments.N
     lead = nodes.shape[:-2]
     extra = len(lead) - 1
     x = nodes
     xs, us = [x], []
-    step = stage_mapper(dynamics, params)
+    step = stage_mapper(dynamics, params, record)
     for j in range(L):  # all segments at once: the sequential depth is L
         k = (segments.starts + j).clamp(max=N - 1)  # steps past N (a shorter last segment) are discarded below
         u = U[:, k].reshape(U.shape[0], *([1] * extra), M, U.shape[-1])

@@ -93,7 +93,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     guess = start_states(problem, batch)
     nodes = guess[:, segments.starts].clone()
     nodes[:, 0] = x0
-    X, U, gaps = rollout_segments(problem.dynamics, params, nodes, batch.U0, segments)  # Algorithm 1, lines 2-8
+    X, U, gaps = rollout_segments(problem.dynamics, params, nodes, batch.U0, segments,  # Algorithm 1, lines 2-8
+                                  record=opts.record)
     like = x0
     c = constraints
     stage_params = StageParameters(
