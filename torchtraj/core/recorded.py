@@ -83,10 +83,14 @@ class Recorded:
     def __call__(self, *args):
         if torch.compiler.is_compiling():  # traced by torch.compile: the function itself, nothing of the record's
             return self.fn(*args)
-        leaves, spec = pytree.tree_flatten(args)
+        flat = _flatten(args)
+        if flat is None:  # containers that only pytree knows (named tuples, ordered dictionaries)
+            leaves, spec = pytree.tree_flatten(args)
+            key = (spec,) + tuple(_signature(leaf) for leaf in leaves)
+        else:
+            leaves, key = flat
         if _must_run_eager(leaves):
             return self.fn(*args)
-        key = (spec,) + tuple(_signature(leaf) for leaf in leaves)
         record = self.records.get(key)
         if record is None:
             # counted apart from the records, so that signatures seen a few times (a controller whose problem is
@@ -97,18 +101,17 @@ class Recorded:
                 if len(self.calls) > 4 * LIMIT:
                     self.calls.popitem(last=False)
                 return self.fn(*args)
-            record = self.records[key] = self._trace(leaves, spec)
+            record = self.records[key] = self._trace(*pytree.tree_flatten(args))
             if len(self.records) > LIMIT:
                 self.records.popitem(last=False)
         self.records.move_to_end(key)
-        graph, out_spec, _ = record
+        graph, unflatten, _ = record
         if graph is _EAGER:
             return self.fn(*args)
-        return pytree.tree_unflatten(graph.forward(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))),
-                                     out_spec)
+        return unflatten(graph.forward(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))))
 
     def _trace(self, leaves: list, spec) -> tuple:
-        """``(graph, output spec, the non-tensor arguments kept alive)``, or ``(_EAGER, None, ...)``."""
+        """``(graph, its outputs' unflatten, the non-tensor arguments kept alive)``, or ``(_EAGER, None, ...)``."""
         self.traces += 1
         tensor_at = [i for i, leaf in enumerate(leaves) if isinstance(leaf, torch.Tensor)]
         out_spec = []
@@ -131,7 +134,7 @@ class Recorded:
             if not all(isinstance(v, torch.Tensor) or v is None for v in _output_values(graph)) \
                     or _foreign_constants(graph, kept):
                 return _EAGER, None, kept
-            return simplify(graph), out_spec[-1], kept
+            return simplify(graph), _unflattener(out_spec[-1]), kept
         except Exception:  # control flow on tensor values, an operator fake tensors lack: eager from now on
             return _EAGER, None, kept
 
@@ -191,6 +194,39 @@ def _must_run_eager(leaves: list) -> bool:
             and torch.cuda.is_current_stream_capturing():
         return True
     return torch.is_grad_enabled() and any(isinstance(leaf, torch.Tensor) and leaf.requires_grad for leaf in leaves)
+
+
+def _flatten(args: tuple):
+    """``(leaves, key)``: ``pytree.tree_flatten(args)``'s leaves and a signature of them and of the containers
+    (tuples, lists, dictionaries and their keys), made without a ``TreeSpec`` (whose hash, taken at every lookup,
+    walks the tree); ``None`` where ``args`` hold another container pytree knows."""
+    leaves, key = [], []
+
+    def visit(value) -> bool:
+        kind = type(value)
+        if kind is tuple or kind is list:
+            key.append((kind, len(value)))
+            return all(visit(v) for v in value)
+        if kind is dict:
+            key.append((dict, tuple(value)))
+            return all(visit(v) for v in value.values())
+        if isinstance(value, (tuple, list, dict, collections.deque)) or kind in pytree.SUPPORTED_NODES:
+            return False
+        leaves.append(value)
+        key.append(_signature(value))
+        return True
+
+    return (leaves, tuple(key)) if visit(args) else None
+
+
+def _unflattener(spec) -> Callable:
+    """``spec``'s ``tree_unflatten`` of a replay's outputs, without pytree where the outputs are one tensor or a
+    flat tuple or list of them."""
+    if spec.is_leaf():
+        return lambda out: out[0]
+    if spec.type in (tuple, list) and all(child.is_leaf() for child in spec.children()):
+        return spec.type
+    return lambda out: pytree.tree_unflatten(out, spec)
 
 
 def _signature(leaf: Any) -> Any:
