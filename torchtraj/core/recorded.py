@@ -271,9 +271,12 @@ def strided(base: Tensor, size: tuple, stride: tuple, shift: int) -> Tensor:
 
 
 def _relative_strides(graph: torch.fx.Graph) -> None:
-    """Each ``as_strided`` as a :func:`strided` view of its argument, its offset relative to the argument's
-    (from the trace), so that a replay of inputs at other offsets in their storages reads their own elements: a
-    rollout's stages are views of one buffer at offsets one stage apart."""
+    """Each ``as_strided`` of an input's storage as a :func:`strided` view of its argument, its offset relative to
+    the argument's (from the trace), so that a replay of inputs at other offsets in their storages reads their own
+    elements: a rollout's stages are views of one buffer at offsets one stage apart. (A tensor the graph makes
+    lies where the trace's did.)"""
+    inputs = [n.meta.get("val") for n in graph.nodes if n.op == "placeholder"]
+    storages = [v.untyped_storage() for v in inputs if isinstance(v, torch.Tensor)]
     for node in list(graph.nodes):
         if node.op != "call_function" or node.target != torch.ops.aten.as_strided.default:
             continue
@@ -282,6 +285,8 @@ def _relative_strides(graph: torch.fx.Graph) -> None:
         if not (isinstance(val, torch.Tensor) and isinstance(base_val, torch.Tensor) and _static(val)
                 and _static(base_val)):
             raise _NotRecordable("a strided view whose offsets the trace did not fix")
+        if not any(base_val.untyped_storage() is storage for storage in storages):
+            continue
         node.target = strided
         node.args = (base, size, stride, val.storage_offset() - base_val.storage_offset())
 
