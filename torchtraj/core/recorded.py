@@ -201,22 +201,25 @@ def _flatten(args: tuple):
     (tuples, lists, dictionaries and their keys), made without a ``TreeSpec`` (whose hash, taken at every lookup,
     walks the tree); ``None`` where ``args`` hold another container pytree knows."""
     leaves, key = [], []
-
-    def visit(value) -> bool:
+    pending = [args]  # depth first, left to right: pytree's order of the leaves
+    while pending:
+        value = pending.pop()
         kind = type(value)
-        if kind is tuple or kind is list:
+        if kind is torch.Tensor:
+            leaves.append(value)
+            key.append((value.shape, value.stride(), value.dtype, value.device))
+        elif kind is tuple or kind is list:
             key.append((kind, len(value)))
-            return all(visit(v) for v in value)
-        if kind is dict:
+            pending.extend(reversed(value))
+        elif kind is dict:
             key.append((dict, tuple(value)))
-            return all(visit(v) for v in value.values())
-        if isinstance(value, (tuple, list, dict, collections.deque)) or kind in pytree.SUPPORTED_NODES:
-            return False
-        leaves.append(value)
-        key.append(_signature(value))
-        return True
-
-    return (leaves, tuple(key)) if visit(args) else None
+            pending.extend(reversed(value.values()))
+        elif isinstance(value, (tuple, list, dict, collections.deque)) or kind in pytree.SUPPORTED_NODES:
+            return None
+        else:
+            leaves.append(value)
+            key.append(_signature(value))
+    return leaves, tuple(key)
 
 
 def _unflattener(spec) -> Callable:
