@@ -11,8 +11,11 @@ tensors, functionalised (no in-place operators left), and simplifies the graph:
   views, broadcasts and products) is computed once;
 * view chains: a view of a view of ... a tensor is one ``as_strided`` of that tensor, with the size and strides
   the trace recorded (an input's strides are part of the signature, and an operator's output layout follows from
-  its inputs'), its offset relative to the tensor's own (:func:`strided`), so that inputs at other offsets in
-  their storages (the stages of a rollout, views of one buffer) share a record.
+  its inputs'), where the tensor is an input's its offset relative to the tensor's own
+  (:func:`~torchtraj.core.graph_passes.strided`), so that inputs at other offsets in their storages (the stages of
+  a rollout, views of one buffer) share a record.
+
+The passes are those of :mod:`torchtraj.core.graph_passes`.
 
 Replayed, the graph calls the remaining operators directly, through the library's public functions where one
 takes the operator's arguments (``torch.mul`` for ``aten.mul.Tensor``: the same operator, with a faster argument
@@ -46,8 +49,9 @@ from typing import Any, Callable
 
 import torch
 import torch.utils._pytree as pytree
-from torch import Tensor
 from torch.func import functionalize
+
+from .graph_passes import output_values, simplify
 
 #: Records kept per function (input signatures: batch sizes, horizons, problems, dtypes, devices).
 LIMIT = 32
@@ -59,14 +63,6 @@ _EAGER = object()  # a signature whose trace failed: run the function itself
 # the torch.func transforms the call is inside (None: none); a function of torch's private API, so looked up softly
 _TRANSFORMS = getattr(torch._C._functorch, "peek_interpreter_stack", None)
 
-_VIEWS = {
-    torch.ops.aten.view.default, torch.ops.aten._unsafe_view.default, torch.ops.aten.expand.default,
-    torch.ops.aten.select.int, torch.ops.aten.slice.Tensor, torch.ops.aten.unsqueeze.default,
-    torch.ops.aten.squeeze.dim, torch.ops.aten.squeeze.dims, torch.ops.aten.squeeze.default,
-    torch.ops.aten.transpose.int, torch.ops.aten.permute.default, torch.ops.aten.t.default,
-    torch.ops.aten.alias.default, torch.ops.aten.diagonal.default, torch.ops.aten.as_strided.default,
-    torch.ops.aten.unfold.default,
-}
 
 
 class Recorded:
@@ -131,7 +127,7 @@ class Recorded:
 
             graph = make_fx(functionalize(flat, remove="mutations"), tracing_mode="fake",
                             _allow_non_fake_inputs=True)(*tensors)
-            if not all(isinstance(v, torch.Tensor) or v is None for v in _output_values(graph)) \
+            if not all(isinstance(v, torch.Tensor) or v is None for v in output_values(graph)) \
                     or _foreign_constants(graph, kept):
                 return _EAGER, None, kept
             return simplify(graph), _unflattener(out_spec[-1]), kept
@@ -238,177 +234,3 @@ def _signature(leaf: Any) -> Any:
     if leaf is None or isinstance(leaf, (bool, int, float, str, torch.dtype, torch.device)):
         return (type(leaf), leaf)
     return (type(leaf), id(leaf))
-
-
-def _output_values(graph: torch.fx.GraphModule) -> list:
-    """The trace's value (a fake tensor, or what the function returned) of each output."""
-    return [node.meta.get("val") if isinstance(node, torch.fx.Node) else node for node in _output_nodes(graph.graph)]
-
-
-def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
-    """``graph`` (functional: no operator mutates a tensor) with dead code, repeated operators and view chains
-    removed (module docstring)."""
-    from torch.fx.passes.dialect.common.cse_pass import CSEPass
-
-    graph.graph.eliminate_dead_code()
-    graph.recompile()
-    groups = _storage_groups(graph)
-    mutating = {n.target.overloadpacket for n in graph.graph.nodes
-                if n.op == "call_function" and hasattr(n.target, "_schema") and n.target._schema.is_mutable}
-    graph = CSEPass(banned_ops=mutating)(graph).graph_module
-    _collapse_views(graph.graph)
-    _drop_identity_views(graph.graph)
-    _separate_outputs(graph.graph, groups)
-    graph.graph.eliminate_dead_code()
-    _relative_strides(graph.graph)
-    _public_functions(graph.graph)
-    graph.graph.lint()
-    graph.recompile()
-    return graph
-
-
-def strided(base: Tensor, size: tuple, stride: tuple, shift: int) -> Tensor:
-    """``base``'s elements at ``size``, ``stride``, starting ``shift`` elements after ``base``'s own first one:
-    a strided view whose offset follows ``base``'s, wherever ``base`` lies in its storage."""
-    return torch.as_strided(base, size, stride, base.storage_offset() + shift)
-
-
-def _relative_strides(graph: torch.fx.Graph) -> None:
-    """Each ``as_strided`` of an input's storage as a :func:`strided` view of its argument, its offset relative to
-    the argument's (from the trace), so that a replay of inputs at other offsets in their storages reads their own
-    elements: a rollout's stages are views of one buffer at offsets one stage apart. (A tensor the graph makes
-    lies where the trace's did.)"""
-    inputs = [n.meta.get("val") for n in graph.nodes if n.op == "placeholder"]
-    storages = [v.untyped_storage() for v in inputs if isinstance(v, torch.Tensor)]
-    for node in list(graph.nodes):
-        if node.op != "call_function" or node.target != torch.ops.aten.as_strided.default:
-            continue
-        base, size, stride, *offset = node.args
-        val, base_val = node.meta.get("val"), base.meta.get("val") if isinstance(base, torch.fx.Node) else None
-        if not (isinstance(val, torch.Tensor) and isinstance(base_val, torch.Tensor) and _static(val)
-                and _static(base_val)):
-            raise _NotRecordable("a strided view whose offsets the trace did not fix")
-        if not any(base_val.untyped_storage() is storage for storage in storages):
-            continue
-        node.target = strided
-        node.args = (base, size, stride, val.storage_offset() - base_val.storage_offset())
-
-
-class _NotRecordable(Exception):
-    pass
-
-
-def _public_functions(graph: torch.fx.Graph) -> None:
-    """Operators replayed through the library's public functions (``torch.mul``, ``Tensor.view``), which call the
-    same operator: an ``OpOverload`` call matches its Python arguments against the schema on every call, a public
-    function's parser is compiled, and a graph of small tensors spends most of its time in these calls."""
-    for node in graph.nodes:
-        if node.op == "call_function" and set(node.kwargs) <= _PUBLIC_KEYWORDS:
-            node.target = _PUBLIC.get(node.target, node.target)
-
-
-def _public_table() -> dict:
-    """``{operator overload: public function}`` for the overloads whose public function takes the schema's
-    arguments under the same names and positions (the rest are replayed as overloads)."""
-    aten = torch.ops.aten
-    table = {aten.view.default: torch.Tensor.view, aten.expand.default: torch.Tensor.expand,
-             aten.as_strided.default: torch.as_strided}
-    for name, overloads in {
-        "mul": ("Tensor", "Scalar"), "add": ("Tensor",), "sub": ("Tensor",), "div": ("Tensor",), "neg": ("default",),
-        "sin": ("default",), "cos": ("default",), "tan": ("default",), "exp": ("default",), "log": ("default",),
-        "sqrt": ("default",), "rsqrt": ("default",), "tanh": ("default",), "sigmoid": ("default",),
-        "abs": ("default",), "reciprocal": ("default",), "pow": ("Tensor_Scalar", "Tensor_Tensor"),
-        "select": ("int",), "permute": ("default",), "transpose": ("int",), "unsqueeze": ("default",),
-        "squeeze": ("dim",), "diagonal": ("default",), "stack": ("default",), "cat": ("default",),
-        "sum": ("dim_IntList",), "amax": ("default",), "where": ("self",), "clone": ("default",),
-        "mm": ("default",), "bmm": ("default",), "baddbmm": ("default",), "addmm": ("default",),
-        "split_with_sizes": ("default",), "remainder": ("Scalar", "Tensor"), "maximum": ("default",),
-        "minimum": ("default",), "lt": ("Scalar", "Tensor"), "gt": ("Scalar", "Tensor"), "le": ("Scalar", "Tensor"),
-        "ge": ("Scalar", "Tensor"), "eq": ("Scalar", "Tensor"),
-    }.items():
-        for overload in overloads:
-            table[getattr(getattr(aten, name), overload)] = getattr(torch, name)
-    return table
-
-
-_PUBLIC = _public_table()
-_PUBLIC_KEYWORDS = {"alpha", "beta", "dtype", "memory_format"}
-
-
-def _output(graph: torch.fx.Graph) -> torch.fx.Node:
-    return next(n for n in graph.nodes if n.op == "output")
-
-
-def _output_nodes(graph: torch.fx.Graph) -> list:
-    return pytree.tree_leaves(_output(graph).args)
-
-
-def _storage_groups(graph: torch.fx.GraphModule) -> list:
-    """Per output, the index of the first output that shares its storage (views of one tensor), from the trace."""
-    storages = [val.untyped_storage() if isinstance(val, torch.Tensor) else None for val in _output_values(graph)]
-    return [next(j for j in range(i + 1) if storages[j] is not None and storages[j] is s) if s is not None else i
-            for i, s in enumerate(storages)]
-
-
-def _base(node):
-    while isinstance(node, torch.fx.Node) and node.op == "call_function" and node.target in _VIEWS:
-        node = node.args[0]
-    return node
-
-
-def _separate_outputs(graph: torch.fx.Graph, groups: list) -> None:
-    """Outputs that the eager function returned as separate tensors but that common subexpressions made views of
-    one get copies (a caller may write into one of them)."""
-    out = _output(graph)
-    leaves, spec = pytree.tree_flatten(out.args)
-    owner: dict = {}
-    for i, node in enumerate(leaves):
-        if not isinstance(node, torch.fx.Node):
-            continue
-        base = _base(node)
-        first = owner.setdefault(base, groups[i])
-        if first != groups[i]:
-            with graph.inserting_before(out):
-                copy = graph.call_function(torch.ops.aten.clone.default, (node,))
-            copy.meta = dict(node.meta)
-            leaves[i] = copy
-    out.args = pytree.tree_unflatten(leaves, spec)
-
-
-def _collapse_views(graph: torch.fx.Graph) -> None:
-    """Each view of a view (of a view ...) of a tensor as one ``as_strided`` of that tensor, from the sizes, strides
-    and offset the fake tensors recorded."""
-    for node in list(graph.nodes):
-        if node.op != "call_function" or node.target not in _VIEWS:
-            continue
-        parent = node.args[0]
-        if not (isinstance(parent, torch.fx.Node) and parent.op == "call_function" and parent.target in _VIEWS):
-            continue
-        root = _base(parent)
-        val = node.meta.get("val")
-        if not isinstance(val, torch.Tensor) or not _static(val):
-            continue
-        with graph.inserting_before(node):
-            strided = graph.call_function(torch.ops.aten.as_strided.default,
-                                          (root, tuple(val.shape), tuple(val.stride()), val.storage_offset()))
-        strided.meta = dict(node.meta)
-        node.replace_all_uses_with(strided)
-        graph.erase_node(node)
-
-
-def _drop_identity_views(graph: torch.fx.Graph) -> None:
-    """Views that return their tensor as it is (``vmap``'s ``permute`` of a batched vector to its own order) are
-    that tensor: their uses read it."""
-    for node in list(graph.nodes):
-        if node.op != "call_function" or node.target not in _VIEWS or not isinstance(node.args[0], torch.fx.Node):
-            continue
-        val, base_val = node.meta.get("val"), node.args[0].meta.get("val")
-        if isinstance(val, torch.Tensor) and isinstance(base_val, torch.Tensor) and _static(val) \
-                and _static(base_val) and (val.shape, val.stride(), val.storage_offset()) \
-                == (base_val.shape, base_val.stride(), base_val.storage_offset()):
-            node.replace_all_uses_with(node.args[0])
-            graph.erase_node(node)
-
-
-def _static(val: torch.Tensor) -> bool:
-    return all(isinstance(s, int) for s in (*val.shape, *val.stride(), val.storage_offset()))
