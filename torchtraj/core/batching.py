@@ -134,14 +134,17 @@ def rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Params, record: b
     return closed_loop_rollout(dynamics, x0, U, params, record=record)[0]
 
 
+def _closed_loop_step(dynamics: Callable, feedback: bool, x: Tensor, u: Tensor, xr, k, p: Params) -> tuple:
+    """One trajectory's stage of :func:`closed_loop_rollout`: ``(x_{k+1}, u_k)`` with ``u_k = u + k (x − xr)``
+    (``feedback``) or ``u``."""
+    # a product and a sum: under the two vmap levels torch.addmv is 12 calls, these 7
+    u = u + (k * (x - xr)).sum(-1) if feedback else u
+    return dynamics(x, u, p), u
+
+
 def _stage_step(dynamics: Callable, feedback: bool, x: Tensor, U: Tensor, X_ref: Tensor, K: Tensor, p: Params):
     """One stage of :func:`closed_loop_rollout`'s trajectories, ``(x_{k+1}, u_k)``, the parameters shared."""
-    def step(x, u, xr, k):
-        # a product and a sum: under the two vmap levels torch.addmv is 12 calls, these 7
-        u = u + (k * (x - xr)).sum(-1) if feedback else u
-        return dynamics(x, u, p), u
-
-    return vmap(step)(x, U, X_ref, K)
+    return vmap(lambda x, u, xr, k: _closed_loop_step(dynamics, feedback, x, u, xr, k, p))(x, U, X_ref, K)
 
 
 _RECORDED_STAGE_STEP = Recorded(_stage_step)
@@ -168,14 +171,10 @@ def closed_loop_rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Param
         Us, xs, us = Uk.unbind(0), [x], []
         Xrs, Ks = (Xr.unbind(0), Kk.unbind(0)) if feedback else ((None,) * N, (None,) * N)
         for k in range(N):
-            x, u = step(x, Us[k], Xrs[k], Ks[k], p)
+            x, u = _closed_loop_step(dynamics, feedback, x, Us[k], Xrs[k], Ks[k], p)
             xs.append(x)
             us.append(u)
         return torch.stack(xs), torch.stack(us)
-
-    def step(x, u, xr, k, p):
-        u = u + (k * (x - xr)).sum(-1) if feedback else u
-        return dynamics(x, u, p), u
 
     lead = x0.shape[:-1]
     B, E = lead[0], math.prod(lead[1:])

@@ -62,7 +62,7 @@ def _relative_strides(graph: torch.fx.Graph) -> None:
     for node in list(graph.nodes):
         if node.op != "call_function" or node.target != torch.ops.aten.as_strided.default:
             continue
-        base, size, stride, *offset = node.args
+        base, size, stride = node.args[:3]
         val, base_val = node.meta.get("val"), base.meta.get("val") if isinstance(base, torch.fx.Node) else None
         if not (isinstance(val, torch.Tensor) and isinstance(base_val, torch.Tensor) and _static(val)
                 and _static(base_val)):

@@ -11,7 +11,7 @@ tensors, functionalised (no in-place operators left), and simplifies the graph:
   views, broadcasts and products) is computed once;
 * view chains: a view of a view of ... a tensor is one ``as_strided`` of that tensor, with the size and strides
   the trace recorded (an input's strides are part of the signature, and an operator's output layout follows from
-  its inputs'), where the tensor is an input's its offset relative to the tensor's own
+  its inputs'); a view of an input takes its offset relative to the input's own
   (:func:`~torchtraj.core.graph_passes.strided`), so that inputs at other offsets in their storages (the stages of
   a rollout, views of one buffer) share a record.
 
@@ -62,7 +62,6 @@ TRACE_AT = 8
 _EAGER = object()  # a signature whose trace failed: run the function itself
 # the torch.func transforms the call is inside (None: none); a function of torch's private API, so looked up softly
 _TRANSFORMS = getattr(torch._C._functorch, "peek_interpreter_stack", None)
-
 
 
 class Recorded:
@@ -203,7 +202,7 @@ def _flatten(args: tuple):
         kind = type(value)
         if kind is torch.Tensor:
             leaves.append(value)
-            key.append((value.shape, value.stride(), value.dtype, value.device))
+            key.append(_tensor_signature(value))
         elif kind is tuple or kind is list:
             key.append((kind, len(value)))
             pending.extend(reversed(value))
@@ -228,9 +227,14 @@ def _unflattener(spec) -> Callable:
     return lambda out: pytree.tree_unflatten(out, spec)
 
 
+def _tensor_signature(t: torch.Tensor) -> tuple:
+    # not the storage offset: the replay's views of an input are relative to its offset (graph_passes.strided)
+    return (t.shape, t.stride(), t.dtype, t.device)
+
+
 def _signature(leaf: Any) -> Any:
-    if isinstance(leaf, torch.Tensor):  # not the storage offset: the replay's strided views are relative
-        return (tuple(leaf.shape), leaf.stride(), leaf.dtype, leaf.device)
+    if isinstance(leaf, torch.Tensor):
+        return _tensor_signature(leaf)
     if leaf is None or isinstance(leaf, (bool, int, float, str, torch.dtype, torch.device)):
         return (type(leaf), leaf)
     return (type(leaf), id(leaf))
