@@ -10,11 +10,11 @@ from same_solutions import assert_same_solutions
 import torchtraj as tt
 from torchtraj import problems
 from torchtraj.bench.ops import OperatorCounter
-from torchtraj.core import batching, one_pass
+from torchtraj.core import batching, one_pass, recorded
 from torchtraj.core.batching import closed_loop_rollout
 from torchtraj.core.constraints import Constraints
 from torchtraj.core.one_pass import problem_kkt_expansion, problem_values
-from torchtraj.core.recorded import TRACE_AT, Recorded
+from torchtraj.core.recorded import TRACE_AT, TRACE_AT_AUTO, Recorded, trace_at
 
 F64 = torch.float64
 
@@ -137,7 +137,7 @@ def test_a_recorded_rollout_is_the_eager_one_to_the_last_bit_in_fewer_calls(name
     with OperatorCounter() as eager_calls:
         X, Us = closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K)
     traces = batching._RECORDED_STAGE_STEP.traces
-    closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)  # traced at the TRACE_AT-th stage
+    closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)  # its N stages count N calls: traced
     with OperatorCounter() as recorded_calls:
         Xr, Ur = closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)
     assert batching._RECORDED_STAGE_STEP.traces - traces <= 2  # the first stage's start, and the others
@@ -152,8 +152,7 @@ def test_an_interior_point_solve_with_recorded_kernels_is_the_eager_solve(name, 
     reach their ``TRACE_AT``-th call only then)."""
     p = problems.get(name)
     x0 = problems.sample_x0(name, B, 0)
-    options = tt.IPOptions(iterations=30)
-    eager = tt.solve(p, x0, "ipm", options=options)
+    eager = tt.solve(p, x0, "ipm", options=tt.IPOptions(iterations=30, record=False))
     traces = one_pass._RECORDED_EXPANSION.traces
     recorded = tt.solve(p, x0, "ipm", options=tt.IPOptions(iterations=30, record=True))
     traced = one_pass._RECORDED_EXPANSION.traces
@@ -167,8 +166,8 @@ def test_an_altro_solve_with_recorded_kernels_is_the_eager_solve():
     """``ILQROptions.record`` (ALTRO's inner iLQR, as a control step takes it): the same answer to the last bit."""
     p = problems.get("pendulum")
     x0 = problems.sample_x0("pendulum", 3, 0)
-    options = tt.ALTROOptions(iterations_outer=3, iterations_inner=20)
-    eager = tt.solve(p, x0, "altro", options=options)
+    eager = tt.solve(p, x0, "altro", options=tt.ALTROOptions(
+        iterations_outer=3, iterations_inner=20, ilqr=tt.ILQROptions(record=False)))
     recorded = tt.solve(p, x0, "altro", options=tt.ALTROOptions(
         iterations_outer=3, iterations_inner=20, ilqr=tt.ILQROptions(record=True)))
     assert_same_solutions(recorded, eager)
@@ -180,7 +179,7 @@ def test_the_other_methods_with_recorded_kernels_are_their_eager_solves(method, 
     last bit."""
     p = problems.get("pendulum")
     x0 = problems.sample_x0("pendulum", 2, 0)
-    eager = tt.solve(p, x0, method, options=options(iterations=30))
+    eager = tt.solve(p, x0, method, options=options(iterations=30, record=False))
     recorded = tt.solve(p, x0, method, options=options(iterations=30, record=True))
     assert_same_solutions(recorded, eager)
 
@@ -220,8 +219,6 @@ def test_a_tensor_read_from_a_closure_keeps_the_function_eager():
 def test_signatures_seen_a_few_times_never_push_a_record_out():
     """A controller whose problem is rebuilt at every step makes a new signature a step: their call counts are
     kept apart from the records, so the steady signature's record stays."""
-    from torchtraj.core import recorded
-
     f = Recorded(lambda x: x * 2.0)
     steady = torch.ones(3, dtype=F64)
     for _ in range(TRACE_AT):
@@ -242,3 +239,57 @@ def test_a_call_inside_a_transform_runs_eager():
     assert f.traces == 0 and torch.equal(out, xs.sin() * 2.0)
     grad = torch.func.grad(lambda x: f(x).sum())(xs[0])
     assert f.traces == 0 and torch.allclose(grad, 2.0 * xs[0].cos())
+
+
+def test_the_record_option_says_when_a_signature_is_traced():
+    """``record``: ``True`` early, ``None`` (the solvers' default) when its eager calls have cost about a trace,
+    ``False`` never; a call of a :class:`Recorded` traces its signature at the ``trace_at``-th call."""
+    assert (trace_at(True), trace_at(None), trace_at(False)) == (TRACE_AT, TRACE_AT_AUTO, None)
+    assert TRACE_AT < TRACE_AT_AUTO
+    f = Recorded(lambda x: x * 3.0)
+    x = torch.rand(4, dtype=F64)
+    for _ in range(TRACE_AT_AUTO - 1):
+        assert torch.equal(f(x, trace_at=TRACE_AT_AUTO), x * 3.0)
+    assert f.traces == 0
+    f(x, trace_at=TRACE_AT_AUTO)  # traced here
+    assert f.traces == 1
+    with OperatorCounter() as calls:
+        out = f(x, trace_at=TRACE_AT_AUTO)
+    assert torch.equal(out, x * 3.0) and f.traces == 1 and calls.total == 1  # replayed
+
+
+def test_a_rollout_counts_its_stages_before_it_replays_them():
+    """``Recorded.replays``: a rollout asks once for its N stages, counted as N calls of the stage's signature;
+    they replay from the call that reaches ``trace_at`` on, and never where the trace failed."""
+    f = Recorded(lambda x: x * 3.0)
+    x = torch.rand(2, dtype=F64)
+    assert [f.replays(x, calls=30, trace_at=100) for _ in range(4)] == [False, False, False, True]
+    assert f.traces == 1 and f.replays(x, calls=30, trace_at=100) and f.traces == 1
+    branching = Recorded(lambda x: x if bool(x.sum() > 0) else -x)
+    assert not branching.replays(x, calls=30, trace_at=10) and branching.traces == 1
+    assert not branching.replays(x, calls=30, trace_at=10) and branching.traces == 1
+
+
+@pytest.mark.parametrize("method", ["altro", "ipm"])
+def test_a_default_solve_records_its_hot_shapes_and_keeps_the_eager_answer(method, monkeypatch):
+    """With the default ``record=None`` a solve traces a shape once it has been evaluated ``TRACE_AT_AUTO`` times
+    (a hundred; twenty here, with new records, so that a short solve crosses it): the rollouts' stages and the
+    expansions, then replays them, with the answer of the eager solve to the last bit."""
+    fresh = {name: Recorded(getattr(module, name).fn) for module, name in (
+        (batching, "_RECORDED_STAGE_STEP"), (batching, "_RECORDED_MAP_STAGE"), (one_pass, "_RECORDED_EXPANSION"),
+        (one_pass, "_RECORDED_VALUES"))}
+    for name, f in fresh.items():
+        monkeypatch.setattr(batching if name in ("_RECORDED_STAGE_STEP", "_RECORDED_MAP_STAGE") else one_pass, name, f)
+    monkeypatch.setattr(recorded, "TRACE_AT_AUTO", 20)
+    p = problems.get("pendulum")
+    x0 = problems.sample_x0("pendulum", 2, 0)
+    if method == "altro":
+        options = dict(iterations_outer=3, iterations_inner=20)
+        eager = tt.solve(p, x0, method, options=tt.ALTROOptions(**options, ilqr=tt.ILQROptions(record=False)))
+        default = tt.solve(p, x0, method, options=tt.ALTROOptions(**options))
+        assert fresh["_RECORDED_STAGE_STEP"].traces >= 1
+    else:
+        eager = tt.solve(p, x0, method, options=tt.IPOptions(iterations=30, record=False))
+        default = tt.solve(p, x0, method, options=tt.IPOptions(iterations=30))
+    assert fresh["_RECORDED_EXPANSION"].traces >= 1
+    assert_same_solutions(default, eager)

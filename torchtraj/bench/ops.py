@@ -64,6 +64,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from .. import problems as problem_set
 from .. import solvers
 from ..core.problem import Problem
+from ..core.recorded import forget
 from ..core.status import Status
 from ..solve import solve
 from .ops_text import format_count, format_sweep, solve_header, sweep_header
@@ -133,10 +134,15 @@ class Count:
         return {**dataclasses.asdict(self), "calls_per_iteration": self.calls_per_iteration}
 
 
-def count_solve(problem: Problem, method, options=None, iteration_cap: Optional[int] = None) -> Count:
+def count_solve(problem: Problem, method, options=None, iteration_cap: Optional[int] = None,
+                cold: bool = True) -> Count:
     """Count the calls of ``tt.solve(problem, method=method, options=options)`` at B = 1 (the problem's x0 and
-    state guess, :func:`~torchtraj.bench.runs.state_guess`). Never raises: an exception is kept in ``error``."""
+    state guess, :func:`~torchtraj.bench.runs.state_guess`); ``cold``: as a new process's first solve, without the
+    records and call counts of earlier solves (:func:`~torchtraj.core.recorded.forget`), so that a count does not
+    depend on what ran before it. Never raises: an exception is kept in ``error``."""
     solver = solvers.get(method)
+    if cold:
+        forget()
     row = Count(problem.name, solver.name, problem.horizon, iteration_cap)
     try:
         with OperatorCounter() as ops:
@@ -154,11 +160,12 @@ def count_recorded(problem: Problem, method) -> Count:
     :mod:`torchtraj.core.recorded`), after one uncounted solve of the same problem that records them."""
     solver = solvers.get(method)
     options = with_record(solver.default_options())
+    forget()
     try:
         solve(problem, None, solver, X0=state_guess(solver, problem), options=options)
     except Exception:  # the counted solve fails the same way, and reports it
         pass
-    return count_solve(problem, solver, options)
+    return count_solve(problem, solver, options, cold=False)
 
 
 @dataclass
@@ -195,6 +202,7 @@ def count_mpc(method, horizon: int = MPC_HORIZON, iterations: int = MPC_ITERATIO
     try:
         env = gym.make("torchtraj/Pendulum-v0").unwrapped
         policy = MPC(env.problem(horizon=horizon), solver, iterations)
+        forget()  # the warm-up steps record what the steps replay, whatever ran before
         obs, _ = env.reset(seed=seed)
         for _ in range(MPC_WARMUP):
             obs, *_ = env.step(policy(obs))

@@ -6,9 +6,12 @@ Rows never raise: an exception is caught and kept in ``Row.error`` so the rest o
 
 Timing. torchtraj is timed around one ``tt.solve`` of the whole batch (``time.perf_counter``, with
 ``torch.cuda.synchronize`` on CUDA) after an untimed warm-up solve of one instance; its
-``ms_per_instance`` is the total divided by B. A reference solver is timed around each solve call
-alone (its NLP is built once beforehand, :class:`~torchtraj.bench.reference.ReferenceSolver`); its
-``ms_per_instance`` is the median over instances and ``seconds`` their sum.
+``ms_per_instance`` is the total divided by B. The warm-up's few iterations leave the recorded kernels' call counts
+low (:mod:`torchtraj.core.recorded`): with the default ``record=None`` a long timed solve traces the shapes it
+evaluates often within its own time, as a user's first solve would, and a short one runs eager. A reference solver
+is timed around each solve call alone (its NLP is built once beforehand,
+:class:`~torchtraj.bench.reference.ReferenceSolver`); its ``ms_per_instance`` is the median over instances and
+``seconds`` their sum.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from torch.func import vmap
 
-from .recorded import Recorded
+from .recorded import Recorded, trace_at
 
 Params = Mapping[str, Tensor]
 
@@ -109,13 +109,14 @@ def map_stage(fn: Callable, X: Tensor, U: Tensor, params: Params) -> Tensor:
     return _map(fn, (X, U), params)
 
 
-def stage_mapper(fn: Callable, params: Params, record: bool = False) -> Callable:
+def stage_mapper(fn: Callable, params: Params, record: Optional[bool] = False) -> Callable:
     """``(X, U) ↦ map_stage(fn, X, U, params)`` for repeated calls with the same ``params`` (the steps of a
     rollout): the parameters are split into shared and batched ones once (a view of each shared one), not at every
     call; with ``record``, each call is replayed from its operator graph (:mod:`~torchtraj.core.recorded`), split
     included, the same numbers in fewer calls."""
-    if record:
-        return lambda X, U: _RECORDED_MAP_STAGE(fn, X, U, params)
+    if record is not False:
+        calls = trace_at(record)
+        return lambda X, U: _RECORDED_MAP_STAGE(fn, X, U, params, trace_at=calls)
     split = _split_params(params)
     return lambda X, U: _map(fn, (X, U), params, split)
 
@@ -125,7 +126,7 @@ def map_state(fn: Callable, X: Tensor, params: Params) -> Tensor:
     return _map(fn, (X,), params)
 
 
-def rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Params, record: bool = False) -> Tensor:
+def rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Params, record: Optional[bool] = False) -> Tensor:
     """Simulate ``x_{k+1} = f(x_k, u_k, p)`` from ``x0 (B, *E, nx)`` under ``U (B, *E, N, nu)`` (``record`` as
     :func:`closed_loop_rollout`'s).
 
@@ -152,7 +153,7 @@ _RECORDED_MAP_STAGE = Recorded(map_stage)
 
 
 def closed_loop_rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Params, X_ref: Optional[Tensor] = None,
-                        K: Optional[Tensor] = None, record: bool = False) -> tuple[Tensor, Tensor]:
+                        K: Optional[Tensor] = None, record: Optional[bool] = False) -> tuple[Tensor, Tensor]:
     """Simulate from ``x0 (B, *E, nx)`` under ``u_k = U_k + K_k (x_k − X_ref_k)`` (``U (B, *E, N, nu)``; the
     feedback ``X_ref (B, N+1, nx)``, ``K (B, N, nu, nx)`` is shared by the E trajectories of an instance, and
     ``u_k = U_k`` without it). Returns ``X (B, *E, N+1, nx)`` and the applied ``U (B, *E, N, nu)``.
@@ -190,22 +191,28 @@ def closed_loop_rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Param
             return t.unsqueeze(1).expand(B, E, *t.shape[1:]).reshape(B * E, *t.shape[1:])
 
         inputs = (x0.reshape(B * E, -1), U.reshape(B * E, N, -1), repeated(X_ref), repeated(K))
-        if record and not torch.compiler.is_compiling():
-            X, Us = _recorded_stages(dynamics, feedback, *inputs, p)
-        else:
-            X, Us = vmap(lambda x, Uk, Xr, Kk: simulate(x, Uk, Xr, Kk, p))(*inputs)
+        replayed = None
+        if record is not False and not torch.compiler.is_compiling():
+            replayed = _recorded_stages(dynamics, feedback, *inputs, p, trace_at(record))
+        X, Us = replayed if replayed is not None else vmap(lambda x, Uk, Xr, Kk: simulate(x, Uk, Xr, Kk, p))(*inputs)
     else:
         per_trajectory = vmap(simulate, in_dims=(0, 0, None, None, None))  # over E, for one instance
         X, Us = vmap(per_trajectory, in_dims=(0, 0, 0, 0, p_dims))(x0, U, X_ref, K, p)
     return X.reshape(*lead, N + 1, X.shape[-1]), Us.reshape(*lead, N, Us.shape[-1])
 
 
-def _recorded_stages(dynamics: Callable, feedback: bool, x: Tensor, U: Tensor, X_ref: Tensor, K: Tensor, p: Params):
-    """:func:`closed_loop_rollout`'s trajectories ``(X, U)``, each stage a call of the recorded
-    :func:`_stage_step`; its stages' operands are views of one buffer each, which share a record."""
+def _recorded_stages(dynamics: Callable, feedback: bool, x: Tensor, U: Tensor, X_ref: Tensor, K: Tensor, p: Params,
+                     calls: int) -> Optional[tuple]:
+    """:func:`closed_loop_rollout`'s trajectories ``(X, U)``, each stage a call of the recorded :func:`_stage_step`
+    (its stages' operands are views of one buffer each, which share a record); ``None`` while the stage is not
+    worth its trace: the rollout's ``N`` stages count as ``N`` calls of the stage's signature, traced at the
+    ``calls``-th, and until then (or where the trace failed) they run eager under one ``vmap``, whose fixed cost is
+    paid once a rollout rather than once a stage."""
     N = U.shape[-2]
     Us, xs, us = U.unbind(1), [x], []
     Xrs, Ks = (X_ref.unbind(1), K.unbind(1)) if feedback else ((X_ref,) * N, (K,) * N)
+    if not _RECORDED_STAGE_STEP.replays(dynamics, feedback, x, Us[0], Xrs[0], Ks[0], p, calls=N, trace_at=calls):
+        return None
     for k in range(N):
         x, u = _RECORDED_STAGE_STEP(dynamics, feedback, x, Us[k], Xrs[k], Ks[k], p)
         xs.append(x)

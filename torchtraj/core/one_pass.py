@@ -36,7 +36,7 @@ from torch.func import jacrev, vjp, vmap
 
 from .batching import concat, map_stage, map_state
 from .derivatives import _rows, _stacked_weights, _stage_points
-from .recorded import Recorded
+from .recorded import Recorded, trace_at
 
 
 @dataclass
@@ -135,14 +135,15 @@ def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:
 
 
 def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, costate: Optional[Tensor] = None,
-                          nu=None, mu=None, nuN=None, muN=None, record: bool = False) -> KKTExpansion:
+                          nu=None, mu=None, nuN=None, muN=None, record: Optional[bool] = False) -> KKTExpansion:
     """The :class:`KKTExpansion` of ``problem`` at ``X (B, N+1, nx)``, ``U (B, N, nu)`` in one pass (module
     docstring): ``costate (B, N+1, nx)`` (``λ``) and the multipliers in the layout of
     :func:`~torchtraj.core.derivatives.problem_lagrangian_hessian` (missing ones zero), or ``costate=None`` and no
-    multipliers for the cost's own Hessian. ``record``: replayed from its recorded operator graph
-    (:mod:`~torchtraj.core.recorded`; the same numbers, fewer calls)."""
-    if record:
-        return KKTExpansion(*_RECORDED_EXPANSION(problem, constraints, X, U, params, costate, nu, mu, nuN, muN))
+    multipliers for the cost's own Hessian. ``record`` (``True``, ``None``: when it pays; ``False``: never):
+    replayed from its recorded operator graph (:mod:`~torchtraj.core.recorded`; the same numbers, fewer calls)."""
+    if record is not False:
+        return KKTExpansion(*_RECORDED_EXPANSION(problem, constraints, X, U, params, costate, nu, mu, nuN, muN,
+                                                 trace_at=trace_at(record)))
     nx, nz = X.shape[-1], X.shape[-1] + U.shape[-1]
     me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
     Z = _stage_points(X, U)
@@ -214,11 +215,11 @@ class PointValues:
     gN: Tensor
 
 
-def problem_values(problem, constraints, X: Tensor, U: Tensor, params, record: bool = False) -> PointValues:
+def problem_values(problem, constraints, X: Tensor, U: Tensor, params, record: Optional[bool] = False) -> PointValues:
     """The :class:`PointValues` of ``problem`` at ``(X, U)``: one ``vmap`` of the stages, one of the end points;
     ``record`` as :func:`problem_kkt_expansion`'s."""
-    if record:
-        return PointValues(*_RECORDED_VALUES(problem, constraints, X, U, params))
+    if record is not False:
+        return PointValues(*_RECORDED_VALUES(problem, constraints, X, U, params, trace_at=trace_at(record)))
     me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
 
     def stage(x, u, p):

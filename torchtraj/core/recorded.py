@@ -36,16 +36,22 @@ whose tensors cannot be replaced: a frozen dataclass (a :class:`~torchtraj.core.
 object whose class says so (``RECORDED_OWNER = True``: the constraints layout). One that reads a tensor from a
 closure, a global or any other object (a user's reference trajectory, reassigned between calls) runs eager.
 
-A trace costs about a hundred eager calls of the function (a third of a second for the pendulum's expansion),
-so recording pays where the same shapes come back: a controller's steps, a training loop, a long solve. A
-signature is traced at its :data:`TRACE_AT`-th call, and each function keeps :data:`LIMIT` records, the most
-recently used (and, apart, the call counts of four times as many signatures not yet traced).
+A trace costs about a hundred eager calls of the function at a small batch (the pendulum's expansion: 0.7-0.9 s
+against 8-10 ms a call), so recording pays where the same shapes come back: a controller's steps, a training loop,
+a long solve. When to trace is the ``record`` option of the solvers (:func:`trace_at`): ``True``, a signature is
+traced at its :data:`TRACE_AT`-th call (repeated use known in advance: a controller); ``None``, the default, at its
+:data:`TRACE_AT_AUTO`-th, about when its eager calls have cost what its trace costs, so that recording never costs
+much more than twice the cheaper of eager and recorded calls, whatever the number of calls to come (the ski rental
+rule): a short solve runs eager, a long one, or the tenth solve of a kind, replays; ``False``, never. Each function
+keeps :data:`LIMIT` records, the most recently used (and, apart, the call counts of four times as many signatures
+not yet traced), shared by every solve in the process.
 """
 
 from __future__ import annotations
 
 import collections
-from typing import Any, Callable
+import weakref
+from typing import Any, Callable, Optional
 
 import torch
 import torch.utils._pytree as pytree
@@ -58,10 +64,30 @@ LIMIT = 32
 #: A signature is traced at its eighth call: one seen a few times only (a large batch's size for the iterations
 #: after some instances finished, a line search's rare number of trial steps) runs eager and costs no trace.
 TRACE_AT = 8
+#: With ``record=None`` (the solvers' default), a signature is traced at its hundredth call: about what a trace
+#: costs in eager calls at a small batch (module docstring).
+TRACE_AT_AUTO = 100
 
 _EAGER = object()  # a signature whose trace failed: run the function itself
+_INSTANCES: "weakref.WeakSet[Recorded]" = weakref.WeakSet()  # for forget()
 # the torch.func transforms the call is inside (None: none); a function of torch's private API, so looked up softly
 _TRANSFORMS = getattr(torch._C._functorch, "peek_interpreter_stack", None)
+
+
+def forget() -> None:
+    """Drop every function's records and call counts: the next calls run as in a new process (a benchmark that
+    counts a cold solve)."""
+    for recorded in list(_INSTANCES):
+        recorded.records.clear()
+        recorded.calls.clear()
+
+
+def trace_at(record: Optional[bool]) -> Optional[int]:
+    """The call of a signature at which the option ``record`` traces it: :data:`TRACE_AT` (``True``),
+    :data:`TRACE_AT_AUTO` (``None``, the default), or ``None``: never (``False``)."""
+    if record is False:
+        return None
+    return TRACE_AT if record else TRACE_AT_AUTO
 
 
 class Recorded:
@@ -74,36 +100,61 @@ class Recorded:
         self.records: collections.OrderedDict = collections.OrderedDict()  # signature -> record
         self.calls: collections.OrderedDict = collections.OrderedDict()  # signature -> calls, until traced
         self.traces = 0  # signatures traced (failed ones included)
+        _INSTANCES.add(self)
 
-    def __call__(self, *args):
+    def __call__(self, *args, trace_at: int = TRACE_AT):
+        """``fn(*args)``, replayed from the record of the arguments' signature, which is traced at its
+        ``trace_at``-th call (eager before)."""
         if torch.compiler.is_compiling():  # traced by torch.compile: the function itself, nothing of the record's
             return self.fn(*args)
-        flat = _flatten(args)
-        if flat is None:  # containers that only pytree knows (named tuples, ordered dictionaries)
-            leaves, spec = pytree.tree_flatten(args)
-            key = (spec,) + tuple(_signature(leaf) for leaf in leaves)
-        else:
-            leaves, key = flat
+        leaves, key = _key(args)
         if _must_run_eager(leaves):
             return self.fn(*args)
         record = self.records.get(key)
         if record is None:
-            # counted apart from the records, so that signatures seen a few times (a controller whose problem is
-            # rebuilt with new parameters at every step) never push a record out
-            calls = self.calls.pop(key, 0) + 1
-            if calls < TRACE_AT:
-                self.calls[key] = calls
-                if len(self.calls) > 4 * LIMIT:
-                    self.calls.popitem(last=False)
+            if not self._count(key, 1, trace_at):
                 return self.fn(*args)
-            record = self.records[key] = self._trace(*pytree.tree_flatten(args))
-            if len(self.records) > LIMIT:
-                self.records.popitem(last=False)
+            record = self._store(key, args)
         self.records.move_to_end(key)
         graph, unflatten, _ = record
         if graph is _EAGER:
             return self.fn(*args)
         return unflatten(graph.forward(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))))
+
+    def replays(self, *args, calls: int, trace_at: int) -> bool:
+        """Count ``calls`` calls of ``args``' signature that the caller makes itself, eager, unless they should
+        go through the record: whether it has a record that replays, or has now been called ``trace_at`` times
+        (traced here, from ``args``). A rollout asks once for its ``N`` stages, which run under one ``vmap``
+        while the stage is not worth its trace."""
+        if torch.compiler.is_compiling():
+            return False
+        leaves, key = _key(args)
+        if _must_run_eager(leaves):
+            return False
+        record = self.records.get(key)
+        if record is None:
+            if not self._count(key, calls, trace_at):
+                return False
+            record = self._store(key, args)
+        return record[0] is not _EAGER
+
+    def _count(self, key, calls: int, trace_at: int) -> bool:
+        """Add ``calls`` to the count of ``key`` (not yet recorded); whether it reached ``trace_at``."""
+        # counted apart from the records, so that signatures seen a few times (a controller whose problem is
+        # rebuilt with new parameters at every step) never push a record out
+        count = self.calls.pop(key, 0) + calls
+        if count < trace_at:
+            self.calls[key] = count
+            if len(self.calls) > 4 * LIMIT:
+                self.calls.popitem(last=False)
+            return False
+        return True
+
+    def _store(self, key, args: tuple) -> tuple:
+        record = self.records[key] = self._trace(*pytree.tree_flatten(args))
+        if len(self.records) > LIMIT:
+            self.records.popitem(last=False)
+        return record
 
     def _trace(self, leaves: list, spec) -> tuple:
         """``(graph, its outputs' unflatten, the non-tensor arguments kept alive)``, or ``(_EAGER, None, ...)``."""
@@ -189,6 +240,15 @@ def _must_run_eager(leaves: list) -> bool:
             and torch.cuda.is_current_stream_capturing():
         return True
     return torch.is_grad_enabled() and any(isinstance(leaf, torch.Tensor) and leaf.requires_grad for leaf in leaves)
+
+
+def _key(args: tuple) -> tuple:
+    """``(leaves, signature)`` of ``args``."""
+    flat = _flatten(args)
+    if flat is None:  # containers that only pytree knows (named tuples, ordered dictionaries)
+        leaves, spec = pytree.tree_flatten(args)
+        return leaves, (spec,) + tuple(_signature(leaf) for leaf in leaves)
+    return flat
 
 
 def _flatten(args: tuple):

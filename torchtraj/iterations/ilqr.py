@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -103,11 +104,12 @@ class ILQROptions:
     #: ``torch.compile`` the per-iteration kernels (rollouts, objective, expansion, Riccati); the first solve of
     #: each problem and shape compiles them (:mod:`torchtraj.core.compiled`).
     compile: bool = False
-    #: Replay the expansion and the line search's rollout stages from their operator graphs recorded once per
-    #: batch size (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a
-    #: fraction of a second per shape; pays for repeated solves of the same shapes (a controller's steps). Read by
-    #: ALTRO's and AL-iLQR's inner iLQR.
-    record: bool = False
+    #: Replay the expansion and the rollouts' stages from their operator graphs recorded once per batch size
+    #: (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a fraction of
+    #: a second per shape. ``None`` (default): a shape is recorded once it has been evaluated about as often as its
+    #: trace costs (a long solve, repeated solves); ``True``: early (a controller's steps); ``False``: never. Read
+    #: by ALTRO's and AL-iLQR's inner iLQR.
+    record: Optional[bool] = None
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
     #: The Riccati sweep of the backward pass (:func:`~torchtraj.riccati.factorize`): ``"sequential"``,

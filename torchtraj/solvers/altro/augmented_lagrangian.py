@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -119,7 +120,8 @@ def _lift(t: Tensor, extra: int) -> Tensor:
 class AugmentedLagrangian:
     """``L_A`` of ``problem`` for fixed duals; same interface as :class:`~torchtraj.solvers.ilqr.CostObjective`."""
 
-    def __init__(self, constraints: Constraints, duals: Duals, square_root: bool = False, record: bool = False):
+    def __init__(self, constraints: Constraints, duals: Duals, square_root: bool = False,
+                 record: Optional[bool] = False):
         self.constraints = constraints
         #: also give the square-root pass the roots of the Hessian terms (``LQR.root``, eqs. 19-21)
         self.square_root = square_root

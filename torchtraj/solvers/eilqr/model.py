@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -112,7 +113,7 @@ def _slacks(cons: Constraints, X: Tensor, U: Tensor, params) -> tuple:
 
 
 def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows, weights: Weights,
-           record: bool = False) -> Model:
+           record: Optional[bool] = False) -> Model:
     """Everything an iteration needs at ``it`` (module docstring): ``cons`` the problem's constraints, ``x0 (B, nx)``
     the given initial states, ``rows`` the free initial state's
     :class:`~torchtraj.solvers.eilqr.initial_state.InitialState` or ``None``, ``weights`` the barrier's; ``record``:

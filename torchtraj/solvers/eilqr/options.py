@@ -136,7 +136,8 @@ class EILQROptions:
         compile: accepted for the control-step interface; eILQR has no compiled kernels and runs eagerly.
         record: replay the expansion from its operator graph recorded once per batch size
             (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a fraction
-            of a second per shape; pays for repeated solves of the same shapes (a controller's steps).
+            of a second per shape. ``None`` (default): a shape is recorded once it has been evaluated about as often
+            as its trace costs; ``True``: early (a controller's steps); ``False``: never.
         verbose: log one line per iteration.
     """
 
@@ -177,7 +178,7 @@ class EILQROptions:
     problem_state_guess: bool = True
     max_state: float = 1e8
     compile: bool = False
-    record: bool = False
+    record: Optional[bool] = None
     verbose: bool = False
 
     def __post_init__(self):

@@ -96,7 +96,7 @@ def _lift(t: Tensor, like: Tensor) -> Tensor:
 class HybridObjective:
     """``J_1`` / ``J_2`` of the module docstring for fixed stage parameters: value, equality residual, LQR model."""
 
-    def __init__(self, constraints: Constraints, params: StageParameters, record: bool = False):
+    def __init__(self, constraints: Constraints, params: StageParameters, record: Optional[bool] = False):
         self.constraints = c = constraints
         self.problem = constraints.problem
         self.params = params

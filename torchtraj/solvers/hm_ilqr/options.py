@@ -174,10 +174,11 @@ class HMILQROptions:
     max_state: float = 1e8
     #: Accepted for the control-step interface; HM-iLQR has no compiled kernels.
     compile: bool = False
-    #: Replay the expansions (the model's and the dynamics' curvature) from their operator graphs recorded once per
-    #: batch size (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a
-    #: fraction of a second per shape; pays for repeated solves of the same shapes (a controller's steps).
-    record: bool = False
+    #: Replay the expansions (the model's and the dynamics' curvature) and the rollouts' steps from their operator
+    #: graphs recorded once per batch size (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper
+    #: calls, after a trace of a fraction of a second per shape. ``None`` (default): a shape is recorded once it has
+    #: been evaluated about as often as its trace costs; ``True``: early (a controller's steps); ``False``: never.
+    record: Optional[bool] = None
     #: Log one line per iteration through the ``torchtraj`` logger.
     verbose: bool = False
 

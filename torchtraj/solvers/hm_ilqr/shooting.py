@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -75,7 +76,7 @@ def defects(f: Tensor, X: Tensor, segments: Segments) -> Tensor:
 
 
 def rollout_segments(dynamics, params, nodes: Tensor, U: Tensor, segments: Segments, X_ref=None, K=None,
-                     feedforward=None, record: bool = False):
+                     feedforward=None, record: Optional[bool] = False):
     """Integrate every segment from its node under ``u_k = U_k + feedforward_k + K_k (x_k − X_ref_k)``.
 
     ``nodes (B, *E, M, nx)`` (node 0 is ``x_0``), ``U (B, N, nu)``, ``feedforward (B, *E, N, nu)`` (the

@@ -141,7 +141,7 @@ class Expansion:
     J: Optional[Tensor] = None  # the objective, where the pass gave it
 
 
-def _general_expansion(problem: Problem, cons: Constraints, params, it: Iterate, record: bool) -> Expansion:
+def _general_expansion(problem: Problem, cons: Constraints, params, it: Iterate, record: Optional[bool]) -> Expansion:
     """One pass of ``torch.func`` over the batch and the stages
     (:func:`~torchtraj.core.one_pass.problem_kkt_expansion`; ``record``: replayed from its recorded graph)."""
     e = problem_kkt_expansion(problem, cons, it.X, it.U, params, it.lam, it.nu, it.y, it.nuN, it.yN, record=record)

@@ -68,8 +68,9 @@ class IPOptions:
     compile: bool = False
     #: Replay the expansion and the line search's values from operator graphs recorded once per batch size
     #: (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a fraction of a
-    #: second per shape. Pays for repeated solves of the same shapes (a controller's steps) and large batches.
-    record: bool = False
+    #: second per shape. ``None`` (default): a shape is recorded once it has been evaluated about as often as its
+    #: trace costs (a long solve, repeated solves); ``True``: early (a controller's steps); ``False``: never.
+    record: Optional[bool] = None
     #: On a GPU, replay the per-iteration kernels, the crossover's candidates and the implicit layer's Newton step
     #: and adjoint solve from CUDA graphs (:mod:`torchtraj.core.graphs`); no effect on a CPU or with ``compile``.
     cuda_graphs: bool = False
