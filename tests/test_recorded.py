@@ -122,14 +122,18 @@ def test_views_of_one_buffer_at_other_offsets_share_a_record_and_read_their_own_
     assert f.traces == 1 and calls.total == 2 * len(stages)  # the strided view and the product, replayed
 
 
-@pytest.mark.parametrize("name", ["pendulum", "cartpole"])
-def test_a_recorded_rollout_is_the_eager_one_to_the_last_bit_in_fewer_calls(name):
+@pytest.mark.parametrize("name,expanded", [("pendulum", False), ("cartpole", False), ("pendulum", True)])
+def test_a_recorded_rollout_is_the_eager_one_to_the_last_bit_in_fewer_calls(name, expanded):
     """``closed_loop_rollout(..., record=True)`` (the line search of iLQR and ALTRO with ``ILQROptions.record``):
-    each stage replayed from one record, the eager rollout's states and controls to the last bit."""
+    each stage replayed from one record, the eager rollout's states and controls to the last bit; ``expanded``: the
+    E trajectories of an instance start from one state, expanded (a line search's candidates), whose layout is not
+    that of the later stages' states."""
     p = problems.get(name)
     g = torch.Generator().manual_seed(0)
-    B, E, N = 2, 3, p.N
+    B, E, N = (1, 4, p.N) if expanded else (2, 3, p.N)
     x0 = p.x0.expand(B, E, p.nx) + 0.1 * torch.randn(B, E, p.nx, dtype=F64, generator=g)
+    if expanded:
+        x0 = x0[:, :1].expand(B, E, p.nx)
     U = 0.5 * torch.randn(B, E, N, p.nu, dtype=F64, generator=g)
     X_ref = torch.randn(B, N + 1, p.nx, dtype=F64, generator=g)
     K = 0.1 * torch.randn(B, N, p.nu, p.nx, dtype=F64, generator=g)
@@ -140,7 +144,7 @@ def test_a_recorded_rollout_is_the_eager_one_to_the_last_bit_in_fewer_calls(name
     closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)  # its N stages count N calls: traced
     with OperatorCounter() as recorded_calls:
         Xr, Ur = closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)
-    assert batching._RECORDED_STAGE_STEP.traces - traces <= 2  # the first stage's start, and the others
+    assert batching._RECORDED_STAGE_STEP.traces - traces <= 1  # one record serves every stage
     assert torch.equal(Xr, X) and torch.equal(Ur, Us)
     assert recorded_calls.total < 0.8 * eager_calls.total
 
@@ -282,7 +286,7 @@ def test_a_default_solve_records_its_hot_shapes_and_keeps_the_eager_answer(metho
         monkeypatch.setattr(batching if name in ("_RECORDED_STAGE_STEP", "_RECORDED_MAP_STAGE") else one_pass, name, f)
     monkeypatch.setattr(recorded, "TRACE_AT_AUTO", 20)
     p = problems.get("pendulum")
-    x0 = problems.sample_x0("pendulum", 2, 0)
+    x0 = problems.sample_x0("pendulum", 1 if method == "altro" else 2, 0)  # B = 1: candidates from one state
     if method == "altro":
         options = dict(iterations_outer=3, iterations_inner=20)
         eager = tt.solve(p, x0, method, options=tt.ALTROOptions(**options, ilqr=tt.ILQROptions(record=False)))
@@ -293,3 +297,24 @@ def test_a_default_solve_records_its_hot_shapes_and_keeps_the_eager_answer(metho
         default = tt.solve(p, x0, method, options=tt.IPOptions(iterations=30))
     assert fresh["_RECORDED_EXPANSION"].traces >= 1
     assert_same_solutions(default, eager)
+
+
+def test_a_loop_computes_what_reads_only_its_fixed_tensors_once():
+    """``Recorded.loop``: for calls that change only the first tensors, the operators that read only the others (a
+    rollout stage's products of parameters) run once, before the loop; each step replays the rest, the function's
+    results to the last bit, and returns tensors of its own."""
+    f = Recorded(lambda x, a, b: (x * (a * b) + a.sin(), x - b))
+    a, b = torch.rand(3, dtype=F64), torch.rand(3, dtype=F64)
+    xs = torch.rand(5, 3, dtype=F64).unbind(0)
+    assert f.loop(xs[0], a, b, calls=5, trace_at=10, varying=1) is None  # counted, not yet worth a trace
+    assert f.loop(xs[0], a, b, calls=5, trace_at=10, varying=1) is not None and f.traces == 1  # traced
+    with OperatorCounter() as before:
+        step = f.loop(xs[0], a, b, calls=5, trace_at=10, varying=1)
+    assert before.total == 2 and f.traces == 1  # the hoisted a * b and a.sin()
+    with OperatorCounter() as calls:
+        outs = [step(x) for x in xs]
+    assert calls.total == 3 * len(xs)  # the product, the sum and the difference
+    for x, (y, z) in zip(xs, outs):
+        assert torch.equal(y, x * (a * b) + a.sin()) and torch.equal(z, x - b)
+    outs[0][0].add_(1.0)
+    assert torch.equal(outs[1][0], xs[1] * (a * b) + a.sin())

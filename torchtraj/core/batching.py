@@ -209,12 +209,19 @@ def _recorded_stages(dynamics: Callable, feedback: bool, x: Tensor, U: Tensor, X
     ``calls``-th, and until then (or where the trace failed) they run eager under one ``vmap``, whose fixed cost is
     paid once a rollout rather than once a stage."""
     N = U.shape[-2]
+    x = x.contiguous()  # as the stages' states are (a line search's candidates start from one expanded state)
     Us, xs, us = U.unbind(1), [x], []
     Xrs, Ks = (X_ref.unbind(1), K.unbind(1)) if feedback else ((X_ref,) * N, (K,) * N)
-    if not _RECORDED_STAGE_STEP.replays(dynamics, feedback, x, Us[0], Xrs[0], Ks[0], p, calls=N, trace_at=calls):
+    step = _RECORDED_STAGE_STEP.loop(dynamics, feedback, x, Us[0], Xrs[0], Ks[0], p, calls=N, trace_at=calls,
+                                     varying=4)  # the parameters' products are made once, not once a stage
+    if step is None:
         return None
-    for k in range(N):
-        x, u = _RECORDED_STAGE_STEP(dynamics, feedback, x, Us[k], Xrs[k], Ks[k], p)
+    layout = (x.shape, x.stride(), x.dtype)  # the record's: a stage whose state has another (a user's dynamics)
+    for k in range(N):  # looks its own record up
+        if (x.shape, x.stride(), x.dtype) == layout:
+            x, u = step(x, Us[k], Xrs[k], Ks[k])
+        else:
+            x, u = _RECORDED_STAGE_STEP(dynamics, feedback, x, Us[k], Xrs[k], Ks[k], p)
         xs.append(x)
         us.append(u)
     return torch.stack(xs, 1), torch.stack(us, 1)

@@ -5,6 +5,8 @@ operators called through the library's public functions. Every pass keeps the gr
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
@@ -191,3 +193,48 @@ def _drop_identity_views(graph: torch.fx.Graph) -> None:
 
 def _static(val: torch.Tensor) -> bool:
     return all(isinstance(s, int) for s in (*val.shape, *val.stride(), val.storage_offset()))
+
+
+def hoisted(graph: torch.fx.GraphModule, varying: int) -> Optional[tuple]:
+    """``(prologue, body)``: ``graph`` split for a loop of calls that change only its first ``varying`` inputs
+    (loop-invariant code motion). The operators that read only the other inputs and constants (a rollout stage's
+    products of parameters) are computed once, by ``prologue(*inputs)``, which returns those of their values that
+    the rest reads; ``body(*inputs, *values)`` is the rest. ``None`` where nothing is left to hoist, where an
+    operator mutates a tensor, or where an output would be hoisted (each call returns tensors of its own)."""
+    nodes = list(graph.graph.nodes)
+    fixed = set([n for n in nodes if n.op == "placeholder"][varying:])
+    for node in nodes:
+        if node.op == "get_attr":
+            fixed.add(node)
+        elif node.op == "call_function":
+            schema = getattr(node.target, "_schema", None)
+            if schema is not None and schema.is_mutable:
+                return None
+            if all(arg in fixed for arg in node.all_input_nodes):
+                fixed.add(node)
+    if any(node in fixed for node in _output_nodes(graph.graph)):
+        return None
+    hoist = [n for n in nodes if n.op == "call_function" and n in fixed and any(u not in fixed for u in n.users)]
+    if not hoist:
+        return None
+    prologue, mapping, _ = _copy(graph.graph)
+    prologue.output(tuple(mapping[n] for n in hoist))
+    body, mapping, out = _copy(graph.graph)
+    body.output(out)
+    anchor = [n for n in body.nodes if n.op == "placeholder"][-1]
+    for i, node in enumerate(hoist):
+        with body.inserting_after(anchor):
+            anchor = body.placeholder(f"hoisted_{i}")
+        anchor.meta = dict(node.meta)
+        mapping[node].replace_all_uses_with(anchor)
+    for part in (prologue, body):
+        part.eliminate_dead_code()
+        part.lint()
+    return torch.fx.GraphModule(graph, prologue), torch.fx.GraphModule(graph, body)
+
+
+def _copy(graph: torch.fx.Graph) -> tuple:
+    """A copy of ``graph`` without its output node: ``(copy, node -> copied node, the output's copied value)``."""
+    copy, mapping = torch.fx.Graph(), {}
+    out = copy.graph_copy(graph, mapping)
+    return copy, mapping, out

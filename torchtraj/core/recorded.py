@@ -57,7 +57,7 @@ import torch
 import torch.utils._pytree as pytree
 from torch.func import functionalize
 
-from .graph_passes import output_values, simplify
+from .graph_passes import hoisted, output_values, simplify
 
 #: Records kept per function (input signatures: batch sizes, horizons, problems, dtypes, devices).
 LIMIT = 32
@@ -80,6 +80,7 @@ def forget() -> None:
     for recorded in list(_INSTANCES):
         recorded.records.clear()
         recorded.calls.clear()
+        recorded.loops.clear()
 
 
 def trace_at(record: Optional[bool]) -> Optional[int]:
@@ -100,6 +101,7 @@ class Recorded:
         self.records: collections.OrderedDict = collections.OrderedDict()  # signature -> record
         self.calls: collections.OrderedDict = collections.OrderedDict()  # signature -> calls, until traced
         self.traces = 0  # signatures traced (failed ones included)
+        self.loops: collections.OrderedDict = collections.OrderedDict()  # (signature, varying) -> hoisted split
         _INSTANCES.add(self)
 
     def __call__(self, *args, trace_at: int = TRACE_AT):
@@ -137,6 +139,30 @@ class Recorded:
                 return False
             record = self._store(key, args)
         return record[0] is not _EAGER
+
+    def loop(self, *args, calls: int, trace_at: int, varying: int) -> Optional[Callable]:
+        """A loop's calls of ``fn``, ``calls`` of them, that change only the first ``varying`` tensors of ``args``
+        (in the order of their leaves: a rollout's state and stage operands; the rest, its parameters, stay): ``None``
+        while they are not worth a trace (counted as :meth:`replays` counts them) or where it failed, else
+        ``step(*tensors)``, ``fn`` with those tensors in their places, replayed with the operators that read only
+        the other tensors computed once, here (:func:`~torchtraj.core.graph_passes.hoisted`), and without a
+        lookup a call."""
+        if not self.replays(*args, calls=calls, trace_at=trace_at):
+            return None
+        leaves, key = _key(args)
+        graph, unflatten, _ = self.records[key]
+        tensors = [leaf for leaf in leaves if isinstance(leaf, torch.Tensor)]
+        fixed = tensors[varying:]
+        if (key, varying) not in self.loops:
+            self.loops[key, varying] = hoisted(graph, varying)
+            if len(self.loops) > LIMIT:
+                self.loops.popitem(last=False)
+        split = self.loops[key, varying]
+        if split is None:
+            return lambda *moving: unflatten(graph.forward(*moving, *fixed))
+        prologue, body = split
+        values = prologue.forward(*tensors)
+        return lambda *moving: unflatten(body.forward(*moving, *fixed, *values))
 
     def _count(self, key, calls: int, trace_at: int) -> bool:
         """Add ``calls`` to the count of ``key`` (not yet recorded); whether it reached ``trace_at``."""
