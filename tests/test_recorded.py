@@ -274,7 +274,7 @@ def test_a_rollout_counts_its_stages_before_it_replays_them():
     assert not branching.replays(x, calls=30, trace_at=10) and branching.traces == 1
 
 
-@pytest.mark.parametrize("method", ["altro", "ipm"])
+@pytest.mark.parametrize("method", ["altro", "ipm", "hm-ilqr"])
 def test_a_default_solve_records_its_hot_shapes_and_keeps_the_eager_answer(method, monkeypatch):
     """With the default ``record=None`` a solve traces a shape once it has been evaluated ``TRACE_AT_AUTO`` times
     (a hundred; twenty here, with new records, so that a short solve crosses it): the rollouts' stages and the
@@ -292,6 +292,10 @@ def test_a_default_solve_records_its_hot_shapes_and_keeps_the_eager_answer(metho
         eager = tt.solve(p, x0, method, options=tt.ALTROOptions(**options, ilqr=tt.ILQROptions(record=False)))
         default = tt.solve(p, x0, method, options=tt.ALTROOptions(**options))
         assert fresh["_RECORDED_STAGE_STEP"].traces >= 1
+    elif method == "hm-ilqr":  # its segments' steps: Recorded.loop through stage_mapper
+        eager = tt.solve(p, x0, method, options=tt.HMILQROptions(iterations=30, record=False))
+        default = tt.solve(p, x0, method, options=tt.HMILQROptions(iterations=30))
+        assert fresh["_RECORDED_MAP_STAGE"].traces >= 1
     else:
         eager = tt.solve(p, x0, method, options=tt.IPOptions(iterations=30, record=False))
         default = tt.solve(p, x0, method, options=tt.IPOptions(iterations=30))

@@ -112,13 +112,25 @@ def map_stage(fn: Callable, X: Tensor, U: Tensor, params: Params) -> Tensor:
 def stage_mapper(fn: Callable, params: Params, record: Optional[bool] = False) -> Callable:
     """``(X, U) ↦ map_stage(fn, X, U, params)`` for repeated calls with the same ``params`` (the steps of a
     rollout): the parameters are split into shared and batched ones once (a view of each shared one), not at every
-    call; with ``record``, each call is replayed from its operator graph (:mod:`~torchtraj.core.recorded`), split
-    included, the same numbers in fewer calls."""
-    if record is not False:
-        calls = trace_at(record)
-        return lambda X, U: _RECORDED_MAP_STAGE(fn, X, U, params, trace_at=calls)
+    call; with ``record`` (``None``: once the calls are worth a trace), the calls are replayed as a loop from the
+    operator graph of their layout (:meth:`~torchtraj.core.recorded.Recorded.loop`: split included, the
+    parameters' products made once), the same numbers in fewer calls."""
     split = _split_params(params)
-    return lambda X, U: _map(fn, (X, U), params, split)
+    if record is False:
+        return lambda X, U: _map(fn, (X, U), params, split)
+    calls, steps = trace_at(record), {}
+
+    def mapped(X: Tensor, U: Tensor) -> Tensor:
+        layout = (X.shape, X.stride(), X.dtype, U.shape, U.stride(), U.dtype)
+        step = steps.get(layout)
+        if step is None:
+            step = _RECORDED_MAP_STAGE.loop(fn, X, U, params, calls=1, trace_at=calls, varying=2)
+            if step is None:
+                return _map(fn, (X, U), params, split)
+            steps[layout] = step
+        return step(X, U)
+
+    return mapped
 
 
 def map_state(fn: Callable, X: Tensor, params: Params) -> Tensor:
