@@ -109,18 +109,10 @@ class Recorded:
         ``trace_at``-th call (eager before)."""
         if torch.compiler.is_compiling():  # traced by torch.compile: the function itself, nothing of the record's
             return self.fn(*args)
-        leaves, key = _key(args)
-        if _must_run_eager(leaves):
-            return self.fn(*args)
-        record = self.records.get(key)
+        leaves, _, record = self._lookup(args, 1, trace_at)
         if record is None:
-            if not self._count(key, 1, trace_at):
-                return self.fn(*args)
-            record = self._store(key, args)
-        self.records.move_to_end(key)
-        graph, unflatten, _ = record
-        if graph is _EAGER:
             return self.fn(*args)
+        graph, unflatten, _ = record
         return unflatten(graph.forward(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))))
 
     def replays(self, *args, calls: int, trace_at: int) -> bool:
@@ -128,17 +120,7 @@ class Recorded:
         go through the record: whether it has a record that replays, or has now been called ``trace_at`` times
         (traced here, from ``args``). A rollout asks once for its ``N`` stages, which run under one ``vmap``
         while the stage is not worth its trace."""
-        if torch.compiler.is_compiling():
-            return False
-        leaves, key = _key(args)
-        if _must_run_eager(leaves):
-            return False
-        record = self.records.get(key)
-        if record is None:
-            if not self._count(key, calls, trace_at):
-                return False
-            record = self._store(key, args)
-        return record[0] is not _EAGER
+        return not torch.compiler.is_compiling() and self._lookup(args, calls, trace_at)[2] is not None
 
     def loop(self, *args, calls: int, trace_at: int, varying: int) -> Optional[Callable]:
         """A loop's calls of ``fn``, ``calls`` of them, that change only the first ``varying`` tensors of ``args``
@@ -147,10 +129,12 @@ class Recorded:
         ``step(*tensors)``, ``fn`` with those tensors in their places, replayed with the operators that read only
         the other tensors computed once, here (:func:`~torchtraj.core.graph_passes.hoisted`), and without a
         lookup a call."""
-        if not self.replays(*args, calls=calls, trace_at=trace_at):
+        if torch.compiler.is_compiling():
             return None
-        leaves, key = _key(args)
-        graph, unflatten, _ = self.records[key]
+        leaves, key, record = self._lookup(args, calls, trace_at)
+        if record is None:
+            return None
+        graph, unflatten, _ = record
         tensors = [leaf for leaf in leaves if isinstance(leaf, torch.Tensor)]
         fixed = tensors[varying:]
         if (key, varying) not in self.loops:
@@ -163,6 +147,21 @@ class Recorded:
         prologue, body = split
         values = prologue.forward(*tensors)
         return lambda *moving: unflatten(body.forward(*moving, *fixed, *values))
+
+    def _lookup(self, args: tuple, calls: int, trace_at: int) -> tuple:
+        """``(leaves, signature, record)`` of ``args``: the record that replays them, traced here where these
+        ``calls`` bring the signature's count to ``trace_at``; ``None`` while the signature is not worth a trace, where
+        its trace failed, or where the call must run eager (:func:`_must_run_eager`)."""
+        leaves, key = _key(args)
+        if _must_run_eager(leaves):
+            return leaves, key, None
+        record = self.records.get(key)
+        if record is None:
+            if not self._count(key, calls, trace_at):
+                return leaves, key, None
+            record = self._store(key, args)
+        self.records.move_to_end(key)
+        return leaves, key, None if record[0] is _EAGER else record
 
     def _count(self, key, calls: int, trace_at: int) -> bool:
         """Add ``calls`` to the count of ``key`` (not yet recorded); whether it reached ``trace_at``."""
