@@ -36,15 +36,16 @@ whose tensors cannot be replaced: a frozen dataclass (a :class:`~torchtraj.core.
 object whose class says so (``RECORDED_OWNER = True``: the constraints layout). One that reads a tensor from a
 closure, a global or any other object (a user's reference trajectory, reassigned between calls) runs eager.
 
-A trace costs about a hundred eager calls of the function at a small batch (the pendulum's expansion: 0.7-0.9 s
-against 8-10 ms a call), so recording pays where the same shapes come back: a controller's steps, a training loop,
-a long solve. When to trace is the ``record`` option of the solvers (:func:`trace_at`): ``True``, a signature is
-traced at its :data:`TRACE_AT`-th call (repeated use known in advance: a controller); ``None``, the default, at its
-:data:`TRACE_AT_AUTO`-th, about when its eager calls have cost what its trace costs, so that recording never costs
-much more than twice the cheaper of eager and recorded calls, whatever the number of calls to come (the ski rental
-rule): a short solve runs eager, a long one, or the tenth solve of a kind, replays; ``False``, never. Each function
-keeps :data:`LIMIT` records, the most recently used (and, apart, the call counts of four times as many signatures
-not yet traced), shared by every solve in the process.
+A trace costs about a hundred eager calls of the function at a small batch (its operators dispatched on fake
+tensors; ``docs/benchmarks.md`` has the figures), so recording pays where the same shapes come back: a
+controller's steps, a training loop, a long solve. When to trace is the ``record`` option of the solvers
+(:func:`trace_at`): ``True``, a signature is traced at its :data:`TRACE_AT`-th call (repeated use known in
+advance: a controller); ``None``, the default, at its :data:`TRACE_AT_AUTO`-th, about when its eager calls have
+cost what its trace costs, so that recording never costs much more than twice the cheaper of eager and recorded
+calls, whatever the number of calls to come (the ski rental rule): a short solve runs eager, a long one, or a solve
+repeated often enough, replays; ``False``, never. Each function keeps :data:`LIMIT` records, the most recently
+used (and, apart, the call counts of four times as many signatures not yet traced), shared by every solve in the
+process.
 """
 
 from __future__ import annotations
