@@ -263,15 +263,15 @@ def test_the_record_option_says_when_a_signature_is_traced():
 
 
 def test_a_rollout_counts_its_stages_before_it_replays_them():
-    """``Recorded.replays``: a rollout asks once for its N stages, counted as N calls of the stage's signature;
+    """``Recorded.loop``: a rollout asks once for its N stages, counted as N calls of the stage's signature;
     they replay from the call that reaches ``trace_at`` on, and never where the trace failed."""
     f = Recorded(lambda x: x * 3.0)
     x = torch.rand(2, dtype=F64)
-    assert [f.replays(x, calls=30, trace_at=100) for _ in range(4)] == [False, False, False, True]
-    assert f.traces == 1 and f.replays(x, calls=30, trace_at=100) and f.traces == 1
+    assert [f.loop(x, calls=30, trace_at=100, varying=1) is not None for _ in range(4)] == [False, False, False, True]
+    assert f.traces == 1 and f.loop(x, calls=30, trace_at=100, varying=1) is not None and f.traces == 1
     branching = Recorded(lambda x: x if bool(x.sum() > 0) else -x)
-    assert not branching.replays(x, calls=30, trace_at=10) and branching.traces == 1
-    assert not branching.replays(x, calls=30, trace_at=10) and branching.traces == 1
+    assert branching.loop(x, calls=30, trace_at=10, varying=1) is None and branching.traces == 1
+    assert branching.loop(x, calls=30, trace_at=10, varying=1) is None and branching.traces == 1
 
 
 @pytest.mark.parametrize("method", ["altro", "ipm", "hm-ilqr"])
@@ -279,11 +279,11 @@ def test_a_default_solve_records_its_hot_shapes_and_keeps_the_eager_answer(metho
     """With the default ``record=None`` a solve traces a shape once it has been evaluated ``TRACE_AT_AUTO`` times
     (a hundred; twenty here, with new records, so that a short solve crosses it): the rollouts' stages and the
     expansions, then replays them, with the answer of the eager solve to the last bit."""
-    fresh = {name: Recorded(getattr(module, name).fn) for module, name in (
-        (batching, "_RECORDED_STAGE_STEP"), (batching, "_RECORDED_MAP_STAGE"), (one_pass, "_RECORDED_EXPANSION"),
-        (one_pass, "_RECORDED_VALUES"))}
-    for name, f in fresh.items():
-        monkeypatch.setattr(batching if name in ("_RECORDED_STAGE_STEP", "_RECORDED_MAP_STAGE") else one_pass, name, f)
+    fresh = {}
+    for module, name in ((batching, "_RECORDED_STAGE_STEP"), (batching, "_RECORDED_MAP_STAGE"),
+                         (one_pass, "_RECORDED_EXPANSION"), (one_pass, "_RECORDED_VALUES")):
+        fresh[name] = Recorded(getattr(module, name).fn)
+        monkeypatch.setattr(module, name, fresh[name])
     monkeypatch.setattr(recorded, "TRACE_AT_AUTO", 20)
     p = problems.get("pendulum")
     x0 = problems.sample_x0("pendulum", 1 if method == "altro" else 2, 0)  # B = 1: candidates from one state

@@ -233,7 +233,7 @@ def _recorded_stages(dynamics: Callable, feedback: bool, x: Tensor, U: Tensor, X
         if (x.shape, x.stride(), x.dtype) == layout:
             x, u = step(x, Us[k], Xrs[k], Ks[k])
         else:
-            x, u = _RECORDED_STAGE_STEP(dynamics, feedback, x, Us[k], Xrs[k], Ks[k], p)
+            x, u = _RECORDED_STAGE_STEP(dynamics, feedback, x, Us[k], Xrs[k], Ks[k], p, trace_at=calls)
         xs.append(x)
         us.append(u)
     return torch.stack(xs, 1), torch.stack(us, 1)

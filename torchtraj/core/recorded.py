@@ -116,20 +116,14 @@ class Recorded:
         graph, unflatten, _ = record
         return unflatten(graph.forward(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))))
 
-    def replays(self, *args, calls: int, trace_at: int) -> bool:
-        """Count ``calls`` calls of ``args``' signature that the caller makes itself, eager, unless they should
-        go through the record: whether it has a record that replays, or has now been called ``trace_at`` times
-        (traced here, from ``args``). A rollout asks once for its ``N`` stages, which run under one ``vmap``
-        while the stage is not worth its trace."""
-        return not torch.compiler.is_compiling() and self._lookup(args, calls, trace_at)[2] is not None
-
     def loop(self, *args, calls: int, trace_at: int, varying: int) -> Optional[Callable]:
         """A loop's calls of ``fn``, ``calls`` of them, that change only the first ``varying`` tensors of ``args``
         (in the order of their leaves: a rollout's state and stage operands; the rest, its parameters, stay): ``None``
-        while they are not worth a trace (counted as :meth:`replays` counts them) or where it failed, else
-        ``step(*tensors)``, ``fn`` with those tensors in their places, replayed with the operators that read only
-        the other tensors computed once, here (:func:`~torchtraj.core.graph_passes.hoisted`), and without a
-        lookup a call."""
+        while they are not worth a trace (the ``calls`` are counted, and the caller makes them eager: a rollout's
+        ``N`` stages under one ``vmap``) or where it failed, else ``step(*tensors)``, ``fn`` with those tensors in
+        their places, replayed with the operators that read only the other tensors computed once, here
+        (:func:`~torchtraj.core.graph_passes.hoisted`), and without a lookup a call. The trace, at the call that
+        brings the count to ``trace_at``, is made from ``args``."""
         if torch.compiler.is_compiling():
             return None
         leaves, key, record = self._lookup(args, calls, trace_at)
