@@ -14,7 +14,7 @@ from torchtraj.core import batching, one_pass, recorded
 from torchtraj.core.batching import closed_loop_rollout
 from torchtraj.core.constraints import Constraints
 from torchtraj.core.one_pass import problem_kkt_expansion, problem_values
-from torchtraj.core.recorded import TRACE_AT, TRACE_AT_AUTO, Recorded, trace_at
+from torchtraj.core.recorded import SIZE_SCALE, TRACE_AT, TRACE_AT_AUTO, Recorded, trace_at
 
 F64 = torch.float64
 
@@ -260,6 +260,18 @@ def test_the_record_option_says_when_a_signature_is_traced():
     with OperatorCounter() as calls:
         out = f(x, trace_at=TRACE_AT_AUTO)
     assert torch.equal(out, x * 3.0) and f.traces == 1 and calls.total == 1  # replayed
+
+
+def test_a_call_on_larger_arguments_counts_for_more():
+    """An eager call's cost grows with its arguments, a trace's does not: a call whose largest argument holds ``n``
+    elements counts ``1 + n // SIZE_SCALE`` calls towards ``trace_at``."""
+    f = Recorded(lambda x: x * 3.0)
+    x = torch.rand(4 * SIZE_SCALE, dtype=F64)  # counts 5
+    for _ in range(TRACE_AT_AUTO // 5 - 1):
+        f(x, trace_at=TRACE_AT_AUTO)
+    assert f.traces == 0
+    f(x, trace_at=TRACE_AT_AUTO)  # the twentieth call: traced
+    assert f.traces == 1 and torch.equal(f(x, trace_at=TRACE_AT_AUTO), x * 3.0)
 
 
 def test_a_rollout_counts_its_stages_before_it_replays_them():

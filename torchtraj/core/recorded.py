@@ -43,7 +43,10 @@ controller's steps, a training loop, a long solve. When to trace is the ``record
 advance: a controller); ``None``, the default, at its :data:`TRACE_AT_AUTO`-th, about when its eager calls have
 cost what its trace costs, so that recording never costs much more than twice the cheaper of eager and recorded
 calls, whatever the number of calls to come (the ski rental rule): a short solve runs eager, a long one, or a solve
-repeated often enough, replays; ``False``, never. Each function keeps :data:`LIMIT` records, the most recently
+repeated often enough, replays; ``False``, never. A trace's cost does not depend on the sizes of the arguments (fake
+tensors hold no data), an eager call's grows with them: a call counts ``1 + n // SIZE_SCALE`` times, ``n`` the
+elements of its largest tensor argument (:data:`SIZE_SCALE`): the pendulum's expansion at B = 1024 is traced at its
+twentieth call, about when replays would have saved what its trace costs, not at its hundredth. Each function keeps :data:`LIMIT` records, the most recently
 used (and, apart, the call counts of four times as many signatures not yet traced), shared by every solve in the
 process.
 """
@@ -68,6 +71,10 @@ TRACE_AT = 8
 #: With ``record=None`` (the solvers' default), a signature is traced at its hundredth call: about what a trace
 #: costs in eager calls at a small batch (module docstring).
 TRACE_AT_AUTO = 100
+#: A call whose largest tensor argument holds ``n`` elements counts ``1 + n // SIZE_SCALE`` calls towards its
+#: signature's trace (module docstring): the pendulum's expansion (``X (B, 51, 2)``) counts 1 up to B = 245 and 5 at
+#: B = 1024, where a replay saves ten times what it saves at B = 1 and the trace costs as much.
+SIZE_SCALE = 25_000
 
 _EAGER = object()  # a signature whose trace failed: run the function itself
 _INSTANCES: "weakref.WeakSet[Recorded]" = weakref.WeakSet()  # for forget()
@@ -152,7 +159,8 @@ class Recorded:
             return leaves, key, None
         record = self.records.get(key)
         if record is None:
-            if not self._count(key, calls, trace_at):
+            size = max((leaf.numel() for leaf in leaves if isinstance(leaf, torch.Tensor)), default=0)
+            if not self._count(key, calls * (1 + size // SIZE_SCALE), trace_at):
                 return leaves, key, None
             record = self._store(key, args)
         self.records.move_to_end(key)
