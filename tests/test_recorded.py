@@ -274,6 +274,27 @@ def test_a_call_on_larger_arguments_counts_for_more():
     assert f.traces == 1 and torch.equal(f(x, trace_at=TRACE_AT_AUTO), x * 3.0)
 
 
+def test_rollouts_of_nearby_batch_sizes_share_a_padded_record(monkeypatch):
+    """A recorded rollout runs its trajectories padded to ``padded_rows`` (copies of the last one): the line
+    searches' many batch sizes share a few records, and each trajectory's states are the eager rollout's."""
+    assert [batching.padded_rows(n) for n in (1, 4, 5, 6, 7, 9, 13, 17, 25, 33, 104, 129, 1024, 1025)] == \
+        [1, 4, 6, 6, 8, 12, 16, 24, 32, 48, 128, 192, 1024, 1536]
+    stage = Recorded(batching._RECORDED_STAGE_STEP.fn)
+    monkeypatch.setattr(batching, "_RECORDED_STAGE_STEP", stage)
+    p = problems.get("pendulum")
+    g = torch.Generator().manual_seed(0)
+    for n in (5, 6, 5):
+        x0 = torch.randn(n, p.nx, dtype=F64, generator=g)
+        U = torch.randn(n, p.N, p.nu, dtype=F64, generator=g)
+        X_ref = torch.randn(n, p.N + 1, p.nx, dtype=F64, generator=g)
+        K = 0.1 * torch.randn(n, p.N, p.nu, p.nx, dtype=F64, generator=g)
+        params = p.batched_params(n)
+        X, Us = closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K)
+        Xr, Ur = closed_loop_rollout(p.dynamics, x0, U, params, X_ref, K, record=True)  # N ≥ TRACE_AT calls
+        assert Xr.shape == X.shape and torch.equal(Xr, X) and torch.equal(Ur, Us)
+    assert stage.traces == 1  # 5 and 6 trajectories: one record of 6
+
+
 def test_a_rollout_counts_its_stages_before_it_replays_them():
     """``Recorded.loop``: a rollout asks once for its N stages, counted as N calls of the stage's signature;
     they replay from the call that reaches ``trace_at`` on, and never where the trace failed."""

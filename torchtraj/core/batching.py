@@ -213,14 +213,33 @@ def closed_loop_rollout(dynamics: Callable, x0: Tensor, U: Tensor, params: Param
     return X.reshape(*lead, N + 1, X.shape[-1]), Us.reshape(*lead, N, Us.shape[-1])
 
 
+def padded_rows(n: int) -> int:
+    """The number of trajectories a recorded rollout of ``n`` runs: ``n`` up to 4, else the next of
+    ``2^k`` and ``3 · 2^(k−1)``, so that the many batch sizes of the line searches' and the compacted batches' rows
+    (every count of pending instances times the candidates) share a few records, each padded by at most half."""
+    if n <= 4:
+        return n
+    power = 1 << (n - 1).bit_length()  # the next power of two
+    return 3 * power // 4 if 3 * power // 4 >= n else power
+
+
+def _pad_rows(t: Tensor, rows: int) -> Tensor:
+    """``t (n, ...)`` with its last row repeated to ``rows`` rows (``t`` itself where ``rows = n``)."""
+    extra = rows - t.shape[0]
+    return t if extra == 0 else torch.cat([t, t[-1:].expand(extra, *t.shape[1:])])
+
+
 def _recorded_stages(dynamics: Callable, feedback: bool, x: Tensor, U: Tensor, X_ref: Tensor, K: Tensor, p: Params,
                      calls: int) -> Optional[tuple]:
     """:func:`closed_loop_rollout`'s trajectories ``(X, U)``, each stage a call of the recorded :func:`_stage_step`
     (its stages' operands are views of one buffer each, which share a record); ``None`` while the stage is not
     worth its trace: the rollout's ``N`` stages count as ``N`` calls of the stage's signature, traced at the
     ``calls``-th, and until then (or where the trace failed) they run eager under one ``vmap``, whose fixed cost is
-    paid once a rollout rather than once a stage."""
-    N = U.shape[-2]
+    paid once a rollout rather than once a stage. The trajectories are padded to :func:`padded_rows` (copies of the
+    last one, whose results are dropped): each trajectory's arithmetic is its own, whatever the rows beside it."""
+    N, n = U.shape[-2], x.shape[0]
+    rows = padded_rows(n)
+    x, U, X_ref, K = (_pad_rows(t, rows) for t in (x, U, X_ref, K))
     x = x.contiguous()  # as the stages' states are (a line search's candidates start from one expanded state)
     Us, xs, us = U.unbind(1), [x], []
     Xrs, Ks = (X_ref.unbind(1), K.unbind(1)) if feedback else ((X_ref,) * N, (K,) * N)
@@ -236,4 +255,5 @@ def _recorded_stages(dynamics: Callable, feedback: bool, x: Tensor, U: Tensor, X
             x, u = _RECORDED_STAGE_STEP(dynamics, feedback, x, Us[k], Xrs[k], Ks[k], p, trace_at=calls)
         xs.append(x)
         us.append(u)
-    return torch.stack(xs, 1), torch.stack(us, 1)
+    X, Us = torch.stack(xs, 1), torch.stack(us, 1)
+    return (X, Us) if rows == n else (X[:n], Us[:n])
