@@ -215,17 +215,20 @@ class PointValues:
     gN: Tensor
 
 
-def problem_values(problem, constraints, X: Tensor, U: Tensor, params, record: Optional[bool] = False) -> PointValues:
+def problem_values(problem, constraints, X: Tensor, U: Tensor, params, record: Optional[bool] = False,
+                   dynamics: bool = True) -> PointValues:
     """The :class:`PointValues` of ``problem`` at ``(X, U)``: one ``vmap`` of the stages, one of the end points;
-    ``record`` as :func:`problem_kkt_expansion`'s."""
+    ``record`` as :func:`problem_kkt_expansion`'s; without ``dynamics`` (a rolled-out trajectory's merit), ``f``
+    has no columns ``(B, *E, N, 0)``."""
     if record is not False:
-        return PointValues(*_RECORDED_VALUES(problem, constraints, X, U, params, trace_at=trace_at(record)))
+        return PointValues(*_RECORDED_VALUES(problem, constraints, X, U, params, False, dynamics,
+                                             trace_at=trace_at(record)))
     me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
 
     def stage(x, u, p):
         h = constraints.stage_eq(x, u, p) if me else x.new_zeros(0)
         g = constraints.stage_ineq(x, u, p) if mi else x.new_zeros(0)
-        return problem.stage_cost(x, u, p), problem.dynamics(x, u, p), h, g
+        return problem.stage_cost(x, u, p), problem.dynamics(x, u, p) if dynamics else x.new_zeros(0), h, g
 
     def terminal(x, p):
         h = constraints.terminal_eq(x, p) if meN else x.new_zeros(0)

@@ -46,9 +46,9 @@ calls, whatever the number of calls to come (the ski rental rule): a short solve
 repeated often enough, replays; ``False``, never. A trace's cost does not depend on the sizes of the arguments (fake
 tensors hold no data), an eager call's grows with them: a call counts ``1 + n // SIZE_SCALE`` times, ``n`` the
 elements of its largest tensor argument (:data:`SIZE_SCALE`): the pendulum's expansion at B = 1024 is traced at its
-twentieth call, about when replays would have saved what its trace costs, not at its hundredth. Each function keeps :data:`LIMIT` records, the most recently
-used (and, apart, the call counts of four times as many signatures not yet traced), shared by every solve in the
-process.
+twentieth call, about when replays would have saved what its trace costs, not at its hundredth. Each function
+keeps :data:`LIMIT` records, the most recently used (and, apart, the call counts of four times as many signatures
+not yet traced), shared by every solve in the process.
 """
 
 from __future__ import annotations

@@ -31,8 +31,7 @@ from torch import Tensor
 from ...core.batching import concat, map_stage, map_state
 from ...core.constraints import Constraints
 from ...core.derivatives import stage_jacobian, terminal_jacobian
-from ...core.one_pass import problem_kkt_expansion
-from ...kkt.model import total_cost
+from ...core.one_pass import problem_kkt_expansion, problem_values
 from ...riccati import LQR, LQRVectors
 from ...riccati.square_root import psd_root
 
@@ -197,16 +196,19 @@ class AugmentedLagrangian:
         return ((lam + 0.5 * w * c) * c).sum(-1)
 
     def value(self, X: Tensor, U: Tensor, params) -> Tensor:
-        """``L_A`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``."""
+        """``L_A`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``; the objective and the rows from one
+        ``vmap`` of the stages and one of the end point (:func:`~torchtraj.core.one_pass.problem_values`, replayed
+        from its recorded graph as the expansion is)."""
         extra = X.dim() - 3
         d = self.duals
-        J = total_cost(self.problem, X, U, params)
-        if self.m:
-            c = self.stage_values(X, U, params)
+        point = problem_values(self.problem, self.constraints, X, U, params, record=self.record, dynamics=False)
+        J = point.cost
+        if self.m:  # the rows stacked as stage_fn stacks them: inequalities, then equalities
+            c = _stacked(point.g, point.h, -1) * self.knot_mask
             J = J + self._penalty_terms(c, _lift(d.stage, extra), _lift(d.stage_penalty, extra), self.is_ineq,
                                         self.knot_mask).sum(-1)
         if self.mN:
-            cN = self.terminal_values(X, params)
+            cN = _stacked(point.gN, point.hN, -1)
             J = J + self._penalty_terms(cN, _lift(d.terminal, extra), _lift(d.terminal_penalty, extra), self.is_ineqN)
         return J
 
