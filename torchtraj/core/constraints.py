@@ -214,6 +214,15 @@ class Constraints:
             return X.new_zeros(X.shape[0])
         return self.evaluate(X, U, params).max_violation()
 
+    def max_violation_of(self, h: Tensor, g: Tensor, hN: Tensor, gN: Tensor) -> Tensor:
+        """:meth:`max_violation` from the rows' values at the trajectory, unmasked ``(B, N, me)``, ``(B, N, mi)``,
+        ``(B, meN)``, ``(B, miN)`` (:func:`~torchtraj.core.one_pass.problem_values`'s): the same numbers."""
+        if self.empty:
+            return h.new_zeros(h.shape[0])
+        if self.mi:
+            g = torch.where(self.ineq_knot_mask > 0, g, torch.full_like(g, -float("inf")))
+        return ConstraintValues(eq=h, ineq=g, eqN=hN, ineqN=gN).max_violation()
+
     def split_ineq(self, values: Tensor) -> dict:
         """``{block: values[..., rows]}`` for a stage-inequality tensor ``(..., mi)``."""
         return {name: values[..., rows] for name, rows in self.ineq_blocks.items() if rows.stop > rows.start}

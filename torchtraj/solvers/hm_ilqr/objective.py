@@ -49,8 +49,7 @@ from torch import Tensor
 
 from ...core.batching import map_stage, map_state, rows_of
 from ...core.constraints import Constraints
-from ...core.one_pass import problem_kkt_expansion
-from ...kkt.model import total_cost
+from ...core.one_pass import PointValues, problem_kkt_expansion, problem_values
 from ...riccati import LQR, LQRVectors
 from .augmented_lagrangian import al_equality, al_inequality
 from .barrier import relaxed_log_barrier
@@ -144,29 +143,38 @@ class HybridObjective:
     def terminal_ineq(self, X: Tensor, params) -> Tensor:
         return map_state(self.constraints.terminal_ineq, X[..., -1, :], params)
 
-    def value(self, X: Tensor, U: Tensor, params) -> Tensor:
-        """``J_[·]`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``."""
-        J = total_cost(self.problem, X, U, params)
+    def point(self, X: Tensor, U: Tensor, params) -> PointValues:
+        """The objective and the rows at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``, from one ``vmap`` of the
+        stages and one of the end point (:func:`~torchtraj.core.one_pass.problem_values`, without the dynamics;
+        replayed from its record as the expansion is): what :meth:`value` and :meth:`equality_residual` read, and
+        the solver's cost and violation of the same point."""
+        return problem_values(self.problem, self.constraints, X, U, params, record=self.record, dynamics=False)
+
+    def value(self, X: Tensor, U: Tensor, params, point: Optional[PointValues] = None) -> Tensor:
+        """``J_[·]`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)`` (from its :meth:`point`, given
+        or evaluated here)."""
+        v = self.point(X, U, params) if point is None else point
+        J = v.cost
         if self.mi:
-            g = self.stage_ineq(X, U, params)
-            J = J + self.penalty(g, self.params.lam, self.knot_mask, derivatives=False)[0].sum(-1)
+            J = J + self.penalty(v.g * self.knot_mask, self.params.lam, self.knot_mask, derivatives=False)[0].sum(-1)
         if self.miN:
-            J = J + self.penalty(self.terminal_ineq(X, params), self.params.lamN, derivatives=False)[0]
+            J = J + self.penalty(v.gN, self.params.lamN, derivatives=False)[0]
         if self.me:
-            J = J + self.equality_penalty(self.stage_eq(X, U, params), self.params.lamE)[0].sum(-1)
+            J = J + self.equality_penalty(v.h, self.params.lamE)[0].sum(-1)
         if self.meN:
-            J = J + self.equality_penalty(self.terminal_eq(X, params), self.params.lamEN)[0]
+            J = J + self.equality_penalty(v.hN, self.params.lamEN)[0]
         return J
 
-    def equality_residual(self, X: Tensor, U: Tensor, params) -> Tensor:
-        """``Σ hᵀh`` over the equality rows held by the Riccati core (an instance in the RLB stage), ``(B, *E)``."""
+    def equality_residual(self, X: Tensor, U: Tensor, params, point: Optional[PointValues] = None) -> Tensor:
+        """``Σ hᵀh`` over the equality rows held by the Riccati core (an instance in the RLB stage), ``(B, *E)``
+        (from the :meth:`point`, given or evaluated here)."""
         r = X.new_zeros(X.shape[:-2])
-        if self.me:
-            h = self.stage_eq(X, U, params)
-            r = r + (h * h).sum((-1, -2))
-        if self.meN:
-            hN = self.terminal_eq(X, params)
-            r = r + (hN * hN).sum(-1)
+        if self.me or self.meN:
+            v = self.point(X, U, params) if point is None else point
+            if self.me:
+                r = r + (v.h * v.h).sum((-1, -2))
+            if self.meN:
+                r = r + (v.hN * v.hN).sum(-1)
         return r * _lift(self.params.rlb, r).to(r.dtype)
 
     def multipliers(self, X: Tensor, U: Tensor, params) -> tuple:

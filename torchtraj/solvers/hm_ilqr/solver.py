@@ -51,7 +51,6 @@ from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
-from ...kkt.model import total_cost
 from .augmented_lagrangian import increased_penalty, updated_multipliers
 from .barrier import updated_barrier
 from .crls import factorized, iterate, with_curvature
@@ -104,8 +103,9 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         mu=like.new_full((B,), opts.penalty_initial), psi=like.new_full((B,), opts.barrier_initial),
         delta=like.new_full((B,), opts.relaxation_initial))
     objective = HybridObjective(constraints, stage_params, opts.record)
-    J = objective.value(X, U, params)
-    D = gaps + objective.equality_residual(X, U, params)
+    point = objective.point(X, U, params)
+    J = objective.value(X, U, params, point)
+    D = gaps + objective.equality_residual(X, U, params, point)
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
     finite_start = torch.isfinite(J) & torch.isfinite(X).flatten(1).all(-1) & torch.isfinite(D)
     status = torch.where(~torch.isfinite(x0).all(-1), int(Status.NON_FINITE), status)
@@ -114,7 +114,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     defect_weight = like.new_full((B,), opts.defect_weight)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     al_iterations = torch.zeros_like(iterations)
-    last_violation = constraints.max_violation(X, U, params)
+    last_violation = constraints.max_violation_of(point.h, point.g, point.hN, point.gN)
     violation = torch.maximum(last_violation, _max_defect(X, U, problem, params, segments))
     tol = opts.tolerances(x0.dtype)
     rows = []
@@ -165,7 +165,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         plain = torch.where(t.took | t.stationary, (mu_V / opts.regularization_increase).clamp_min(
             opts.regularization_initial), (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max))
         mu_V = torch.where(active, torch.where(crls, t.mu_V, plain), mu_V)
-        rows_violation = constraints.max_violation(X, U, params)
+        point = objective.point(X, U, params)  # the iterate's objective and rows, read by everything below
+        rows_violation = constraints.max_violation_of(point.h, point.g, point.hN, point.gN)
         violation = torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments))
         moved = t.took | t.stationary
         # the exit tests of an RLB instance, before its parameters move (its multipliers are those of this ψ): the
@@ -187,22 +188,23 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         update_rlb = active & s.rlb & moved & ~done & (t.decrease <= opts.barrier_update * s.psi)
         # eq. (16)'s penalty increase where the violation of the rows did not shrink enough
         grow = rows_violation > opts.penalty_trigger * last_violation
-        new = _updated(objective, X, U, params, s, update_al, update_rlb, grow, opts, tol)
+        new = _updated(objective, point, s, update_al, update_rlb, grow, opts, tol)
         last_violation = torch.where(update_al | update_rlb, rows_violation, last_violation)
         al_iterations = al_iterations + (active & ~s.rlb).long()
         handover = active & ~s.rlb & ((update_al & (violation <= opts.constraint_tolerance_al))
                                       | (al_iterations >= opts.al_iterations))
         new.rlb = s.rlb | handover
         defect_weight = torch.where(handover, opts.defect_weight, defect_weight)
-        held_before = objective.equality_residual(X, U, params)
+        held_before = objective.equality_residual(X, U, params, point)
         objective = HybridObjective(constraints, new, opts.record)
-        J = torch.where(active, objective.value(X, U, params), J)  # the objective of the new parameters
-        D = D - held_before + objective.equality_residual(X, U, params)  # handed over: the goal joins the defects
+        J = torch.where(active, objective.value(X, U, params, point), J)  # the objective of the new parameters
+        # handed over: the goal joins the defects
+        D = D - held_before + objective.equality_residual(X, U, params, point)
         status = torch.where(done, int(Status.CONVERGED), status)
         status = torch.where(failed & ~done, int(Status.MAX_REGULARIZATION), status)
         status = torch.where(stopped & ~done, int(Status.STALLED), status)
         rows.append({
-            "cost": total_cost(problem, X, U, params), "max_violation": violation, "step_size": t.alpha,
+            "cost": point.cost, "max_violation": violation, "step_size": t.alpha,
             "regularization": mu_V, "stage": s.rlb.long(), "defect_norm": D.sqrt(), "barrier": s.psi,
             "relaxation": s.delta, "penalty": s.mu, "stationarity": stationarity,
         })
@@ -233,23 +235,24 @@ def _max_defect(X, U, problem, params, segments) -> Tensor:
     return (f - X[:, k + 1]).abs().flatten(1).amax(-1)
 
 
-def _updated(objective, X, U, params, s: StageParameters, update_al, update_rlb, grow, opts, tol) -> StageParameters:
-    """The stage parameters after an iteration: eq. (15) and, where ``grow``, (16) where ``update_al``; (18) where
+def _updated(objective, point, s: StageParameters, update_al, update_rlb, grow, opts, tol) -> StageParameters:
+    """The stage parameters after an iteration at the iterate whose rows are ``point``'s
+    (:meth:`HybridObjective.point`): eq. (15) and, where ``grow``, (16) where ``update_al``; (18) where
     ``update_rlb``."""
     lam, lamN = s.lam, s.lamN
     if objective.mi:
-        cand = updated_multipliers(objective.stage_ineq(X, U, params), lam, s.mu.reshape(-1, 1, 1), opts.dual_max)
+        cand = updated_multipliers(point.g * objective.knot_mask, lam, s.mu.reshape(-1, 1, 1), opts.dual_max)
         lam = torch.where(update_al.reshape(-1, 1, 1), cand, lam)
     if objective.miN:
-        cand = updated_multipliers(objective.terminal_ineq(X, params), lamN, s.mu.reshape(-1, 1), opts.dual_max)
+        cand = updated_multipliers(point.gN, lamN, s.mu.reshape(-1, 1), opts.dual_max)
         lamN = torch.where(update_al.reshape(-1, 1), cand, lamN)
     lamE, lamEN = s.lamE, s.lamEN
     if objective.me:  # the equality rows' AL multipliers, λ ← λ + μ h
-        lamE = torch.where(update_al.reshape(-1, 1, 1), s.lamE + s.mu.reshape(-1, 1, 1) * objective.stage_eq(
-            X, U, params), s.lamE).clamp(-opts.dual_max, opts.dual_max)
+        lamE = torch.where(update_al.reshape(-1, 1, 1), s.lamE + s.mu.reshape(-1, 1, 1) * point.h,
+                           s.lamE).clamp(-opts.dual_max, opts.dual_max)
     if objective.meN:
-        lamEN = torch.where(update_al.reshape(-1, 1), s.lamEN + s.mu.reshape(-1, 1) * objective.terminal_eq(
-            X, params), s.lamEN).clamp(-opts.dual_max, opts.dual_max)
+        lamEN = torch.where(update_al.reshape(-1, 1), s.lamEN + s.mu.reshape(-1, 1) * point.hN,
+                            s.lamEN).clamp(-opts.dual_max, opts.dual_max)
     mu = torch.where(update_al & grow, increased_penalty(s.mu, opts.penalty_scaling, opts.penalty_max), s.mu)
     psi, delta = updated_barrier(s.psi, s.delta, opts, tol)
     return StageParameters(rlb=s.rlb, lam=lam, lamN=lamN, lamE=lamE, lamEN=lamEN, mu=mu,
@@ -292,16 +295,16 @@ def _solution(problem, objective, constraints, segments, X, U, params, status, i
     B = X.shape[0]
     # the equality rows: the core's ν where they are held (RLB stage), the AL estimate λ + μ h elsewhere
     s = objective.params
+    point = objective.point(X, U, params)
     eq, eqN = X.new_zeros(B, problem.N, 0), X.new_zeros(B, 0)
     if constraints.me:
-        eq = torch.where(s.rlb.reshape(-1, 1, 1), step.nu, s.lamE + s.mu.reshape(-1, 1, 1) * objective.stage_eq(
-            X, U, params))
+        eq = torch.where(s.rlb.reshape(-1, 1, 1), step.nu, s.lamE + s.mu.reshape(-1, 1, 1) * point.h)
     if constraints.meN:
-        eqN = torch.where(s.rlb.reshape(-1, 1), step.nuN, s.lamEN + s.mu.reshape(-1, 1) * objective.terminal_eq(
-            X, params))
-    violation = torch.maximum(constraints.max_violation(X, U, params), _max_defect(X, U, problem, params, segments))
+        eqN = torch.where(s.rlb.reshape(-1, 1), step.nuN, s.lamEN + s.mu.reshape(-1, 1) * point.hN)
+    violation = torch.maximum(constraints.max_violation_of(point.h, point.g, point.hN, point.gN),
+                              _max_defect(X, U, problem, params, segments))
     return Solution(
-        X=X, U=U, K=factor.K, cost=total_cost(problem, X, U, params), max_violation=violation, status=status,
+        X=X, U=U, K=factor.K, cost=point.cost, max_violation=violation, status=status,
         iterations=iterations, history=History.from_rows(rows),
         costate=_adjoint(lqr, rhs, eq if constraints.me else None, eqN if constraints.meN else None, s.rlb),
         multipliers=multiplier_blocks(constraints, torch.cat([ineq, eq], -1), torch.cat([ineqN, eqN], -1)),
