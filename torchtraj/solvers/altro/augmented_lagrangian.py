@@ -31,7 +31,7 @@ from torch import Tensor
 from ...core.batching import concat, map_stage, map_state
 from ...core.constraints import Constraints
 from ...core.derivatives import stage_jacobian, terminal_jacobian
-from ...core.one_pass import problem_kkt_expansion, problem_values
+from ...core.one_pass import PointValues, problem_kkt_expansion, problem_values
 from ...riccati import LQR, LQRVectors
 from ...riccati.square_root import psd_root
 
@@ -195,20 +195,24 @@ class AugmentedLagrangian:
             w = w * mask
         return ((lam + 0.5 * w * c) * c).sum(-1)
 
-    def value(self, X: Tensor, U: Tensor, params) -> Tensor:
-        """``L_A`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)``; the objective and the rows from one
-        ``vmap`` of the stages and one of the end point (:func:`~torchtraj.core.one_pass.problem_values`, replayed
-        from its recorded graph as the expansion is)."""
+    def point(self, X: Tensor, U: Tensor, params) -> PointValues:
+        """The objective and the rows at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)`` from one ``vmap`` of the stages
+        and one of the end point (:func:`~torchtraj.core.one_pass.problem_values` without the dynamics, replayed
+        from its recorded graph as the expansion is): what :meth:`value` and :meth:`row_values` read."""
+        return problem_values(self.problem, self.constraints, X, U, params, record=self.record, dynamics=False)
+
+    def value(self, X: Tensor, U: Tensor, params, point: Optional[PointValues] = None) -> Tensor:
+        """``L_A`` at ``X (B, *E, N+1, nx)``, ``U (B, *E, N, nu)``: ``(B, *E)`` (from its :meth:`point`, given or
+        evaluated here)."""
         extra = X.dim() - 3
         d = self.duals
-        point = problem_values(self.problem, self.constraints, X, U, params, record=self.record, dynamics=False)
+        point = self.point(X, U, params) if point is None else point
         J = point.cost
-        if self.m:  # the rows stacked as stage_fn stacks them: inequalities, then equalities
-            c = _stacked(point.g, point.h, -1) * self.knot_mask
+        c, cN = self.row_values(X, U, params, point)
+        if self.m:
             J = J + self._penalty_terms(c, _lift(d.stage, extra), _lift(d.stage_penalty, extra), self.is_ineq,
                                         self.knot_mask).sum(-1)
         if self.mN:
-            cN = _stacked(point.gN, point.hN, -1)
             J = J + self._penalty_terms(cN, _lift(d.terminal, extra), _lift(d.terminal_penalty, extra), self.is_ineqN)
         return J
 
@@ -245,9 +249,14 @@ class AugmentedLagrangian:
             rhs.qN = rhs.qN + (CN.transpose(-1, -2) @ (d.terminal + wN * cN).unsqueeze(-1)).squeeze(-1)
         return lqr, rhs
 
-    def row_values(self, X: Tensor, U: Tensor, params) -> tuple:
-        """``(c (B, N, m), c_N (B, mN))`` at ``(X, U)``: what the measures below read, evaluated once."""
-        return self.stage_values(X, U, params), self.terminal_values(X, params)
+    def row_values(self, X: Tensor, U: Tensor, params, point: Optional[PointValues] = None) -> tuple:
+        """``(c (B, *E, N, m), c_N (B, *E, mN))`` at ``(X, U)``: what the measures below read, evaluated once (or
+        stacked from the :meth:`point`'s rows, inequalities then equalities, as ``stage_fn`` stacks them)."""
+        if point is None:
+            return self.stage_values(X, U, params), self.terminal_values(X, params)
+        c = _stacked(point.g, point.h, -1) * self.knot_mask if self.m else X.new_zeros(*U.shape[:-1], 0)
+        cN = _stacked(point.gN, point.hN, -1) if self.mN else X.new_zeros(*X.shape[:-2], 0)
+        return c, cN
 
     def violation(self, c: Tensor, cN: Tensor) -> Tensor:
         """Largest violation ``(B,)`` of the stacked constraints (``max(g, 0)``, ``|h|``) of :meth:`row_values`."""

@@ -147,9 +147,10 @@ def _measures(al: AugmentedLagrangian, X: Tensor, U: Tensor, params, opts: ALTRO
     """At ``(X, U)``: the largest violation, the complementarity of the multiplier estimate, the duals of eqs. (17)-(18)
     and ``L_A`` under those duals (every instance; the loop keeps the updates of the instances it updates). One compiled
     kernel."""
-    c, cN = al.row_values(X, U, params)
+    point = al.point(X, U, params)  # the objective and the rows, read by the measures and the updated L_A
+    c, cN = al.row_values(X, U, params, point)
     duals = al.updated_duals(c, cN, opts.penalty_scaling, penalty_limit(opts.penalty_max, X.dtype), opts.dual_max)
-    updated = AugmentedLagrangian(al.constraints, duals, al.square_root, al.record).value(X, U, params)
+    updated = AugmentedLagrangian(al.constraints, duals, al.square_root, al.record).value(X, U, params, point)
     # the updated multipliers are the estimate λ + I_μ c whatever the penalty: its complementarity, and the sign of the
     # multipliers the rows held by L_A pull with (the estimate clamps a negative one)
     complementarity = al.complementarity(duals, c, cN)
