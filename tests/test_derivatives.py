@@ -247,6 +247,31 @@ def test_altro_expansion_from_one_pass_is_the_separate_passes():
         torch.testing.assert_close(got, expected, rtol=0, atol=0)
 
 
+def test_one_pass_of_a_points_values_gives_the_rows_and_violation_of_the_separate_passes():
+    """ALTRO's and HM-iLQR's merits, measures and violations read one ``problem_values`` pass without the dynamics
+    (``AugmentedLagrangian.point``): its rows stacked as ``stage_fn`` stacks them are the rows' own ``vmap``s at a
+    line search's candidates, and ``Constraints.max_violation_of`` its values is ``max_violation``, bit for bit."""
+    from small_problems import oscillator
+
+    from torchtraj.core.one_pass import problem_values
+    from torchtraj.solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
+
+    prob = oscillator(stage_eq=lambda x, u, p: (x[0] * u[0] - 0.1).reshape(1),
+                      terminal_ineq=lambda x, p: (x[0] * x[0] - 1.0).reshape(1))
+    for problem in (prob, tt.problems.get("car_3obs")):
+        cons = Constraints(problem)
+        X, U = _random_trajectory(problem, B=2, seed=3)
+        P = problem.batched_params(2)
+        al = AugmentedLagrangian(cons, Duals.initial(cons, 2, 10.0, X[:, 0]))
+        Xc, Uc = torch.stack([X, X + 0.1, X - 0.2], 1), torch.stack([U, U * 0.5, U + 0.3], 1)
+        point = al.point(Xc, Uc, P)
+        assert point.f.shape == (2, 3, problem.N, 0)
+        for got, want in zip(al.row_values(Xc, Uc, P, point), al.row_values(Xc, Uc, P)):
+            assert got.shape == want.shape and torch.equal(got, want)
+        v = problem_values(problem, cons, X, U, P, dynamics=False)
+        assert torch.equal(cons.max_violation_of(v.h, v.g, v.hN, v.gN), cons.max_violation(X, U, P))
+
+
 def test_a_stage_mapper_evaluates_as_map_stage_with_shared_and_batched_parameters():
     """``stage_mapper(fn, params)`` (a rollout's steps: the parameters split once) gives ``map_stage``'s values to the
     last bit, for parameters shared by the batch (expanded) and per instance, with and without extra dimensions."""
