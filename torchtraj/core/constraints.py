@@ -199,11 +199,7 @@ class Constraints:
         B, N = U.shape[0], U.shape[1]
         Xs = X[:, :-1]
         eq = map_stage(self.stage_eq, Xs, U, params) if self.me else X.new_zeros(B, N, 0)
-        if self.mi:
-            ineq = map_stage(self.stage_ineq, Xs, U, params)
-            ineq = torch.where(self.ineq_knot_mask > 0, ineq, torch.full_like(ineq, -float("inf")))
-        else:
-            ineq = X.new_zeros(B, N, 0)
+        ineq = self._off_knots_ignored(map_stage(self.stage_ineq, Xs, U, params)) if self.mi else X.new_zeros(B, N, 0)
         eqN = map_state(self.terminal_eq, X[:, -1], params) if self.meN else X.new_zeros(B, 0)
         ineqN = map_state(self.terminal_ineq, X[:, -1], params) if self.miN else X.new_zeros(B, 0)
         return ConstraintValues(eq=eq, ineq=ineq, eqN=eqN, ineqN=ineqN)
@@ -219,9 +215,12 @@ class Constraints:
         ``(B, meN)``, ``(B, miN)`` (:func:`~torchtraj.core.one_pass.problem_values`'s): the same numbers."""
         if self.empty:
             return h.new_zeros(h.shape[0])
-        if self.mi:
-            g = torch.where(self.ineq_knot_mask > 0, g, torch.full_like(g, -float("inf")))
-        return ConstraintValues(eq=h, ineq=g, eqN=hN, ineqN=gN).max_violation()
+        ineq = self._off_knots_ignored(g) if self.mi else g
+        return ConstraintValues(eq=h, ineq=ineq, eqN=hN, ineqN=gN).max_violation()
+
+    def _off_knots_ignored(self, ineq: Tensor) -> Tensor:
+        """Stage inequality values ``(B, N, mi)`` with the rows that do not apply at a knot set to ``-inf``."""
+        return torch.where(self.ineq_knot_mask > 0, ineq, torch.full_like(ineq, -float("inf")))
 
     def split_ineq(self, values: Tensor) -> dict:
         """``{block: values[..., rows]}`` for a stage-inequality tensor ``(..., mi)``."""

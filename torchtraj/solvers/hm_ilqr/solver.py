@@ -212,8 +212,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
             logger.info("hm-ilqr %4d  cost %.10g  violation %.2e  rlb %d  running %d", it,
                         float(rows[-1]["cost"].max()), float(violation.max()), int(s.rlb.sum()), int(active.sum()))
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    return _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method,
-                     opts.terminal_rows)
+    return _solution(problem, objective, constraints, segments, X, U, params, point, status, iterations, rows, mu_V,
+                     method, opts.terminal_rows)
 
 
 def _finite(new, old, active):
@@ -280,10 +280,10 @@ def _stepped_stationarity(objective, X, U, params, segments, terminal_rows: str)
     return stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), step.nu, step.nuN)
 
 
-def _solution(problem, objective, constraints, segments, X, U, params, status, iterations, rows, mu_V, method,
+def _solution(problem, objective, constraints, segments, X, U, params, point, status, iterations, rows, mu_V, method,
               terminal_rows: str):
-    """Gains, costates and multipliers at the final point (one more expansion and LQR solve), and the
-    :class:`Solution`."""
+    """Gains, costates and multipliers at the final point (one more expansion and LQR solve; ``point`` its objective
+    and rows, :meth:`HybridObjective.point`), and the :class:`Solution`."""
     # the equality rows' multipliers ν of the LQR step at the final point; the costates from the Lagrangian's
     # stationarity in the states, λ_N = q_N + C_Nᵀ ν_N, λ_k = q_k + A_kᵀ λ_{k+1} + C_kᵀ ν_k (q holds the inequality
     # rows' P'), which at a converged point is the Riccati costate without its step terms; the inequality rows'
@@ -295,7 +295,6 @@ def _solution(problem, objective, constraints, segments, X, U, params, status, i
     B = X.shape[0]
     # the equality rows: the core's ν where they are held (RLB stage), the AL estimate λ + μ h elsewhere
     s = objective.params
-    point = objective.point(X, U, params)
     eq, eqN = X.new_zeros(B, problem.N, 0), X.new_zeros(B, 0)
     if constraints.me:
         eq = torch.where(s.rlb.reshape(-1, 1, 1), step.nu, s.lamE + s.mu.reshape(-1, 1, 1) * point.h)
