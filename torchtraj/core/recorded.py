@@ -20,7 +20,9 @@ The passes are those of :mod:`torchtraj.core.graph_passes`.
 Replayed, the graph calls the remaining operators directly, through the library's public functions where one
 takes the operator's arguments (``torch.mul`` for ``aten.mul.Tensor``: the same operator, with a faster argument
 parser than an ``OpOverload`` call). They are the eager call's operators, on the same data and in the same order,
-less the duplicates: the results are the eager call's to the last bit (``tests/test_recorded.py``).
+less the duplicates: the results are the eager call's to the last bit (``tests/test_recorded.py``). On the CPU the
+graph's code is traced once more by TorchScript and replayed by its interpreter (:mod:`~torchtraj.core.scripted`):
+the same operators again, without a Python line each.
 
 The signature is every tensor argument's size, strides, dtype and device, and every other
 argument by value (numbers, strings) or identity (a problem, its constraints: kept alive by the record, so that
@@ -62,6 +64,7 @@ import torch.utils._pytree as pytree
 from torch.func import functionalize
 
 from .graph_passes import hoisted, output_values, simplify
+from .scripted import Scripted, scripted
 
 #: Records kept per function (input signatures: batch sizes, horizons, problems, dtypes, devices).
 LIMIT = 32
@@ -140,7 +143,7 @@ class Recorded:
         tensors = [leaf for leaf in leaves if isinstance(leaf, torch.Tensor)]
         fixed = tensors[varying:]
         if (key, varying) not in self.loops:
-            self.loops[key, varying] = hoisted(graph, varying)
+            self.loops[key, varying] = _scripted_split(graph, varying, tensors)
             if len(self.loops) > LIMIT:
                 self.loops.popitem(last=False)
         split = self.loops[key, varying]
@@ -208,9 +211,20 @@ class Recorded:
             if not all(isinstance(v, torch.Tensor) or v is None for v in output_values(graph)) \
                     or _foreign_constants(graph, kept):
                 return _EAGER, None, kept
-            return simplify(graph), _unflattener(out_spec[-1]), kept
+            return scripted(simplify(graph), tensors), _unflattener(out_spec[-1]), kept
         except Exception:  # control flow on tensor values, an operator fake tensors lack: eager from now on
             return _EAGER, None, kept
+
+
+def _scripted_split(graph, varying: int, tensors: list) -> Optional[tuple]:
+    """The hoisted ``(prologue, body)`` of ``graph`` (:func:`~torchtraj.core.graph_passes.hoisted`), each replayed
+    by TorchScript where ``graph`` is (:mod:`~torchtraj.core.scripted`); ``tensors``: the inputs of a call."""
+    split = hoisted(graph.module if isinstance(graph, Scripted) else graph, varying)
+    if split is None or not isinstance(graph, Scripted):
+        return split
+    prologue, body = split
+    values = prologue.forward(*tensors)
+    return scripted(prologue, tensors), scripted(body, [*tensors, *values])
 
 
 def _owner(value) -> bool:
