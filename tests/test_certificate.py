@@ -12,6 +12,7 @@ import torchtraj as tt
 from torchtraj import problems
 from torchtraj.core.batching import rollout
 from torchtraj.core.constraints import Constraints
+from torchtraj.core.scripted import Scripted
 from torchtraj.kkt import certificate
 
 F64 = torch.float64
@@ -117,3 +118,22 @@ def test_the_history_records_the_stationarity_of_every_iterate():
         history = sol.history.extra["stationarity"]
         assert history.shape == sol.history.cost.shape and sol.status[0] == tt.Status.CONVERGED, method
         assert float(history[0, 0]) > 1e-3 and float(history[0, -1]) < 1e-4, (method, history[0, [0, -1]])
+
+
+@pytest.mark.parametrize("name, B", [("pendulum", 1), ("car_3obs", 2)])
+def test_recorded_residuals_are_the_eager_ones_to_the_last_bit(name, B):
+    """A controller certifies every step: the residuals replay from a recorded graph (record=True, traced at the
+    eighth call), with every bit of the eager computation."""
+    problem = problems.get(name)
+    x0 = problems.sample_x0(name, B, seed=0) if B > 1 else problem.x0.expand(1, -1)
+    sol = tt.solve(problem, x0=x0, method="ipm", options=tt.IPOptions(iterations=15))
+    c, params = Constraints.of(problem), problem.batched_params(B)
+    eager = certificate.residuals(problem, sol.X, sol.U, sol.multipliers, params, x0, c, record=False)
+    traces = certificate._RECORDED_RESIDUALS.traces
+    for _ in range(certificate.trace_at(True) + 1):
+        recorded = certificate.residuals(problem, sol.X, sol.U, sol.multipliers, params, x0, c, record=True)
+    assert certificate._RECORDED_RESIDUALS.traces == traces + 1
+    replay = next(reversed(certificate._RECORDED_RESIDUALS.records.values()))[0]
+    assert isinstance(replay, (Scripted, torch.fx.GraphModule))  # traced, not left eager
+    for key, value in eager.as_dict().items():
+        assert torch.equal(recorded.as_dict()[key], value), key

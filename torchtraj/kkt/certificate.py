@@ -30,10 +30,12 @@ from typing import Optional
 
 import torch
 from torch import Tensor
+from torch.func import grad
 
 from ..core.constraints import Constraints, stack_blocks
 from ..core.derivatives import stage_jacobian
 from ..core.problem import Problem
+from ..core.recorded import Recorded, trace_at
 from ..core.status import Status
 from ..riccati.sweep import costate_stages
 from .merit import largest_violation
@@ -81,26 +83,42 @@ class KKTResiduals:
 
 
 def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params, x0: Optional[Tensor] = None,
-              constraints: Optional[Constraints] = None) -> KKTResiduals:
+              constraints: Optional[Constraints] = None, record: Optional[bool] = False) -> KKTResiduals:
     """The KKT residuals of ``problem`` at ``X (B, N+1, nx)``, ``U (B, N, nu)`` with the per-block
     ``multipliers`` (:attr:`Solution.multipliers`; missing blocks count as zero); the initial defect ``x0 − x_0``
     counts where ``x0 (B, nx)`` is given. ``constraints`` default to the problem's own
-    (``Constraints.of(problem, ignored=True)`` gives the unconstrained problem's KKT conditions)."""
+    (``Constraints.of(problem, ignored=True)`` gives the unconstrained problem's KKT conditions). ``record``
+    (``True``, ``None``: when it pays; ``False``: never): replayed from a recorded operator graph
+    (:mod:`~torchtraj.core.recorded`; the same numbers, fewer calls: a controller certifies every step)."""
     c = Constraints.of(problem) if constraints is None else constraints
     X, U = X.detach(), U.detach()
-    B, nx = X.shape[0], problem.nx
     given = {} if c.ignored else {k: v.detach() for k, v in multipliers.items() if k in _blocks(c)}
+    x0 = None if x0 is None else x0.detach()
+    rows = int((c.ineq_knot_mask[:, :c.mi] > 0).sum()) + c.miN  # the inequality rows that apply somewhere
+    if record is False:
+        return KKTResiduals(*_residuals(problem, c, X, U, given, params, x0, rows))
+    return KKTResiduals(*_RECORDED_RESIDUALS(problem, c, X, U, given, params, x0, rows, trace_at=trace_at(record)))
+
+
+def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: dict, params, x0: Optional[Tensor],
+               rows: int) -> tuple:
+    """:func:`residuals`' ``(stationarity, feasibility, complementarity, dual_sign)`` from the detached
+    multipliers ``given`` of ``c``'s blocks, ``rows`` the inequality rows that apply (no host read here, so that
+    it can be recorded)."""
+    B, nx = X.shape[0], problem.nx
     stage, terminal = stack_blocks(c, given, 0.0, X)
     z, nu = stage[..., :c.mi], stage[..., c.mi:c.mi + c.me]
     zN, nuN = terminal[:, :c.miN], terminal[:, c.miN:c.miN + c.meN]
     applies = (c.ineq_knot_mask[:, :c.mi] > 0).expand(B, -1, -1)
-    with torch.enable_grad():
-        Xg, Ug = X.clone().requires_grad_(True), U.clone().requires_grad_(True)
-        values = c.evaluate(Xg, Ug, params)
+
+    def lagrangian(X, U):  # L₀ summed over the batch, and the rows it evaluated
+        values = c.evaluate(X, U, params)
         g = torch.where(applies, values.ineq, torch.zeros_like(values.ineq))
-        lagrangian = (total_cost(problem, Xg, Ug, params) + (z * g).sum((1, 2)) + (nu * values.eq).sum((1, 2))
-                      + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
-        gx, gu = torch.autograd.grad(lagrangian.sum(), (Xg, Ug))
+        out = (total_cost(problem, X, U, params) + (z * g).sum((1, 2)) + (nu * values.eq).sum((1, 2))
+               + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
+        return out.sum(), (g, values.ineqN)
+
+    (gx, gu), (g, gN) = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
     jacobian = stage_jacobian(problem.dynamics, X[:, :-1], U, params)[1]
     A, Bu = jacobian[..., :nx], jacobian[..., nx:]
     lam = costate_stages(A, gx[:, :-1], gx[:, -1])[:, 1:]  # λ_1 .. λ_N (the recursion's λ_0 is not a costate)
@@ -108,7 +126,6 @@ def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params,
 
     z_on = torch.where(applies, z, torch.zeros_like(z))
     z_sum = z_on.abs().sum((1, 2)) + zN.abs().sum(1)
-    rows = int(applies[0].sum()) + c.miN
     dual_sum = z_sum + nu.abs().sum((1, 2)) + nuN.abs().sum(1) + lam.abs().sum((1, 2))
     s_d = torch.clamp(dual_sum / max(rows + c.me * problem.N + c.meN + problem.N * nx, 1), min=SCALE_MAX) / SCALE_MAX
     s_c = torch.clamp(z_sum / max(rows, 1), min=SCALE_MAX) / SCALE_MAX
@@ -116,12 +133,16 @@ def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params,
     zero = X.new_zeros(B)
     complementarity, dual_sign = zero, zero
     if rows:
-        products = torch.cat([(z_on * g.detach()).abs().flatten(1), (zN * values.ineqN.detach()).abs()], 1)
+        products = torch.cat([(z_on * g).abs().flatten(1), (zN * gN).abs()], 1)
         complementarity = products.amax(1) / s_c
         signs = torch.cat([(-z_on).flatten(1), -zN], 1)
         dual_sign = torch.clamp(signs.amax(1), min=0.0) / s_d
     feasibility = largest_violation(problem, X, U, params, x0=x0, constraints=c)
-    return KKTResiduals(stationarity, feasibility, complementarity, dual_sign)
+    return stationarity, feasibility, complementarity, dual_sign
+
+
+# one record per signature, shared by every solve in the process
+_RECORDED_RESIDUALS = Recorded(_residuals)
 
 
 def _blocks(c: Constraints) -> set:
@@ -133,11 +154,11 @@ def _blocks(c: Constraints) -> set:
 
 
 def certify(problem: Problem, status: Tensor, X: Tensor, U: Tensor, multipliers: dict, params, x0: Tensor,
-            constraints: Constraints, tolerances: Optional[Tolerances] = None):
+            constraints: Constraints, tolerances: Optional[Tolerances] = None, record: Optional[bool] = False):
     """``(status, residuals)``: ``status`` with ``CONVERGED`` turned into ``STALLED`` wherever the point fails the
-    certificate (module docstring), and the residuals."""
+    certificate (module docstring), and the residuals; ``record`` as :func:`residuals`'."""
     tol = Tolerances.for_dtype(X.dtype) if tolerances is None else tolerances
-    res = residuals(problem, X, U, multipliers, params, x0, constraints)
+    res = residuals(problem, X, U, multipliers, params, x0, constraints, record)
     stalled = (status == int(Status.CONVERGED)) & ~res.within(tol)
     return torch.where(stalled, torch.full_like(status, int(Status.STALLED)), status), res
 
