@@ -179,6 +179,24 @@ def test_an_altro_solve_with_recorded_kernels_is_the_eager_solve():
     assert_same_solutions(recorded, eager)
 
 
+def test_altros_measures_of_its_answer_replay_to_the_last_bit():
+    """ALTRO's cost and largest violation of its answer, taken once a solve (a controller's every step), replay
+    from their record (``ILQROptions.record``) with the eager bits, defects and violated rows included."""
+    from torchtraj.solvers.altro import stages
+    p = problems.get("car_3obs")
+    g = torch.Generator().manual_seed(0)
+    X = torch.randn(2, p.N + 1, p.nx, dtype=F64, generator=g)
+    U = torch.randn(2, p.N, p.nu, dtype=F64, generator=g)
+    args = (p, Constraints.of(p), X, U, p.batched_params(2))
+    eager = stages._cost_and_violation(*args)
+    measure = stages._final_measures(tt.ALTROOptions(ilqr=tt.ILQROptions(record=True)))
+    for _ in range(TRACE_AT):
+        recorded = measure(*args)
+    record = next(reversed(stages._RECORDED_COST_AND_VIOLATION.records.values()))  # the last one used
+    assert isinstance(record[0], REPLAYS) and all(torch.equal(a, b) for a, b in zip(recorded, eager))
+    assert bool((eager[1] > 0).all())
+
+
 @pytest.mark.parametrize("method,options", [("eilqr", tt.EILQROptions), ("hm-ilqr", tt.HMILQROptions)])
 def test_the_other_methods_with_recorded_kernels_are_their_eager_solves(method, options):
     """``EILQROptions.record`` and ``HMILQROptions.record`` (their control steps' default): the same answer to the

@@ -13,6 +13,7 @@ from torch import Tensor
 from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks, stack_blocks
 from ...core.problem import Problem
+from ...core.recorded import Recorded, trace_at
 from ...core.solution import History, Solution
 from ...core.status import Status
 from ...iterations.ilqr import ilqr_step, log_iteration, riccati_backward, start_status
@@ -199,6 +200,19 @@ def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U
     return total_cost(problem, X, U, params), largest_violation(problem, X, U, params, constraints=constraints)
 
 
+# one record per signature, shared by every solve in the process (a controller measures its answer every step)
+_RECORDED_COST_AND_VIOLATION = Recorded(_cost_and_violation)
+
+
+def _final_measures(opts: ALTROOptions):
+    """:func:`_cost_and_violation` compiled (``compile``), replayed from its record (``record``) or eager."""
+    if opts.ilqr.compile:
+        return kernel(_cost_and_violation, True)
+    if opts.ilqr.record is False:
+        return _cost_and_violation
+    return lambda *args: _RECORDED_COST_AND_VIOLATION(*args, trace_at=trace_at(opts.ilqr.record))
+
+
 def _largest_penalty(duals: Duals) -> Tensor:
     both = torch.cat([duals.stage_penalty.flatten(1), duals.terminal_penalty,
                       duals.terminal.new_zeros(duals.terminal.shape[0], 1)], -1)
@@ -229,7 +243,7 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         # the gains of the last backward pass, at the iterate before the last step: a converged step is below
         # the tolerances, and a new expansion and factorisation only for K would cost a third of an MPC step
         K = coarse.K
-    cost, violation = kernel(_cost_and_violation, opts.ilqr.compile)(problem, constraints, X, U, params)
+    cost, violation = _final_measures(opts)(problem, constraints, X, U, params)
     return Solution(
         X=X, U=U, K=K, cost=cost, max_violation=violation, status=status, iterations=coarse.iterations,
         history=History.from_rows(coarse.rows), costate=costate,
