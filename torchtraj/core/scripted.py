@@ -1,11 +1,11 @@
 r"""A recorded graph replayed by TorchScript's interpreter instead of its Python code.
 
 A simplified graph of :mod:`~torchtraj.core.recorded` is replayed by the Python code ``torch.fx`` generates for it:
-one line a operator, each a call of a public function whose argument parser and result wrapping cost about as much
+one line an operator, each a call of a public function whose argument parser and result wrapping cost about as much
 as the small operator itself. :func:`scripted` traces that code once more with ``torch.jit.trace`` (on the trace's
 own inputs) and replays the TorchScript graph by the interpreter, without optimisation passes
 (``torch.jit.optimized_execution(False)``): the same operators on the same data in the same order, with each call's
-overhead in C++. The results are the graph's to the last bit (``tests/test_recorded.py``).
+overhead in C++. The results are the graph's to the last bit (``tests/test_scripted.py``).
 
 A view relative to an input's offset (:func:`~torchtraj.core.graph_passes.strided`, the stages of a rollout as views
 of one buffer) reads the offset at run time through a scripted function; a constant a graph reads (a problem's
