@@ -16,6 +16,7 @@ import torch
 import torchtraj as tt
 from torchtraj.core.batch import Batch
 from torchtraj.core.batching import rollout
+from torchtraj.core.scripted import Scripted
 from torchtraj.solvers.ipm.scaling import objective_scale
 
 DATA = Path(__file__).parent / "data"
@@ -37,6 +38,25 @@ def test_objective_scale_is_ipopts(ipopt):
     X = rollout(problem.dynamics, batch.x0, batch.U0, batch.params)
     scale = objective_scale(problem, X, batch.U0, batch.params, tt.IPOptions())
     assert abs(float(scale[0]) - ipopt["objective_scale"]) < 1e-12 * ipopt["objective_scale"]
+
+
+def test_a_recorded_scale_is_the_eager_one_to_the_last_bit(ipopt):
+    """A controller scales every step: with ``record=True`` the gradient's norm replays from its record (traced at
+    the eighth call) with every bit of the eager one."""
+    from torchtraj.core.recorded import TRACE_AT
+    from torchtraj.solvers.ipm import scaling
+
+    problem, x0 = _start(ipopt)
+    batch = Batch.build(problem, x0)
+    X = rollout(problem.dynamics, batch.x0, batch.U0, batch.params)
+    eager = objective_scale(problem, X, batch.U0, batch.params, tt.IPOptions(record=False))
+    traces = scaling._RECORDED_LARGEST_GRADIENT.traces
+    for _ in range(TRACE_AT):
+        recorded = objective_scale(problem, X, batch.U0, batch.params, tt.IPOptions(record=True))
+    assert scaling._RECORDED_LARGEST_GRADIENT.traces == traces + 1 and torch.equal(recorded, eager)
+    replay = next(reversed(scaling._RECORDED_LARGEST_GRADIENT.records.values()))[0]
+    assert isinstance(replay, (Scripted, torch.fx.GraphModule))  # traced, not left eager
+    assert float(eager[0]) < 1.0  # the scale acts here
 
 
 def test_cartpole_start_59_takes_ipopts_path_to_its_optimum(ipopt):

@@ -47,6 +47,7 @@ from torch import Tensor
 from ...core.batch import Batch
 from ...core.derivatives import stage_jacobian, terminal_jacobian
 from ...core.problem import Problem
+from ...core.recorded import Recorded, trace_at
 from ...core.solution import History
 from .options import IPOptions
 
@@ -56,15 +57,26 @@ SCALE = "_objective_scale"
 
 def objective_scale(problem: Problem, X: Tensor, U: Tensor, params, opts: IPOptions) -> Tensor:
     """``s_f (B,)`` (module docstring) at the start ``X (B, N+1, nx)``, ``U (B, N, nu)``; 1 where the gradient is
-    not finite (the iteration reports such a start) and everywhere with ``IPOptions.scaling == "none"``."""
+    not finite (the iteration reports such a start) and everywhere with ``IPOptions.scaling == "none"``. The
+    gradient's norm replays from its record where ``IPOptions.record`` says so (a controller scales every step)."""
     if opts.scaling == "none":
         return X.new_ones(X.shape[0])
+    largest = _largest_gradient(problem, X, U, params) if opts.record is False else \
+        _RECORDED_LARGEST_GRADIENT(problem, X, U, params, trace_at=trace_at(opts.record))
+    scale = torch.clamp(opts.scaling_max_gradient / largest, min=opts.scaling_min_value, max=1.0)
+    return torch.where(torch.isfinite(largest), scale, 1.0)
+
+
+def _largest_gradient(problem: Problem, X: Tensor, U: Tensor, params) -> Tensor:
+    """``‖∇J(X, U)‖_∞ (B,)``."""
     _, stage = stage_jacobian(problem.stage_cost, X[:, :-1], U, params)
     _, terminal = terminal_jacobian(problem.terminal_cost, X[:, -1], params)
     B = X.shape[0]
-    largest = torch.cat([stage.reshape(B, -1).abs(), terminal.reshape(B, -1).abs()], -1).amax(-1)
-    scale = torch.clamp(opts.scaling_max_gradient / largest, min=opts.scaling_min_value, max=1.0)
-    return torch.where(torch.isfinite(largest), scale, 1.0)
+    return torch.cat([stage.reshape(B, -1).abs(), terminal.reshape(B, -1).abs()], -1).amax(-1)
+
+
+# one record per signature, shared by every solve in the process
+_RECORDED_LARGEST_GRADIENT = Recorded(_largest_gradient)
 
 
 def scaled_problem(problem: Problem, batch: Batch, opts: IPOptions) -> tuple:
