@@ -96,15 +96,18 @@ def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params,
     x0 = None if x0 is None else x0.detach()
     rows = int((c.ineq_knot_mask[:, :c.mi] > 0).sum()) + c.miN  # the inequality rows that apply somewhere
     if record is False:
-        return KKTResiduals(*_residuals(problem, c, X, U, given, params, x0, rows))
-    return KKTResiduals(*_RECORDED_RESIDUALS(problem, c, X, U, given, params, x0, rows, trace_at=trace_at(record)))
+        return KKTResiduals(*_residuals(problem, c, X, U, given, params, x0, rows, False))
+    return KKTResiduals(*_RECORDED_RESIDUALS(problem, c, X, U, given, params, x0, rows, True,
+                                             trace_at=trace_at(record)))
 
 
 def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: dict, params, x0: Optional[Tensor],
-               rows: int) -> tuple:
+               rows: int, functional: bool) -> tuple:
     """:func:`residuals`' ``(stationarity, feasibility, complementarity, dual_sign)`` from the detached
     multipliers ``given`` of ``c``'s blocks, ``rows`` the inequality rows that apply (no host read here, so that
-    it can be recorded)."""
+    it can be recorded). The Lagrangian's gradient is ``torch.func.grad``'s where ``functional`` (a trace takes
+    it, not ``requires_grad_``), else autograd's on tensors that require it (about half the eager time): the same
+    operators, the same residuals to the last bit (``tests/test_certificate.py``)."""
     B, nx = X.shape[0], problem.nx
     stage, terminal = stack_blocks(c, given, 0.0, X)
     z, nu = stage[..., :c.mi], stage[..., c.mi:c.mi + c.me]
@@ -118,7 +121,14 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
                + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
         return out.sum(), (g, values.ineqN)
 
-    (gx, gu), (g, gN) = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
+    if functional:
+        (gx, gu), (g, gN) = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
+    else:
+        with torch.enable_grad():
+            Xg, Ug = X.clone().requires_grad_(True), U.clone().requires_grad_(True)
+            total, (g, gN) = lagrangian(Xg, Ug)
+            gx, gu = torch.autograd.grad(total, (Xg, Ug))
+        g, gN = g.detach(), gN.detach()
     jacobian = stage_jacobian(problem.dynamics, X[:, :-1], U, params)[1]
     A, Bu = jacobian[..., :nx], jacobian[..., nx:]
     lam = costate_stages(A, gx[:, :-1], gx[:, -1])[:, 1:]  # λ_1 .. λ_N (the recursion's λ_0 is not a costate)
