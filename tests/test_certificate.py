@@ -12,6 +12,7 @@ import torchtraj as tt
 from torchtraj import problems
 from torchtraj.core.batching import rollout
 from torchtraj.core.constraints import Constraints
+from torchtraj.core.recorded import TRACE_AT
 from torchtraj.core.scripted import Scripted
 from torchtraj.kkt import certificate
 
@@ -130,7 +131,7 @@ def test_recorded_residuals_are_the_eager_ones_to_the_last_bit(name, B):
     c, params = Constraints.of(problem), problem.batched_params(B)
     eager = certificate.residuals(problem, sol.X, sol.U, sol.multipliers, params, x0, c, record=False)
     traces = certificate._RECORDED_RESIDUALS.traces
-    for _ in range(certificate.trace_at(True) + 1):
+    for _ in range(TRACE_AT + 1):
         recorded = certificate.residuals(problem, sol.X, sol.U, sol.multipliers, params, x0, c, record=True)
     assert certificate._RECORDED_RESIDUALS.traces == traces + 1
     replay = next(reversed(certificate._RECORDED_RESIDUALS.records.values()))[0]

@@ -94,6 +94,12 @@ def forget() -> None:
         recorded.loops.clear()
 
 
+def under_transform() -> bool:
+    """Whether the caller runs inside a ``torch.func`` transform (``vmap``, ``grad``, and a trace's
+    ``functionalize``)."""
+    return _TRANSFORMS is not None and _TRANSFORMS() is not None
+
+
 def trace_at(record: Optional[bool]) -> Optional[int]:
     """The call of a signature at which the option ``record`` traces it: :data:`TRACE_AT` (``True``),
     :data:`TRACE_AT_AUTO` (``None``, the default), or ``None``: never (``False``)."""
@@ -125,6 +131,12 @@ class Recorded:
             return self.fn(*args)
         graph, unflatten, _ = record
         return unflatten(graph.forward(*(leaf for leaf in leaves if isinstance(leaf, torch.Tensor))))
+
+    def option(self, record: Optional[bool]) -> Callable:
+        """``fn`` as the solvers' option ``record`` asks (:func:`trace_at`): ``fn`` itself where it says never
+        (``False``), else this record's calls, each signature traced at the call the option names."""
+        at = trace_at(record)
+        return self.fn if at is None else lambda *args: self(*args, trace_at=at)
 
     def loop(self, *args, calls: int, trace_at: int, varying: int) -> Optional[Callable]:
         """A loop's calls of ``fn``, ``calls`` of them, that change only the first ``varying`` tensors of ``args``
@@ -276,7 +288,7 @@ def _foreign_constants(graph: torch.fx.GraphModule, kept: list) -> bool:
 
 
 def _must_run_eager(leaves: list) -> bool:
-    if _TRANSFORMS is not None and _TRANSFORMS() is not None:
+    if under_transform():
         return True
     if any(isinstance(leaf, torch.Tensor) and leaf.is_cuda for leaf in leaves) \
             and torch.cuda.is_current_stream_capturing():

@@ -35,7 +35,7 @@ from torch.func import grad
 from ..core.constraints import Constraints, stack_blocks
 from ..core.derivatives import stage_jacobian
 from ..core.problem import Problem
-from ..core.recorded import Recorded, trace_at
+from ..core.recorded import Recorded, under_transform
 from ..core.status import Status
 from ..riccati.sweep import costate_stages
 from .merit import largest_violation
@@ -95,19 +95,16 @@ def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params,
     given = {} if c.ignored else {k: v.detach() for k, v in multipliers.items() if k in _blocks(c)}
     x0 = None if x0 is None else x0.detach()
     rows = int((c.ineq_knot_mask[:, :c.mi] > 0).sum()) + c.miN  # the inequality rows that apply somewhere
-    if record is False:
-        return KKTResiduals(*_residuals(problem, c, X, U, given, params, x0, rows, False))
-    return KKTResiduals(*_RECORDED_RESIDUALS(problem, c, X, U, given, params, x0, rows, True,
-                                             trace_at=trace_at(record)))
+    return KKTResiduals(*_RECORDED_RESIDUALS.option(record)(problem, c, X, U, given, params, x0, rows))
 
 
 def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: dict, params, x0: Optional[Tensor],
-               rows: int, functional: bool) -> tuple:
+               rows: int) -> tuple:
     """:func:`residuals`' ``(stationarity, feasibility, complementarity, dual_sign)`` from the detached
     multipliers ``given`` of ``c``'s blocks, ``rows`` the inequality rows that apply (no host read here, so that
-    it can be recorded). The Lagrangian's gradient is ``torch.func.grad``'s where ``functional`` (a trace takes
-    it, not ``requires_grad_``), else autograd's on tensors that require it (about half the eager time): the same
-    operators, the same residuals to the last bit (``tests/test_certificate.py``)."""
+    it can be recorded). The Lagrangian's gradient is ``torch.func.grad``'s inside a transform (a trace's
+    functionalisation, where ``requires_grad_`` is refused), else autograd's on tensors that require it (faster
+    eager): the same operators, the same residuals to the last bit (``tests/test_certificate.py``)."""
     B, nx = X.shape[0], problem.nx
     stage, terminal = stack_blocks(c, given, 0.0, X)
     z, nu = stage[..., :c.mi], stage[..., c.mi:c.mi + c.me]
@@ -121,7 +118,7 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
                + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
         return out.sum(), (g, values.ineqN)
 
-    if functional:
+    if under_transform():
         (gx, gu), (g, gN) = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
     else:
         with torch.enable_grad():

@@ -13,7 +13,7 @@ from torch import Tensor
 from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks, stack_blocks
 from ...core.problem import Problem
-from ...core.recorded import Recorded, trace_at
+from ...core.recorded import Recorded
 from ...core.solution import History, Solution
 from ...core.status import Status
 from ...iterations.ilqr import ilqr_step, log_iteration, riccati_backward, start_status
@@ -208,9 +208,7 @@ def _final_measures(opts: ALTROOptions):
     """:func:`_cost_and_violation` compiled (``compile``), replayed from its record (``record``) or eager."""
     if opts.ilqr.compile:
         return kernel(_cost_and_violation, True)
-    if opts.ilqr.record is False:
-        return _cost_and_violation
-    return lambda *args: _RECORDED_COST_AND_VIOLATION(*args, trace_at=trace_at(opts.ilqr.record))
+    return _RECORDED_COST_AND_VIOLATION.option(opts.ilqr.record)
 
 
 def _largest_penalty(duals: Duals) -> Tensor:

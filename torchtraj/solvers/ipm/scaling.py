@@ -47,7 +47,7 @@ from torch import Tensor
 from ...core.batch import Batch
 from ...core.derivatives import stage_jacobian, terminal_jacobian
 from ...core.problem import Problem
-from ...core.recorded import Recorded, trace_at
+from ...core.recorded import Recorded
 from ...core.solution import History
 from .options import IPOptions
 
@@ -61,8 +61,7 @@ def objective_scale(problem: Problem, X: Tensor, U: Tensor, params, opts: IPOpti
     gradient's norm replays from its record where ``IPOptions.record`` says so (a controller scales every step)."""
     if opts.scaling == "none":
         return X.new_ones(X.shape[0])
-    largest = _largest_gradient(problem, X, U, params) if opts.record is False else \
-        _RECORDED_LARGEST_GRADIENT(problem, X, U, params, trace_at=trace_at(opts.record))
+    largest = _RECORDED_LARGEST_GRADIENT.option(opts.record)(problem, X, U, params)
     scale = torch.clamp(opts.scaling_max_gradient / largest, min=opts.scaling_min_value, max=1.0)
     return torch.where(torch.isfinite(largest), scale, 1.0)
 
