@@ -1,6 +1,8 @@
 r"""The simplification of a recorded operator graph (:mod:`torchtraj.core.recorded`): dead code, repeated
-operators, view chains and identity views removed, views of the inputs made relative to their offsets, and the
-operators called through the library's public functions. Every pass keeps the graph's results to the last bit.
+operators, view chains and identity views removed, constants computed once, products with ones and the
+gradients of whole-dimension indexing taken as what they are, views of the inputs made relative to their offsets,
+and the operators called through the library's public functions. Every pass keeps the graph's results to the last
+bit.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
     graph.graph.eliminate_dead_code()
     graph.recompile()
     groups = _storage_groups(graph)
+    _fold_constants(graph)
     mutating = {n.target.overloadpacket for n in graph.graph.nodes
                 if n.op == "call_function" and hasattr(n.target, "_schema") and n.target._schema.is_mutable}
     graph = CSEPass(banned_ops=mutating)(graph).graph_module
@@ -46,6 +49,70 @@ def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
     graph.graph.lint()
     graph.recompile()
     return graph
+
+
+#: Operators whose result depends on their tensor arguments' sizes, dtypes and devices alone (a signature fixes
+#: them), not on their values.
+_FACTORIES = {
+    torch.ops.aten.new_zeros.default, torch.ops.aten.new_ones.default, torch.ops.aten.new_full.default,
+    torch.ops.aten.zeros_like.default, torch.ops.aten.ones_like.default, torch.ops.aten.full_like.default,
+    torch.ops.aten.zeros.default, torch.ops.aten.ones.default, torch.ops.aten.full.default,
+    torch.ops.aten.eye.default, torch.ops.aten.eye.m, torch.ops.aten.scalar_tensor.default,
+    torch.ops.aten.arange.default, torch.ops.aten.arange.start, torch.ops.aten.arange.start_step,
+}
+#: Largest constant (elements) that :func:`_fold_constants` keeps with a graph; larger ones stay operators.
+FOLD_LIMIT = 1 << 16
+
+
+def _fold_constants(graph: torch.fx.GraphModule) -> None:
+    """Operators that read neither an input of the graph nor a tensor it holds by reference (factories such as
+    ``vmap``'s basis vectors and identities, copies of the literals the function made, and the views and products
+    of what they make) computed once, here,
+    with the operators themselves, and kept with the graph as constants of at most :data:`FOLD_LIMIT` elements.
+    Not folded: random operators; an output, or a tensor an output is a view of (each call returns tensors of its
+    own, which the caller may write into)."""
+    values: dict = {}
+    returned = set()
+    for node in _output_nodes(graph.graph):
+        while isinstance(node, torch.fx.Node) and node not in returned:
+            returned.add(node)
+            node = node.args[0] if node.op == "call_function" and node.target in _VIEWS else None
+    for node in graph.graph.nodes:
+        if node.op != "call_function" or torch.Tag.nondeterministic_seeded in getattr(node.target, "tags", ()) \
+                or getattr(getattr(node.target, "_schema", None), "is_mutable", True):
+            continue
+        inputs = node.all_input_nodes
+        if node.target in _FACTORIES:  # the tensor arguments lend their size, dtype and device alone
+            env = {n: values[n] if n in values else _stand_in(n.meta.get("val")) for n in inputs}
+            if any(v is None for v in env.values()):
+                continue
+        elif node.target is torch.ops.aten.lift_fresh_copy.default and inputs[0].op == "get_attr":
+            env = {inputs[0]: getattr(graph, inputs[0].target)}  # a literal the function made, nobody else holds
+        elif inputs and all(n in values for n in inputs):
+            env = values
+        else:
+            continue
+        value = node.target(*torch.fx.node.map_arg(node.args, env.__getitem__),
+                            **torch.fx.node.map_arg(node.kwargs, env.__getitem__))
+        if isinstance(value, Tensor) and value.numel() <= FOLD_LIMIT:
+            values[node] = value
+    for i, node in enumerate(list(values)):
+        if node in returned or all(user in values for user in node.users):
+            continue  # returned, or read by constants alone (removed with them)
+        name = f"_folded_{i}"
+        graph.register_buffer(name, values[node], persistent=False)
+        with graph.graph.inserting_before(node):
+            constant = graph.graph.get_attr(name)
+        constant.meta = {**node.meta, "val": values[node]}  # the constant's own layout, for the later passes
+        node.replace_all_uses_with(constant)
+    graph.graph.eliminate_dead_code()
+
+
+def _stand_in(val) -> Optional[Tensor]:
+    """A tensor of ``val``'s size, strides, dtype and device (zeros), for a factory that reads no values."""
+    if not isinstance(val, Tensor) or not _static(val):
+        return None
+    return torch.empty_strided(val.shape, val.stride(), dtype=val.dtype, device=val.device).zero_()
 
 
 def strided(base: Tensor, size: tuple, stride: tuple, shift: int) -> Tensor:
