@@ -1,6 +1,7 @@
 """Shared fixtures: reference optima copied from the problem set's IPOPT / FATROP runs (tests/data)."""
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,11 @@ DATA = Path(__file__).parent / "data"
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "slow: takes more than a few seconds; select with -m slow")
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # one of several worker processes (addopts' `-n 2`): one thread each, not two per worker on two cores
+        import torch
+
+        torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")
