@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import torchtraj as tt
-from torchtraj import problems
+from torchtraj import problems, solvers
 from torchtraj.core.batching import rollout
 from torchtraj.core.constraints import Constraints
 from torchtraj.core.recorded import TRACE_AT
@@ -121,13 +121,17 @@ def test_the_history_records_the_stationarity_of_every_iterate():
         assert float(history[0, 0]) > 1e-3 and float(history[0, -1]) < 1e-4, (method, history[0, [0, -1]])
 
 
-@pytest.mark.parametrize("name, B", [("pendulum", 1), ("car_3obs", 2)])
-def test_recorded_residuals_are_the_eager_ones_to_the_last_bit(name, B):
+@pytest.mark.parametrize("name, B, method", [("pendulum", 1, "ipm"), ("car_3obs", 2, "ipm"), ("car_3obs", 2, "eilqr")])
+def test_recorded_residuals_are_the_eager_ones_to_the_last_bit(name, B, method):
     """A controller certifies every step: the residuals replay from a recorded graph (record=True, traced at the
-    eighth call), with every bit of the eager computation."""
+    eighth call), with every bit of the eager computation. eILQR's control steps certify its declared problem (the
+    inequalities as soft barriers, whose costs read the original rows' tensors): recorded as well."""
+    solver = solvers.get(method)
+    options = solver.step_options(None, 15)
     problem = problems.get(name)
     x0 = problems.sample_x0(name, B, seed=0) if B > 1 else problem.x0.expand(1, -1)
-    sol = tt.solve(problem, x0=x0, method="ipm", options=tt.IPOptions(iterations=15))
+    sol = tt.solve(problem, x0=x0, method=method, options=options)
+    problem = solver.kkt_problem(problem, options) or problem
     c, params = Constraints.of(problem), problem.batched_params(B)
     eager = certificate.residuals(problem, sol.X, sol.U, sol.multipliers, params, x0, c, record=False)
     traces = certificate._RECORDED_RESIDUALS.traces

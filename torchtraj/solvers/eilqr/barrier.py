@@ -86,6 +86,11 @@ def _soft_problem(problem: Problem, weight: float, delta: float) -> Problem:
         out = terminal_cost(x, p)
         return out + weight * relaxed_log(-terminal_ineq(x, p), delta).sum() if miN else out
 
-    return problem.replace(stage_cost=soft_stage_cost, terminal_cost=soft_terminal_cost, stage_ineq=None,
+    soft = problem.replace(stage_cost=soft_stage_cost, terminal_cost=soft_terminal_cost, stage_ineq=None,
                            state_ineq=None, terminal_ineq=None, u_lower=None, u_upper=None, x_lower=None,
                            x_upper=None, linear_quadratic=False, name=f"{problem.name} (soft barrier)")
+    # the rows its costs read, held by the problem itself: a recorded kernel of its functions (the certificate's
+    # residuals at every control step) holds their tensors by reference, as those of any problem it is given
+    # (torchtraj.core.recorded: tensors of an argument whose tensors cannot be replaced)
+    soft.__dict__["_softened_rows"] = cons
+    return soft
