@@ -137,13 +137,21 @@ def test_derivatives_of_affine_and_quadratic_functions_at_one_stage_are_every_st
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("route", ["one pass at few points", "own pullbacks at many points"])
 @pytest.mark.parametrize("name", ["car_3obs", "parallel_park", "car_3obs with stage equalities"])
-def test_one_pass_kkt_expansion_matches_the_separate_derivatives(name):
+def test_one_pass_kkt_expansion_matches_the_separate_derivatives(name, route, monkeypatch):
     """The one-pass expansion (cost, Lagrangian gradient and Hessian, dynamics and rows with their Jacobians) is the
-    separate passes' (each checked against finite differences above), with every multiplier block nonzero."""
+    separate passes' (each checked against finite differences above), with every multiplier block nonzero, by
+    either route: the rows' Jacobians out of the Hessian's pass (few points: fewer calls) or by their own
+    pullbacks (many points: less arithmetic)."""
+    from torchtraj.bench.ops import OperatorCounter
+    from torchtraj.core import one_pass
     from torchtraj.core.derivatives import problem_lagrangian_expansion
     from torchtraj.core.one_pass import problem_kkt_expansion
     from torchtraj.kkt.model import total_cost
+
+    if route.startswith("own"):
+        monkeypatch.setattr(one_pass, "HESSIAN_PASS_POINTS", 0)
 
     prob = tt.problems.get(name.split()[0])
     if name.endswith("equalities"):
@@ -159,7 +167,12 @@ def test_one_pass_kkt_expansion_matches_the_separate_derivatives(name):
 
     lam, nu, mu = rand(B, N + 1, prob.nx), rand(B, N, cons.me), rand(B, N, cons.mi).abs()
     nuN, muN = rand(B, cons.meN), rand(B, cons.miN).abs()
-    e = problem_kkt_expansion(prob, cons, X, U, P, lam, nu, mu, nuN, muN)
+    with OperatorCounter() as calls:
+        e = problem_kkt_expansion(prob, cons, X, U, P, lam, nu, mu, nuN, muN)
+    monkeypatch.setattr(one_pass, "HESSIAN_PASS_POINTS", 0 if route.startswith("one") else 10 ** 9)
+    with OperatorCounter() as other_calls:
+        problem_kkt_expansion(prob, cons, X, U, P, lam, nu, mu, nuN, muN)
+    assert (calls.total < other_calls.total) == route.startswith("one")
     ref = problem_lagrangian_expansion(prob, cons, X, U, P, lam, nu, mu, nuN, muN)
     f, fz = stage_jacobian(prob.dynamics, X[:, :-1], U, P)
     pairs = [(e.Lz, ref.gradient), (e.Lzz, ref.hessian), (e.LNx, ref.terminal_gradient),

@@ -13,8 +13,12 @@ where separate passes (:func:`~torchtraj.core.derivatives.problem_lagrangian_exp
 pullbacks of the same forward evaluation, taken beside the gradient's. Without multipliers (``costate=None``) the
 Lagrangian is the cost alone, the Hessian of a Gauss-Newton model (iLQR, HM-iLQR); its gradient's graph is small,
 and the Hessian's reverse pass runs over the stacked ``(∇l, f, h, g)``, which gives the rows' Jacobians with it in
-the fewest calls. The terminal point is the same with ``L_N = l_N + ν_Nᵀ h_N + μ_Nᵀ g_N``. The results are those of
-the separate passes to the last bit.
+the fewest calls. With multipliers, that single pass carries the rows' cotangents through the Lagrangian
+gradient's graph, about twice the arithmetic of the separate pullbacks, in fewer calls; it is taken where the
+points are few (:data:`HESSIAN_PASS_POINTS`: a single instance, a controller's step), whose time is the calls',
+and the separate pullbacks where arithmetic is the cost (``docs/benchmarks.md`` has the figures). Both give the
+same numbers: the single pass only adds the exact zeros of the rows' zero cotangents. The terminal point is the
+same with ``L_N = l_N + ν_Nᵀ h_N + μ_Nᵀ g_N``. The results are those of the separate passes to the last bit.
 
 :func:`problem_values` is the same point's values alone (a line search's trial points), in one ``vmap`` of the
 stages and one of the end points.
@@ -64,14 +68,19 @@ class KKTExpansion:
     GN: Tensor
 
 
+#: Most points (instances times stages) whose expansion with multipliers takes the rows' Jacobians out of the
+#: Hessian's pass (module docstring): below it the calls are the time, above it the arithmetic.
+HESSIAN_PASS_POINTS = 512
+
+
 def _gradient_and_rows_jacobian(fn: Callable, rows_through_hessian: bool) -> Callable:
     """``fn(v) -> (L, (value, rows))`` as ``v ↦ (value, (∇L, rows), ∂(∇L, rows)/∂v)`` (module docstring).
 
     ``rows_through_hessian``: the rows' Jacobians come out of the Hessian's reverse pass, over ``(∇L, rows)``
-    (the fewest calls; for a cost without multiplier terms, whose gradient's graph is small). Otherwise (a
-    Lagrangian, whose gradient's graph holds the rows' second derivatives) they get their own first-order
-    pullbacks of the same forward evaluation: the Hessian's pass, batched over ``(∇L, rows)``, would carry the
-    rows' cotangents through that graph, about twice the arithmetic at large batches."""
+    (the fewest calls; for a cost without multiplier terms, or a Lagrangian at few points). Otherwise (a
+    Lagrangian, whose gradient's graph holds the rows' second derivatives, at many points) they get their own
+    first-order pullbacks of the same forward evaluation: the Hessian's pass, batched over ``(∇L, rows)``, would
+    carry the rows' cotangents through that graph, about twice the arithmetic."""
     def through_hessian(v):
         def first(v_):
             grad, (value, rows) = jacrev(fn, has_aux=True)(v_)
@@ -188,7 +197,7 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
         l, rows, jac = _pullback_expansion(stage_lagrangian, stage_in, nz, params)
         lN, rowsN, jacN = _pullback_expansion(terminal_lagrangian, terminal_in, nx, params)
     else:
-        by_hessian = costate is None
+        by_hessian = costate is None or stage_in.shape[:-1].numel() <= HESSIAN_PASS_POINTS
         l, rows, jac = map_state(
             lambda zw, p: _gradient_and_rows_jacobian(stage_lagrangian(zw, p), by_hessian)(zw[:nz]), stage_in, params)
         lN, rowsN, jacN = map_state(
