@@ -71,3 +71,16 @@ def test_a_tensor_held_by_reference_is_not_folded():
     f = _recorded(lambda x, ref: x * (ref.w * 2.0), torch.ones(3, dtype=F64), weights)
     weights.w.mul_(5.0)
     assert torch.equal(f(torch.ones(3, dtype=F64), weights), torch.full((3,), 10.0, dtype=F64))
+
+
+def test_views_of_the_same_elements_are_taken_once():
+    """``x[:, 1]`` and ``x.t()[1]`` are the same elements of ``x``: a ``select`` and a view chain (one strided view
+    once collapsed), which common subexpression elimination sees as different operators; the replay takes one."""
+    fn = lambda x: x[:, 1] * 2.0 + x.t()[1]  # noqa: E731
+    buffer = torch.randn(3, 4, 3, dtype=F64)
+    f = _recorded(fn, buffer[0])
+    for row in buffer.unbind(0):  # rows of one buffer: the view read at each input's own offset
+        with OperatorCounter() as calls:
+            got = f(row)
+        assert torch.equal(got, fn(row))
+        assert calls.total == 3, calls.by_name  # one view, the product and the sum

@@ -1,8 +1,7 @@
 r"""The simplification of a recorded operator graph (:mod:`torchtraj.core.recorded`): dead code, repeated
-operators, view chains and identity views removed, constants computed once, products with ones and the
-gradients of whole-dimension indexing taken as what they are, views of the inputs made relative to their offsets,
-and the operators called through the library's public functions. Every pass keeps the graph's results to the last
-bit.
+operators, view chains and identity views removed, views of the same elements taken once, what reads no input
+computed once (constants), views of the inputs made relative to their offsets, and the operators called through
+the library's public functions. Every pass keeps the graph's results to the last bit.
 """
 
 from __future__ import annotations
@@ -42,6 +41,7 @@ def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
     graph = CSEPass(banned_ops=mutating)(graph).graph_module
     _collapse_views(graph.graph)
     _drop_identity_views(graph.graph)
+    _merge_equal_views(graph.graph)
     _separate_outputs(graph.graph, groups)
     graph.graph.eliminate_dead_code()
     _relative_strides(graph.graph)
@@ -256,6 +256,24 @@ def _drop_identity_views(graph: torch.fx.Graph) -> None:
                 == (base_val.shape, base_val.stride(), base_val.storage_offset()):
             node.replace_all_uses_with(node.args[0])
             graph.erase_node(node)
+
+
+def _merge_equal_views(graph: torch.fx.Graph) -> None:
+    """Views of one tensor with the same size, strides and offset (a ``select`` and a collapsed chain that lands on
+    the same elements, which common subexpression elimination cannot see as one) are the first of them."""
+    first: dict = {}
+    for node in list(graph.nodes):
+        if node.op != "call_function" or node.target not in _VIEWS:
+            continue
+        val = node.meta.get("val")
+        if not isinstance(val, torch.Tensor) or not _static(val):
+            continue
+        key = (node.args[0], tuple(val.shape), tuple(val.stride()), val.storage_offset(), val.dtype)
+        if key in first:
+            node.replace_all_uses_with(first[key])
+            graph.erase_node(node)
+        else:
+            first[key] = node
 
 
 def _static(val: torch.Tensor) -> bool:

@@ -13,7 +13,9 @@ tensors, functionalised (no in-place operators left), and simplifies the graph:
   the trace recorded (an input's strides are part of the signature, and an operator's output layout follows from
   its inputs'); a view of an input takes its offset relative to the input's own
   (:func:`~torchtraj.core.graph_passes.strided`), so that inputs at other offsets in their storages (the stages of
-  a rollout, views of one buffer) share a record.
+  a rollout, views of one buffer) share a record; views of one tensor that land on the same elements are one;
+* constants: what reads no input of the graph and no tensor it holds by reference (``vmap``'s basis vectors, the
+  identities and zeros of the derivatives, and what is computed from them alone) is computed once, at the trace.
 
 The passes are those of :mod:`torchtraj.core.graph_passes`.
 
