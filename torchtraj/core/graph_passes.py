@@ -60,17 +60,17 @@ _FACTORIES = {
     torch.ops.aten.eye.default, torch.ops.aten.eye.m, torch.ops.aten.scalar_tensor.default,
     torch.ops.aten.arange.default, torch.ops.aten.arange.start, torch.ops.aten.arange.start_step,
 }
-#: Largest constant (elements) that :func:`_fold_constants` keeps with a graph; larger ones stay operators.
-FOLD_LIMIT = 1 << 16
+#: Largest constant (bytes of its storage: an expanded tensor counts its one instance) that
+#: :func:`_fold_constants` keeps with a graph; larger ones stay operators, whose arithmetic is their cost anyway.
+FOLD_LIMIT = 1 << 17
 
 
 def _fold_constants(graph: torch.fx.GraphModule) -> None:
     """Operators that read neither an input of the graph nor a tensor it holds by reference (factories such as
     ``vmap``'s basis vectors and identities, copies of the literals the function made, and the views and products
-    of what they make) computed once, here,
-    with the operators themselves, and kept with the graph as constants of at most :data:`FOLD_LIMIT` elements.
-    Not folded: random operators; an output, or a tensor an output is a view of (each call returns tensors of its
-    own, which the caller may write into)."""
+    of what they make) computed once, here, with the operators themselves, and kept with the graph as constants of
+    at most :data:`FOLD_LIMIT` bytes. Not folded: random operators; an output, or a tensor an output is a view of
+    (each call returns tensors of its own, which the caller may write into)."""
     values: dict = {}
     returned = set()
     for node in _output_nodes(graph.graph):
@@ -94,7 +94,7 @@ def _fold_constants(graph: torch.fx.GraphModule) -> None:
             continue
         value = node.target(*torch.fx.node.map_arg(node.args, env.__getitem__),
                             **torch.fx.node.map_arg(node.kwargs, env.__getitem__))
-        if isinstance(value, Tensor) and value.numel() <= FOLD_LIMIT:
+        if isinstance(value, Tensor) and value.untyped_storage().nbytes() <= FOLD_LIMIT:
             values[node] = value
     for i, node in enumerate(list(values)):
         if node in returned or all(user in values for user in node.users):
