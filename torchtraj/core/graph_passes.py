@@ -92,8 +92,11 @@ def _fold_constants(graph: torch.fx.GraphModule) -> None:
             env = values
         else:
             continue
-        value = node.target(*torch.fx.node.map_arg(node.args, env.__getitem__),
-                            **torch.fx.node.map_arg(node.kwargs, env.__getitem__))
+        try:
+            value = node.target(*torch.fx.node.map_arg(node.args, env.__getitem__),
+                                **torch.fx.node.map_arg(node.kwargs, env.__getitem__))
+        except Exception:  # an operator that does not take the stand-ins: it stays in the graph
+            continue
         if isinstance(value, Tensor) and value.untyped_storage().nbytes() <= FOLD_LIMIT:
             values[node] = value
     for i, node in enumerate(list(values)):
