@@ -84,3 +84,21 @@ def test_views_of_the_same_elements_are_taken_once():
             got = f(row)
         assert torch.equal(got, fn(row))
         assert calls.total == 3, calls.by_name  # one view, the product and the sum
+
+
+def _components(x):
+    """A dynamics function's reads of its state's components, ``x[:, 0]`` and ``x[:, 1]`` (one read twice)."""
+    return torch.stack([x[:, 1], torch.sin(x[:, 0]) - 0.1 * x[:, 1]], 1)
+
+
+def test_selects_of_one_tensor_are_one_unbind():
+    """The components a function reads of one tensor are views of one ``unbind``, one call instead of one a
+    component; replayed on rows of one buffer (other offsets), to the last bit."""
+    buffer = torch.randn(3, 5, 2, dtype=F64)
+    f = _recorded(_components, buffer[0])
+    for row in buffer.unbind(0):
+        with OperatorCounter() as calls:
+            got = f(row)
+        assert torch.equal(got, _components(row))
+        assert calls.by_name["aten.unbind.int"] == 1 and "aten.select.int" not in calls.by_name, calls.by_name
+        assert calls.total == 5, calls.by_name  # the unbind, the sine, the product, the difference, the stack

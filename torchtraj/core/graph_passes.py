@@ -6,6 +6,7 @@ the library's public functions. Every pass keeps the graph's results to the last
 
 from __future__ import annotations
 
+import operator
 from typing import Optional
 
 import torch
@@ -44,6 +45,7 @@ def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
     _merge_equal_views(graph.graph)
     _separate_outputs(graph.graph, groups)
     graph.graph.eliminate_dead_code()
+    _unbind_selects(graph.graph)
     _relative_strides(graph.graph)
     _public_functions(graph.graph)
     graph.graph.lint()
@@ -173,9 +175,9 @@ def _public_table() -> dict:
         "squeeze": ("dim",), "diagonal": ("default",), "stack": ("default",), "cat": ("default",),
         "sum": ("dim_IntList",), "amax": ("default",), "where": ("self",), "clone": ("default",),
         "mm": ("default",), "bmm": ("default",), "baddbmm": ("default",), "addmm": ("default",),
-        "split_with_sizes": ("default",), "remainder": ("Scalar", "Tensor"), "maximum": ("default",),
-        "minimum": ("default",), "lt": ("Scalar", "Tensor"), "gt": ("Scalar", "Tensor"), "le": ("Scalar", "Tensor"),
-        "ge": ("Scalar", "Tensor"), "eq": ("Scalar", "Tensor"),
+        "split_with_sizes": ("default",), "unbind": ("int",), "remainder": ("Scalar", "Tensor"),
+        "maximum": ("default",), "minimum": ("default",), "lt": ("Scalar", "Tensor"), "gt": ("Scalar", "Tensor"),
+        "le": ("Scalar", "Tensor"), "ge": ("Scalar", "Tensor"), "eq": ("Scalar", "Tensor"),
     }.items():
         for overload in overloads:
             table[getattr(getattr(aten, name), overload)] = getattr(torch, name)
@@ -277,6 +279,32 @@ def _merge_equal_views(graph: torch.fx.Graph) -> None:
             graph.erase_node(node)
         else:
             first[key] = node
+
+
+def _unbind_selects(graph: torch.fx.Graph) -> None:
+    """Two or more ``select``s of one tensor along one dimension (a vector's components, ``x[0]`` and ``x[1]`` of
+    a dynamics function under ``vmap``) as one ``unbind`` of it, whose views they read: the same views, one call."""
+    groups: dict = {}
+    for node in graph.nodes:
+        if node.op == "call_function" and node.target == torch.ops.aten.select.int \
+                and isinstance(node.args[0], torch.fx.Node) and isinstance(node.meta.get("val"), torch.Tensor):
+            base = node.args[0].meta.get("val")
+            if not isinstance(base, torch.Tensor) or not _static(base):
+                continue
+            dim, index = node.args[1] % base.dim(), node.args[2] % base.shape[node.args[1]]
+            groups.setdefault((node.args[0], dim), []).append((node, index))
+    for (base, dim), selects in groups.items():
+        if len(selects) < 2:
+            continue
+        with graph.inserting_before(selects[0][0]):
+            parts = graph.call_function(torch.ops.aten.unbind.int, (base, dim))
+        parts.meta = {}
+        for node, index in selects:
+            with graph.inserting_before(node):
+                part = graph.call_function(operator.getitem, (parts, index))
+            part.meta = dict(node.meta)
+            node.replace_all_uses_with(part)
+            graph.erase_node(node)
 
 
 def _static(val: torch.Tensor) -> bool:
