@@ -97,9 +97,10 @@ def test_compile_flag_reaches_the_solver_options():
     from torchtraj.bench import mpc as mpc_bench
     from torchtraj.bench.runs import compiled, with_compile
 
-    altro = with_compile(tt.ALTROOptions(iterations_outer=3))
-    assert altro.ilqr.compile and altro.iterations_outer == 3 and compiled(altro)
-    assert compiled(with_compile(tt.ILQROptions())) and not compiled(tt.ALTROOptions()) and not compiled(None)
+    altro = with_compile("altro", tt.ALTROOptions(iterations_outer=3))
+    assert altro.ilqr.compile and altro.iterations_outer == 3 and compiled("altro", altro)
+    assert compiled("ilqr", with_compile("ilqr", tt.ILQROptions())) and not compiled("altro", tt.ALTROOptions())
+    assert with_compile("ipm", tt.IPOptions()).compile and not compiled("ipm", None)
     assert mpc_bench.parser().parse_args(["--compile"]).compile
     assert bench_main.parser().parse_args(["--grad", "--compile"]).compile
 
@@ -133,7 +134,8 @@ def test_compiled_rows_report_the_run_that_compiled_them(tmp_path, monkeypatch):
 def test_record_flag_reaches_the_solver_options_and_its_rows_are_the_eager_ones(tmp_path):
     from torchtraj.bench.runs import with_record
 
-    assert with_record(tt.ALTROOptions()).ilqr.record and with_record(tt.IPOptions()).record
+    assert with_record("altro", tt.ALTROOptions()).ilqr.record and with_record("ipm", tt.IPOptions()).record
+    assert with_record("al-ilqr", tt.ALTROOptions()).ilqr.record and with_record("eilqr", tt.EILQROptions()).record
     with pytest.raises(SystemExit):  # a method without the option (plain iLQR's expansion is not recorded)
         main(["--method", "ilqr", "--record"], out=io.StringIO())
     rows = []

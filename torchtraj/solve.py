@@ -126,14 +126,14 @@ def _certified(solver: Solver, problem: Problem, batch: Batch, opts, solution: S
     # a free start (eILQR's free_initial_state) has no initial defect; its own rows are the method's to meet
     x0 = batch.x0.detach() if solver.fixes_initial_state(opts) else None
     status, residuals = certificate.certify(problem, solution.status, solution.X, solution.U, solution.multipliers,
-                                            params, x0, constraints, record=_record(opts))
+                                            params, x0, constraints, record=_record(solver, opts))
     return dataclasses.replace(solution, status=status, kkt=residuals.as_dict())
 
 
-def _record(opts):
-    """The options' ``record`` (:mod:`torchtraj.core.recorded`; ALTRO's is its ``ilqr``'s), ``False`` where they
-    have none: the certificate replays its residuals where the method replays its expansion."""
-    return getattr(getattr(opts, "ilqr", opts), "record", False)
+def _record(solver, opts):
+    """The options' ``record`` (:mod:`torchtraj.core.recorded`, :meth:`Solver.kernel_options`), ``False`` where
+    they have none: the certificate replays its residuals where the method replays its expansion."""
+    return getattr(solver.kernel_options(opts), "record", False)
 
 
 def default_method(problem: Problem, options=None) -> str:

@@ -259,7 +259,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         defaults = solvers.get(name).options_class
         options = None
         if args.compile:
-            options = with_compile(defaults())
+            options = with_compile(name, defaults())
         if args.cuda_graphs:  # _check: the method's options have the field
             options = defaults(cuda_graphs=True)
         lq_options = None
@@ -323,9 +323,9 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         # for al-ilqr, its solve turns the projection off
         problem_options = problems.altro_options(problem.name) if augmented else options
         if args.compile:
-            problem_options = with_compile(problem_options)
+            problem_options = with_compile(method, problem_options)
         if args.record:
-            problem_options = with_record(problem_options)
+            problem_options = with_record(method, problem_options)
         for batch in batches:
             ours = run_torchtraj(problem, method, batch, args.seed, problem_options, args.warmup_iterations)
             group = [ours]

@@ -127,7 +127,7 @@ def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, dev
     say(header())
     rows = []
     speedups = []
-    compiled = is_compiled(options)
+    compiled = is_compiled(method, options)
     graphs = getattr(options, "cuda_graphs", False) and torch.device(device).type == "cuda"
     label = f"torchtraj/{method}" + ("+compile" if compiled else "") + ("+graphs" if graphs else "") \
         + ("+unrolled" if gradients == "unrolled" else "")

@@ -159,7 +159,7 @@ def count_recorded(problem: Problem, method) -> Count:
     """:func:`count_solve` of ``method``'s default options with recorded kernels (``record=True``,
     :mod:`torchtraj.core.recorded`), after one uncounted solve of the same problem that records them."""
     solver = solvers.get(method)
-    options = with_record(solver.default_options())
+    options = with_record(solver, solver.default_options())
     forget()
     try:
         solve(problem, None, solver, X0=state_guess(solver, problem), options=options)

@@ -92,23 +92,22 @@ def make_options(method, **values) -> tuple:
     return cls(**applied), applied
 
 
-def compiled(options) -> bool:
-    """Whether ``options`` (ILQROptions, ALTROOptions or None) ask for compiled kernels."""
-    return bool(getattr(getattr(options, "ilqr", options), "compile", False))
+def compiled(method, options) -> bool:
+    """Whether ``options`` of ``method`` (a name or a solver; ``None`` options: its defaults) ask for compiled
+    kernels (:meth:`~torchtraj.solvers.base.Solver.kernel_options`)."""
+    solver = solvers.get(method)
+    return options is not None and bool(getattr(solver.kernel_options(options), "compile", False))
 
 
-def with_record(options):
-    """``options`` with recorded kernels (``IPOptions.record``; ``ILQROptions.record``, for ALTRO its ``ilqr``'s)."""
-    if hasattr(options, "ilqr"):
-        return dataclasses.replace(options, ilqr=dataclasses.replace(options.ilqr, record=True))
-    return dataclasses.replace(options, record=True)
+def with_record(method, options):
+    """``options`` of ``method`` with recorded kernels (``record=True`` where the method keeps it,
+    :meth:`~torchtraj.solvers.base.Solver.with_kernels`)."""
+    return solvers.get(method).with_kernels(options, record=True)
 
 
-def with_compile(options):
-    """``options`` with compiled kernels (``ILQROptions.compile``, for ALTRO its ``ilqr``'s)."""
-    if hasattr(options, "ilqr"):
-        return dataclasses.replace(options, ilqr=dataclasses.replace(options.ilqr, compile=True))
-    return dataclasses.replace(options, compile=True)
+def with_compile(method, options):
+    """``options`` of ``method`` with compiled kernels (``compile=True`` where the method keeps it)."""
+    return solvers.get(method).with_kernels(options, compile=True)
 
 
 def batch_x0(name: str, batch: int, seed: int) -> Optional[torch.Tensor]:
@@ -134,7 +133,7 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
             warm = dataclasses.replace(options, iterations=min(options.iterations, warmup_iterations))
         else:
             warm = dataclasses.replace(options, iterations_outer=1, iterations_inner=warmup_iterations)
-        if compiled(options):
+        if compiled(method, options):
             start = time.perf_counter()
             solve(problem, x0, method, X0=X0, options=options)
             _sync(problem.device)

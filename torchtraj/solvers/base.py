@@ -61,7 +61,7 @@ class Solver(abc.ABC):
     takes_duals: ClassVar[bool]
     starts_from_shifted_states: ClassVar[bool] = False
     kkt_point: ClassVar[bool] = True
-    #: Whether its options' ``record`` (for ALTRO, its ``ilqr``'s) replays its expansion from recorded graphs
+    #: Whether its options' ``record`` (:meth:`kernel_options`) replays its expansion from recorded graphs
     #: (:mod:`torchtraj.core.recorded`).
     records: ClassVar[bool] = False
 
@@ -93,6 +93,16 @@ class Solver(abc.ABC):
         validate(options)
         return options
 
+    def kernel_options(self, options):
+        """The options whose ``record`` (recorded graphs, :mod:`torchtraj.core.recorded`) and ``compile``
+        (:mod:`torchtraj.core.compiled`) say how the method's kernels run: ``options`` themselves, unless the method
+        keeps them in nested options (ALTRO: its inner iLQR's)."""
+        return options
+
+    def with_kernels(self, options, **fields):
+        """``options`` with the :meth:`kernel_options`' ``fields`` replaced (``record=True``, ``compile=True``)."""
+        return dataclasses.replace(options, **fields)
+
     # ------------------------------------------------------------------ solving
     @abc.abstractmethod
     def solve(self, problem: Problem, batch: Batch, options) -> Solution:
@@ -121,7 +131,7 @@ class Solver(abc.ABC):
         ``iterations`` iterations (``None``: as given) and, with ``compile``, compiled kernels."""
         opts = self.options(self.step_defaults() if options is None else options)
         if compile:
-            opts = dataclasses.replace(opts, compile=True)
+            opts = self.with_kernels(opts, compile=True)
         return opts if iterations is None else dataclasses.replace(opts, iterations=int(iterations))
 
     def warm_start(self, U0: Tensor, duals: Optional[dict], X0: Optional[Tensor] = None) -> dict:

@@ -54,6 +54,12 @@ class ALTRO(Solver):
     def step_defaults(self) -> ALTROOptions:
         return MPC_OPTIONS
 
+    def kernel_options(self, options: ALTROOptions):
+        return options.ilqr
+
+    def with_kernels(self, options: ALTROOptions, **fields) -> ALTROOptions:
+        return dataclasses.replace(options, ilqr=dataclasses.replace(options.ilqr, **fields))
+
     def step_options(self, options, iterations, compile=False) -> ALTROOptions:
         """One inner solve of at most ``iterations`` iLQR iterations and no further dual update (module docstring);
         ``compile`` compiles the inner iLQR's kernels."""
@@ -61,7 +67,7 @@ class ALTRO(Solver):
         # a control step starts from the shifted controls of the last one, never from the problem's cold guess
         opts = dataclasses.replace(opts, problem_state_guess=False)
         if compile:
-            opts = dataclasses.replace(opts, ilqr=dataclasses.replace(opts.ilqr, compile=True))
+            opts = self.with_kernels(opts, compile=True)
         if iterations is None:
             return opts
         return dataclasses.replace(opts, iterations_inner=int(iterations), iterations_outer=1)
