@@ -51,7 +51,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, map_state
 from ...core.constraints import Constraints
 from ...core.derivatives import stage_jacobian, terminal_jacobian
 from .barrier import relaxed_log, relaxed_log_curvature, relaxed_log_slope
@@ -101,19 +100,19 @@ def rows_at(cons: Constraints, X: Tensor, U: Tensor, params) -> Rows:
     return Rows(t=-g, G=G, tN=-gN, GN=GN, mask=mask)
 
 
-def barrier_cost(cons: Constraints, X: Tensor, U: Tensor, params, weights: Weights) -> Tensor:
-    """``Σ w β(−g)`` over the rows that apply, at ``X (B, *E, N+1, nx)``, ``U``: ``(B, *E)``."""
-    B = X.shape[0]
-    total = X.new_zeros(X.shape[:-2])
+def barrier_cost(cons: Constraints, g: Tensor, gN: Tensor, weights: Weights) -> Tensor:
+    """``Σ w β(−g)`` over the rows that apply, from the rows' values ``g (B, *E, N, mi)`` and ``gN (B, *E, miN)``:
+    ``(B, *E)``."""
+    total = g.new_zeros(g.shape[:-2])
     if cons.mi:
-        t = -map_stage(cons.stage_ineq, X[..., :-1, :], U, params)
+        t = -g
         w, delta = weights.like(t)
         total = total + (w * relaxed_log(t, delta) * cons.ineq_knot_mask).sum((-1, -2))
     if cons.miN:
-        tN = -map_state(cons.terminal_ineq, X[..., -1, :], params)
+        tN = -gN
         w, delta = weights.like(tN)
         total = total + (w * relaxed_log(tN, delta)).sum(-1)
-    return total.reshape(B, *X.shape[1:-2])
+    return total
 
 
 def barrier_multipliers(rows: Rows, weights: Weights) -> tuple:

@@ -109,12 +109,13 @@ def _correction(problem, cons, params, model, it, x0, initial, d, step, alpha, e
     rows = None if d.factor is not None or initial is not None else need.nonzero().squeeze(-1)
     if rows is None or rows.numel() == need.shape[0]:
         soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, opts.terminal_rows)
-        return soc, merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights)
+        return soc, merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights,
+                             opts.record)
     at_rows, it_rows, params_rows = instances(model, rows), instances(it, rows), param_rows(params, rows)
     soc = corrected_step(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
                          instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)
     merit = merit_at(problem, cons, params_rows, it_rows.X + soc.dX, it_rows.U + soc.dU, x0[rows], None, gamma[rows],
-                     instances(weights, rows))
+                     instances(weights, rows), opts.record)
     return write_direction(step, rows, soc), torch.zeros_like(gamma).index_copy(0, rows, merit)
 
 
@@ -156,7 +157,7 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
             break
         step = truncated(d, it, a * alpha_max)
         bound = armijo_bound(reference, derivative, a.reshape(1), opts)[:, 0]
-        m = merit_at(problem, cons, params, it.X + step.dX, it.U + step.dU, x0, initial, gamma, weights)
+        m = merit_at(problem, cons, params, it.X + step.dX, it.U + step.dU, x0, initial, gamma, weights, opts.record)
         passed = waiting & torch.isfinite(m) & (m <= bound)
         if bool((waiting & ~passed).any()):
             soc, ms = _correction(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps, gamma,

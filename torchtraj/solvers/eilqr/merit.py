@@ -50,9 +50,9 @@ from torch import Tensor
 
 from ...core.batching import map_stage, map_state, param_rows, rows_of
 from ...core.constraints import Constraints
+from ...core.one_pass import problem_values
 from ...core.problem import Problem
 from ...globalization.line_search import Accepted, backtrack
-from ...kkt.model import total_cost
 from .continuation import Weights, barrier_cost
 from .initial_state import InitialState
 from .model import Model
@@ -96,11 +96,14 @@ def constraint_values(problem: Problem, cons: Constraints, params, X: Tensor, U:
     defects = map_stage(problem.dynamics, X[..., :-1, :], U, params) - X[..., 1:, :]
     h = map_stage(cons.stage_eq, X[..., :-1, :], U, params) if cons.me else None
     hN = map_state(cons.terminal_eq, X[..., -1, :], params) if cons.meN else None
+    return defects, h, hN, _initial_rows(X, x0, initial, params)
+
+
+def _initial_rows(X: Tensor, x0: Tensor, initial: Optional[InitialState], params) -> Tensor:
+    """The initial rows ``c_0 (B, *E, m_0)``: a free start's ``h_0``, else ``x_0 − x̄_0``."""
     if initial is not None:
-        c0 = initial.evaluate(X[..., 0, :], params).e0
-    else:
-        c0 = x0.reshape(x0.shape[0], *([1] * (X.dim() - 3)), -1) - X[..., 0, :]
-    return defects, h, hN, c0
+        return initial.evaluate(X[..., 0, :], params).e0
+    return x0.reshape(x0.shape[0], *([1] * (X.dim() - 3)), -1) - X[..., 0, :]
 
 
 def l1_norm(values: tuple) -> Tensor:
@@ -147,11 +150,17 @@ def armijo_bound(merit0: Tensor, derivative: Tensor, alphas: Tensor, opts: EILQR
 
 
 def merit_at(problem: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
-             initial: Optional[InitialState], gamma: Tensor, weights: Weights) -> Tensor:
-    """``m = J + γ ‖C‖₁`` at ``X (B, *E, N+1, nx)``, ``U``: ``(B, *E)``, with the barrier of ``weights``."""
+             initial: Optional[InitialState], gamma: Tensor, weights: Weights,
+             record: Optional[bool] = False) -> Tensor:
+    """``m = J + γ ‖C‖₁`` at ``X (B, *E, N+1, nx)``, ``U``: ``(B, *E)``, with the barrier of ``weights``; the costs,
+    dynamics and rows in one pass (:func:`~torchtraj.core.one_pass.problem_values`, replayed from its recorded graph
+    as ``record``, ``EILQROptions.record``, says)."""
     g = gamma.reshape(-1, *([1] * (X.dim() - 3)))
-    J = total_cost(problem, X, U, params) + barrier_cost(cons, X, U, params, weights)
-    return J + g * l1_norm(constraint_values(problem, cons, params, X, U, x0, initial))
+    values = problem_values(problem, cons, X, U, params, record=record)
+    J = values.cost + barrier_cost(cons, values.g, values.gN, weights)
+    rows = (values.f - X[..., 1:, :], values.h if cons.me else None, values.hN if cons.meN else None,
+            _initial_rows(X, x0, initial, params))
+    return J + g * l1_norm(rows)
 
 
 def line_search(problem: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,
@@ -172,7 +181,7 @@ def line_search(problem: Problem, cons: Constraints, params, X: Tensor, U: Tenso
         X_, U_, dX, dU, params_, x0_, gamma_, weights_, merit0_, derivative_ = at
         Xa = X_.unsqueeze(1) + a * dX.unsqueeze(1)
         Ua = U_.unsqueeze(1) + a * dU.unsqueeze(1)
-        m = merit_at(problem, cons, params_, Xa, Ua, x0_, initial, gamma_, weights_)
+        m = merit_at(problem, cons, params_, Xa, Ua, x0_, initial, gamma_, weights_, opts.record)
         accept = torch.isfinite(m) & (m <= armijo_bound(merit0_, derivative_, alphas, opts))
         if not opts.globalization:
             accept = torch.ones_like(accept)
