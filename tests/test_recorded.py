@@ -375,3 +375,19 @@ def test_a_loop_computes_what_reads_only_its_fixed_tensors_once():
         assert torch.equal(y, x * (a * b) + a.sin()) and torch.equal(z, x - b)
     outs[0][0].add_(1.0)
     assert torch.equal(outs[1][0], xs[1] * (a * b) + a.sin())
+
+
+def test_a_recorded_map_of_the_stages_is_the_eager_one_in_fewer_calls():
+    """``batching.recorded_map_stage`` (HM-iLQR's defects at its segments' nodes): the pendulum's step at some
+    knots of two instances, replayed from the eighth call with ``record=True``, eager with ``False``."""
+    p = problems.get("pendulum")
+    params, g = {k: v.unsqueeze(0) for k, v in p.params.items()}, torch.Generator().manual_seed(0)
+    X, U = torch.randn(2, 5, p.nx, dtype=F64, generator=g), torch.randn(2, 5, p.nu, dtype=F64, generator=g)
+    eager = batching.map_stage(p.dynamics, X, U, params)
+    with OperatorCounter() as eager_calls:
+        assert torch.equal(batching.recorded_map_stage(p.dynamics, X, U, params, False), eager)
+    for _ in range(TRACE_AT):
+        batching.recorded_map_stage(p.dynamics, X, U, params, True)
+    with OperatorCounter() as calls:
+        assert torch.equal(batching.recorded_map_stage(p.dynamics, X, U, params, True), eager)
+    assert 3 * calls.total < 2 * eager_calls.total, (calls.total, eager_calls.total)  # 52 against 95

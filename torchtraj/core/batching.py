@@ -109,6 +109,13 @@ def map_stage(fn: Callable, X: Tensor, U: Tensor, params: Params) -> Tensor:
     return _map(fn, (X, U), params)
 
 
+def recorded_map_stage(fn: Callable, X: Tensor, U: Tensor, params: Params, record: Optional[bool]) -> Tensor:
+    """:func:`map_stage`, replayed from its operator graph as ``record`` says
+    (:func:`~torchtraj.core.recorded.trace_at`: ``False`` never, ``True`` from a signature's eighth call, ``None`` once
+    its calls are worth the trace): the same numbers to the last bit in fewer calls."""
+    return _RECORDED_MAP_STAGE.option(record)(fn, X, U, params)
+
+
 def stage_mapper(fn: Callable, params: Params, record: Optional[bool] = False) -> Callable:
     """``(X, U) ↦ map_stage(fn, X, U, params)`` for repeated calls with the same ``params`` (the steps of a
     rollout): the parameters are split into shared and batched ones once (a view of each shared one), not at every

@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 
 from ...core.batch import Batch
-from ...core.batching import map_stage, rollout
+from ...core.batching import recorded_map_stage, rollout
 from ...core.constraints import Constraints, multiplier_blocks
 from ...core.masks import where_rows
 from ...core.problem import Problem
@@ -115,7 +115,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     al_iterations = torch.zeros_like(iterations)
     last_violation = constraints.max_violation_of(point.h, point.g, point.hN, point.gN)
-    violation = torch.maximum(last_violation, _max_defect(X, U, problem, params, segments))
+    violation = torch.maximum(last_violation, _max_defect(X, U, problem, params, segments, opts.record))
     tol = opts.tolerances(x0.dtype)
     rows = []
     stationarity = torch.zeros_like(mu_V)  # the last running iterate's: a stopped instance's history repeats it
@@ -167,7 +167,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         mu_V = torch.where(active, torch.where(crls, t.mu_V, plain), mu_V)
         point = objective.point(X, U, params)  # the iterate's objective and rows, read by everything below
         rows_violation = constraints.max_violation_of(point.h, point.g, point.hN, point.gN)
-        violation = torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments))
+        violation = torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments, opts.record))
         moved = t.took | t.stationary
         # the exit tests of an RLB instance, before its parameters move (its multipliers are those of this ψ): the
         # stationarity residual at the start point (above), or no step left, or the paper's ε_v
@@ -226,12 +226,13 @@ def _finite(new, old, active):
     return torch.where(keep, new, old)
 
 
-def _max_defect(X, U, problem, params, segments) -> Tensor:
-    """Largest defect ``|d_k|_∞`` ``(B,)`` at the nodes."""
+def _max_defect(X, U, problem, params, segments, record) -> Tensor:
+    """Largest defect ``|d_k|_∞`` ``(B,)`` at the nodes (the dynamics replayed from their record as ``record``,
+    ``HMILQROptions.record``, says)."""
     k = segments.starts[1:] - 1
     if k.numel() == 0:
         return X.new_zeros(X.shape[0])
-    f = map_stage(problem.dynamics, X[:, k], U[:, k], params)
+    f = recorded_map_stage(problem.dynamics, X[:, k], U[:, k], params, record)
     return (f - X[:, k + 1]).abs().flatten(1).amax(-1)
 
 
@@ -301,7 +302,7 @@ def _solution(problem, objective, constraints, segments, X, U, params, point, st
     if constraints.meN:
         eqN = torch.where(s.rlb.reshape(-1, 1), step.nuN, s.lamEN + s.mu.reshape(-1, 1) * point.hN)
     violation = torch.maximum(constraints.max_violation_of(point.h, point.g, point.hN, point.gN),
-                              _max_defect(X, U, problem, params, segments))
+                              _max_defect(X, U, problem, params, segments, objective.record))
     return Solution(
         X=X, U=U, K=factor.K, cost=point.cost, max_violation=violation, status=status,
         iterations=iterations, history=History.from_rows(rows),
