@@ -102,3 +102,26 @@ def test_selects_of_one_tensor_are_one_unbind():
         assert torch.equal(got, _components(row))
         assert calls.by_name["aten.unbind.int"] == 1 and "aten.select.int" not in calls.by_name, calls.by_name
         assert calls.total == 5, calls.by_name  # the unbind, the sine, the product, the difference, the stack
+
+
+def _bits(t):
+    return t.view(torch.int64)  # signed zeros and NaNs told apart
+
+
+def _halves(a, b):
+    """The gradient of a two-component vector read as ``x[:, 0]`` and ``x[:, 1]``: two scattered halves, summed."""
+    S = [a.shape[0], 2]
+    return torch.ops.aten.select_backward(a, S, 1, 1) + torch.ops.aten.select_backward(b, S, 1, 0)
+
+
+def test_exact_rewrites_keep_every_bit_with_fewer_calls():
+    """``x + (−y)`` replays as one difference, two scattered halves as a stack and ``+ 0``: the eager bits, negative
+    zeros (which the sum with a scattered zero makes positive) and infinities included."""
+    a = torch.tensor([-0.0, 1.5, float("inf"), 0.0], dtype=F64)
+    b = torch.tensor([2.0, -0.0, -3.0, -0.0], dtype=F64)
+    for fn, calls in ((lambda x, y: x + (-y), 1), (lambda x, y: (-y) + x * 2.0, 2), (_halves, 2)):
+        f = _recorded(fn, a, b)
+        with OperatorCounter() as counted:
+            got = f(a, b)
+        assert torch.equal(_bits(got), _bits(fn(a, b))), (got, fn(a, b))
+        assert counted.total == calls, counted.by_name

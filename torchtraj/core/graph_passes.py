@@ -1,7 +1,8 @@
 r"""The simplification of a recorded operator graph (:mod:`torchtraj.core.recorded`): dead code, repeated
-operators, view chains and identity views removed, views of the same elements taken once, what reads no input
-computed once (constants), views of the inputs made relative to their offsets, and the operators called through
-the library's public functions. Every pass keeps the graph's results to the last bit.
+operators, view chains and identity views removed, exact algebraic rewrites (:mod:`~torchtraj.core.graph_rewrites`),
+views of the same elements taken once, what reads no input computed once (constants), views of the inputs made
+relative to their offsets, and the operators called through the library's public functions. Every pass keeps the
+graph's results to the last bit.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from typing import Optional
 import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
+
+from .graph_rewrites import rewrite
 
 _VIEWS = {
     torch.ops.aten.view.default, torch.ops.aten._unsafe_view.default, torch.ops.aten.expand.default,
@@ -40,6 +43,7 @@ def simplify(graph: torch.fx.GraphModule) -> torch.fx.GraphModule:
     mutating = {n.target.overloadpacket for n in graph.graph.nodes
                 if n.op == "call_function" and hasattr(n.target, "_schema") and n.target._schema.is_mutable}
     graph = CSEPass(banned_ops=mutating)(graph).graph_module
+    rewrite(graph.graph)
     _collapse_views(graph.graph)
     _drop_identity_views(graph.graph)
     _merge_equal_views(graph.graph)
