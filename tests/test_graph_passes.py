@@ -115,11 +115,14 @@ def _halves(a, b):
 
 
 def test_exact_rewrites_keep_every_bit_with_fewer_calls():
-    """``x + (−y)`` replays as one difference, two scattered halves as a stack and ``+ 0``: the eager bits, negative
-    zeros (which the sum with a scattered zero makes positive) and infinities included."""
+    """``x + (−y)`` replays as one difference, two scattered halves as a stack and ``+ 0``, a split into one piece as
+    the tensor split: the eager bits, negative zeros (which the sum with a scattered zero makes positive) and
+    infinities included."""
     a = torch.tensor([-0.0, 1.5, float("inf"), 0.0], dtype=F64)
     b = torch.tensor([2.0, -0.0, -3.0, -0.0], dtype=F64)
-    for fn, calls in ((lambda x, y: x + (-y), 1), (lambda x, y: (-y) + x * 2.0, 2), (_halves, 2)):
+    cases = ((lambda x, y: x + (-y), 1), (lambda x, y: (-y) + x * 2.0, 2), (_halves, 2),
+             (lambda x, y: torch.split(x, [4])[0] * y, 1))
+    for fn, calls in cases:
         f = _recorded(fn, a, b)
         with OperatorCounter() as counted:
             got = f(a, b)

@@ -10,10 +10,15 @@ that reverse-mode differentiation leaves in a graph, each replaced by fewer oper
   zero becomes positive; the added ``+ 0`` does the same. Two calls instead of three, and at a large batch one
   tensor written instead of two zero-filled ones and their sum.
 
+* **A split into one piece** (``split_with_sizes(t, [n], d)`` with ``n`` the size of ``t`` along ``d``, which
+  ``torch.func`` makes of a single block) returns ``t``'s own elements: its piece is ``t``.
+
 A rewrite applies only where the operator it removes has no other user, so that no value is computed twice.
 """
 
 from __future__ import annotations
+
+import operator
 
 import torch
 
@@ -23,10 +28,28 @@ aten = torch.ops.aten
 def rewrite(graph: torch.fx.Graph) -> None:
     """Apply the module's rewrites to ``graph`` (functional, its nodes' ``meta["val"]`` from the trace)."""
     for node in list(graph.nodes):
-        if node.op != "call_function" or node.target != aten.add.Tensor or node.kwargs or len(node.args) != 2:
+        if node.op != "call_function":
             continue
-        if not _halves(graph, node):
+        if node.target == aten.split_with_sizes.default:
+            _whole_split(graph, node)
+        elif node.target == aten.add.Tensor and not node.kwargs and len(node.args) == 2 \
+                and not _halves(graph, node):
             _difference(graph, node)
+
+
+def _whole_split(graph: torch.fx.Graph, node: torch.fx.Node) -> bool:
+    """The pieces of a split into one piece, read as the split tensor itself."""
+    t, sizes = node.args[0], node.args[1]
+    dim = node.args[2] if len(node.args) > 2 else node.kwargs.get("dim", 0)
+    val = t.meta.get("val") if isinstance(t, torch.fx.Node) else None
+    if not isinstance(val, torch.Tensor) or len(sizes) != 1 or sizes[0] != val.shape[dim] \
+            or not all(user.target is operator.getitem and user.args[1] == 0 for user in node.users):
+        return False
+    for user in list(node.users):
+        user.replace_all_uses_with(t)
+        graph.erase_node(user)
+    graph.erase_node(node)
+    return True
 
 
 def _sole(value, target) -> bool:
