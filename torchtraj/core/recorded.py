@@ -16,6 +16,9 @@ tensors, functionalised (no in-place operators left), and simplifies the graph:
   a rollout, views of one buffer) share a record; views of one tensor that land on the same elements are one;
 * constants: what reads no input of the graph and no tensor it holds by reference (``vmap``'s basis vectors, the
   identities and zeros of the derivatives, and what is computed from them alone) is computed once, at the trace.
+* exact algebraic rewrites (:mod:`~torchtraj.core.graph_rewrites`): ``x + (−y)`` as ``x − y``, a gradient's two
+  scattered halves as one stack, a split into one piece as the tensor split; and the components read of one tensor
+  (``x[0]``, ``x[1]``) as views of one ``unbind``.
 
 The passes are those of :mod:`torchtraj.core.graph_passes`.
 
