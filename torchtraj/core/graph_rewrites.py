@@ -9,7 +9,6 @@ that reverse-mode differentiation leaves in a graph, each replaced by fewer oper
   element of the sum is one gradient plus a positive zero, which is the gradient itself except that a negative
   zero becomes positive; the added ``+ 0`` does the same. Two calls instead of three, and at a large batch one
   tensor written instead of two zero-filled ones and their sum.
-
 * **A split into one piece** (``split_with_sizes(t, [n], d)`` with ``n`` the size of ``t`` along ``d``, which
   ``torch.func`` makes of a single block) returns ``t``'s own elements: its piece is ``t``.
 
@@ -76,6 +75,8 @@ def _difference(graph: torch.fx.Graph, node: torch.fx.Node) -> bool:
     elif _sole(a, aten.neg.default):
         x, negated = b, a
     else:
+        return False
+    if not isinstance(x, torch.fx.Node):  # a number: the difference's first operand must be a tensor
         return False
     _replace(graph, node, aten.sub.Tensor, (x, negated.args[0]))
     graph.erase_node(negated)
