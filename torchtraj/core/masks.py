@@ -11,6 +11,22 @@ def where_rows(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
     return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
 
 
+class RowPicker:
+    """:func:`where_rows` of one ``mask (B,)`` for many pairs of tensors (the fields of a dataclass): the mask is
+    shaped once for each number of dimensions met (a reshape is a call of its own), and used as it is for ``(B,)``
+    tensors."""
+
+    def __init__(self, mask: Tensor):
+        self.mask = mask
+        self.shaped = {1: mask.reshape(-1)} if mask.dim() != 1 else {1: mask}
+
+    def __call__(self, a: Tensor, b: Tensor) -> Tensor:
+        shaped = self.shaped.get(a.dim())
+        if shaped is None:
+            shaped = self.shaped[a.dim()] = self.mask.reshape(-1, *([1] * (a.dim() - 1)))
+        return torch.where(shaped, a, b)
+
+
 def first_true(mask: Tensor) -> Tensor:
     """Index of the first true entry of each row of ``mask (B, l)`` (``l − 1`` where none is): the count of
     leading false entries. Not ``argmax``: compiled for float32 batches shorter than a vector register, inductor

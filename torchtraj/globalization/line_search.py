@@ -23,7 +23,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from ..core.masks import first_true, where_rows
+from ..core.masks import RowPicker, first_true, where_rows
 
 
 @dataclass
@@ -68,7 +68,8 @@ def backtrack(steps: Tensor, per_round: int, evaluate: Callable[..., tuple], pen
         accept, candidates = evaluate(alphas)
         idx = first_true(accept)  # the first (largest) accepted step of the round
         new = accept.any(1) & ~found
-        values = tuple(where_rows(new, c[rows, idx], v) for c, v in zip(candidates, values))
+        taken = RowPicker(new)
+        values = tuple(taken(c[rows, idx], v) for c, v in zip(candidates, values))
         alpha = torch.where(new, alphas[idx] if shared else alphas[rows, idx], alpha)
         found = found | new
     return Accepted(found, alpha, values)

@@ -40,7 +40,7 @@ from torch import Tensor
 
 from ..core.batching import closed_loop_rollout, param_rows
 from ..core.compiled import DYNAMIC_FROM, kernel
-from ..core.masks import where_rows
+from ..core.masks import RowPicker
 from ..core.problem import Problem
 from ..core.status import Status
 from ..globalization.line_search import Accepted, backtrack
@@ -304,7 +304,8 @@ def _iteration(problem, objective, params, x0, X, U, J, rho, drho, active, opts:
     take = active & success & ~exact
     dJ = J - Jn
     grad = _scaled_step(k, U)
-    X, U, J = where_rows(take, Xn, X), where_rows(take, Un, U), torch.where(take, Jn, J)
+    taking = RowPicker(take)
+    X, U, J = taking(Xn, X), taking(Un, U), taking(Jn, J)
     rho_new, drho_new = rho_schedule(rho, drho, success | stationary, opts.regularization_increase,
                                      opts.regularization_min)
     rho, drho = torch.where(active, rho_new, rho), torch.where(active, drho_new, drho)

@@ -47,7 +47,7 @@ from torch import Tensor
 from ...core.batch import Batch
 from ...core.batching import recorded_map_stage, rollout
 from ...core.constraints import Constraints, multiplier_blocks
-from ...core.masks import where_rows
+from ...core.masks import RowPicker
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
@@ -159,7 +159,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         if bool(kkt.any()):  # the step's point must pass the test as well, or the start point is returned
             back = kkt & ~(_stepped_stationarity(objective, X, U, params, segments, opts.terminal_rows)
                           <= tol.stationarity)
-            X, U, J, D = (where_rows(back, before, after) for before, after in zip(start, (X, U, J, D)))
+            undo = RowPicker(back)
+            X, U, J, D = (undo(before, after) for before, after in zip(start, (X, U, J, D)))
         iterations = iterations + active.long()
         # regularisation: CRLS keeps what it reached; plain LS follows its schedule
         plain = torch.where(t.took | t.stationary, (mu_V / opts.regularization_increase).clamp_min(

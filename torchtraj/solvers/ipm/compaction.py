@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import rows_of
+from ...core.masks import RowPicker
 from ...core.solution import History
 from ...riccati.range_space import TerminalGains, select_gains
 from .iterate import Iterate, Model
@@ -26,7 +27,11 @@ def pick(mask: Tensor, a, b):
     """The batch-first dataclass ``a`` where ``mask (B,)``, else ``b`` (field by field; a field that is no tensor,
     as a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factor, is kept where ``a`` and ``b`` share it, else
     ``None``)."""
+    rows = RowPicker(mask)
+
     def one(x, y):
+        if isinstance(x, Tensor) and isinstance(y, Tensor):
+            return rows(x, y)
         return select_gains(mask, x, y) if isinstance(x, (Tensor, TerminalGains)) else (x if x is y else None)
 
     return type(a)(**{f.name: one(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)})

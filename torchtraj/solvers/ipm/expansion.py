@@ -48,7 +48,7 @@ from ...core.derivatives import (
     terminal_hessian,
     terminal_jacobian,
 )
-from ...core.masks import where_rows
+from ...core.masks import RowPicker
 from ...core.one_pass import problem_kkt_expansion
 from ...core.problem import Problem
 from ...kkt.merit import violation_of
@@ -231,8 +231,8 @@ VALUE_FIELDS = ("J", "Lz", "LNx", "f", "g", "h", "gN", "hN", "theta", "violation
 
 def with_values(mask: Tensor, new: Model, model: Model) -> Model:
     """``model`` with the point-dependent fields (:data:`VALUE_FIELDS`) of ``new`` where ``mask (B,)``."""
-    return dataclasses.replace(model, **{name: where_rows(mask, getattr(new, name), getattr(model, name))
-                                         for name in VALUE_FIELDS})
+    rows = RowPicker(mask)
+    return dataclasses.replace(model, **{name: rows(getattr(new, name), getattr(model, name)) for name in VALUE_FIELDS})
 
 
 def complementarity_error(cons: Constraints, it: Iterate, mu: Tensor, opts: IPOptions) -> Tensor:
