@@ -8,7 +8,12 @@ from torch import Tensor
 
 def where_rows(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
     """``a`` for the instances in ``mask (B,)``, ``b`` elsewhere (``a``, ``b``: ``(B, ...)``)."""
-    return torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+    return torch.where(_shaped(mask, a.dim()), a, b)
+
+
+def _shaped(mask: Tensor, dims: int) -> Tensor:
+    """``mask (B,)`` shaped to broadcast against ``(B, ...)`` tensors of ``dims`` dimensions."""
+    return mask.reshape(-1, *([1] * (dims - 1)))
 
 
 class RowPicker:
@@ -18,12 +23,12 @@ class RowPicker:
 
     def __init__(self, mask: Tensor):
         self.mask = mask
-        self.shaped = {1: mask.reshape(-1)} if mask.dim() != 1 else {1: mask}
+        self.shaped = {1: mask} if mask.dim() == 1 else {}
 
     def __call__(self, a: Tensor, b: Tensor) -> Tensor:
         shaped = self.shaped.get(a.dim())
         if shaped is None:
-            shaped = self.shaped[a.dim()] = self.mask.reshape(-1, *([1] * (a.dim() - 1)))
+            shaped = self.shaped[a.dim()] = _shaped(self.mask, a.dim())
         return torch.where(shaped, a, b)
 
 
