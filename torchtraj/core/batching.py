@@ -9,6 +9,7 @@ number of extra dimensions E (time steps, line-search candidates). :func:`map_st
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 from typing import Callable, Mapping, Optional, Sequence
@@ -16,6 +17,7 @@ from typing import Callable, Mapping, Optional, Sequence
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch._C._functorch import is_functorch_wrapped_tensor
 from torch.func import vmap
 
 from .recorded import Recorded, trace_at
@@ -69,11 +71,48 @@ def rows_of(value, index: Tensor, shared: tuple = (), dropped: tuple = ()):
 
 def _split_params(params: Params) -> tuple[dict, dict, bool]:
     """``(p, p_dims, all_shared)``: a parameter expanded from one instance (:func:`shared_param`) is shared and
-    passed as that instance's value with vmap dimension ``None``; the others keep their batch dimension 0."""
+    passed as that instance's value with vmap dimension ``None``; the others keep their batch dimension 0.
+
+    A solver maps its functions over the same parameters many times an iteration, so the split of plain tensors
+    (no autograd, no ``torch.func`` transform, not traced) is kept for the :data:`_SPLITS_KEPT` most recent
+    parameter sets, keyed by each tensor's identity and layout; the tensors are kept with it, so that an identity is
+    never reused. A shared parameter's value is a view of it: a change in place is seen, a tensor replaced is not
+    the same key."""
+    key = _split_key(params)
+    if key is not None:
+        kept = _SPLITS.get(key)
+        if kept is not None:
+            _SPLITS.move_to_end(key)
+            return kept[1]
     shared = {k for k, v in params.items() if shared_param(v)}
     p = {k: (v[0] if k in shared else v) for k, v in params.items()}
     p_dims = {k: (None if k in shared else 0) for k in params}
-    return p, p_dims, len(shared) == len(params)
+    split = p, p_dims, len(shared) == len(params)
+    if key is not None:
+        _SPLITS[key] = (tuple(params.values()), split)
+        if len(_SPLITS) > _SPLITS_KEPT:
+            _SPLITS.popitem(last=False)
+    return split
+
+
+#: Parameter sets whose split :func:`_split_params` keeps.
+_SPLITS_KEPT = 16
+_SPLITS: collections.OrderedDict = collections.OrderedDict()
+_TRACING = (torch._C._TorchDispatchModeKey.FAKE, torch._C._TorchDispatchModeKey.PROXY,
+            torch._C._TorchDispatchModeKey.FUNCTIONAL)
+
+
+def _split_key(params: Params) -> Optional[tuple]:
+    """The key of ``params``' split, ``None`` where it must be made afresh: a tensor that requires grad, is wrapped
+    by a ``torch.func`` transform or is of a subclass (a fake one), or a trace (``torch.compile``, a record's)."""
+    if torch.compiler.is_compiling() or any(torch._C._get_dispatch_mode(mode) is not None for mode in _TRACING):
+        return None
+    key = []
+    for name, v in params.items():
+        if type(v) is not Tensor or v.requires_grad or is_functorch_wrapped_tensor(v):
+            return None
+        key.append((name, id(v), v.data_ptr(), v.shape, v.stride(), v.dtype, v.device))
+    return tuple(key)
 
 
 def _map(fn: Callable, tensors: tuple, params: Params, split: Optional[tuple] = None) -> Tensor:
