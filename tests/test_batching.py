@@ -58,3 +58,16 @@ def test_parameters_that_require_grad_or_are_transformed_are_split_afresh():
     out = torch.func.vmap(mapped)(outer)
     for i in range(2):
         assert torch.equal(out[i], map_stage(_dynamics, X, U, dict(params, b=outer[i])))
+
+
+def test_no_batch_sized_parameter_outlives_its_maps():
+    import gc
+    import weakref
+
+    params = _params(4)
+    batched = weakref.ref(params["b"])
+    map_stage(_dynamics, torch.ones(4, 3, 2, dtype=torch.float64), torch.ones(4, 3, 2, dtype=torch.float64), params)
+    assert batching._split_key(params) in batching._SPLITS  # kept
+    del params
+    gc.collect()
+    assert batched() is None  # the split keeps the shared values' views, not the batched tensors

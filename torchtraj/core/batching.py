@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import math
+import weakref
 from typing import Callable, Mapping, Optional, Sequence
 
 import torch
@@ -75,24 +76,26 @@ def _split_params(params: Params) -> tuple[dict, dict, bool]:
 
     A solver maps its functions over the same parameters many times an iteration, so the split of plain tensors
     (no autograd, no ``torch.func`` transform, not traced) is kept for the :data:`_SPLITS_KEPT` most recent
-    parameter sets, keyed by each tensor's identity and layout; the tensors are kept with it, so that an identity is
-    never reused. A shared parameter's value is a view of it: a change in place is seen, a tensor replaced is not
-    the same key."""
+    parameter sets, keyed by each tensor's identity and layout, and used again only while weak references show
+    the same tensors alive (an identity of a dead tensor may be reused). What is kept is the views of the shared
+    parameters' single values, so no batch-sized tensor outlives its solve; a change in place is seen through them,
+    a tensor replaced is another key."""
     key = _split_key(params)
     if key is not None:
         kept = _SPLITS.get(key)
-        if kept is not None:
+        if kept is not None and all(ref() is v for ref, v in zip(kept[0], params.values())):
             _SPLITS.move_to_end(key)
-            return kept[1]
+            values, p_dims, all_shared = kept[1]
+            return {k: values.get(k, v) for k, v in params.items()}, p_dims, all_shared
     shared = {k for k, v in params.items() if shared_param(v)}
     p = {k: (v[0] if k in shared else v) for k, v in params.items()}
     p_dims = {k: (None if k in shared else 0) for k in params}
-    split = p, p_dims, len(shared) == len(params)
     if key is not None:
-        _SPLITS[key] = (tuple(params.values()), split)
+        values = {k: p[k] for k in shared}
+        _SPLITS[key] = (tuple(weakref.ref(v) for v in params.values()), (values, p_dims, len(shared) == len(params)))
         if len(_SPLITS) > _SPLITS_KEPT:
             _SPLITS.popitem(last=False)
-    return split
+    return p, p_dims, len(shared) == len(params)
 
 
 #: Parameter sets whose split :func:`_split_params` keeps.
