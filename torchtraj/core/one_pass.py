@@ -38,8 +38,9 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vjp, vmap
 
+from .batching import _map as _map_all
 from .batching import concat, map_stage, map_state
-from .derivatives import _rows, _stacked_weights, _stage_points
+from .derivatives import _rows, _stage_points
 from .recorded import Recorded, trace_at
 
 
@@ -143,6 +144,33 @@ def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:
     return out if weights is None or not values.numel() else out + (weights * values).sum()
 
 
+def _weights(constraints, X: Tensor, U: Tensor, costate: Tensor, nu, mu, nuN, muN) -> tuple:
+    """The stage weights ``(λ_{k+1}, ν_k, μ_k)`` and terminal ones ``(ν_N, μ_N)`` of the Lagrangians: missing
+    multipliers of existing rows zero (their terms are then added as zeros, as the values were given), ``None`` for a
+    block without rows, whose term is never added; ``μ_k`` masked to the knots where its rows apply."""
+    B, N = U.shape[:2]
+    me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
+    nu = (X.new_zeros(B, N, me) if nu is None else nu) if me else None
+    mu = (X.new_zeros(B, N, mi) if mu is None else mu * constraints.ineq_knot_mask) if mi else None
+    nuN = (X.new_zeros(B, meN) if nuN is None else nuN) if meN else None
+    muN = (X.new_zeros(B, miN) if muN is None else muN) if miN else None
+    return (costate[:, 1:], nu, mu), (nuN, muN)
+
+
+def _mapped(fn: Callable, points: Tensor, weights: tuple, params):
+    """``fn(point, p, *weights)`` at every point of ``points (B, *E, n)``, the weights ``(B, *E, m)`` (``None``
+    where absent) mapped beside them: not joined to the points, so that no call joins or splits them."""
+    present = tuple(w is not None for w in weights)
+    given = tuple(w for w in weights if w is not None)
+
+    def point(z, *rest):
+        *mapped, p = rest
+        mapped = iter(mapped)
+        return fn(z, p, *(next(mapped) if there else None for there in present))
+
+    return _map_all(point, (points, *given), params)
+
+
 def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, costate: Optional[Tensor] = None,
                           nu=None, mu=None, nuN=None, muN=None, record: Optional[bool] = False) -> KKTExpansion:
     """The :class:`KKTExpansion` of ``problem`` at ``X (B, N+1, nx)``, ``U (B, N, nu)`` in one pass (module
@@ -159,17 +187,11 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
     if costate is None:
         if any(m is not None for m in (nu, mu, nuN, muN)):
             raise ValueError("multipliers without a costate: pass costate as well")
-        stage_in, terminal_in = Z, X[:, -1]
-    else:
-        stage_w, terminal_w = _stacked_weights(constraints, X, U, costate, nu, mu, nuN, muN)
-        stage_in, terminal_in = torch.cat([Z, stage_w], -1), torch.cat([X[:, -1], terminal_w], -1)
+        stage_w = terminal_w = ()
+    else:  # (λ_{k+1}, ν_k, μ_k) and (ν_N, μ_N), missing ones zero; a block without rows is left out (None)
+        stage_w, terminal_w = _weights(constraints, X, U, costate, nu, mu, nuN, muN)
 
-    def stage_lagrangian(zw, p):  # the point's Lagrangian as a function of z = (x, u), its weights fixed
-        lam = v = m = None
-        if costate is not None:
-            w = zw[nz:]
-            lam, v, m = w[:nx], w[nx:nx + me], w[nx + me:]
-
+    def stage_lagrangian(p, lam=None, v=None, m=None):  # the point's Lagrangian of z = (x, u), its weights fixed
         def lagrangian(z):
             x, u = z[:nx], z[nx:]
             cost, f = problem.stage_cost(x, u, p), problem.dynamics(x, u, p)
@@ -180,11 +202,7 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
 
         return lagrangian
 
-    def terminal_lagrangian(xw, p):
-        v = m = None
-        if costate is not None:
-            v, m = xw[nx:nx + meN], xw[nx + meN:]
-
+    def terminal_lagrangian(p, v=None, m=None):
         def lagrangian(x):
             cost = problem.terminal_cost(x, p)
             h = constraints.terminal_eq(x, p) if meN else x.new_zeros(0)
@@ -194,15 +212,25 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
         return lagrangian
 
     if torch.compiler.is_compiling():
-        l, rows, jac = _pullback_expansion(stage_lagrangian, stage_in, nz, params)
-        lN, rowsN, jacN = _pullback_expansion(terminal_lagrangian, terminal_in, nx, params)
+        def at(lagrangian, n, weights):  # the weights as the columns after the point's n
+            present = [w is not None for w in weights]
+
+            def of(vw, p):
+                columns = iter(vw[n:].split([w.shape[-1] for w in weights if w is not None]))
+                return lagrangian(p, *(next(columns) if there else None for there in present))
+            return of, torch.cat([w for w in weights if w is not None], -1) if any(present) else None
+
+        (stage_at, W), (terminal_at, WN) = at(stage_lagrangian, nz, stage_w), at(terminal_lagrangian, nx, terminal_w)
+        l, rows, jac = _pullback_expansion(stage_at, Z if W is None else torch.cat([Z, W], -1), nz, params)
+        lN, rowsN, jacN = _pullback_expansion(terminal_at, X[:, -1] if WN is None else torch.cat([X[:, -1], WN], -1),
+                                              nx, params)
     else:
-        by_hessian = costate is None or stage_in.shape[:-1].numel() <= HESSIAN_PASS_POINTS
-        l, rows, jac = map_state(
-            lambda zw, p: _gradient_and_rows_jacobian(stage_lagrangian(zw, p), by_hessian)(zw[:nz]), stage_in, params)
-        lN, rowsN, jacN = map_state(
-            lambda xw, p: _gradient_and_rows_jacobian(terminal_lagrangian(xw, p), by_hessian)(xw[:nx]), terminal_in,
-            params)
+        by_hessian = costate is None or Z.shape[:-1].numel() <= HESSIAN_PASS_POINTS
+        l, rows, jac = _mapped(lambda z, p, *w: _gradient_and_rows_jacobian(stage_lagrangian(p, *w), by_hessian)(z),
+                               Z, stage_w, params)
+        lN, rowsN, jacN = _mapped(
+            lambda x, p, *w: _gradient_and_rows_jacobian(terminal_lagrangian(p, *w), by_hessian)(x), X[:, -1],
+            terminal_w, params)
     Lz, f, h, g = rows.split([nz, nx, me, mi], -1)
     Lzz, fz, Hz, Gz = jac.split([nz, nx, me, mi], -2)
     LNx, hN, gN = rowsN.split([nx, meN, miN], -1)
