@@ -182,6 +182,12 @@ def stage_mapper(fn: Callable, params: Params, record: Optional[bool] = False) -
     return mapped
 
 
+def map_points(fn: Callable, tensors: Sequence[Tensor], params: Params) -> Tensor:
+    """``fn(*points, p)`` on ``tensors``, each ``(B, *E, n_i)`` with the same ``(B, *E)``, ``params`` batched over
+    B: :func:`map_stage` and :func:`map_state` for any number of per-point tensors."""
+    return _map(fn, tuple(tensors), params)
+
+
 def map_state(fn: Callable, X: Tensor, params: Params) -> Tensor:
     """``fn(x, p)`` on ``X (B, *E, nx)`` with ``params`` batched over B."""
     return _map(fn, (X,), params)

@@ -38,8 +38,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vjp, vmap
 
-from .batching import _map as _map_all
-from .batching import concat, map_stage, map_state
+from .batching import concat, map_points, map_stage, map_state
 from .derivatives import _rows, _stage_points
 from .recorded import Recorded, trace_at
 
@@ -112,22 +111,22 @@ def _gradient_and_rows_jacobian(fn: Callable, rows_through_hessian: bool) -> Cal
     return through_hessian if rows_through_hessian else own_pullbacks
 
 
-def _pullback_expansion(lagrangian_at: Callable, V: Tensor, n: int, params):
-    """What :func:`_gradient_and_rows_jacobian`'s ``own_pullbacks`` gives at every point of ``V (B, *E, n + w)``
-    (points ``v = V[..., :n]``, weights ``V[..., n:]``; ``lagrangian_at(vw, p)`` the point's Lagrangian of ``v``),
-    differentiating the mapped function instead: its points are independent, so the pullback of ``e_i`` on every
-    point's output is row ``i`` of every point's Jacobian, as in
+def _pullback_expansion(lagrangian_of: Callable, points: Tensor, weights: tuple, params):
+    """What :func:`_gradient_and_rows_jacobian`'s ``own_pullbacks`` gives at every point of ``points (B, *E, n)``
+    (``lagrangian_of(p, *w)`` the point's Lagrangian, its weights ``w`` mapped beside the points as in
+    :func:`_mapped`), differentiating the mapped function instead: its points are independent, so the pullback of
+    ``e_i`` on every point's output is row ``i`` of every point's Jacobian, as in
     :func:`~torchtraj.core.derivatives.stage_jacobian`'s compiled path. Traced by ``torch.compile``, ``jacrev``
     inside ``vmap`` would specialise the kernel to the batch size (:mod:`~torchtraj.core.compiled`); these pullbacks
     run outside it."""
-    W = V[..., n:]
+    n = points.shape[-1]
 
     def outputs(P: Tensor):  # (L, rows) and the cost at every point
-        def point(vw, p):
-            L, (value, rows) = lagrangian_at(vw, p)(vw[:n])
+        def point(z, p, *w):
+            L, (value, rows) = lagrangian_of(p, *w)(z)
             return concat([L.reshape(1), *rows]), value
 
-        return map_state(point, torch.cat([P, W], -1), params)
+        return _mapped(point, P, weights, params)
 
     def first(P: Tensor):
         out, pull, value = vjp(outputs, P, has_aux=True)
@@ -136,7 +135,7 @@ def _pullback_expansion(lagrangian_at: Callable, V: Tensor, n: int, params):
         rows_jac = torch.stack(rows_jac, -2) if rows_jac else P.new_zeros(*P.shape[:-1], 0, n)
         return grad, (grad, out[..., 1:], rows_jac, value)
 
-    _, pull, (grad, rows, rows_jac, value) = vjp(first, V[..., :n], has_aux=True)
+    _, pull, (grad, rows, rows_jac, value) = vjp(first, points, has_aux=True)
     return value, torch.cat([grad, rows], -1), torch.cat([_rows(pull, grad), rows_jac], -2)
 
 
@@ -168,7 +167,7 @@ def _mapped(fn: Callable, points: Tensor, weights: tuple, params):
         mapped = iter(mapped)
         return fn(z, p, *(next(mapped) if there else None for there in present))
 
-    return _map_all(point, (points, *given), params)
+    return map_points(point, (points, *given), params)
 
 
 def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, costate: Optional[Tensor] = None,
@@ -212,18 +211,8 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
         return lagrangian
 
     if torch.compiler.is_compiling():
-        def at(lagrangian, n, weights):  # the weights as the columns after the point's n
-            present = [w is not None for w in weights]
-
-            def of(vw, p):
-                columns = iter(vw[n:].split([w.shape[-1] for w in weights if w is not None]))
-                return lagrangian(p, *(next(columns) if there else None for there in present))
-            return of, torch.cat([w for w in weights if w is not None], -1) if any(present) else None
-
-        (stage_at, W), (terminal_at, WN) = at(stage_lagrangian, nz, stage_w), at(terminal_lagrangian, nx, terminal_w)
-        l, rows, jac = _pullback_expansion(stage_at, Z if W is None else torch.cat([Z, W], -1), nz, params)
-        lN, rowsN, jacN = _pullback_expansion(terminal_at, X[:, -1] if WN is None else torch.cat([X[:, -1], WN], -1),
-                                              nx, params)
+        l, rows, jac = _pullback_expansion(stage_lagrangian, Z, stage_w, params)
+        lN, rowsN, jacN = _pullback_expansion(terminal_lagrangian, X[:, -1], terminal_w, params)
     else:
         by_hessian = costate is None or Z.shape[:-1].numel() <= HESSIAN_PASS_POINTS
         l, rows, jac = _mapped(lambda z, p, *w: _gradient_and_rows_jacobian(stage_lagrangian(p, *w), by_hessian)(z),
