@@ -276,14 +276,25 @@ def _problem_lagrangians(problem, constraints, nx: int):
     return stage, terminal
 
 
+def weight_blocks(constraints, X: Tensor, U: Tensor, costate: Tensor, nu, mu, nuN, muN) -> tuple:
+    """The stage weights ``(λ_{k+1}, ν_k, μ_k)`` and terminal ones ``(ν_N, μ_N)`` of the Lagrangians: missing
+    multipliers of existing rows zero (their terms are then added as zeros, as the values were given), ``None`` for a
+    block without rows, whose term is never added; ``μ_k`` masked to the knots where its rows apply."""
+    B, N = U.shape[:2]
+    me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
+    nu = (X.new_zeros(B, N, me) if nu is None else nu) if me else None
+    mu = (X.new_zeros(B, N, mi) if mu is None else mu * constraints.ineq_knot_mask) if mi else None
+    nuN = (X.new_zeros(B, meN) if nuN is None else nuN) if meN else None
+    muN = (X.new_zeros(B, miN) if muN is None else muN) if miN else None
+    return (costate[:, 1:], nu, mu), (nuN, muN)
+
+
 def _stacked_weights(constraints, X, U, costate, nu, mu, nuN, muN):
-    B, N = X.shape[0], U.shape[1]
-    zeros = X.new_zeros
-    nu = zeros(B, N, constraints.me) if nu is None else nu
-    mu = zeros(B, N, constraints.mi) if mu is None else mu * constraints.ineq_knot_mask
-    nuN = zeros(B, constraints.meN) if nuN is None else nuN
-    muN = zeros(B, constraints.miN) if muN is None else muN
-    return torch.cat([costate[:, 1:], nu, mu], -1), torch.cat([nuN, muN], -1)
+    """:func:`weight_blocks` side by side: ``(B, N, nx + me + mi)`` and ``(B, meN + miN)``."""
+    stage, terminal = weight_blocks(constraints, X, U, costate, nu, mu, nuN, muN)
+    terminal = [w for w in terminal if w is not None]
+    return (torch.cat([w for w in stage if w is not None], -1),
+            torch.cat(terminal, -1) if terminal else X.new_zeros(X.shape[0], 0))
 
 
 def problem_lagrangian_hessian(problem, constraints, X, U, params, costate, nu=None, mu=None, nuN=None, muN=None):

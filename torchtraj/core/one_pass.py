@@ -39,7 +39,7 @@ from torch import Tensor
 from torch.func import jacrev, vjp, vmap
 
 from .batching import concat, map_points, map_stage, map_state
-from .derivatives import _rows, _stage_points
+from .derivatives import _rows, _stage_points, weight_blocks
 from .recorded import Recorded, trace_at
 
 
@@ -143,19 +143,6 @@ def _weighted(out: Tensor, weights: Optional[Tensor], values: Tensor) -> Tensor:
     return out if weights is None or not values.numel() else out + (weights * values).sum()
 
 
-def _weights(constraints, X: Tensor, U: Tensor, costate: Tensor, nu, mu, nuN, muN) -> tuple:
-    """The stage weights ``(λ_{k+1}, ν_k, μ_k)`` and terminal ones ``(ν_N, μ_N)`` of the Lagrangians: missing
-    multipliers of existing rows zero (their terms are then added as zeros, as the values were given), ``None`` for a
-    block without rows, whose term is never added; ``μ_k`` masked to the knots where its rows apply."""
-    B, N = U.shape[:2]
-    me, mi, meN, miN = constraints.me, constraints.mi, constraints.meN, constraints.miN
-    nu = (X.new_zeros(B, N, me) if nu is None else nu) if me else None
-    mu = (X.new_zeros(B, N, mi) if mu is None else mu * constraints.ineq_knot_mask) if mi else None
-    nuN = (X.new_zeros(B, meN) if nuN is None else nuN) if meN else None
-    muN = (X.new_zeros(B, miN) if muN is None else muN) if miN else None
-    return (costate[:, 1:], nu, mu), (nuN, muN)
-
-
 def _mapped(fn: Callable, points: Tensor, weights: tuple, params):
     """``fn(point, p, *weights)`` at every point of ``points (B, *E, n)``, the weights ``(B, *E, m)`` (``None``
     where absent) mapped beside them: not joined to the points, so that no call joins or splits them."""
@@ -188,7 +175,7 @@ def problem_kkt_expansion(problem, constraints, X: Tensor, U: Tensor, params, co
             raise ValueError("multipliers without a costate: pass costate as well")
         stage_w = terminal_w = ()
     else:  # (λ_{k+1}, ν_k, μ_k) and (ν_N, μ_N), missing ones zero; a block without rows is left out (None)
-        stage_w, terminal_w = _weights(constraints, X, U, costate, nu, mu, nuN, muN)
+        stage_w, terminal_w = weight_blocks(constraints, X, U, costate, nu, mu, nuN, muN)
 
     def stage_lagrangian(p, lam=None, v=None, m=None):  # the point's Lagrangian of z = (x, u), its weights fixed
         def lagrangian(z):
