@@ -93,10 +93,12 @@ def make_options(method, **values) -> tuple:
 
 
 def compiled(method, options) -> bool:
-    """Whether ``options`` of ``method`` (a name or a solver; ``None`` options: its defaults) ask for compiled
-    kernels (:meth:`~torchtraj.solvers.base.Solver.kernel_options`)."""
+    """Whether ``options`` of ``method`` (a name or a solver; ``None`` options: its defaults) run compiled kernels:
+    they ask for them (:meth:`~torchtraj.solvers.base.Solver.kernel_options`) and the method has them
+    (:attr:`~torchtraj.solvers.base.Solver.compiles`)."""
     solver = solvers.get(method)
-    return options is not None and bool(getattr(solver.kernel_options(options), "compile", False))
+    return (solver.compiles and options is not None
+            and bool(getattr(solver.kernel_options(options), "compile", False)))
 
 
 def with_record(method, options):

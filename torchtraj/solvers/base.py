@@ -64,6 +64,10 @@ class Solver(abc.ABC):
     #: Whether its options' ``record`` (:meth:`kernel_options`) replays its expansion from recorded graphs
     #: (:mod:`torchtraj.core.recorded`).
     records: ClassVar[bool] = False
+    #: Whether its options' ``compile`` (:meth:`kernel_options`) runs its kernels compiled by ``torch.compile``
+    #: (:mod:`torchtraj.core.compiled`); a method without compiled kernels accepts the field (the control-step
+    #: interface sets it) and runs eager.
+    compiles: ClassVar[bool] = False
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r})"

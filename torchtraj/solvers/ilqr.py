@@ -36,6 +36,7 @@ class ILQR(Solver):
     handles_constraints = False
     takes_state_guess = False
     takes_duals = False
+    compiles = True
 
     def solve(self, problem: Problem, batch: Batch, options: ILQROptions) -> Solution:
         return solve_ilqr(problem, batch, options)

@@ -45,6 +45,7 @@ class ALTRO(Solver):
     options_class = ALTROOptions
     handles_constraints = True
     records = True
+    compiles = True
     takes_state_guess = True
     takes_duals = True
 

@@ -32,6 +32,7 @@ class IPM(Solver):
     options_class = IPOptions
     handles_constraints = True
     records = True
+    compiles = True
     takes_state_guess = True
     takes_duals = False
     starts_from_shifted_states = True
