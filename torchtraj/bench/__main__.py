@@ -23,7 +23,7 @@ from ..core.progress import Progress
 from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.base import Solver
-from . import ops, profile, table
+from . import compiled_ops, ops, profile, table
 from .runs import (
     Row,
     batch_x0,
@@ -110,7 +110,10 @@ def parser() -> argparse.ArgumentParser:
                    help="report eager torch operator calls per solve and per iteration instead (torchtraj.bench.ops: "
                         "B = 1, each method's default options, so the tolerance and --iterations flags do not apply; "
                         "then a horizon sweep on the first problem); --method then defaults to every registered "
-                        "method and --problems to pendulum cartpole car_3obs")
+                        "method and --problems to pendulum cartpole car_3obs; with --compile, the library calls and "
+                        "compiled-kernel calls per iteration of solves with compiled kernels instead, next to the "
+                        "eager counts, the compile time and both solve times (torchtraj.bench.compiled_ops; the "
+                        "first problem only, pendulum by default)")
     p.add_argument("--defaults", action="store_true",
                    help="run every method that handles the problems' constraints with its default options and no "
                         "guess on the problem set instead, against IPOPT (torchtraj.bench.defaults); --method then "
@@ -142,8 +145,8 @@ def _check(p: argparse.ArgumentParser, args) -> None:
                         or not (args.ops or solvers.get(args.method).records)):
         p.error("--record goes with --ops, or with the timing rows of a method with a record option (ipm, altro, "
                 "al-ilqr, eilqr, hm-ilqr), without --grad and --compile")
-    if args.ops and (args.grad or args.compile or args.profile):
-        p.error("--ops goes without --grad, --compile and --profile")
+    if args.ops and (args.grad or args.profile or (args.compile and args.record)):
+        p.error("--ops goes without --grad and --profile, and with --compile or --record, not both")
     if args.ops_mpc_steps < 0:
         p.error(f"--ops-mpc-steps must be >= 0, got {args.ops_mpc_steps}")
     if any(n < 1 for n in args.ops_horizons) or args.ops_iterations < 0:
@@ -236,13 +239,18 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if args.ops:
         p.set_defaults(method=None)  # tells an explicit --method (even the timing rows' default, ilqr) from none
         chosen = p.parse_args(argv).method
-        report = ops.run([chosen] if chosen else solvers.names(), args.problems or list(ops.DEFAULT_PROBLEMS),
-                         args.ops_horizons, args.ops_iterations, say, dtype, device, args.ops_mpc_steps,
-                         record=args.record)
+        methods = [chosen] if chosen else solvers.names()
+        if args.compile:
+            counter = compiled_ops
+            report = compiled_ops.run(methods, (args.problems or ["pendulum"])[0], say, dtype, device)
+        else:
+            counter = ops
+            report = ops.run(methods, args.problems or list(ops.DEFAULT_PROBLEMS), args.ops_horizons,
+                             args.ops_iterations, say, dtype, device, args.ops_mpc_steps, record=args.record)
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(report, f, indent=1)
-        return 1 if ops.failed(report) else 0
+        return 1 if counter.failed(report) else 0
     if args.defaults:
         from . import defaults
         p.set_defaults(method=None)

@@ -21,8 +21,9 @@ every call that reaches the dispatcher's Python mode key counts once::
   ``vmap`` counts once per batched call, however large the batch, and ``jacrev`` counts the calls of its forward
   and of its vector-Jacobian products (all of them batched under an enclosing ``vmap``);
 - not counted: Python work between the calls, and anything that runs inside a kernel. Solves are counted eager:
-  a kernel compiled by ``torch.compile`` (``compile=True`` options, off by default) would be traced under the
-  mode instead.
+  a kernel compiled by ``torch.compile`` (``compile=True`` options, off by default) runs eager under the mode;
+  :mod:`~torchtraj.bench.compiled_ops` (``--ops --compile``) counts the solves with compiled kernels by the
+  profiler instead.
 
 The report
 ----------

@@ -1,0 +1,116 @@
+"""``python -m torchtraj.bench --ops --compile``: the profiler's count of library calls and compiled-function calls,
+and the report's rows (torchtraj.bench.compiled_ops)."""
+
+import io
+import json
+
+import pytest
+import torch
+
+import torchtraj as tt
+from torchtraj import problems, solvers
+from torchtraj.bench import compiled_ops
+from torchtraj.bench.__main__ import main
+from torchtraj.bench.compiled_ops import LibraryCalls
+from torchtraj.bench.ops import OperatorCounter
+from torchtraj.bench.runs import compiled, with_compile
+from torchtraj.core.recorded import forget
+
+
+def run(args):
+    out = io.StringIO()
+    code = main(args, out=out)
+    return code, out.getvalue()
+
+
+def test_library_calls_count_the_calls_made_outside_other_calls():
+    a, b = torch.ones(3, 3), torch.ones(3, 3)
+    with LibraryCalls() as library:
+        c = a + b
+        torch.mm(c, b)
+        torch.matmul(a, b)  # composite: one call here, its mm inside it
+        torch.matmul(torch.ones(2, 3, 3), b)  # ones, and matmul (its view, mm, _unsafe_view inside it)
+    a * b  # outside the block
+    assert (library.calls, library.kernels) == (5, 0)
+
+
+def test_library_calls_count_each_call_of_a_compiled_function():
+    def f(x):
+        return (x.sin() * 2).sum()
+
+    compiled = torch.compile(f, backend="eager", dynamic=False)  # Dynamo's capture alone: no C++ compiler needed
+    x = torch.randn(4)
+    try:
+        compiled(x)  # captured here, outside the count
+        with LibraryCalls() as library:
+            for _ in range(3):
+                compiled(x)
+    finally:
+        torch._dynamo.reset()
+    # the eager backend runs the captured operators as library calls: sin, mul and sum, three times
+    assert library.kernels == 3 and library.calls == 9
+
+
+def test_ops_compile_rows_count_the_solves_they_report(tmp_path, monkeypatch):
+    """The row's eager counts are those of the same solve counted here; with the compile option left off (so that
+    the default run compiles nothing) the 'compiled' solve is that eager solve again, and counts the same."""
+    monkeypatch.setattr(compiled_ops, "with_compile", lambda solver, options: options)
+    path = tmp_path / "compiled.json"
+    code, text = run(["--ops", "--compile", "--method", "al-ilqr", "--problems", "double_integrator", "cartpole",
+                      "--json", str(path)])
+    assert code == 0, text
+    report = json.loads(path.read_text())
+    assert report["problem"] == "double_integrator"  # the first problem only
+    (row,) = report["rows"]
+    assert (row["problem"], row["method"], row["error"]) == ("double_integrator", "al-ilqr", None)
+
+    problem = problems.get("double_integrator")
+    forget()
+    with OperatorCounter() as mode:
+        sol = tt.solve(problem, method="al-ilqr")
+    forget()
+    with LibraryCalls() as library:
+        tt.solve(problem, method="al-ilqr")
+    iterations = int(sol.iterations.max())
+    assert row["iterations"] == row["compiled_iterations"] == iterations
+    assert row["eager_mode_calls"] == pytest.approx(mode.total / iterations)
+    assert row["eager_calls"] == pytest.approx(library.calls / iterations)
+    assert row["compiled_calls"] == pytest.approx(row["eager_calls"]) and row["kernels"] == 0
+    assert row["eager_calls"] < row["eager_mode_calls"]  # composites count once here
+    assert row["compile_seconds"] > 0 and row["eager_seconds"] > 0 and row["compiled_seconds"] > 0
+    assert row["status"] == "converged"
+    (line,) = [line.split() for line in text.splitlines() if line.startswith("al-ilqr ")]
+    assert line == ["al-ilqr", str(iterations), f"{row['eager_mode_calls']:.0f}", f"{row['eager_calls']:.0f}",
+                    f"{row['compiled_calls']:.0f}", "0.0", f"{row['compile_seconds']:.1f}",
+                    f"{row['eager_seconds']:.3f}", f"{row['compiled_seconds']:.3f}", "converged"]
+
+
+def test_ops_compile_skips_what_a_method_cannot_solve_and_checks_its_flags():
+    code, text = run(["--ops", "--compile", "--method", "ilqr", "--problems", "double_integrator"])
+    assert code == 0 and "ilqr     skipped (" in text, text
+    for method in ("eilqr", "hm-ilqr"):  # their compile option runs eager: no compiled row to report
+        code, text = run(["--ops", "--compile", "--method", method, "--problems", "double_integrator"])
+        assert code == 0 and f"skipped ({compiled_ops.NO_KERNELS})" in text, text
+    assert [m for m in solvers.names() if solvers.get(m).compiles] == ["ilqr", "altro", "al-ilqr", "ipm"]
+    assert not compiled("eilqr", with_compile("eilqr", solvers.get("eilqr").default_options()))
+    with pytest.raises(SystemExit):
+        run(["--ops", "--compile", "--record"])
+
+
+@pytest.mark.slow  # Dynamo's capture of the IPM's kernels: half a minute
+def test_ops_compile_counts_the_kernels_of_a_compiled_solve(tmp_path, monkeypatch):
+    from torchtraj.core import compiled
+
+    original = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: original(fn, backend="eager", dynamic=False))
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    path = tmp_path / "compiled.json"
+    try:
+        code, text = run(["--ops", "--compile", "--method", "ipm", "--problems", "double_integrator",
+                          "--json", str(path)])
+    finally:
+        torch._dynamo.reset()
+    assert code == 0, text
+    (row,) = json.loads(path.read_text())["rows"]
+    assert row["error"] is None and row["status"] == "converged"
+    assert row["kernels"] >= 1  # the iterations run compiled functions

@@ -1,0 +1,191 @@
+r"""``python -m torchtraj.bench --ops --compile``: the library calls a solve still makes with compiled kernels.
+
+:class:`~torchtraj.bench.ops.OperatorCounter` cannot count such a solve: under a dispatch mode, Dynamo runs a
+compiled function's Python eagerly, so the count is that of the eager code (a compiled IPM solve of the pendulum
+counts about 3,800 calls an iteration under it, its kernels unused). This count reads the profiler instead
+(:class:`LibraryCalls`, a ``torch.profiler`` session on the CPU), which sees what runs and changes nothing:
+
+- ``calls``: the ATen operator calls made outside any other ATen call: the eager code's between the kernels, and
+  those a compiled kernel makes through the library (the operators inductor writes no loop for: ``linalg``'s
+  factorisations, ``pinv``, ``eigh``). A composite operator counts once here (``torch.matmul`` of two stacks of
+  matrices), where the dispatch-mode counter sees what it decomposes into (``view``, ``bmm``, ``_unsafe_view``),
+  so an eager solve counts fewer calls by this measure: each row gives both for the eager solve, side by side.
+- ``kernels``: the calls of compiled functions (Dynamo's ``Torch-Compiled Region`` events); each checks its guards,
+  then runs one inductor kernel of C++ loops.
+
+For each method with compiled kernels (every registered one, unless ``--method``; those without,
+:attr:`~torchtraj.solvers.base.Solver.compiles`, are named as skipped) on the pendulum (unless ``--problems``; the first
+problem only) at B = 1 from the problem's ``x0``, default options with ``compile=True``: an untimed solve that
+compiles the kernels (its seconds reported: inductor's cache makes a second process's much shorter), the counted
+solve, and one timed solve each way without the profiler, so that the compile time stands next to the gain.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
+
+import torch
+from torch.profiler import ProfilerActivity, profile
+
+from .. import problems as problem_set
+from .. import solvers
+from ..core.problem import Problem
+from ..core.recorded import forget
+from ..core.status import Status
+from ..solve import solve
+from .ops import OperatorCounter
+from .runs import skip_reason, state_guess, with_compile
+
+#: Where Dynamo's call of a compiled function shows in the profiler.
+KERNEL_EVENT = "Torch-Compiled Region"
+#: Why a method without compiled kernels (:attr:`~torchtraj.solvers.base.Solver.compiles`) has no row.
+NO_KERNELS = "no compiled kernels: its compile option runs eager"
+
+
+class LibraryCalls:
+    """Counts, inside its ``with`` block, the ATen calls made outside other ATen calls (``calls``) and the calls
+    of ``torch.compile``'d functions (``kernels``); module docstring."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+        self.kernels = 0
+        self._profile = profile(activities=[ProfilerActivity.CPU])
+
+    def __enter__(self) -> "LibraryCalls":
+        self._profile.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._profile.__exit__(*exc)
+        for event in self._profile.events():
+            if event.name.startswith(KERNEL_EVENT):
+                self.kernels += 1
+            elif event.name.startswith("aten::") and not _inside_aten(event):
+                self.calls += 1
+
+
+def _inside_aten(event) -> bool:
+    parent = event.cpu_parent
+    while parent is not None:
+        if parent.name.startswith("aten::"):
+            return True
+        parent = parent.cpu_parent
+    return False
+
+
+@dataclass
+class CompiledCount:
+    """One method's solve at B = 1, eager and with compiled kernels; calls are per iteration."""
+
+    problem: str
+    method: str
+    #: of the eager and the compiled solve (their arithmetic agrees to rounding, not to the bit)
+    iterations: Optional[int] = None
+    compiled_iterations: Optional[int] = None
+    #: of the compiled solve
+    status: Optional[str] = None
+    #: the eager solve: the dispatch-mode count (:class:`~torchtraj.bench.ops.OperatorCounter`) and this module's
+    eager_mode_calls: Optional[float] = None
+    eager_calls: Optional[float] = None
+    #: the compiled solve: ATen calls and compiled-function calls (module docstring)
+    compiled_calls: Optional[float] = None
+    kernels: Optional[float] = None
+    compile_seconds: Optional[float] = None
+    eager_seconds: Optional[float] = None
+    compiled_seconds: Optional[float] = None
+    error: Optional[str] = None
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def count_compiled(problem: Problem, method) -> CompiledCount:
+    """Count and time ``method``'s solve of ``problem`` (B = 1, its ``x0``) eager and compiled (module docstring).
+    Never raises: an exception is kept in ``error``."""
+    solver = solvers.get(method)
+    row = CompiledCount(problem.name, solver.name)
+    eager = solver.default_options()
+    compiled = with_compile(solver, eager)
+
+    def run(options):
+        return solve(problem, None, solver, X0=state_guess(solver, problem), options=options)
+
+    try:
+        forget()  # each solve counted cold, as those of torchtraj.bench.ops (the compiled kernels stay compiled)
+        with OperatorCounter() as mode:
+            sol = run(eager)
+        iterations = int(sol.iterations.max())
+        forget()
+        with LibraryCalls() as library:
+            run(eager)
+        start = time.perf_counter()
+        run(compiled)
+        row.compile_seconds = time.perf_counter() - start
+        forget()
+        with LibraryCalls() as kernels:
+            sol_c = run(compiled)
+        row.eager_seconds, row.compiled_seconds = _seconds(run, eager), _seconds(run, compiled)
+        row.iterations, row.compiled_iterations = iterations, int(sol_c.iterations.max())
+        row.status = ", ".join(Status.describe(sol_c.status))
+        row.eager_mode_calls, row.eager_calls = mode.total / iterations, library.calls / iterations
+        row.compiled_calls = kernels.calls / row.compiled_iterations
+        row.kernels = kernels.kernels / row.compiled_iterations
+    except Exception as exc:  # one failing method must not stop the report
+        row.error = f"{type(exc).__name__}: {exc}"
+    return row
+
+
+def _seconds(run: Callable, options) -> float:
+    """Wall seconds of one more solve, without the records and call counts of the solves before it (an eager solve
+    as a new process's: its expansions would otherwise reach the call that traces them), the compiled kernels warm."""
+    forget()
+    start = time.perf_counter()
+    run(options)
+    return time.perf_counter() - start
+
+
+COLUMNS = (("method", 7, False), ("iters", 7, True), ("eager: mode", 11, True), ("profiler", 8, True),
+           ("compiled: profiler", 18, True), ("kernels", 7, True), ("compile s", 9, True), ("eager s", 7, True),
+           ("compiled s", 10, True), ("status", 0, False))
+
+
+def _line(cells) -> str:
+    return "  ".join(c.rjust(w) if right else c.ljust(w)
+                     for c, (_, w, right) in zip(cells, COLUMNS)).rstrip()
+
+
+def format_row(row: CompiledCount) -> str:
+    if row.error:
+        return _line([row.method]) + "  ERROR " + row.error.splitlines()[0]
+    iterations = str(row.iterations) if row.iterations == row.compiled_iterations else \
+        f"{row.iterations}/{row.compiled_iterations}"
+    return _line([row.method, iterations, f"{row.eager_mode_calls:.0f}", f"{row.eager_calls:.0f}",
+                  f"{row.compiled_calls:.0f}", f"{row.kernels:.1f}", f"{row.compile_seconds:.1f}",
+                  f"{row.eager_seconds:.3f}", f"{row.compiled_seconds:.3f}", row.status])
+
+
+def run(methods: Sequence[str], name: str, say: Callable[..., None], dtype: torch.dtype = torch.float64,
+        device=None) -> dict:
+    """Count each of ``methods`` on problem ``name`` (skipping those that cannot solve it), print the table as its
+    rows come (``say``) and return ``{"problem", "rows"}`` (:meth:`CompiledCount.to_json` each)."""
+    say(f"torchtraj bench --ops --compile: {name} at B = 1, {str(dtype).replace('torch.', '')}, torch "
+        f"{torch.__version__}; calls and kernels per iteration (torchtraj.bench.compiled_ops)")
+    say(_line([title for title, _, _ in COLUMNS]))
+    rows = []
+    for m in methods:
+        problem = problem_set.get(name, dtype=dtype, device=device)
+        reason = skip_reason(m, problem) or (None if solvers.get(m).compiles else NO_KERNELS)
+        if reason:
+            say(f"{solvers.get(m).name:7s}  skipped ({reason})")
+            continue
+        row = count_compiled(problem, m)
+        say(format_row(row))
+        rows.append(row)
+    return {"problem": name, "rows": [r.to_json() for r in rows]}
+
+
+def failed(report: dict) -> bool:
+    return any(r["error"] for r in report["rows"])
