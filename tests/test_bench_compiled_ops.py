@@ -95,6 +95,8 @@ def test_ops_compile_skips_what_a_method_cannot_solve_and_checks_its_flags():
     assert not compiled("eilqr", with_compile("eilqr", solvers.get("eilqr").default_options()))
     with pytest.raises(SystemExit):
         run(["--ops", "--compile", "--record"])
+    with pytest.raises(SystemExit):  # a timing row would be the eager one, called compiled
+        run(["--compile", "--method", "eilqr", "--problems", "double_integrator"])
 
 
 @pytest.mark.slow  # Dynamo's capture of the IPM's kernels: half a minute

@@ -209,6 +209,20 @@ def test_mpc_checks_its_method_at_construction():
         mpc(prob.x0)
 
 
+def test_compile_on_a_method_without_compiled_kernels_warns_and_runs_eager():
+    prob = make(u_lower=-torch.ones(1, dtype=F64), u_upper=torch.ones(1, dtype=F64))
+    with pytest.warns(UserWarning, match="method 'eilqr' has no compiled kernels: compile=True runs it eager"):
+        compiled = tt.solve(prob, method="eilqr", options=tt.EILQROptions(compile=True, iterations=3))
+    eager = tt.solve(prob, method="eilqr", options=tt.EILQROptions(iterations=3))
+    assert torch.equal(compiled.U, eager.U) and torch.equal(compiled.status, eager.status)
+    with pytest.warns(UserWarning, match="MPC: method 'hm-ilqr' has no compiled kernels"):
+        mpc = tt.MPC(prob, "hm-ilqr", 2, compile=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # said once, at construction
+        mpc(prob.x0)
+        tt.solve(prob, method="ipm", options=tt.IPOptions(iterations=2))  # compile off: nothing to say
+
+
 def test_verbose_leaves_the_logger_as_it_found_it():
     logger = logging.getLogger("torchtraj")
     level, handlers = logger.level, list(logger.handlers)

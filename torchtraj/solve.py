@@ -87,6 +87,8 @@ def solve(
     opts = solver.options(options)
     batch = Batch.build(problem, x0, U0, X0, duals)
     _check_declarations(solver, problem, batch)
+    if eager_despite_compile(solver, opts):
+        warnings.warn(f"method {solver.name!r} has no compiled kernels: compile=True runs it eager", stacklevel=2)
     with _verbose_logging(getattr(opts, "verbose", False)):
         return _solve(solver, problem, batch, opts, gradients)
 
@@ -169,6 +171,12 @@ def _check_declarations(solver: Solver, problem: Problem, batch: Batch) -> None:
     if problem.has_constraints and not solver.handles_constraints:
         warnings.warn(f"method {solver.name!r} ignores the constraints of problem {problem.name!r}; "
                       "Solution.max_violation reports them", stacklevel=3)
+
+
+def eager_despite_compile(solver: Solver, opts) -> bool:
+    """Whether ``opts`` ask for compiled kernels (:meth:`Solver.kernel_options`) that the method does not have
+    (:attr:`Solver.compiles`): the field is accepted, for the control-step interface, and the method runs eager."""
+    return not solver.compiles and bool(getattr(solver.kernel_options(opts), "compile", False))
 
 
 def _declaring(flag: str) -> str:

@@ -145,6 +145,8 @@ def _check(p: argparse.ArgumentParser, args) -> None:
                         or not (args.ops or solvers.get(args.method).records)):
         p.error("--record goes with --ops, or with the timing rows of a method with a record option (ipm, altro, "
                 "al-ilqr, eilqr, hm-ilqr), without --grad and --compile")
+    if args.compile and not args.ops and args.method in solvers.names() and not solvers.get(args.method).compiles:
+        p.error(f"--compile: method {args.method} has no compiled kernels (its compile option runs eager)")
     if args.ops and (args.grad or args.profile or (args.compile and args.record)):
         p.error("--ops goes without --grad and --profile, and with --compile or --record, not both")
     if args.ops_mpc_steps < 0:

@@ -71,7 +71,7 @@ from ..core.masks import where_rows
 from ..core.problem import Problem
 from ..core.solution import Solution
 from ..core.status import Status
-from ..solve import Method, check_problem_and_method, solve
+from ..solve import Method, check_problem_and_method, eager_despite_compile, solve
 
 #: ALTRO's (the default method's) control-step options when none are given: its ``step_defaults``, ALTRO without
 #: the projection (:data:`torchtraj.solvers.altro.MPC_OPTIONS`). Kept under this name for the callers that build on it.
@@ -102,8 +102,9 @@ class MPC(torch.nn.Module):
         observation_to_params: maps observations to per-instance parameters ``{name: (B, ...)}`` (a car's observed
             obstacles); default none.
         compile: ``torch.compile`` the solver's kernels (sets the options' ``compile``, see
-            :mod:`torchtraj.core.compiled`): the first calls for a batch size compile (tens of seconds to minutes);
-            later pendulum steps (N = 30) take 3.5 ms against 63-74 ms eager at B = 1, 17 ms against 132 ms at B = 64.
+            :mod:`torchtraj.core.compiled`): the first calls for a batch size compile (tens of seconds to minutes),
+            and the later steps are faster (``docs/benchmarks.md``, "MPC"). A method without compiled kernels
+            (:attr:`~torchtraj.solvers.base.Solver.compiles`: HM-iLQR, eILQR) warns here and runs eager.
 
     Call: ``mpc(observations, params=None)`` with observations ``(n_obs,)`` or ``(B, n_obs)``, numpy or torch,
     returns controls ``(nu,)`` or ``(B, nu)`` of the same kind (numpy float64, or a tensor of the observations'
@@ -128,6 +129,10 @@ class MPC(torch.nn.Module):
             raise ValueError(f"iterations must be a positive int or None, got {iterations!r}")
         self.problem, self.solver, self.method = problem, solver, solver.name
         self.options = solver.step_options(options, iterations, compile)
+        self._eager_despite_compile = eager_despite_compile(solver, self.options)
+        if self._eager_despite_compile:
+            warnings.warn(f"MPC: method {solver.name!r} has no compiled kernels: compile=True runs it eager",
+                          UserWarning, stacklevel=2)
         self.observation_to_state = observation_to_state
         self.observation_to_params = observation_to_params
         self._template = problem
@@ -230,6 +235,8 @@ class MPC(torch.nn.Module):
         with warnings.catch_warnings():
             if self._ignores_constraints:  # said once, at construction
                 warnings.filterwarnings("ignore", message=".*ignores the constraints")
+            if self._eager_despite_compile:  # the same
+                warnings.filterwarnings("ignore", message=".*has no compiled kernels")
             sol = solve(p, x, self.solver, options=self.options, **self.solver.warm_start(U0, duals, X0))
         self.solve_seconds = time.perf_counter() - start
         failed = torch.isin(sol.status, self._failures) | ~torch.isfinite(sol.U).flatten(1).all(-1)
