@@ -146,6 +146,24 @@ def test_record_flag_reaches_the_solver_options_and_its_rows_are_the_eager_ones(
         assert code == 0, text
         rows.append(json.loads(path.read_text())["rows"][0])
     assert rows[0]["costs"] == rows[1]["costs"] and rows[0]["iterations_max"] == rows[1]["iterations_max"]
+    # the recorded row's untimed run of the batch first, which records: reported, and not in the eager row
+    assert rows[0]["record_seconds"] is None and rows[1]["record_seconds"] > 0
+    assert f"which recorded the kernels: {rows[1]['record_seconds']:.1f} s" in text
+    assert f"the untimed runs before, which recorded them, took {rows[1]['record_seconds']:.1f} s" in text
+
+
+def test_a_recorded_row_warms_up_until_a_run_traces_nothing_new(monkeypatch):
+    from torchtraj.bench import runs
+
+    for new_traces, expected_runs in (([2, 0, 0], 2), ([1, 1, 1, 1], runs.RECORD_WARM_UPS)):
+        count, made = {"traces": 0}, []
+
+        def run():
+            count["traces"] += new_traces[len(made)]
+            made.append(1)
+
+        monkeypatch.setattr(runs, "recorded_traces", lambda: count["traces"])
+        assert runs._record_warm_up(run, torch.device("cpu")) >= 0 and len(made) == expected_runs
 
 
 def test_mehrotra_rows_of_the_gradient_benchmark():

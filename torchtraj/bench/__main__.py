@@ -86,10 +86,12 @@ def parser() -> argparse.ArgumentParser:
                    help="torch.compile the solver's kernels (ILQROptions.compile); every row first runs untimed at "
                         "its own batch size, which compiles, and says how long that took")
     p.add_argument("--record", action="store_true",
-                   help="replay the expansion from recorded operator graphs (the options' record; "
-                        "torchtraj.core.recorded); a signature is traced at its TRACE_AT-th call, so the timed solve "
-                        "includes its traces (the records pay in repeated solves: MPC); with --ops, also count every "
-                        "full solve again with them, after an uncounted solve that records")
+                   help="replay the expansion from recorded operator graphs (the options' record=True; "
+                        "torchtraj.core.recorded: a signature is traced at its TRACE_AT-th call); every row first "
+                        "runs untimed at its own batch size, again while a run traces anything new (at most 3), and "
+                        "says how long that took, so that the timed solve is one of repeated solves (as FATROP's, "
+                        "built once); with --ops, also count "
+                        "every full solve again with them, after an uncounted solve that records")
     p.add_argument("--cuda-graphs", action="store_true",
                    help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
                         "(IPOptions.cuda_graphs; no effect on a CPU)")
@@ -195,6 +197,8 @@ def _throughput(name: str, rows: list, largest: int) -> str:
     text = f"throughput {name}: {ours.method} {ours.ms_per_instance:.3f} ms/instance at B={largest}"
     if ours.compile_seconds is not None:
         text += f" (compiled kernels; the untimed run before, which compiled them, took {ours.compile_seconds:.1f} s)"
+    if ours.record_seconds is not None:
+        text += f" (recorded kernels; the untimed runs before, which recorded them, took {ours.record_seconds:.1f} s)"
     if fatrop is None or fatrop.error:
         return text + "; no FATROP result to compare"
     ratio = ours.ms_per_instance / fatrop.ms_per_instance
@@ -352,6 +356,9 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                 if row.compile_seconds is not None:
                     say(f"  (the untimed run of this batch before it, which compiled the kernels: "
                         f"{row.compile_seconds:.1f} s)")
+                if row.record_seconds is not None:
+                    say(f"  (the untimed runs of this batch before it, which recorded the kernels: "
+                        f"{row.record_seconds:.1f} s)")
             problem_rows += group
             bar.update(converged=torch.tensor(ours.instance_ok or [False], dtype=torch.bool),
                        violation=ours.max_violation, problem=problem.name)

@@ -20,13 +20,14 @@ import dataclasses
 import statistics
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
 
 from .. import problems, solvers
 from ..core.problem import Problem
+from ..core.recorded import traces as recorded_traces
 from ..core.status import Status
 from ..solve import solve
 from ..solvers.base import Solver
@@ -55,6 +56,10 @@ class Row:
     #: compiled kernels: seconds of the untimed run of the whole batch before the timed one, which compiles them
     #: (the kernels that already have a graph for these shapes in this process take none).
     compile_seconds: Optional[float] = None
+    #: recorded kernels: seconds of the untimed runs of the whole batch before the timed one, which record the
+    #: signatures they call often enough (``TRACE_AT``), repeated while a run traces anything new (at most
+    #: :data:`RECORD_WARM_UPS`), so that the timed solve replays them: the state of repeated solves
+    record_seconds: Optional[float] = None
     error: Optional[str] = None
 
     def to_json(self) -> dict:
@@ -101,6 +106,14 @@ def compiled(method, options) -> bool:
             and bool(getattr(solver.kernel_options(options), "compile", False)))
 
 
+def recorded(method, options) -> bool:
+    """Whether ``options`` of ``method`` replay recorded kernels from their eighth call on (``record=True``,
+    :meth:`~torchtraj.solvers.base.Solver.kernel_options`; the default ``None`` records only where it pays)."""
+    solver = solvers.get(method)
+    return (solver.records and options is not None
+            and getattr(solver.kernel_options(options), "record", None) is True)
+
+
 def with_record(method, options):
     """``options`` of ``method`` with recorded kernels (``record=True`` where the method keeps it,
     :meth:`~torchtraj.solvers.base.Solver.with_kernels`)."""
@@ -125,7 +138,10 @@ def _sync(device: torch.device) -> None:
 def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
                   warmup_iterations: int) -> Row:
     """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch. With compiled
-    kernels (``ILQROptions.compile``), which specialise to the batch size, the warm-up is the whole batch."""
+    kernels (``ILQROptions.compile``), which specialise to the batch size, the warm-up is the whole batch, timed
+    (``compile_seconds``); so it is with recorded kernels (``record=True``), whose records are per batch size too,
+    repeated while a run traces anything new (``record_seconds``, :func:`_record_warm_up`): the timed solve is then
+    one of repeated solves, as a solver built once is timed."""
     method = solvers.get(method)
     row = Row(problem.name, method.name, batch)
     try:
@@ -140,6 +156,9 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
             solve(problem, x0, method, X0=X0, options=options)
             _sync(problem.device)
             row.compile_seconds = time.perf_counter() - start
+        elif recorded(method, options):
+            row.record_seconds = _record_warm_up(lambda: solve(problem, x0, method, X0=X0, options=options),
+                                                 problem.device)
         else:
             solve(problem, None, method, X0=X0, options=warm)
         _sync(problem.device)
@@ -159,6 +178,24 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
     except Exception as exc:  # one failing row must not stop the run
         row.error = f"{type(exc).__name__}: {exc}"
     return row
+
+
+#: Untimed runs of a recorded row at most: a run records the signatures it calls TRACE_AT times, and one that it
+#: calls fewer times a run (a compacted batch's sizes) records in a later one.
+RECORD_WARM_UPS = 3
+
+
+def _record_warm_up(run: Callable, device) -> float:
+    """Seconds of the untimed runs before a recorded row's timed one: again while a run traced something new (at
+    most :data:`RECORD_WARM_UPS`), so that the timed run replays what a run of repeated solves replays."""
+    start = time.perf_counter()
+    for _ in range(RECORD_WARM_UPS):
+        before = recorded_traces()
+        run()
+        _sync(device)
+        if recorded_traces() == before:
+            break
+    return time.perf_counter() - start
 
 
 def run_reference(solver, name: str, batch: int, seed: int, instances: int) -> Row:

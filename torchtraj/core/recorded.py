@@ -99,6 +99,12 @@ def forget() -> None:
         recorded.loops.clear()
 
 
+def traces() -> int:
+    """The signatures traced so far in this process, by every recorded function (failed traces included): a
+    benchmark repeats a warm-up until it traces nothing new."""
+    return sum(recorded.traces for recorded in list(_INSTANCES))
+
+
 def under_transform() -> bool:
     """Whether the caller runs inside a ``torch.func`` transform (``vmap``, ``grad``, and a trace's
     ``functionalize``)."""
