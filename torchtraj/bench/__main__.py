@@ -90,8 +90,8 @@ def parser() -> argparse.ArgumentParser:
                         "torchtraj.core.recorded: a signature is traced at its TRACE_AT-th call); every row first "
                         "runs untimed at its own batch size, again while a run traces anything new (at most 3), and "
                         "says how long that took, so that the timed solve is one of repeated solves (as FATROP's, "
-                        "built once); with --ops, also count "
-                        "every full solve again with them, after an uncounted solve that records")
+                        "built once); with --ops, also count every full solve again with them, after an uncounted "
+                        "solve that records")
     p.add_argument("--cuda-graphs", action="store_true",
                    help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
                         "(IPOptions.cuda_graphs; no effect on a CPU)")
