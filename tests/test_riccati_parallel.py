@@ -175,14 +175,14 @@ def calls(N, sweep):
 
 def test_operator_calls_grow_like_log_n():
     """Factorise + solve, B = 1, nx = 2, nu = 1. Measured: 413 calls at N = 64 and 500 at N = 512; the lean
-    sequential sweep (:mod:`torchtraj.riccati.sweep`) 925 and 5853, 11 calls a stage, 9 of them the factorisation's.
+    sequential sweep (:mod:`torchtraj.riccati.sweep`) 854 and 5334, 10 calls a stage, 8 of them the factorisation's.
     The factorisation's scan has ⌈log₂(N+1)⌉ levels of 19 calls, the solve's two scans ⌈log₂ N⌉ levels of 5
     calls each."""
     small, large = calls(64, "parallel"), calls(512, "parallel")
     assert large <= 520
     assert large - small <= 32 * 3  # three levels more (log₂(512/64)) of 19 + 2 × 5 calls
     sequential_small, sequential_large = calls(64, "sequential"), calls(512, "sequential")
-    assert sequential_large - sequential_small > 10 * (512 - 64)  # linear in N
+    assert sequential_large - sequential_small >= 10 * (512 - 64)  # linear in N
     assert sequential_large > 10 * large
 
 

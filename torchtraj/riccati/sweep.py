@@ -53,9 +53,11 @@ def _columns(v: Tensor) -> tuple:
     return v.unsqueeze(-1).unbind(1)
 
 
-def _stage_inputs(W: Tensor, Hs: Tensor, rho: Tensor, held: Optional[Tensor]) -> tuple:
+def _stage_inputs(W: Tensor, Hs: Tensor, rho: Tensor, held: Optional[Tensor], negated: bool = False) -> tuple:
     """What both matrix sweeps read per stage, made once for the horizon: ``(ρ I, −ρ I, W_k / 2, W_kᵀ, H_k, (outer,
-    held_diag, free_rows), −1)``, the held controls' terms per stage (each ``None`` without ``held``).
+    held_diag, free_rows), −1)``, the held controls' terms per stage (each ``None`` without ``held``); ``negated``
+    (the eager sweep, which carries its matrices negated): ``(ρ I, W_k / 2, W_kᵀ, −H_k, (outer, held_diag,
+    free_rows))``.
 
     The sweep carries ``2 P_k = X + Xᵀ`` (``X = E_kᵀ H E_k``), the symmetrisation without its halving, and takes
     ``P_k W_k`` as ``(2 P_k)(W_k / 2)``: scaling by a power of two is exact, so every ``P_k``, ``H`` and ``K`` is the
@@ -67,6 +69,8 @@ def _stage_inputs(W: Tensor, Hs: Tensor, rho: Tensor, held: Optional[Tensor]) ->
         free = 1.0 - held
         held_terms = (_stages(free.unsqueeze(-1) * free.unsqueeze(-2)), _stages(torch.diag_embed(held)),
                       _stages(free.unsqueeze(-1)))
+    if negated:  # the eager sweep's (factorize_stages): −H_k, and no −ρ or −1
+        return rho, (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.neg().unbind(0), held_terms
     return (rho, -rho, (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.unbind(0), held_terms, W.new_full((), -1.0))
 
 
@@ -83,38 +87,43 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
     Each stage writes its results into buffers allocated once (:class:`_Buffers`), whose per-stage blocks are
     views made once for the horizon: ``H`` holds ``Q_ux`` and ``Q_uu``, the gains are the lower rows of the buffer
     of ``E_k = [I; K_k]`` (its identity rows set once) and ``E_kᵀ`` is a view of it, so that a stage of a single
-    control is nine calls: two products for ``H``, four for the gain, two for ``X = E_kᵀ H E_k`` and one for
-    ``X + Xᵀ``, with no joining, splitting or stacking."""
+    control is eight calls: two products for ``H``, three for the gain, two for ``X = E_kᵀ H E_k`` and one for
+    ``X + Xᵀ``, with no joining, splitting or stacking.
+
+    The sweep carries every matrix negated, ``−H``, ``−X`` and ``−2 P_k`` (from ``−H_k`` given once for all
+    stages): negation is exact, so each is the negation of the plain sweep's to the last bit, and the gain of a
+    single control is then one division, ``K = (−Q_ux) / d`` with ``d = Q_uu + ρ`` where it is positive and 1
+    elsewhere (``torch.threshold``, one call where a test and a choice took two). The stacks are negated back once."""
     if torch.compiler.is_compiling() or (torch.is_grad_enabled() and any(t.requires_grad for t in (W, Hs, QN, rho))):
         return _factorize_stages_traced(W, Hs, QN, rho, held)
     N, Bsz, nx, n = W.shape
     nu = n - nx
     buf = _Buffers(W, N, Bsz, nx, nu)
-    rho, minus_rho, Ws, WTs, Hss, (outer, held_diag, free_rows), minus_one = _stage_inputs(W, Hs, rho, held)
+    rho, Ws, WTs, minus_Hss, (outer, held_diag, free_rows) = _stage_inputs(W, Hs, rho, held, negated=True)
     chols, oks = [None] * N, [None] * N
-    buf.put(buf.P[N], torch.add, QN, QN)
-    for t in range(N - 1, -1, -1):
-        H = buf.put(buf.H[t], buf.addmatmul, Hss[t], WTs[t], buf.matmul(buf.P[t + 1], Ws[t]))
+    buf.put(buf.P[N], torch.mul, QN, -2.0)
+    for t in range(N - 1, -1, -1):  # buf.H, buf.X and buf.P hold −H, −X and −2 P (docstring)
+        H = buf.put(buf.H[t], buf.addmatmul, minus_Hss[t], WTs[t], buf.matmul(buf.P[t + 1], Ws[t]))
         Qux = rows = buf.Qux[t]
-        if nu == 1:  # K = Q_ux / −(Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
-            negative = torch.sub(minus_rho, buf.Quu[t])
-            if held is not None:  # the held controls out of the free ones' system
-                negative = negative * outer[t] - held_diag[t]
+        if nu == 1:  # K = −Q_ux / (Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
+            if held is None:
+                buf.put(buf.pivot[t], torch.sub, rho, buf.Quu[t])
+            else:  # the held controls out of the free ones' system
+                buf.put(buf.pivot[t], torch.add, torch.sub(rho, buf.Quu[t]) * outer[t], held_diag[t])
                 rows = Qux * free_rows[t]
-            ok = buf.put(buf.ok[t], torch.lt, negative, 0)
-            buf.put(buf.K[t], torch.div, rows, buf.put(buf.chol[t], torch.where, ok, negative, minus_one))
+            buf.put(buf.K[t], torch.div, rows, buf.put(buf.chol[t], torch.threshold, buf.pivot[t], 0.0, 1.0))
         else:
-            Hu = buf.Quu[t] + rho
+            Hu = torch.sub(rho, buf.Quu[t])
             if held is not None:
                 Hu = Hu * outer[t] + held_diag[t]
                 rows = Qux * free_rows[t]
             chols[t], info = _cholesky(Hu)
             oks[t] = info == 0
-            buf.put(buf.K[t], torch.neg, _cholesky_solve(rows, chols[t]))
+            buf.K[t].copy_(_cholesky_solve(rows, chols[t]))
         buf.put(buf.P[t], torch.add, buf.put(buf.X[t], buf.matmul, buf.ET[t], buf.matmul(H, buf.E[t])), buf.XT[t])
-    chol, ok = (buf.chols, buf.oks) if nu == 1 else (_time_major(chols), torch.stack(oks, 1).all(1))
+    chol, ok = buf.single() if nu == 1 else (_time_major(chols), torch.stack(oks, 1).all(1))
     K, Quu, Qux = buf.stacked()
-    return buf.Ps * 0.5, K, Quu, Qux, chol, ok
+    return buf.Ps * -0.5, K, Quu, Qux, chol, ok
 
 
 def _factorize_stages_traced(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optional[Tensor]):
@@ -180,16 +189,22 @@ class _Buffers:
         self.P, self.K, self.Quu, self.Qux = Pb.unbind(0), Kb.unbind(0), Quub.unbind(0), Quxb.unbind(0)
         self._stacked = (Kb, Quub, Quxb)
         self.Ps = Pb.transpose(0, 1)
-        if nu == 1:
-            Lb = W.new_empty(N, Bsz, 1, 1)
-            okb = torch.empty(N, Bsz, 1, 1, dtype=torch.bool, device=W.device)
-            self.chol, self.ok = Lb.unbind(0), okb.unbind(0)
-            self.chols, self.oks = Lb.transpose(0, 1), okb
+        if nu == 1:  # the stages' pivots Q_uu + ρ and their divisors (the pivot where positive, else 1)
+            self._pivots, self._divisors = W.new_empty(N, Bsz, 1, 1), W.new_empty(N, Bsz, 1, 1)
+            self.pivot, self.chol = self._pivots.unbind(0), self._divisors.unbind(0)
+
+    def single(self) -> tuple:
+        """``nu = 1``: ``(chol (B, N, 1, 1), ok (N, B, 1, 1))`` from the stages' divisors and pivots, as
+        :func:`finish_single` takes them: ``chol`` the negated divisors (the reduced Hessians negated, −1 where not
+        positive), ``ok`` where the pivot is positive."""
+        return self._divisors.neg().transpose(0, 1), torch.gt(self._pivots, 0)
 
     def stacked(self) -> tuple:
         """``(K, Q_uu, Q_ux)``, each a batch-first view of a contiguous time-major copy: the stages' blocks are
-        strided views of ``E`` and ``H``, and the later sweeps' products read them as the stacked lists were."""
-        return tuple(a.contiguous().transpose(0, 1) for a in self._stacked)
+        strided views of ``E`` and ``H``, and the later sweeps' products read them as the stacked lists were.
+        ``H`` holds ``−H`` (:func:`factorize_stages`), so ``Q_uu`` and ``Q_ux`` are copied negated."""
+        K, Quu, Qux = self._stacked
+        return K.contiguous().transpose(0, 1), Quu.neg().transpose(0, 1), Qux.neg().transpose(0, 1)
 
     @staticmethod
     def put(out: Tensor, op, *args) -> Tensor:
