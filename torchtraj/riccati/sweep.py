@@ -93,7 +93,9 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
     The sweep carries every matrix negated, ``−H``, ``−X`` and ``−2 P_k`` (from ``−H_k`` given once for all
     stages): negation is exact, so each is the negation of the plain sweep's to the last bit, and the gain of a
     single control is then one division, ``K = (−Q_ux) / d`` with ``d = Q_uu + ρ`` where it is positive and 1
-    elsewhere (``torch.threshold``, one call where a test and a choice took two). The stacks are negated back once."""
+    elsewhere (``torch.threshold``, one call where a test and a choice took two). The stacks are negated back once.
+    A NaN pivot (an overflow inside the sweep: non-finite blocks are replaced before it) gives NaN gains where a test
+    and a choice gave the identity's; its stage fails the ``ok`` test either way."""
     if torch.compiler.is_compiling() or (torch.is_grad_enabled() and any(t.requires_grad for t in (W, Hs, QN, rho))):
         return _factorize_stages_traced(W, Hs, QN, rho, held)
     N, Bsz, nx, n = W.shape
