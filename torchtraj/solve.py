@@ -127,15 +127,10 @@ def _certified(solver: Solver, problem: Problem, batch: Batch, opts, solution: S
     params = {k: v.detach() for k, v in batch.params.items()}
     # a free start (eILQR's free_initial_state) has no initial defect; its own rows are the method's to meet
     x0 = batch.x0.detach() if solver.fixes_initial_state(opts) else None
+    record = solver.kernel_setting(opts, "record", False)  # replayed residuals where the expansion is replayed
     status, residuals = certificate.certify(problem, solution.status, solution.X, solution.U, solution.multipliers,
-                                            params, x0, constraints, record=_record(solver, opts))
+                                            params, x0, constraints, record=record)
     return dataclasses.replace(solution, status=status, kkt=residuals.as_dict())
-
-
-def _record(solver, opts):
-    """The options' ``record`` (:mod:`torchtraj.core.recorded`, :meth:`Solver.kernel_options`), ``False`` where
-    they have none: the certificate replays its residuals where the method replays its expansion."""
-    return getattr(solver.kernel_options(opts), "record", False)
 
 
 def default_method(problem: Problem, options=None) -> str:
@@ -176,7 +171,7 @@ def _check_declarations(solver: Solver, problem: Problem, batch: Batch) -> None:
 def eager_despite_compile(solver: Solver, opts) -> bool:
     """Whether ``opts`` ask for compiled kernels (:meth:`Solver.kernel_options`) that the method does not have
     (:attr:`Solver.compiles`): the field is accepted, for the control-step interface, and the method runs eager."""
-    return not solver.compiles and bool(getattr(solver.kernel_options(opts), "compile", False))
+    return not solver.compiles and bool(solver.kernel_setting(opts, "compile"))
 
 
 def _declaring(flag: str) -> str:

@@ -102,16 +102,14 @@ def compiled(method, options) -> bool:
     they ask for them (:meth:`~torchtraj.solvers.base.Solver.kernel_options`) and the method has them
     (:attr:`~torchtraj.solvers.base.Solver.compiles`)."""
     solver = solvers.get(method)
-    return (solver.compiles and options is not None
-            and bool(getattr(solver.kernel_options(options), "compile", False)))
+    return solver.compiles and bool(solver.kernel_setting(options, "compile"))
 
 
 def recorded(method, options) -> bool:
     """Whether ``options`` of ``method`` replay recorded kernels from their eighth call on (``record=True``,
     :meth:`~torchtraj.solvers.base.Solver.kernel_options`; the default ``None`` records only where it pays)."""
     solver = solvers.get(method)
-    return (solver.records and options is not None
-            and getattr(solver.kernel_options(options), "record", None) is True)
+    return solver.records and solver.kernel_setting(options, "record") is True
 
 
 def with_record(method, options):

@@ -103,6 +103,11 @@ class Solver(abc.ABC):
         keeps them in nested options (ALTRO: its inner iLQR's)."""
         return options
 
+    def kernel_setting(self, options, name: str, default=None):
+        """The field ``name`` (``"record"``, ``"compile"``) of ``options``' :meth:`kernel_options`; ``default`` where
+        they have none, or where ``options`` is ``None``."""
+        return default if options is None else getattr(self.kernel_options(options), name, default)
+
     def with_kernels(self, options, **fields):
         """``options`` with the :meth:`kernel_options`' ``fields`` replaced (``record=True``, ``compile=True``)."""
         return dataclasses.replace(options, **fields)
