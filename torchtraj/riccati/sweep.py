@@ -54,10 +54,9 @@ def _columns(v: Tensor) -> tuple:
 
 
 def _stage_inputs(W: Tensor, Hs: Tensor, rho: Tensor, held: Optional[Tensor], negated: bool = False) -> tuple:
-    """What both matrix sweeps read per stage, made once for the horizon: ``(ρ I, −ρ I, W_k / 2, W_kᵀ, H_k, (outer,
-    held_diag, free_rows), −1)``, the held controls' terms per stage (each ``None`` without ``held``); ``negated``
-    (the eager sweep, which carries its matrices negated): ``(ρ I, W_k / 2, W_kᵀ, −H_k, (outer, held_diag,
-    free_rows))``.
+    """What both matrix sweeps read per stage, made once for the horizon: ``(ρ I, W_k / 2, W_kᵀ, H_k, (outer,
+    held_diag, free_rows))``, the held controls' terms per stage (each ``None`` without ``held``); ``−H_k`` where
+    ``negated`` (the eager sweep, which carries its matrices negated).
 
     The sweep carries ``2 P_k = X + Xᵀ`` (``X = E_kᵀ H E_k``), the symmetrisation without its halving, and takes
     ``P_k W_k`` as ``(2 P_k)(W_k / 2)``: scaling by a power of two is exact, so every ``P_k``, ``H`` and ``K`` is the
@@ -69,9 +68,7 @@ def _stage_inputs(W: Tensor, Hs: Tensor, rho: Tensor, held: Optional[Tensor], ne
         free = 1.0 - held
         held_terms = (_stages(free.unsqueeze(-1) * free.unsqueeze(-2)), _stages(torch.diag_embed(held)),
                       _stages(free.unsqueeze(-1)))
-    if negated:  # the eager sweep's (factorize_stages): −H_k, and no −ρ or −1
-        return rho, (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.neg().unbind(0), held_terms
-    return (rho, -rho, (0.5 * W).unbind(0), _mT(W).unbind(0), Hs.unbind(0), held_terms, W.new_full((), -1.0))
+    return rho, (0.5 * W).unbind(0), _mT(W).unbind(0), (Hs.neg() if negated else Hs).unbind(0), held_terms
 
 
 def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optional[Tensor]):
@@ -135,7 +132,8 @@ def _factorize_stages_traced(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, hel
     N, Bsz, nx, n = W.shape
     nu = n - nx
     eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
-    rho, minus_rho, Ws, WTs, Hss, (outer, held_diag, free_rows), minus_one = _stage_inputs(W, Hs, rho, held)
+    rho, Ws, WTs, Hss, (outer, held_diag, free_rows) = _stage_inputs(W, Hs, rho, held)
+    minus_rho, minus_one = -rho, W.new_full((), -1.0)
     P2 = QN + QN
     Ps, Ks, Quus, Quxs, chols, oks = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N, [None] * N
     Ps[N] = P2
