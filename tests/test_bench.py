@@ -106,20 +106,12 @@ def test_compile_flag_reaches_the_solver_options():
 
 
 @pytest.mark.slow  # a minute of Dynamo tracing; the default run keeps the compiled kernels' own tests
-def test_compiled_rows_report_the_run_that_compiled_them(tmp_path, monkeypatch):
+def test_compiled_rows_report_the_run_that_compiled_them(tmp_path, dynamo_capture):
     """``--compile``: the untimed run of the batch that compiles the kernels is timed and reported next to the
     timed row and in the throughput line (the kernels captured by Dynamo and run as captured, to keep it short)."""
-    from torchtraj.core import compiled
-
-    original = torch.compile
-    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: original(fn, backend="eager", dynamic=False))
-    monkeypatch.setattr(compiled, "_KERNELS", {})
     path = tmp_path / "rows.json"
-    try:
-        code, text = run(["--problems", "pendulum_unconstrained", "--batch", "2", "--no-reference", "--compile",
-                          "--json", str(path)] + LOOSE)
-    finally:
-        torch._dynamo.reset()
+    code, text = run(["--problems", "pendulum_unconstrained", "--batch", "2", "--no-reference", "--compile",
+                      "--json", str(path)] + LOOSE)
     assert code == 0, text
     (row,) = json.loads(path.read_text())["rows"]
     assert row["compile_seconds"] > 0 and row["seconds"] > 0

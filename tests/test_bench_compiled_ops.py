@@ -34,19 +34,16 @@ def test_library_calls_count_the_calls_made_outside_other_calls():
     assert (library.calls, library.kernels) == (5, 0)
 
 
-def test_library_calls_count_each_call_of_a_compiled_function():
+def test_library_calls_count_each_call_of_a_compiled_function(dynamo_capture):
     def f(x):
         return (x.sin() * 2).sum()
 
-    compiled = torch.compile(f, backend="eager", dynamic=False)  # Dynamo's capture alone: no C++ compiler needed
+    compiled = torch.compile(f)  # Dynamo's capture alone (the fixture): no C++ compiler needed
     x = torch.randn(4)
-    try:
-        compiled(x)  # captured here, outside the count
-        with LibraryCalls() as library:
-            for _ in range(3):
-                compiled(x)
-    finally:
-        torch._dynamo.reset()
+    compiled(x)  # captured here, outside the count
+    with LibraryCalls() as library:
+        for _ in range(3):
+            compiled(x)
     # the eager backend runs the captured operators as library calls: sin, mul and sum, three times
     assert library.kernels == 3 and library.calls == 9
 
@@ -100,18 +97,9 @@ def test_ops_compile_skips_what_a_method_cannot_solve_and_checks_its_flags():
 
 
 @pytest.mark.slow  # Dynamo's capture of the IPM's kernels: half a minute
-def test_ops_compile_counts_the_kernels_of_a_compiled_solve(tmp_path, monkeypatch):
-    from torchtraj.core import compiled
-
-    original = torch.compile
-    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: original(fn, backend="eager", dynamic=False))
-    monkeypatch.setattr(compiled, "_KERNELS", {})
+def test_ops_compile_counts_the_kernels_of_a_compiled_solve(tmp_path, dynamo_capture):
     path = tmp_path / "compiled.json"
-    try:
-        code, text = run(["--ops", "--compile", "--method", "ipm", "--problems", "double_integrator",
-                          "--json", str(path)])
-    finally:
-        torch._dynamo.reset()
+    code, text = run(["--ops", "--compile", "--method", "ipm", "--problems", "double_integrator", "--json", str(path)])
     assert code == 0, text
     (row,) = json.loads(path.read_text())["rows"]
     assert row["error"] is None and row["status"] == "converged"
