@@ -37,6 +37,7 @@ from ..core.recorded import forget
 from ..core.status import Status
 from ..solve import solve
 from .ops import OperatorCounter
+from .ops_text import compiled_header, format_compiled
 from .runs import skip_reason, state_guess, with_compile
 
 #: Where Dynamo's call of a compiled function shows in the profiler.
@@ -147,33 +148,13 @@ def _seconds(run: Callable, options) -> float:
     return time.perf_counter() - start
 
 
-COLUMNS = (("method", 7, False), ("iters", 7, True), ("eager: mode", 11, True), ("profiler", 8, True),
-           ("compiled: profiler", 18, True), ("kernels", 7, True), ("compile s", 9, True), ("eager s", 7, True),
-           ("compiled s", 10, True), ("status", 0, False))
-
-
-def _line(cells) -> str:
-    return "  ".join(c.rjust(w) if right else c.ljust(w)
-                     for c, (_, w, right) in zip(cells, COLUMNS)).rstrip()
-
-
-def format_row(row: CompiledCount) -> str:
-    if row.error:
-        return _line([row.method]) + "  ERROR " + row.error.splitlines()[0]
-    iterations = str(row.iterations) if row.iterations == row.compiled_iterations else \
-        f"{row.iterations}/{row.compiled_iterations}"
-    return _line([row.method, iterations, f"{row.eager_mode_calls:.0f}", f"{row.eager_calls:.0f}",
-                  f"{row.compiled_calls:.0f}", f"{row.kernels:.1f}", f"{row.compile_seconds:.1f}",
-                  f"{row.eager_seconds:.3f}", f"{row.compiled_seconds:.3f}", row.status])
-
-
 def run(methods: Sequence[str], name: str, say: Callable[..., None], dtype: torch.dtype = torch.float64,
         device=None) -> dict:
     """Count each of ``methods`` on problem ``name`` (skipping those that cannot solve it), print the table as its
     rows come (``say``) and return ``{"problem", "rows"}`` (:meth:`CompiledCount.to_json` each)."""
     say(f"torchtraj bench --ops --compile: {name} at B = 1, {str(dtype).replace('torch.', '')}, torch "
         f"{torch.__version__}; calls and kernels per iteration (torchtraj.bench.compiled_ops)")
-    say(_line([title for title, _, _ in COLUMNS]))
+    say(compiled_header())
     rows = []
     for m in methods:
         problem = problem_set.get(name, dtype=dtype, device=device)
@@ -182,7 +163,7 @@ def run(methods: Sequence[str], name: str, say: Callable[..., None], dtype: torc
             say(f"{solvers.get(m).name:7s}  skipped ({reason})")
             continue
         row = count_compiled(problem, m)
-        say(format_row(row))
+        say(format_compiled(row))
         rows.append(row)
     return {"problem": name, "rows": [r.to_json() for r in rows]}
 

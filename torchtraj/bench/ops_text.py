@@ -1,5 +1,6 @@
 """The text tables of ``python -m torchtraj.bench --ops`` (:mod:`torchtraj.bench.ops`): one line per counted
-solve, one per method of a horizon sweep (rows: :class:`~torchtraj.bench.ops.Count`)."""
+solve, one per method of a horizon sweep (rows: :class:`~torchtraj.bench.ops.Count`), and with ``--compile`` one
+per method (:class:`~torchtraj.bench.compiled_ops.CompiledCount`)."""
 
 from __future__ import annotations
 
@@ -51,3 +52,26 @@ def sweep_header(horizons: Sequence[int]) -> str:
     titles = _line(["method"] + [f"N={n}" for n in horizons] + ["calls/stage"], _sweep_widths(horizons),
                    [False] + [True] * (len(horizons) + 1))
     return titles + "\n" + "-" * len(titles)
+
+
+COMPILED_COLUMNS = (("method", 7, False), ("iters", 7, True), ("eager: mode", 11, True), ("profiler", 8, True),
+                    ("compiled: profiler", 18, True), ("kernels", 7, True), ("compile s", 9, True),
+                    ("eager s", 7, True), ("compiled s", 10, True), ("status", 0, False))
+_COMPILED_WIDTHS, _COMPILED_RIGHT = [w for _, w, _ in COMPILED_COLUMNS], [r for _, _, r in COMPILED_COLUMNS]
+
+
+def compiled_header() -> str:
+    return _line([t for t, _, _ in COMPILED_COLUMNS], _COMPILED_WIDTHS, _COMPILED_RIGHT)
+
+
+def format_compiled(row: CompiledCount) -> str:
+    """One method's line of ``--ops --compile``: iterations (eager/compiled where they differ), calls per iteration,
+    compiled calls per iteration, seconds, status."""
+    if row.error:
+        return _line([row.method], _COMPILED_WIDTHS, _COMPILED_RIGHT) + "  ERROR " + row.error.splitlines()[0]
+    iterations = str(row.iterations) if row.iterations == row.compiled_iterations else \
+        f"{row.iterations}/{row.compiled_iterations}"
+    cells = [row.method, iterations, f"{row.eager_mode_calls:.0f}", f"{row.eager_calls:.0f}",
+             f"{row.compiled_calls:.0f}", f"{row.kernels:.1f}", f"{row.compile_seconds:.1f}",
+             f"{row.eager_seconds:.3f}", f"{row.compiled_seconds:.3f}", row.status]
+    return _line(cells, _COMPILED_WIDTHS, _COMPILED_RIGHT)
