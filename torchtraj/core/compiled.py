@@ -2,8 +2,8 @@
 
 In eager mode a solver iteration is a few thousand small PyTorch operations — a rollout is N dynamics calls,
 the Riccati sweep N small factorisations — and at small batches their fixed per-operation cost, not the
-arithmetic, is the time: a pendulum MPC step (N = 30, 3 iterations) takes 63-74 ms on two CPU cores at B = 1.
-Compiled by inductor into fused loops, it takes 3.5 ms (``python -m torchtraj.bench --mpc --compile``). The kernels:
+arithmetic, is the time. Compiled by inductor into fused loops, a control step takes a fraction of its eager time
+(``python -m torchtraj.bench --mpc --compile``; the figures are in ``docs/benchmarks.md``). The kernels:
 
 * one iLQR iteration (:func:`torchtraj.solvers.ilqr.ilqr_step`: the ``torch.func`` expansion, the Riccati sweep of
   :mod:`torchtraj.riccati`, the line search's batched rollouts and the step acceptance) — one graph while the
@@ -85,7 +85,8 @@ def kernel(fn: Callable, enabled: bool) -> Callable:
 
 
 def _compile(fn: Callable) -> Callable:
-    # a process-wide setting (a patch around each call would cost 40 µs a call), raised only, never lowered
+    # a process-wide setting (a patch around each call would cost more than a small kernel), raised only, never
+    # lowered
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
     compiled = torch.compile(fn, dynamic=False, options={"cpp_wrapper": True})
@@ -129,8 +130,8 @@ _LEAVES = frozenset({type(None), bool, int, float, str})
 
 
 def _collect(value, tensors: list, seen: set) -> None:
-    # by hand rather than with torch.utils._pytree, whose flattening took 27 µs of the 41 µs a call of an ALTRO
-    # iteration's arguments took (12 µs by hand); leaves are skipped by the caller, a set lookup per value
+    # by hand rather than with torch.utils._pytree, whose flattening was most of a call's cost for an ALTRO
+    # iteration's arguments; leaves are skipped by the caller, a set lookup per value
     if isinstance(value, Tensor):
         if value.dim():
             tensors.append(value)
@@ -155,7 +156,7 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
     if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
         return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
     if a.dim() == 3 and b.dim() == 3 and a.shape[0] == b.shape[0]:
-        return torch.bmm(a, b)  # skips matmul's broadcasting: 1.3 µs against 3.7 µs a call for one 3 × 3 product
+        return torch.bmm(a, b)  # skips matmul's broadcasting and its reshapes: a third of its cost a small product
     return a @ b
 
 

@@ -17,9 +17,8 @@ and time by :mod:`torchtraj.core.batching`; nothing is differentiated by hand.
 Why reverse mode everywhere, although the Jacobians are square or tall and forward mode would
 be the textbook choice: with PyTorch 2.13 on CPU, ``vmap(jacfwd(·))`` routes products with
 Python or 0-dim scalars through Python decompositions (``torch._refs``) under forward AD, and
-measures 4-6x slower than ``vmap(jacrev(·))`` on the problem set's models (pendulum RK4
-Jacobian at 30 points: 12.3 ms against 2.2 ms; a stage-cost Hessian: ``jacfwd(jacrev)``
-6.1 ms, ``jacrev(jacrev)`` 1.4 ms). The results are the same to rounding.
+measures several times slower than ``vmap(jacrev(·))`` on the problem set's models, for Jacobians and
+for Hessians alike (``docs/benchmarks.md``, design choices). The results are the same to rounding.
 
 Traced by ``torch.compile`` (:mod:`torchtraj.core.compiled`, whose kernels take the batch size as a symbol),
 :func:`stage_jacobian`, :func:`terminal_jacobian`, :func:`stage_hessian` and :func:`terminal_hessian` differentiate

@@ -27,9 +27,9 @@ def _sym(a: Tensor) -> Tensor:
 
 
 # Cholesky factorisations and solves of the small (nu × nu) Hessians. Eager, LAPACK's batched routines
-# are the cheapest for nu ≥ 2, measured on CPU at B = 256, nu = 4: cholesky_ex 27 µs against 180 µs for
-# the elementwise formulas below, cholesky_solve of one vector 38 µs against 142 µs. torch.compile fuses
-# the elementwise formulas into its loops instead (up to _SMALL), and a 1 × 1 factor is a square root.
+# are the cheapest for nu ≥ 2 (measured on CPU: several times faster than the elementwise formulas below;
+# docs/benchmarks.md, design choices). torch.compile fuses the elementwise formulas into its loops instead
+# (up to _SMALL), and a 1 × 1 factor is a square root.
 _SMALL = 4
 
 
@@ -99,7 +99,7 @@ def _factored_solve(H: Tensor, L: Tensor, info: Tensor, b: Tensor) -> Tensor:
     """``_cholesky_solve(b, L)`` for the factor ``L, info`` of ``H`` by :func:`_cholesky`.
 
     Eager, an LU solve of ``H`` (the identity where ``info > 0``, as ``L``) is the cheaper LAPACK call for
-    a matrix right-hand side (B = 256, 4 × 4 by 4 × 8: 53 µs, against 121 µs for torch.cholesky_solve)."""
+    a matrix right-hand side (about half the time of ``torch.cholesky_solve`` at B = 256, nu = 4)."""
     n = H.shape[-1]
     if n == 1 or _elementwise(n):
         return _cholesky_solve(b, L)
@@ -132,8 +132,8 @@ def _pad_cols(a: Tensor, cols: int) -> Tensor:
 def _time_major(stages: list) -> Tensor:
     """The per-stage tensors ``(B, ...)`` of a sweep as one batch-first ``(B, len, ...)`` view of a time-major
     buffer. A later sweep reads ``[:, t]``: one contiguous block, where a batch-first buffer would give B
-    pieces a stage apart. Measured on one CPU core at B = 256, one 8 × 8 matrix-vector product a stage: 39 µs
-    time-major against 94 µs batch-first (memory, not arithmetic: the small products are cache-bound)."""
+    pieces a stage apart: the small products are bound by memory, not arithmetic, and read time-major they take
+    less than half the time of batch-first ones."""
     return torch.stack(stages, 0).transpose(0, 1)
 
 

@@ -24,8 +24,8 @@ def all_finite(values: list) -> Tensor:
 
     Read from one sum per instance of each tensor, added over the tensors: a NaN or an infinity makes the sum
     NaN or infinite. Three calls a tensor fewer than testing the extremes (``amax``, ``amin``), and at large batches
-    faster: an ``amax`` over the inner dimensions of a time-major block read batch-first took 7.6 ms where the sum
-    took 0.45 ms (B = 1024, N = 50, 3 × 3 blocks). A sum of finite entries can itself overflow, where they come
+    faster: an ``amax`` over the inner dimensions of a time-major block read batch-first is many times slower than
+    the sum (``docs/benchmarks.md``, design choices). A sum of finite entries can itself overflow, where they come
     within a factor of their count of the float's largest value; that instance is then reported not finite,
     whose products in a sweep would overflow as well."""
     total = None
@@ -69,9 +69,9 @@ def _sanitize_stacked(lqr: LQR, shift: Optional[Tensor] = None):
 
     The cost is in memory: the blocks are checked and cleaned once stacked (not as five, often strided,
     views of one Hessian), in place, and ``Hs`` is filled block by block: every new buffer of megabytes
-    costs its page faults (B = 256, N = 30, nx = 8, nu = 4: 5 ms, against 11 ms for :func:`_sanitize` alone).
-    Given already stacked (:meth:`LQR.from_blocks`), each is one copy whose rows are contiguous (1.4 ms against
-    3.9 ms). ``shift (B,)`` is added to the diagonal of every Hessian block and of ``QN``."""
+    costs its page faults (about half the time of :func:`_sanitize` alone at B = 256). Given already stacked
+    (:meth:`LQR.from_blocks`), each is one copy whose rows are contiguous. ``shift (B,)`` is added to the diagonal
+    of every Hessian block and of ``QN``."""
     Bsz, N, nx, nu = lqr.B.shape
     n = nx + nu
     tm = lambda a: a.transpose(0, 1)  # noqa: E731

@@ -4,9 +4,8 @@ Once the running instances are at most that share of the batch being iterated, t
 (iterate, model, filter, parameters) and the next iterations run on them alone; the others' results are written
 back into the full batch's :class:`Final`. The arithmetic of an instance is unchanged, bit for bit, and the batch's
 spread of iteration counts no longer costs the slowest one's iterations for all: the time of an iteration grows
-about linearly with the batch past a few dozen instances (one CPU core, the bench's ``linear_box``: 112 ms at
-B = 256, 57 at 128, 35 at 64). The history records which rows were iterated, so that the full batch's history
-repeats a finished instance's last values (step size 0) after it left.
+about linearly with the batch past a few dozen instances. The history records which rows were iterated, so that
+the full batch's history repeats a finished instance's last values (step size 0) after it left.
 """
 
 from __future__ import annotations
