@@ -103,8 +103,9 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
     """:func:`residuals`' ``(stationarity, feasibility, complementarity, dual_sign)`` from the detached
     multipliers ``given`` of ``c``'s blocks, ``rows`` the inequality rows that apply (no host read here, so that
     it can be recorded). The Lagrangian's gradient is ``torch.func.grad``'s inside a transform (a trace's
-    functionalisation, where ``requires_grad_`` is refused), else autograd's on tensors that require it (faster
-    eager): the same operators, the same residuals to the last bit (``tests/test_certificate.py``)."""
+    functionalisation, where ``requires_grad_`` is refused) and under ``torch.inference_mode`` (where autograd
+    records nothing, whatever ``enable_grad`` says), else autograd's on tensors that require it (faster eager): the
+    same operators, the same residuals to the last bit (``tests/test_certificate.py``)."""
     B, nx = X.shape[0], problem.nx
     stage, terminal = stack_blocks(c, given, 0.0, X)
     z, nu = stage[..., :c.mi], stage[..., c.mi:c.mi + c.me]
@@ -118,7 +119,7 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
                + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
         return out.sum(), (g, values.ineqN)
 
-    if under_transform():
+    if under_transform() or torch.is_inference_mode_enabled():
         (gx, gu), (g, gN) = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
     else:
         with torch.enable_grad():
