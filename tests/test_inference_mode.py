@@ -1,7 +1,12 @@
-"""Solves inside a caller's ``torch.inference_mode``.
+"""Solves without gradients run under ``torch.inference_mode`` (``torchtraj/solve.py``, ``_without_autograd``).
 
-Every method solves there (the KKT certificate took its gradient by autograd, which records nothing in inference mode,
-and raised) and gets the same solution, bit for bit, as outside it; ``tt.MPC`` acts the same inside it.
+A solve that nothing differentiates runs every operator without autograd's bookkeeping, and returns its solution as
+normal tensors. Checked here: every method solves inside a caller's ``torch.inference_mode`` (the KKT certificate took
+its gradient by autograd, which records nothing there, and raised) and gets the same solution, bit for bit, as
+outside it; a returned solution's tensors can be changed in place and saved for backward, which inference tensors
+cannot; what a solve keeps on its problem (the constraints' layout, the IPM's scaled and restoration problems,
+eILQR's barrier problems) is made outside inference mode, so that a later differentiable solve of the same problem
+object gets the gradient a fresh one gets; and ``tt.MPC`` acts the same inside inference mode.
 """
 
 import dataclasses
@@ -58,6 +63,63 @@ def test_a_solve_inside_inference_mode_is_the_solve_outside_it(method):
     for path, t in found.items():
         assert t.is_inference(), path  # made in the caller's inference mode, as everything there
         assert torch.equal(t, pairs[path]), path
+
+
+def test_a_solution_is_made_of_normal_tensors():
+    x0 = problems.sample_x0("pendulum", 2, seed=0)
+    sol = tt.solve(pendulum("ipm"), x0, "ipm")
+    inference = [path for path, t in tensors(sol) if t.is_inference()]
+    assert not inference
+    weights = torch.ones(2, dtype=F64, requires_grad=True)
+    (sol.cost * weights).sum().backward()  # the product saves sol.cost for backward
+    assert torch.equal(weights.grad, sol.cost)
+    before = sol.U.clone()
+    sol.U.mul_(2.0)  # changed in place outside inference mode
+    assert torch.equal(sol.U, 2.0 * before)
+
+
+def kept(value, depth=0):
+    """The tensors a solve keeps on a problem: in its private attributes (the constraints' layout, the IPM's scaled
+    and restoration problems, eILQR's barrier problems), the objects, problems, dicts and tuples they hold."""
+    if isinstance(value, torch.Tensor):
+        yield value
+    elif depth < 4 and isinstance(value, (dict, list, tuple)):
+        for v in (value.values() if isinstance(value, dict) else value):
+            yield from kept(v, depth + 1)
+    elif depth < 4 and hasattr(value, "__dict__") and not callable(value):
+        items = vars(value).items()
+        for k, v in items:
+            if depth > 0 or k.startswith("_"):
+                yield from kept(v, depth + 1)
+
+
+@pytest.mark.parametrize("method, name", [(m, "car_3obs") for m in solvers.names()] + [("ipm", "cartpole")])
+def test_what_a_solve_keeps_on_its_problem_is_not_made_in_inference_mode(method, name):
+    problem = problems.get(name).replace(horizon=12)
+    solved(method, problem, problems.sample_x0(name, 2, seed=0), options=solvers.get(method).step_options(None, 3))
+    if name == "cartpole":  # its cost gradient at the guess is large: the IPM keeps the scaled problem
+        assert "_objective_scaled" in vars(problem)
+    found = list(kept(problem))
+    assert found  # the constraints' layout at least
+    assert not any(t.is_inference() for t in found)  # a later differentiable solve's autograd may save them
+
+
+@pytest.mark.parametrize("method", ["ipm", "eilqr", "altro"])
+def test_a_differentiable_solve_after_one_without_gradients(method):
+    """The same problem object solved without gradients, then differentiated with respect to ``x0``: the second
+    solve uses what the first kept on the problem, and its gradient is a fresh problem's."""
+    x0 = problems.sample_x0("pendulum", 2, seed=0)
+
+    def gradient(problem):
+        start = x0.clone().requires_grad_(True)
+        sol = tt.solve(problem, start, method)
+        assert bool(sol.converged.all()), sol.status
+        sol.cost.sum().backward()
+        return start.grad
+
+    reused = pendulum(method)
+    tt.solve(reused, x0, method)
+    assert torch.equal(gradient(reused), gradient(pendulum(method)))
 
 
 def test_mpc_acts_the_same_inside_inference_mode():

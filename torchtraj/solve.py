@@ -17,12 +17,14 @@ import logging
 import warnings
 from typing import Optional, Union
 
+import torch
+
 from . import solvers
 from .core.batch import Batch
 from .core.constraints import Constraints, check_duals
 from .core.graphs import graphs_used
 from .core.problem import Problem
-from .core.solution import Solution
+from .core.solution import Solution, without_inference_tensors
 from .core.status import Status
 from .differentiation import implicit
 from .kkt import certificate
@@ -95,9 +97,10 @@ def solve(
 
 def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str) -> Solution:
     declared = solver.kkt_problem(problem, opts)  # the problem whose KKT point it is, where that is another one
+    kept = graphs_used(opts, batch.x0.device) or solver.kernel_setting(opts, "compile", False)
     if not implicit.requires_gradients(batch.x0, batch.params):
-        return _certified(solver, problem if declared is None else declared, batch, opts,
-                          solver.solve(problem, batch.for_solver(), opts))
+        return _without_autograd(lambda: _certified(solver, problem if declared is None else declared, batch, opts,
+                                                    solver.solve(problem, batch.for_solver(), opts)), kept)
     if not solver.kkt_point:
         raise ValueError(f"method {solver.name!r} returns no KKT point to differentiate; solve without gradients "
                          f"(torch.no_grad, or detached x0 and params) or use {_declaring('kkt_point')}")
@@ -105,8 +108,8 @@ def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str)
         raise ValueError(f"{solver.name}: a solution with a free initial state is not differentiated (the implicit "
                          "layer holds x0 fixed); solve it without gradients")
     # a differentiable solve: the method runs on detached inputs, gradients come from its KKT point
-    solution = _certified(solver, problem if declared is None else declared, batch, opts,
-                          solver.solve(problem, batch.for_solver(detach=True), opts))
+    solution = _without_autograd(lambda: _certified(solver, problem if declared is None else declared, batch, opts,
+                                                    solver.solve(problem, batch.for_solver(detach=True), opts)), kept)
     out = implicit.attach_gradients(problem if declared is None else declared, batch.x0, batch.params, solution,
                                     gradients=gradients, cuda_graphs=graphs_used(opts, batch.x0.device),
                                     constrained=solver.handles_constraints)
@@ -115,6 +118,22 @@ def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str)
     # the cost reported is the problem's own (eILQR's barriers are not part of it); gradients only where converged
     cost = implicit.masked_cost(problem, out.status == Status.CONVERGED, out.X, out.U, batch.params)
     return dataclasses.replace(out, cost=cost)
+
+
+def _without_autograd(run, kept: bool) -> Solution:
+    """``run()``, a solve that autograd does not record (the method's iterations: a differentiable solve's gradients
+    come after, from its KKT point), under ``torch.inference_mode``: its operators skip autograd's bookkeeping (the
+    same operators on the same data, the same results to the last bit, each call cheaper), and the solution's tensors
+    are returned as normal ones (:func:`~torchtraj.core.solution.without_inference_tensors`), which a caller may
+    change in place or use in a differentiated computation. Inside the caller's own inference mode they stay as made.
+    Not where kernels are ``kept`` across solves: CUDA graphs, whose static buffers are written in place at every
+    replay, and compiled kernels, whose guards tell inference tensors from normal ones (a kernel would be captured
+    again for each kind)."""
+    if kept or torch.is_inference_mode_enabled():
+        return run()
+    with torch.inference_mode():
+        solution = run()
+    return without_inference_tensors(solution)
 
 
 def _certified(solver: Solver, problem: Problem, batch: Batch, opts, solution: Solution) -> Solution:

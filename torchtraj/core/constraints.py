@@ -75,7 +75,10 @@ class Constraints:
         implicit layer and MPC share it instead of reading the bounds again (a host synchronisation each)."""
         cache = problem.__dict__.setdefault("_constraints", {})
         if ignored not in cache:
-            cache[ignored] = cls(problem, ignored)
+            # kept on the problem, so made outside tt.solve's inference mode: a later differentiable solve
+            # may save its tensors for backward
+            with torch.inference_mode(False):
+                cache[ignored] = cls(problem, ignored)
         return cache[ignored]
 
     def __init__(self, problem: Problem, ignored: bool = False):

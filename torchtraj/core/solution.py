@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 from torch import Tensor
@@ -110,3 +111,20 @@ class Solution:
             lines.append(f"  cost {float(cost.min()):.8g}..{float(cost.max()):.8g}")
             lines.append(f"  max violation {float(self.max_violation.detach()[finite].max()):.3g}")
         return "\n".join(lines)
+
+
+def without_inference_tensors(value: Any) -> Any:
+    """``value`` (a :class:`Solution`, :class:`History`, a dict, list or tuple of them, a tensor) with every tensor
+    made under ``torch.inference_mode`` replaced by a copy made outside it, the rest as it is: a copy can be changed
+    in place and saved for backward by autograd, which an inference tensor cannot (``tt.solve`` runs its
+    non-differentiable solves in inference mode and returns such copies)."""
+    if isinstance(value, torch.Tensor):
+        return value.clone() if value.is_inference() else value
+    if isinstance(value, dict):
+        return {k: without_inference_tensors(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(without_inference_tensors(v) for v in value)
+    if isinstance(value, (Solution, History)):
+        return dataclasses.replace(value, **{f.name: without_inference_tensors(getattr(value, f.name))
+                                             for f in dataclasses.fields(value)})
+    return value

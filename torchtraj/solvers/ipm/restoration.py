@@ -97,8 +97,15 @@ def _relaxed_rows(cons: Constraints) -> list:
 def restoration_problem(problem: Problem, cons: Constraints, filter_size: int) -> tuple:
     """The restoration problem of ``problem`` (module docstring) and its :class:`Layout`, made once per problem."""
     cache = problem.__dict__.setdefault("_restoration", {})
-    if filter_size in cache:
-        return cache[filter_size]
+    if filter_size not in cache:
+        # kept on the problem, so made outside tt.solve's inference mode: a later differentiable solve
+        # may save its tensors for backward
+        with torch.inference_mode(False):
+            cache[filter_size] = _restoration_problem(problem, cons, filter_size)
+    return cache[filter_size]
+
+
+def _restoration_problem(problem: Problem, cons: Constraints, filter_size: int) -> tuple:
     nx, nu, N, me, mi = problem.nx, problem.nu, problem.N, cons.me, cons.mi
     relaxed = _relaxed_rows(cons)
     r = len(relaxed)
@@ -156,7 +163,6 @@ def restoration_problem(problem: Problem, cons: Constraints, filter_size: int) -
         u_lower=lower, name=f"{problem.name}_restoration",
         param_shapes={**problem.param_shapes, **{_P[k]: shape for k, shape in own.items()}},
     )
-    cache[filter_size] = (resto, lay)
     return resto, lay
 
 

@@ -96,10 +96,14 @@ def scaled_costs(problem: Problem) -> Problem:
     if cached is not None:
         return cached
     stage_cost, terminal_cost = problem.stage_cost, problem.terminal_cost
+    # kept on the problem, so made outside tt.solve's inference mode: a later differentiable solve
+    # may save its tensors for backward
+    with torch.inference_mode(False):
+        scale = torch.ones((), dtype=problem.dtype, device=problem.device)
     scaled = problem.replace(
         stage_cost=lambda x, u, p: p[SCALE] * stage_cost(x, u, p),
         terminal_cost=lambda x, p: p[SCALE] * terminal_cost(x, p),
-        params={**problem.params, SCALE: torch.ones((), dtype=problem.dtype, device=problem.device)},
+        params={**problem.params, SCALE: scale},
         param_shapes={**problem.param_shapes, SCALE: ()},
         name=f"{problem.name}_scaled",
     )
