@@ -16,9 +16,7 @@ every call that reaches the dispatcher's Python mode key counts once::
 - ATen operators, after the decomposition of the composite ones (``torch.matmul`` of two matrices counts as one
   ``aten.mm``, of a stack of matrices by a matrix as ``aten.view``, ``aten.mm``, ``aten._unsafe_view``): views,
   in-place updates, copies, factories (``torch.zeros``), ``Tensor.item()`` (``aten._local_scalar_dense``) and
-  autograd's backward calls all count. Under ``torch.inference_mode`` (where ``tt.solve`` runs a method's
-  iterations) a composite operator reaches the mode whole, as autograd's dispatch key, which decomposes it
-  elsewhere, is skipped: the counter decomposes it itself, so that a solve counts the same calls in either mode;
+  autograd's backward calls all count;
 - inside ``torch.func`` transforms, the calls left after the transforms' rules have run: an operator under
   ``vmap`` counts once per batched call, however large the batch, and ``jacrev`` counts the calls of its forward
   and of its vector-Jacobian products (all of them batched under an enclosing ``vmap``);
@@ -100,16 +98,8 @@ class OperatorCounter(TorchDispatchMode):
         self._calls: dict = {}
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        if _composite(func):  # reached the mode whole: inference mode (below), counted as its decomposition
-            inner = OperatorCounter()
-            with inner:
-                out = func.decompose(*args, **kwargs)
-            for op, n in inner._calls.items():
-                self._calls[op] = self._calls.get(op, 0) + n
-            return out
         self._calls[func] = self._calls.get(func, 0) + 1
-        return func(*args, **kwargs)
+        return func(*args, **(kwargs or {}))
 
     @property
     def total(self) -> int:
@@ -118,20 +108,6 @@ class OperatorCounter(TorchDispatchMode):
     @property
     def by_name(self) -> collections.Counter:
         return collections.Counter({str(func): n for func, n in self._calls.items()})
-
-
-_COMPOSITE: dict = {}
-
-
-def _composite(func) -> bool:
-    """Whether ``func`` has a composite kernel (``CompositeImplicitAutograd``: ``matmul``, ``reshape``, ``flatten``),
-    which autograd's dispatch key decomposes before the mode sees it, outside inference mode only; remembered per
-    operator."""
-    known = _COMPOSITE.get(func)
-    if known is None:
-        known = _COMPOSITE[func] = torch._C._dispatch_has_kernel_for_dispatch_key(
-            func.name(), torch._C.DispatchKey.CompositeImplicitAutograd)
-    return known
 
 
 @dataclass
