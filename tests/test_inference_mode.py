@@ -140,3 +140,24 @@ def test_mpc_acts_the_same_inside_inference_mode():
 
     for a, b in zip(actions(True), actions(False)):
         assert (a == b).all()
+
+
+def test_a_solve_under_a_dispatch_mode_runs_outside_inference_mode():
+    """A dispatch mode (the operator counter of ``torchtraj.bench.ops``, a trace) sees other calls in inference mode
+    (composite operators whole): under one, a solve runs as it did before, so that counts stay comparable."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Modes(TorchDispatchMode):
+        inference = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Modes.inference += torch.is_inference_mode_enabled()
+            return func(*args, **(kwargs or {}))
+
+    with Modes():
+        sol = tt.solve(pendulum("ipm"), problems.sample_x0("pendulum", 2, seed=0), "ipm")
+    assert bool(sol.converged.all()) and Modes.inference == 0
+    Modes.inference = 0
+    with Modes(), torch.inference_mode():  # the caller's own inference mode is kept
+        tt.solve(pendulum("ipm"), problems.sample_x0("pendulum", 2, seed=0), "ipm")
+    assert Modes.inference > 0

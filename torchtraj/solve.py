@@ -18,6 +18,7 @@ import warnings
 from typing import Optional, Union
 
 import torch
+from torch.utils._python_dispatch import is_in_torch_dispatch_mode
 
 from . import solvers
 from .core.batch import Batch
@@ -128,8 +129,10 @@ def _without_autograd(run, kept: bool) -> Solution:
     change in place or use in a differentiated computation. Inside the caller's own inference mode they stay as made.
     Not where kernels are ``kept`` across solves: CUDA graphs, whose static buffers are written in place at every
     replay, and compiled kernels, whose guards tell inference tensors from normal ones (a kernel would be captured
-    again for each kind)."""
-    if kept or torch.is_inference_mode_enabled():
+    again for each kind). Nor under a dispatch mode (``torchtraj.bench.ops.OperatorCounter``, a trace), which sees
+    other calls in inference mode (composite operators whole, an ``unbind`` replayed by TorchScript as its
+    ``select``s): a count of calls is the same solve's, whichever mode it runs in."""
+    if kept or torch.is_inference_mode_enabled() or is_in_torch_dispatch_mode():
         return run()
     with torch.inference_mode():
         solution = run()
