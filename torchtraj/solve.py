@@ -18,7 +18,7 @@ import warnings
 from typing import Optional, Union
 
 import torch
-from torch.utils._python_dispatch import is_in_torch_dispatch_mode
+from torch.utils import _python_dispatch
 
 from . import solvers
 from .core.batch import Batch
@@ -121,6 +121,11 @@ def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str)
     return dataclasses.replace(out, cost=cost)
 
 
+# whether a dispatch mode is active (torch's private API, looked up softly: without it, a solve under a mode runs in
+# inference mode like any other)
+_IN_DISPATCH_MODE = getattr(_python_dispatch, "is_in_torch_dispatch_mode", lambda: False)
+
+
 def _without_autograd(run, kept: bool) -> Solution:
     """``run()``, a solve that autograd does not record (the method's iterations: a differentiable solve's gradients
     come after, from its KKT point), under ``torch.inference_mode``: its operators skip autograd's bookkeeping (the
@@ -132,7 +137,7 @@ def _without_autograd(run, kept: bool) -> Solution:
     again for each kind). Nor under a dispatch mode (``torchtraj.bench.ops.OperatorCounter``, a trace), which sees
     other calls in inference mode (composite operators whole, an ``unbind`` replayed by TorchScript as its
     ``select``s): a count of calls is the same solve's, whichever mode it runs in."""
-    if kept or torch.is_inference_mode_enabled() or is_in_torch_dispatch_mode():
+    if kept or torch.is_inference_mode_enabled() or _IN_DISPATCH_MODE():
         return run()
     with torch.inference_mode():
         solution = run()
