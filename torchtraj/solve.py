@@ -98,7 +98,8 @@ def solve(
 
 def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str) -> Solution:
     declared = solver.kkt_problem(problem, opts)  # the problem whose KKT point it is, where that is another one
-    kept = graphs_used(opts, batch.x0.device) or solver.kernel_setting(opts, "compile", False)
+    graphed = graphs_used(opts, batch.x0.device)
+    kept = graphed or solver.kernel_setting(opts, "compile", False)
     if not implicit.requires_gradients(batch.x0, batch.params):
         return _without_autograd(lambda: _certified(solver, problem if declared is None else declared, batch, opts,
                                                     solver.solve(problem, batch.for_solver(), opts)), kept)
@@ -112,7 +113,7 @@ def _solve(solver: Solver, problem: Problem, batch: Batch, opts, gradients: str)
     solution = _without_autograd(lambda: _certified(solver, problem if declared is None else declared, batch, opts,
                                                     solver.solve(problem, batch.for_solver(detach=True), opts)), kept)
     out = implicit.attach_gradients(problem if declared is None else declared, batch.x0, batch.params, solution,
-                                    gradients=gradients, cuda_graphs=graphs_used(opts, batch.x0.device),
+                                    gradients=gradients, cuda_graphs=graphed,
                                     constrained=solver.handles_constraints)
     if declared is None:
         return out

@@ -73,13 +73,7 @@ class Constraints:
     def of(cls, problem: Problem, ignored: bool = False) -> "Constraints":
         """The layout of ``problem``'s constraints, made once per problem object and kept on it: every solver, the
         implicit layer and MPC share it instead of reading the bounds again (a host synchronisation each)."""
-        cache = problem.__dict__.setdefault("_constraints", {})
-        if ignored not in cache:
-            # kept on the problem, so made outside tt.solve's inference mode: a later differentiable solve
-            # may save its tensors for backward
-            with torch.inference_mode(False):
-                cache[ignored] = cls(problem, ignored)
-        return cache[ignored]
+        return problem.derived("_constraints", ignored, lambda: cls(problem, ignored))
 
     def __init__(self, problem: Problem, ignored: bool = False):
         self.problem = problem

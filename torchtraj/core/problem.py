@@ -191,6 +191,18 @@ class Problem:
             b is not None and bool(torch.isfinite(b).any()) for b in bounds
         )
 
+    # ------------------------------------------------------------ derived objects
+    def derived(self, store: str, key, make: Callable[[], object]):
+        """``make()``, made once per problem and ``key`` and kept on the problem in the dictionary ``store`` (the
+        solvers' constraint layout, scaled and barrier problems). Made outside ``torch.inference_mode``, where
+        ``tt.solve`` runs a method's iterations: a later differentiable solve of this problem may save its tensors
+        for backward, which it could not save of inference tensors."""
+        kept = self.__dict__.setdefault(store, {})
+        if key not in kept:
+            with torch.inference_mode(False):
+                kept[key] = make()
+        return kept[key]
+
     # ------------------------------------------------------------ transforms
     def replace(self, **changes) -> "Problem":
         """A copy with some fields changed (validated again).

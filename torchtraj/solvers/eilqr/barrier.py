@@ -64,13 +64,8 @@ def soft_problem(problem: Problem, weight: float, delta: float) -> Problem:
 
     The result is a :class:`~torchtraj.Problem` like any other (same parameters, so a differentiable solve's
     gradients reach them), with no inequality and no bound: the problem whose KKT point eILQR returns."""
-    cache = problem.__dict__.setdefault("_soft_problems", {})  # one probe call per problem and barrier
-    if (weight, delta) not in cache:
-        # kept on the problem, so made outside tt.solve's inference mode: a later differentiable solve
-        # may save its tensors for backward
-        with torch.inference_mode(False):
-            cache[(weight, delta)] = _soft_problem(problem, weight, delta)
-    return cache[(weight, delta)]
+    # one probe call per problem and barrier
+    return problem.derived("_soft_problems", (weight, delta), lambda: _soft_problem(problem, weight, delta))
 
 
 def _soft_problem(problem: Problem, weight: float, delta: float) -> Problem:

@@ -96,13 +96,7 @@ def _relaxed_rows(cons: Constraints) -> list:
 
 def restoration_problem(problem: Problem, cons: Constraints, filter_size: int) -> tuple:
     """The restoration problem of ``problem`` (module docstring) and its :class:`Layout`, made once per problem."""
-    cache = problem.__dict__.setdefault("_restoration", {})
-    if filter_size not in cache:
-        # kept on the problem, so made outside tt.solve's inference mode: a later differentiable solve
-        # may save its tensors for backward
-        with torch.inference_mode(False):
-            cache[filter_size] = _restoration_problem(problem, cons, filter_size)
-    return cache[filter_size]
+    return problem.derived("_restoration", filter_size, lambda: _restoration_problem(problem, cons, filter_size))
 
 
 def _restoration_problem(problem: Problem, cons: Constraints, filter_size: int) -> tuple:

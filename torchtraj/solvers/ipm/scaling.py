@@ -92,23 +92,14 @@ def scaled_problem(problem: Problem, batch: Batch, opts: IPOptions) -> tuple:
 def scaled_costs(problem: Problem) -> Problem:
     """``problem`` with its costs multiplied by the parameter ``SCALE`` (one value per instance), made once per
     problem."""
-    cached = problem.__dict__.get("_objective_scaled")
-    if cached is not None:
-        return cached
     stage_cost, terminal_cost = problem.stage_cost, problem.terminal_cost
-    # kept on the problem, so made outside tt.solve's inference mode: a later differentiable solve
-    # may save its tensors for backward
-    with torch.inference_mode(False):
-        scale = torch.ones((), dtype=problem.dtype, device=problem.device)
-    scaled = problem.replace(
+    return problem.derived("_objective_scaled", None, lambda: problem.replace(
         stage_cost=lambda x, u, p: p[SCALE] * stage_cost(x, u, p),
         terminal_cost=lambda x, p: p[SCALE] * terminal_cost(x, p),
-        params={**problem.params, SCALE: scale},
+        params={**problem.params, SCALE: torch.ones((), dtype=problem.dtype, device=problem.device)},
         param_shapes={**problem.param_shapes, SCALE: ()},
         name=f"{problem.name}_scaled",
-    )
-    problem.__dict__["_objective_scaled"] = scaled
-    return scaled
+    ))
 
 
 def unscale(out, history: History, scale: Tensor):
