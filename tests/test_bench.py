@@ -162,12 +162,18 @@ def test_mehrotra_rows_of_the_gradient_benchmark():
     """``--grad --method ipm --barrier mehrotra``: the linear_box rows run the IPM's Mehrotra mode and say so, and
     their gradients agree with central differences; the flag is refused where it would not apply."""
     from torchtraj.bench import grad as bench_grad
+    from torchtraj.solve import default_method
 
     parser = bench_main.parser()
-    for args in (["--barrier", "mehrotra"], ["--grad", "--barrier", "mehrotra"],
+    for args in (["--barrier", "mehrotra"], ["--grad", "--method", "altro", "--barrier", "mehrotra"],
                  ["--grad", "--method", "ipm", "--barrier", "mehrotra", "--compile"]):
         with pytest.raises(SystemExit):
             bench_main._check(parser, parser.parse_args(args))
+    # without --method, --grad runs what tt.solve picks for its constrained problems (the IPM), which takes the flag
+    args = bench_main.parsed(parser, ["--grad", "--barrier", "mehrotra"])
+    bench_main._check(parser, args)
+    assert args.method == default_method(bench_grad.lq_problem(bench_grad.linear_system(0))) == "ipm"
+    assert bench_main.parsed(parser, ["--grad", "--method", "ilqr"]).method == "ilqr"
     lines = []
     rows = bench_grad.run([4], seed=0, method="ipm", say=lambda text="": lines.append(text), with_mpc=False,
                           lq_options=tt.IPOptions(barrier_strategy="mehrotra"))

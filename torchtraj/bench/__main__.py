@@ -50,7 +50,8 @@ def parser() -> argparse.ArgumentParser:
                    help=f"problems to run, from {problems.names()}; default: every problem the method can solve "
                         "(ilqr: those without constraints); the others are listed as skipped, with the reason")
     p.add_argument("--method", default="ilqr", choices=solvers.names(),
-                   help="torchtraj method (default: ilqr; altro with --grad)")
+                   help="torchtraj method (default: ilqr; with --grad, the one tt.solve picks for its constrained "
+                        "problems: ipm)")
     p.add_argument("--batch", nargs="+", type=int, default=[1, 64, 1024], metavar="B",
                    help="batch sizes (default: 1 64 1024; 16 64 256 with --grad)")
     p.add_argument("--seed", type=int, default=0, help="seed of sample_x0 for B > 1 (default: 0)")
@@ -78,7 +79,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--grad", action="store_true",
                    help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
                         "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
-                        "16 64 256 (the pendulum rows use those <= 64) and --method to altro")
+                        "16 64 256 (the pendulum rows use those <= 64) and --method to tt.solve's default for them "
+                        "(ipm)")
     p.add_argument("--gradients", choices=("implicit", "unrolled"), default="implicit",
                    help="with --grad: tt.solve's gradients mode (unrolled: the final iLQR step's derivative, "
                         "approximate where the dynamics or constraints are curved; default: implicit)")
@@ -160,6 +162,23 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error("--device cuda: torch.cuda.is_available() is False")
 
 
+def parsed(p: argparse.ArgumentParser, argv: list) -> argparse.Namespace:
+    """``p``'s arguments of ``argv``, where ``--grad`` names no ``--method`` with the one ``tt.solve`` picks for the
+    gradient benchmark's problems (:func:`torchtraj.bench.grad.default_method`)."""
+    args = p.parse_args(argv)
+    if args.grad and _named_method(argv) is None:
+        from .grad import default_method as grad_default
+        args.method = grad_default()
+    return args
+
+
+def _named_method(argv: list) -> Optional[str]:
+    """The ``--method`` that ``argv`` names (the timing rows' default, ilqr, too), or None where it names none."""
+    probe = parser()
+    probe.set_defaults(method=None)
+    return probe.parse_args(argv).method
+
+
 def _has_option(method: str, name: str) -> bool:
     """Whether ``method``'s options class has the field ``name`` (the flags that set one go with those methods)."""
     return name in {f.name for f in dataclasses.fields(solvers.get(method).options_class)}
@@ -228,7 +247,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         from . import minimum_time
         return minimum_time.main([a for a in argv if a != "--minimum-time"], out)
     p = parser()
-    args = p.parse_args(argv)
+    args = parsed(p, argv)
     if args.compile:
         profile.quiet_inductor()
     _check(p, args)
@@ -243,8 +262,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         torch.set_num_threads(args.threads)
     dtype, device = getattr(torch, args.dtype), torch.device(args.device)
     if args.ops:
-        p.set_defaults(method=None)  # tells an explicit --method (even the timing rows' default, ilqr) from none
-        chosen = p.parse_args(argv).method
+        chosen = _named_method(argv)
         methods = [chosen] if chosen else solvers.names()
         if args.compile:
             counter = compiled_ops
@@ -259,8 +277,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         return 1 if counter.failed(report) else 0
     if args.defaults:
         from . import defaults
-        p.set_defaults(method=None)
-        chosen = p.parse_args(argv).method
+        chosen = _named_method(argv)
         batches = args.batch if args.batch != p.get_default("batch") else [1]
         rows = defaults.run([chosen] if chosen else solvers.names(), args.problems or problems.names(), batches,
                             args.seed, args.reference_instances, say)
@@ -268,8 +285,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     if args.grad:
         from . import grad
         batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]
-        name = args.method if args.method != p.get_default("method") else "altro"
-        pendulum = [b for b in batches if b <= 64] or batches[:1]  # ALTRO's pendulum solves take minutes at 256
+        name = args.method
+        pendulum = [b for b in batches if b <= 64] or batches[:1]  # each FD direction re-solves the batch twice
         defaults = solvers.get(name).options_class
         options = None
         if args.compile:

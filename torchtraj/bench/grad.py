@@ -31,6 +31,7 @@ from typing import Callable, Optional
 import torch
 
 from .. import problems
+from ..solve import default_method as solve_default_method
 from ..solve import solve
 from .grad_linear import (
     FD_STEP,
@@ -64,7 +65,7 @@ __all__ = [
     "FD_STEP", "HORIZON", "NU", "NX", "U_MAX", "linear_system", "lq_problem", "mpc_available", "mpc_pytorch_lq",
     "torchtraj_lq", "ByInstance", "InstanceFD", "Resolved", "constrained_pendulum", "directional", "fd_by_instance",
     "not_minimal", "resolved", "solve_by_instance", "torchtraj_pendulum", "GradRow", "COLUMNS", "format_row",
-    "header", "run",
+    "header", "default_method", "run",
 ]
 
 
@@ -108,6 +109,12 @@ def format_row(row: GradRow) -> str:
 def header() -> str:
     titles = "  ".join(t.rjust(w) if right else t.ljust(w) for t, w, right in COLUMNS).rstrip()
     return titles + "\n" + "-" * len(titles)
+
+
+def default_method() -> str:
+    """The method of ``--grad`` when none is named: the one ``tt.solve`` picks for its problems, which are
+    constrained (:func:`~torchtraj.solve.default_method`; the IPM)."""
+    return solve_default_method(lq_problem(linear_system(0)))
 
 
 def run(batches, seed: int, method: str, say: Callable, dtype=torch.float64, device="cpu",
