@@ -9,8 +9,8 @@ from test_riccati import dense_kkt, random_lqr
 
 import torchtraj as tt
 from torchtraj.bench.ops import OperatorCounter
-from torchtraj.riccati import LQR, LQRVectors, factorize, solve_lqr
-from torchtraj.riccati.parallel import ParallelRiccatiFactor, choose_sweep
+from torchtraj.riccati import LQR, LQRVectors, factorization, factorize, solve_lqr
+from torchtraj.riccati.parallel import ParallelRiccatiFactor, choose_sweep, factorize_parallel
 
 FIELDS = ("dx", "du", "k", "p", "dV1", "dV2", "costate")
 
@@ -164,6 +164,29 @@ def test_an_indefinite_stage_cost_that_the_dynamics_make_convex_takes_the_sequen
         assert torch.equal(getattr(parallel, name)[1], getattr(sequential, name)[1]), name
         assert torch.equal(getattr(parallel, name)[0], getattr(clean, name)[0]), name
     assert torch.equal(b.du[0], clean.solve(rhs, multipliers=True).du[0])
+
+
+def test_an_inertia_test_failed_on_the_sequential_recursion_is_not_repeated(monkeypatch):
+    """Instance 1's negative definite terminal cost makes a ``Q_uu`` indefinite for both sweeps. The scan's value
+    functions meet the sequential sweep's one-stage recursion, so its verdict stands without a sequential sweep
+    (an interior point's inertia correction meets such systems at every rejected shift); the verdicts are the
+    sequential sweep's. A scan whose ``P`` is off the recursion (one stage's scaled) is not settled."""
+    lqr, _ = random_lqr(B=3, N=8, nx=3, nu=2, seed=5)
+    QN = lqr.QN.clone()
+    QN[1] = -50.0 * torch.eye(3, dtype=torch.float64)
+    lqr = dataclasses.replace(lqr, QN=QN)
+    assert factorize(lqr).ok.tolist() == [True, False, True]
+    sweeps = []
+    real = factorization.factorize_stages
+    monkeypatch.setattr(factorization, "factorize_stages", lambda *args: sweeps.append(1) or real(*args))
+    assert factorize(lqr, sweep="parallel").ok.tolist() == [True, False, True] and sweeps == []
+    scan = factorize_parallel(lqr)
+    one = torch.tensor([1])
+    assert scan.settled(one).tolist() == [True]
+    P = scan.time_major["P"].clone()
+    P[3 * 3 + 1] *= 1.5  # time-major (T·B, nx, nx): stage 3 of instance 1
+    off = dataclasses.replace(scan, time_major={**scan.time_major, "P": P})
+    assert off.settled(one).tolist() == [False]
 
 
 def calls(N, sweep):

@@ -90,11 +90,16 @@ def _sequential_where_refused(factor: ParallelRiccatiFactor, lqr: LQR,
     reduced ``Q_uu`` (:mod:`~torchtraj.riccati.parallel`); the sequential sweep asks only the latter, which is
     the inertia test of the Newton system. An instance whose ``R̃`` is indefinite while every ``Q_uu`` is
     positive definite (a nonconvex stage cost that the dynamics make convex) therefore takes the sequential
-    sweep's factor, and the verdict ``ok`` is the sequential sweep's for every instance. Without
-    ``regularization`` both sweeps factorise the same system, so the mixed factor solves it for all instances;
-    each instance's factor depends on its own data only. Costs one host synchronisation (the count of refused
-    instances) a factorisation."""
+    sweep's factor, and the verdict ``ok`` is the sequential sweep's for every instance. An instance whose
+    ``Q_uu`` failed the test where the scan's value functions are the sequential sweep's to round-off
+    (:meth:`~torchtraj.riccati.parallel.ParallelRiccatiFactor.settled`) keeps the verdict without a second
+    factorisation. Without ``regularization`` both sweeps factorise the same system, so the mixed factor solves it
+    for all instances; each instance's factor depends on its own data only. Costs one host synchronisation (the
+    count of refused instances) a factorisation, and one more where some were refused."""
     index = (~factor.ok).nonzero().squeeze(-1)
+    if index.numel() == 0:
+        return factor
+    index = index[~factor.settled(index)]
     if index.numel() == 0:
         return factor
     rows = factorize(lqr.rows(index), shift=None if shift is None else shift[index])

@@ -40,7 +40,10 @@ Differences from the sequential sweep (:func:`~torchtraj.riccati.factorize`):
 - the elements need each stage's (reduced) control Hessian ``R̃`` positive definite, where the sequential sweep
   needs only ``Q_uu``: :func:`factorize_parallel` flags such an instance not ``ok``, and
   :func:`~torchtraj.riccati.factorize` (without ``ρ``) factorises it again by the sequential sweep
-  (:meth:`ParallelRiccatiFactor.with_rows`), so that its verdict is the sequential sweep's;
+  (:meth:`ParallelRiccatiFactor.with_rows`), so that its verdict is the sequential sweep's; so too an instance whose
+  ``Q_uu`` failed the inertia test, unless its value functions meet the sequential sweep's recursion
+  (:meth:`ParallelRiccatiFactor.settled`): an interior point's inertia correction tries shifts that leave the
+  system indefinite, and factorising each again only repeated the verdict;
 - the scan is not backward stable on ill-conditioned stages (an interior point's barrier near convergence): with
   some stages' ``Q`` and ``R`` scaled by 1e10 its value function is 1e-5 from the sequential sweep's, and its steps
   meet the stationarity rows to a relative residual of 1 where the sequential sweep's meet them to 2e-6;
@@ -134,6 +137,8 @@ class ParallelRiccatiFactor(RiccatiFactor):
     ``(N·B, …)``, the layout of the scans."""
 
     time_major: Optional[dict] = None
+    #: ``(B,)``: every stage's ``R̃`` was positive definite, so the scan's elements are those of the instance's stages
+    built: Optional[Tensor] = None
 
     def solve(self, rhs: LQRVectors, multipliers: bool = False, forward: bool = True,
               initial_multiplier: Optional[Tensor] = None) -> LQRSolution:
@@ -191,7 +196,40 @@ class ParallelRiccatiFactor(RiccatiFactor):
         return dataclasses.replace(
             self, K=_batch_first(tm["K"], B), P=_batch_first(tm["P"], B), Quu=_batch_first(tm["Quu"], B),
             Qux=self.Qux.index_copy(0, index, other.Qux), chol=_batch_first(tm["chol"], B),
-            ok=self.ok.index_copy(0, index, other.ok), time_major=tm)
+            ok=self.ok.index_copy(0, index, other.ok), time_major=tm, built=self.built.index_fill(0, index, True))
+
+    def settled(self, index: Tensor) -> Tensor:
+        """``(b,)``: whether the instances ``index``, which this factor flags not ``ok``, fail the sequential sweep's
+        inertia test as well, so that factorising them again (:func:`~torchtraj.riccati.factorize`'s fallback) would
+        only repeat the verdict.
+
+        The test of a stage's ``Q_uu`` is the sequential sweep's; what can differ is the ``P_{k+1}`` it is built
+        from, as the scan is not backward stable on ill-conditioned systems (module docstring). So an instance is
+        settled where the scan built its elements (``built``) and its value functions meet the sequential sweep's
+        one-stage recursion ``P_k = sym(E_kᵀ Ĥ_k E_k)``, ``Ĥ_k = H_k + W_kᵀ P_{k+1} W_k``, ``E_k = [I; K_k]`` with
+        the exact gain ``K_k = −Q_uu⁻¹ Q_ux`` of the (indefinite) stage, to ``1e2 √ε`` of the terms'
+        ``|Ĥ_k| (1 + |K_k|)²`` at every stage: its ``P`` is then one the sequential sweep's rounding could have
+        made, and so is the ``Q_uu`` that failed. Where the scan went wrong (an ill-conditioned system), its ``P``
+        misses the recursion by orders of magnitude and the instance is factorised again (``docs/benchmarks.md``
+        has the interior point's counts on the problem set)."""
+        tm, B = self.time_major, self.ok.shape[0]
+        b, nx = index.numel(), self.lqr.A.shape[-1]
+
+        def rows(a: Tensor) -> Tensor:  # the instances index of a time-major stack (T·B, …), as (T·b, …)
+            return a.unflatten(0, (-1, B)).index_select(1, index).flatten(0, 1)
+
+        W, H, P = rows(tm["W"]), rows(tm["H"]), rows(tm["P"])
+        Hq = torch.baddbmm(H, _mT(W), _mm(P[b:], W))
+        Hu, Qux = _sym(Hq[..., nx:, nx:]), Hq[..., nx:, :nx]
+        if tm["free"] is not None:
+            free = rows(tm["free"])
+            Hu, Qux = Hu * free * _mT(free) + torch.diag_embed((1.0 - free).squeeze(-1)), Qux * free
+        K = -(Qux / Hu if Hu.shape[-1] == 1 else torch.linalg.solve_ex(Hu, Qux)[0])
+        E = torch.cat([torch.eye(nx, dtype=K.dtype, device=K.device).expand(K.shape[0], nx, nx), K], -2)
+        scale = Hq.abs().amax((-2, -1)) * (1.0 + K.abs().amax((-2, -1))) ** 2
+        residual = ((P[:-b] - _sym(_mm(_mT(E), _mm(Hq, E)))).abs().amax((-2, -1)) / scale).unflatten(0, (-1, b))
+        tolerance = 1e2 * torch.finfo(K.dtype).eps ** 0.5
+        return self.built.index_select(0, index) & (residual <= tolerance).all(0)  # NaN: not settled
 
     def _parallel_multipliers(self, rhs: LQRVectors, out: LQRSolution, dx: Tensor, du: Tensor, p: Tensor,
                               Qu: Tensor) -> None:
@@ -280,11 +318,12 @@ def factorize_parallel(lqr: LQR, regularization: Optional[Tensor] = None,
         Qux_free = Qux
     L, info = _cholesky(Hu)
     K = -_factored_solve(Hu, L, info, Qux_free)
-    ok = finite & ((info + info_R) == 0).reshape(N, B).all(0) & all_finite([P.reshape(N + 1, B, -1).transpose(0, 1)])
+    built = (info_R == 0).reshape(N, B).all(0)
+    ok = finite & built & (info == 0).reshape(N, B).all(0) & all_finite([P.reshape(N + 1, B, -1).transpose(0, 1)])
     tm = {"K": K, "P": P, "Quu": Quu, "chol": L, "W": W, "H": H, "free": free,
           "Phi": torch.baddbmm(W[..., :nx], W[..., nx:], K)}
     return ParallelRiccatiFactor(
         lqr=lqr, K=_batch_first(K, B), P=_batch_first(P, B), ok=ok, Quu=_batch_first(Quu, B),
         Qux=_batch_first(Qux, B), chol=_batch_first(L, B), free=None, stage=None, terminal=None,
-        exact=regularization is None, fixed=held, time_major=tm,
+        exact=regularization is None, fixed=held, time_major=tm, built=built,
     )
