@@ -294,7 +294,10 @@ def main(argv: Optional[list] = None) -> int:
             torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
         dist.init_process_group(backend, timeout=datetime.timedelta(seconds=args.timeout))
     try:
-        return run(args)
+        code = run(args)
+        if launched:  # every rank done with its collectives before any tears its group down
+            dist.barrier()
+        return code
     finally:
         if launched and dist.is_initialized():
             dist.destroy_process_group()
