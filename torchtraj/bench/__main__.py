@@ -23,7 +23,7 @@ from ..core.progress import Progress
 from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.base import Solver
-from . import compiled_ops, ops, profile, table
+from . import compiled_ops, grad, ops, profile, table
 from .runs import (
     Row,
     batch_x0,
@@ -50,8 +50,7 @@ def parser() -> argparse.ArgumentParser:
                    help=f"problems to run, from {problems.names()}; default: every problem the method can solve "
                         "(ilqr: those without constraints); the others are listed as skipped, with the reason")
     p.add_argument("--method", default="ilqr", choices=solvers.names(),
-                   help="torchtraj method (default: ilqr; with --grad, the one tt.solve picks for its constrained "
-                        "problems: ipm)")
+                   help="torchtraj method (default: ilqr; with --grad, tt.solve's choice for its problems: ipm)")
     p.add_argument("--batch", nargs="+", type=int, default=[1, 64, 1024], metavar="B",
                    help="batch sizes (default: 1 64 1024; 16 64 256 with --grad)")
     p.add_argument("--seed", type=int, default=0, help="seed of sample_x0 for B > 1 (default: 0)")
@@ -79,8 +78,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--grad", action="store_true",
                    help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
                         "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
-                        "16 64 256 (the pendulum rows use those <= 64) and --method to tt.solve's default for them "
-                        "(ipm)")
+                        "16 64 256 (the pendulum rows use those <= 64) and --method to tt.solve's choice: ipm")
     p.add_argument("--gradients", choices=("implicit", "unrolled"), default="implicit",
                    help="with --grad: tt.solve's gradients mode (unrolled: the final iLQR step's derivative, "
                         "approximate where the dynamics or constraints are curved; default: implicit)")
@@ -167,8 +165,7 @@ def parsed(p: argparse.ArgumentParser, argv: list) -> argparse.Namespace:
     gradient benchmark's problems (:func:`torchtraj.bench.grad.default_method`)."""
     args = p.parse_args(argv)
     if args.grad and _named_method(argv) is None:
-        from .grad import default_method as grad_default
-        args.method = grad_default()
+        args.method = grad.default_method()
     return args
 
 
@@ -283,7 +280,6 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                             args.seed, args.reference_instances, say)
         return 0 if all(r.converged == r.batch for r in rows) else 1
     if args.grad:
-        from . import grad
         batches = args.batch if args.batch != p.get_default("batch") else [16, 64, 256]
         name = args.method
         pendulum = [b for b in batches if b <= 64] or batches[:1]  # each FD direction re-solves the batch twice
