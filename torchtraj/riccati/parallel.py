@@ -223,7 +223,7 @@ class ParallelRiccatiFactor(RiccatiFactor):
         Hu, Qux = _sym(Hq[..., nx:, nx:]), Hq[..., nx:, :nx]
         if tm["free"] is not None:
             free = rows(tm["free"])
-            Hu, Qux = Hu * free * _mT(free) + torch.diag_embed((1.0 - free).squeeze(-1)), Qux * free
+            Hu, Qux = _free_block(Hu, free), Qux * free
         K = -(Qux / Hu if Hu.shape[-1] == 1 else torch.linalg.solve_ex(Hu, Qux)[0])
         E = torch.cat([torch.eye(nx, dtype=K.dtype, device=K.device).expand(K.shape[0], nx, nx), K], -2)
         scale = Hq.abs().amax((-2, -1)) * (1.0 + K.abs().amax((-2, -1))) ** 2
@@ -249,6 +249,12 @@ class ParallelRiccatiFactor(RiccatiFactor):
         out.costate = _batch_first(lam, B)
 
 
+def _free_block(M: Tensor, free: Tensor) -> Tensor:
+    """The control Hessian ``M (…, nu, nu)`` with the held controls (``free (…, nu, 1)`` 0) out of the free ones'
+    system: ``F M F + I − F`` (the held controls' rows and columns the identity's)."""
+    return M * free * _mT(free) + torch.diag_embed((1.0 - free).squeeze(-1))
+
+
 def _stage_elements(W: Tensor, H: Tensor, rho: Optional[Tensor], held: Optional[Tensor]) -> tuple:
     """The stages' elements ``[A_e, C_e, J_e] (N·B, 3, nx, nx)`` with the held controls eliminated, from the
     time-major blocks ``W (N·B, nx, nx+nu)``, ``H (N·B, nx+nu, nx+nu)``, and the ``info (N·B,)`` of the Cholesky
@@ -259,7 +265,7 @@ def _stage_elements(W: Tensor, H: Tensor, rho: Optional[Tensor], held: Optional[
         R = R + rho
     if held is not None:
         free = 1.0 - held
-        R = R * free * _mT(free) + torch.diag_embed(held.squeeze(-1))
+        R = _free_block(R, free)
         S, Bu = S * free, Bu * _mT(free)
     L, info = _cholesky(R)
     Y = _cholesky_solve(torch.cat([S, _mT(Bu)], -1), L)  # R̃⁻¹ [S̃, B̃ᵀ]
@@ -312,7 +318,7 @@ def factorize_parallel(lqr: LQR, regularization: Optional[Tensor] = None,
     Quu, Qux = _sym(Hq[..., nx:, nx:]), Hq[..., nx:, :nx]
     Hu = Quu if rho is None else Quu + rho
     if held is not None:  # the held controls out of the free ones' system (bounds._held_gain)
-        Hu = Hu * free * _mT(free) + torch.diag_embed(held_tm.squeeze(-1))
+        Hu = _free_block(Hu, free)
         Qux_free = Qux * free
     else:
         Qux_free = Qux
