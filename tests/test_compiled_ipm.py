@@ -9,7 +9,7 @@ eager one. ``-m slow``: the same solve compiled by inductor, against eager.
 import shutil
 
 import pytest
-import torch
+from same_solutions import assert_close_solutions
 
 import torchtraj as tt
 from torchtraj.core import compiled
@@ -21,12 +21,6 @@ pytest.importorskip("torch._inductor")
 
 def pendulum():
     return tt.problems.get("pendulum").replace(horizon=30)
-
-
-def assert_same_solution(a: tt.Solution, b: tt.Solution, tol: float):
-    assert torch.equal(a.status, b.status) and torch.equal(a.iterations, b.iterations)
-    for x, y in ((a.X, b.X), (a.U, b.U), (a.cost, b.cost), (a.costate, b.costate)):
-        torch.testing.assert_close(x, y, atol=tol, rtol=0)
 
 
 def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(monkeypatch, dynamo_capture):
@@ -54,7 +48,7 @@ def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(mon
     assert not breaks, breaks
     assert not eager_factorizations, "the corrections' steps should be made in the compiled kernels"
     assert kernels >= 5 and frames == kernels, (frames, kernels)
-    assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-9)
+    assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-9)
 
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores
@@ -66,7 +60,7 @@ def test_compiled_interior_point_matches_eager():
     eager = tt.solve(pendulum(), x0, "ipm")
     assert bool((eager.status == tt.Status.CONVERGED).all())
     # inductor's fused arithmetic rounds otherwise than the library calls; the iterations stay the same
-    assert_same_solution(compiled_solution, eager, tol=1e-7)
+    assert_close_solutions(compiled_solution, eager, tol=1e-7)
 
 
 def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
@@ -81,7 +75,7 @@ def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
         graphs[B] = dynamo_capture["stats"]["unique_graphs"] - before
         # traced, the expansion's derivatives are pullbacks of the mapped functions, not jacrev inside vmap: the
         # same derivatives, rounded otherwise (the states agree to 2e-9 where the tolerance is 1e-8)
-        assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
+        assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
 
 
@@ -101,4 +95,4 @@ def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_cap
     solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
     batches = {s for s in sizes if s is not None}
     assert max(batches) == 8 and 2 <= min(batches) < 8, batches  # never one: B = 1 has graphs of its own
-    assert_same_solution(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
+    assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torchtraj as tt
+from torchtraj import solvers
 
 F64 = torch.float64
 
@@ -209,11 +210,13 @@ def test_mpc_checks_its_method_at_construction():
         mpc(prob.x0)
 
 
-def test_compile_on_a_method_without_compiled_kernels_warns_and_runs_eager():
+def test_compile_on_a_method_without_compiled_kernels_warns_and_runs_eager(monkeypatch):
+    # every shipped method has compiled kernels: HM-iLQR stands for a registered method without them
+    monkeypatch.setattr(type(solvers.get("hm-ilqr")), "compiles", False)
     prob = make(u_lower=-torch.ones(1, dtype=F64), u_upper=torch.ones(1, dtype=F64))
-    with pytest.warns(UserWarning, match="method 'eilqr' has no compiled kernels: compile=True runs it eager"):
-        compiled = tt.solve(prob, method="eilqr", options=tt.EILQROptions(compile=True, iterations=3))
-    eager = tt.solve(prob, method="eilqr", options=tt.EILQROptions(iterations=3))
+    with pytest.warns(UserWarning, match="method 'hm-ilqr' has no compiled kernels: compile=True runs it eager"):
+        compiled = tt.solve(prob, method="hm-ilqr", options=tt.HMILQROptions(compile=True, iterations=3))
+    eager = tt.solve(prob, method="hm-ilqr", options=tt.HMILQROptions(iterations=3))
     assert torch.equal(compiled.U, eager.U) and torch.equal(compiled.status, eager.status)
     with pytest.warns(UserWarning, match="MPC: method 'hm-ilqr' has no compiled kernels"):
         mpc = tt.MPC(prob, "hm-ilqr", 2, compile=True)

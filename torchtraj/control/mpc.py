@@ -104,7 +104,8 @@ class MPC(torch.nn.Module):
         compile: ``torch.compile`` the solver's kernels (sets the options' ``compile``, see
             :mod:`torchtraj.core.compiled`): the first calls for a batch size compile (tens of seconds to minutes),
             and the later steps are faster (``docs/benchmarks.md``, "MPC"). A method without compiled kernels
-            (:attr:`~torchtraj.solvers.base.Solver.compiles`: HM-iLQR, eILQR) warns here and runs eager.
+            (:attr:`~torchtraj.solvers.base.Solver.compiles`: a registered method of one's own) warns here and
+            runs eager.
 
     Call: ``mpc(observations, params=None)`` with observations ``(n_obs,)`` or ``(B, n_obs)``, numpy or torch,
     returns controls ``(nu,)`` or ``(B, nu)`` of the same kind (numpy float64, or a tensor of the observations'

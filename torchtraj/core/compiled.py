@@ -12,6 +12,8 @@ arithmetic, is the time. Compiled by inductor into fused loops, a control step t
   (ALTRO);
 * per ALTRO iteration, the violation, the multiplier update and the objective under the new multipliers
   (:func:`torchtraj.solvers.altro.stages._measures`), and the MPC policy's own multiplier update.
+* the interior point's, eILQR's and HM-iLQR's expansions, Newton steps (or backward passes and solves) and trial
+  points (:mod:`torchtraj.solvers.ipm.kernels`, ``EILQROptions.compile``, ``HMILQROptions.compile``).
 
 The loops over iterations, the masks and the host synchronisations stay in Python, so the solver's logic is the
 same code in both modes and its answers agree to rounding (``tests/test_compiled.py``).

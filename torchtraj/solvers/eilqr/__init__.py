@@ -39,6 +39,7 @@ class EILQR(Solver):
     takes_state_guess = True
     takes_duals = False
     starts_from_shifted_states = True
+    compiles = True
 
     def solve(self, problem: Problem, batch: Batch, options: EILQROptions) -> Solution:
         return solve_eilqr(problem, batch, options, method=self.name)

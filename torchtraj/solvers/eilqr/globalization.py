@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import param_rows
+from ...core.compiled import kernel
 from ...globalization.line_search import Accepted
 from .initial_state import InitialRows
 from .merit import armijo_bound, constraint_values, line_search, merit_at, slope, trial_steps
@@ -106,16 +107,17 @@ def _correction(problem, cons, params, model, it, x0, initial, d, step, alpha, e
     others' are ``step``'s and a merit they do not read). Where ``d`` kept no factorisation (the inertia correction
     mixed them) the corrected system is factorised again, for the instances that need it alone (a fixed start; one
     read of their count by the host): each instance's arithmetic is the same."""
+    corrected_k, merit_k = kernel(corrected_step, opts.compile), kernel(merit_at, opts.compile)
     rows = None if d.factor is not None or initial is not None else need.nonzero().squeeze(-1)
     if rows is None or rows.numel() == need.shape[0]:
-        soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, opts.terminal_rows)
-        return soc, merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights,
-                             opts.record)
+        soc = corrected_k(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, opts.terminal_rows)
+        return soc, merit_k(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights,
+                            opts.record)
     at_rows, it_rows, params_rows = instances(model, rows), instances(it, rows), param_rows(params, rows)
-    soc = corrected_step(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
-                         instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)
-    merit = merit_at(problem, cons, params_rows, it_rows.X + soc.dX, it_rows.U + soc.dU, x0[rows], None, gamma[rows],
-                     instances(weights, rows), opts.record)
+    soc = corrected_k(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
+                      instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)
+    merit = merit_k(problem, cons, params_rows, it_rows.X + soc.dX, it_rows.U + soc.dU, x0[rows], None, gamma[rows],
+                    instances(weights, rows), opts.record)
     return write_direction(step, rows, soc), torch.zeros_like(gamma).index_copy(0, rows, merit)
 
 
@@ -126,6 +128,26 @@ def _through(step: Direction, it: Iterate, alpha: Tensor) -> Direction:
 
     moved = {name: getattr(it, name) + inverse(getattr(step, name) - getattr(it, name)) for name in _MULTIPLIERS}
     return dataclasses.replace(step, dX=inverse(step.dX), dU=inverse(step.dU), **moved)
+
+
+def step_bound(model, d, it, weights, gamma: Tensor, l1: Tensor, tau_min, truncate: bool) -> tuple:
+    """``(α_max, D m)`` ``(B,)``: the fraction to the boundary of ``d`` (1 where ``truncate`` is off) and the merit's
+    directional derivative along the truncated step."""
+    alpha_max = boundary_fraction(model, d, weights.weight, weights.delta, tau_min) if truncate \
+        else torch.ones_like(gamma)
+    return alpha_max, slope(model, truncated(d, it, alpha_max), gamma, l1)
+
+
+def trial_point(problem, cons, params, d, it, alpha, x0, initial, gamma, weights, record):
+    """The truncated step ``α d`` (``alpha (B,)``) and the merit ``(B,)`` at its point."""
+    step = truncated(d, it, alpha)
+    return step, merit_at(problem, cons, params, it.X + step.dX, it.U + step.dU, x0, initial, gamma, weights, record)
+
+
+def chosen_step(passed: Tensor, step: Direction, it: Iterate, alpha: Tensor, chosen: Direction) -> Direction:
+    """The direction whose move by ``alpha (B,)`` is ``step``, for the instances of ``passed (B,)``; ``chosen``
+    elsewhere."""
+    return pick_direction(passed, _through(step, it, alpha), chosen)
 
 
 def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts, weights,
@@ -145,26 +167,25 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
     # with the paper's fixed weight the relaxed barrier is the problem (its rows may end in the quadratic branch):
     # no domain to stay in, and the minimum-time double integrator's fixed-weight solve then ended MAX_REGULARIZATION
     truncate = opts.boundary_fraction is not None and opts.barrier_continuation
-    alpha_max = boundary_fraction(model, d, weights.weight, weights.delta, opts.boundary_fraction) if truncate \
-        else torch.ones_like(merit0)
-    derivative = slope(model, truncated(d, it, alpha_max), gamma, l1)
+    alpha_max, derivative = kernel(step_bound, opts.compile)(model, d, it, weights, gamma, l1, opts.boundary_fraction,
+                                                             truncate)
     steps = trial_steps(opts, merit0)
     corrected_trials = min(opts.second_order_trials, steps.shape[0]) if opts.second_order_correction else 0
     found, alpha, value, chosen = ~pending, torch.zeros_like(merit0), merit0, d
+    trial_k, chosen_k = kernel(trial_point, opts.compile), kernel(chosen_step, opts.compile)
     for a in steps[:corrected_trials]:  # at most two host reads a trial
         waiting = pending & ~found
         if not bool(waiting.any()):
             break
-        step = truncated(d, it, a * alpha_max)
+        step, m = trial_k(problem, cons, params, d, it, a * alpha_max, x0, initial, gamma, weights, opts.record)
         bound = armijo_bound(reference, derivative, a.reshape(1), opts)[:, 0]
-        m = merit_at(problem, cons, params, it.X + step.dX, it.U + step.dU, x0, initial, gamma, weights, opts.record)
         passed = waiting & torch.isfinite(m) & (m <= bound)
         if bool((waiting & ~passed).any()):
             soc, ms = _correction(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps, gamma,
                                   weights, waiting & ~passed, opts)
             taken = waiting & ~passed & soc.ok & torch.isfinite(ms) & (ms <= bound)
             step, m, passed = pick_direction(taken, soc, step), torch.where(taken, ms, m), passed | taken
-        chosen = pick_direction(passed, _through(step, it, torch.full_like(merit0, float(a))), chosen)
+        chosen = chosen_k(passed, step, it, torch.full_like(merit0, float(a)), chosen)
         found, alpha, value = found | passed, torch.where(passed, a, alpha), torch.where(passed, m, value)
     refused = pending & ~found
     if steps.shape[0] > corrected_trials and bool(refused.any()):  # the shorter steps plain, in batched rounds

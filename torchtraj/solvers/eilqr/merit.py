@@ -49,6 +49,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import map_stage, map_state, param_rows, rows_of
+from ...core.compiled import kernel
 from ...core.constraints import Constraints
 from ...core.one_pass import problem_values
 from ...core.problem import Problem
@@ -181,7 +182,7 @@ def line_search(problem: Problem, cons: Constraints, params, X: Tensor, U: Tenso
         X_, U_, dX, dU, params_, x0_, gamma_, weights_, merit0_, derivative_ = at
         Xa = X_.unsqueeze(1) + a * dX.unsqueeze(1)
         Ua = U_.unsqueeze(1) + a * dU.unsqueeze(1)
-        m = merit_at(problem, cons, params_, Xa, Ua, x0_, initial, gamma_, weights_, opts.record)
+        m = kernel(merit_at, opts.compile)(problem, cons, params_, Xa, Ua, x0_, initial, gamma_, weights_, opts.record)
         accept = torch.isfinite(m) & (m <= armijo_bound(merit0_, derivative_, alphas, opts))
         if not opts.globalization:
             accept = torch.ones_like(accept)

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import rows_of
+from ...core.compiled import kernel
 from ...globalization.regularization import corrected_attempts
 from ...kkt.newton import held_lqr, newton_rhs, newton_step
 from ...riccati import RiccatiFactor, all_finite
@@ -86,6 +87,19 @@ def direction(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
     return _completed(ns.factor, rhs, ns.step, model, it)
 
 
+def _direction_alone(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
+                     terminal_rows: str = "back-propagation") -> Direction:
+    """:func:`direction` without its factorisation (a compiled kernel hands back tensors only): a second-order
+    correction then factorises its system again (the same ``ε``, the same arithmetic)."""
+    return dataclasses.replace(direction(model, it, x0, eps, terminal_rows), factor=None)
+
+
+def compiled_direction(enabled: bool) -> Callable[..., Direction]:
+    """:func:`direction`, or (``enabled``, ``EILQROptions.compile``) its compiled kernel, which keeps no
+    factorisation (:func:`_direction_alone`)."""
+    return kernel(_direction_alone, True) if enabled else direction
+
+
 def resolve(d: Direction, model: Model, it: Iterate, x0: Tensor) -> Direction:
     """The step of ``d``'s factorised system for the right-hand side of ``model`` (other constraint values: the
     second-order correction), one vector solve; ``d.factor`` must be kept (:func:`regularized_direction`)."""
@@ -113,10 +127,13 @@ def _completed(factor, rhs, step, model: Model, it: Iterate) -> Direction:
                      ok=ok, factor=factor)
 
 
+#: the fields of a :class:`Direction` that hold its instances' values (not the shared factorisation)
+_PER_INSTANCE = tuple(f.name for f in dataclasses.fields(Direction) if f.name != "factor")
+
+
 def pick_direction(mask: Tensor, new: Direction, old: Direction) -> Direction:
     """``new`` for the instances of ``mask (B,)``, ``old`` elsewhere (no single factorisation is left)."""
-    return Direction(**{f.name: select_gains(mask, getattr(new, f.name), getattr(old, f.name))
-                        for f in dataclasses.fields(Direction) if f.name != "factor"})
+    return Direction(**{name: select_gains(mask, getattr(new, name), getattr(old, name)) for name in _PER_INSTANCE})
 
 
 def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last: Tensor, running: Tensor,
@@ -134,8 +151,7 @@ def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last
 def write_direction(step: Direction, rows: Tensor, new: Direction) -> Direction:
     """``step`` with the instances ``rows (R,)`` replaced by ``new``'s (a direction of those instances alone; no
     single factorisation is left)."""
-    return Direction(**{f.name: getattr(step, f.name).index_copy(0, rows, getattr(new, f.name))
-                        for f in dataclasses.fields(Direction) if f.name != "factor"})
+    return Direction(**{name: getattr(step, name).index_copy(0, rows, getattr(new, name)) for name in _PER_INSTANCE})
 
 
 def instances(value, rows: Tensor):

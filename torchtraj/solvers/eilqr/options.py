@@ -133,7 +133,12 @@ class EILQROptions:
             guess: from the rollout (its own ``x0`` inside the walls) 300 iterations, ``MAX_ITERATIONS``; from its
             ``X_init`` IPOPT's optimum in 219. A control step never takes it (:meth:`EILQR.step_options`).
         max_state: ``|x|`` above which an instance is ``DIVERGED``.
-        compile: accepted for the control-step interface; eILQR has no compiled kernels and runs eagerly.
+        compile: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.core.compiled`): the expansion, the
+            Newton step, the step's bound and slope, the trial points and their merit, the second-order correction's
+            step, the choice of a step, the move and the initial rollout (the loop, its masks and the
+            regularisation's attempts stay eager, as in the other methods). The first solve of a problem compiles
+            them (minutes on a CPU); a compiled step keeps no factorisation, so a correction factorises its system
+            again.
         record: replay the expansion from its operator graph recorded once per batch size
             (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a fraction
             of a second per shape. ``None`` (default): a shape is recorded once it has been evaluated about as often

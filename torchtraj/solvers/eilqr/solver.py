@@ -44,6 +44,7 @@ import torch
 
 from ...core.batch import Batch
 from ...core.batching import rollout
+from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks
 from ...core.masks import where_rows
 from ...core.problem import Problem
@@ -57,7 +58,7 @@ from .globalization import globalized_step
 from .initial_state import InitialState
 from .merit import MeritMemory, model_infeasibility, penalty
 from .model import Iterate, expand, with_weight
-from .newton import direction, empty_multipliers, instances, multiplier_size, regularized_direction
+from .newton import compiled_direction, empty_multipliers, instances, multiplier_size, regularized_direction
 from .options import EILQROptions
 
 logger = logging.getLogger("torchtraj")
@@ -119,8 +120,9 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     unresolved = torch.zeros(B, dtype=torch.bool, device=x0.device)
     rows = []
     memory = MeritMemory.empty(B, opts.nonmonotone_memory, x0)
+    expand_k, direction_k = kernel(expand, opts.compile), compiled_direction(opts.compile)
     for step in range(opts.iterations + 1):
-        model = expand(problem, cons, params, it, x0, initial, weights, opts.record)
+        model = expand_k(problem, cons, params, it, x0, initial, weights, opts.record)
         it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
         running = status == Status.RUNNING
         status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
@@ -147,8 +149,8 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
             break
         def attempt(e, rows=None):  # `rows`: the instances of a correction alone
             if rows is None:
-                return direction(model, it, x0, e, opts.terminal_rows)
-            return direction(instances(model, rows), instances(it, rows), x0[rows], e[rows], opts.terminal_rows)
+                return direction_k(model, it, x0, e, opts.terminal_rows)
+            return direction_k(instances(model, rows), instances(it, rows), x0[rows], e[rows], opts.terminal_rows)
 
         d, eps = regularized_direction(attempt, floor, last, running, opts, regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
@@ -160,7 +162,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         # a full step below the dtype's resolution of the iterate: it cannot move any further in this dtype
         unresolved = take & (ls.alpha == 1.0) & (_largest(d.dX, d.dU) <= RESOLVED * torch.finfo(x0.dtype).eps
                                                    * (1 + _largest(it.X, it.U)))
-        it = _step(it, d, ls.alpha, take)
+        it = kernel(_step, opts.compile)(it, d, ls.alpha, take)
         K = select_gains(take, d.K, K)  # formed for the solution (range-space rows: once, at the end)
         last = torch.where(take & (eps > 0), eps, last)
         # Fig. 5's adaptive ε_reg: a step the merit refuses or cuts short asks for more regularisation (a shorter,
@@ -198,7 +200,9 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
 def start_states(problem: Problem, batch: Batch, opts: EILQROptions) -> torch.Tensor:
     """The states ``(B, N+1, nx)`` a solve starts from: :func:`state_guess`, else the rollout of ``U0``."""
     guess = state_guess(problem, batch, opts)
-    return rollout(problem.dynamics, batch.x0, batch.U0, batch.params) if guess is None else guess
+    if guess is not None:
+        return guess
+    return kernel(rollout, opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
 
 
 def state_guess(problem: Problem, batch: Batch, opts: EILQROptions) -> Optional[torch.Tensor]:

@@ -31,6 +31,7 @@ class HMILQR(Solver):
     records = True
     takes_state_guess = True
     takes_duals = False
+    compiles = True
     starts_from_shifted_states = True
 
     def solve(self, problem: Problem, batch: Batch, options: HMILQROptions) -> Solution:

@@ -54,18 +54,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...core.batching import map_stage, param_rows, rows_of
+from ...core.batching import param_rows, rows_of
+from ...core.compiled import kernel
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
 from ...riccati import factorize
-from ...riccati.range_space import feedforward_of
-from .multipliers import stepped_multipliers, with_multipliers
 from .objective import HybridObjective
-from .shooting import expected_change, merit_weight, model_change, rollout_segments, stationarity
-
-#: Changes of the merit below this many rounding errors of its value are not resolved (Wächter & Biegler 2006,
-#: §3.9: IPOPT relaxes its Armijo test by ``10 ε_mach |φ|``).
-ROUNDING = 10.0
+from .trials import corrected_step, ratio_test, round_model, start_residual
 
 
 @dataclass
@@ -107,8 +102,18 @@ def factorized(lqr, mu_V: Tensor, terminal_rows: str):
     return factorize(regularized(lqr, mu_V), terminal_rows=terminal_rows)
 
 
+def _solve_rhs(factor, rhs, multipliers: bool):
+    return factor.solve(rhs, multipliers=multipliers)
+
+
+def solved(factor, rhs, multipliers: bool, compile: bool):
+    """``factor.solve(rhs, multipliers)`` (a :class:`~torchtraj.riccati.RiccatiFactor` or a range-space one),
+    compiled where ``compile`` (``HMILQROptions.compile``)."""
+    return kernel(_solve_rhs, compile)(factor, rhs, multipliers)
+
+
 def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, terminal_rows: str,
-                   shifts: tuple = ()) -> tuple:
+                   shifts: tuple = (), compile: bool = False) -> tuple:
     """``lqr`` with the stage Hessians' ``curvature (B, N, nz, nz)`` added where ``curved (B,)``: as it is where the
     backward pass at ``mu_V (B,)`` succeeds with it; elsewhere with the stage Hessians shifted by ``δ I``, the
     smallest ``δ = s δ*`` for ``s`` in ``shifts`` (increasing) with which it succeeds, ``δ*`` the largest negative
@@ -121,7 +126,8 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, termina
     full = dataclasses.replace(lqr, Q=lqr.Q + curvature[..., :nx, :nx], R=lqr.R + curvature[..., nx:, nx:],
                                S=lqr.S + curvature[..., nx:, :nx])
     tried = _taking(lqr, full, curved)
-    factor = factorized(tried, mu_V, terminal_rows)
+    factorize_k = kernel(factorized, compile)
+    factor = factorize_k(tried, mu_V, terminal_rows)
     use = curved & factor.ok
     if not bool((curved & ~use).any()):  # a host synchronisation; every curved instance took its curvature
         return tried, use, factor
@@ -134,7 +140,7 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, termina
                 break
             candidate = torch.where(pending, s * worst.clamp_min(0), shift)
             tried = _taking(lqr, shifted(full, candidate), use | pending)
-            factor = factorized(tried, mu_V, terminal_rows)
+            factor = factorize_k(tried, mu_V, terminal_rows)
             ok = pending & factor.ok
             shift = torch.where(ok, candidate, shift)
             use = use | ok
@@ -180,26 +186,27 @@ def iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, rows, mu
     K = lqr.A.new_zeros(B, *lqr.B.shape[1:2], lqr.B.shape[-1], lqr.A.shape[-1])
     whole = _Instances(problem, objective, params, segments, X, U, J, D, lqr, rhs, weight_floor, curved)
     per_round = max(1, min(len(steps), 8192 // max(B, 1)))  # step sizes simulated together, as iLQR's search
+    factorize_k = kernel(factorized, opts.compile)
     for r in range(rounds):
         pending = active & ~accepted.found & ~stationary & (retry | ~searched)
         if not bool(pending.any()):  # the round's host synchronisation
             break
         index = None if r == 0 else _pending_rows(pending)
         if index is None:  # the whole batch
-            factor = factor if r == 0 and factor is not None else factorized(lqr, mu_V, opts.terminal_rows)
-            sol = factor.solve(rhs, multipliers=r == 0)
+            factor = factor if r == 0 and factor is not None else factorize_k(lqr, mu_V, opts.terminal_rows)
+            sol = solved(factor, rhs, r == 0, opts.compile)
             if r == 0:  # the KKT residual at the start point, with the multipliers of the first (least regularised)
                 # step
-                z, zN = stepped_multipliers(rows, sol.dx, sol.du, objective.params.rlb)
-                residual = stationarity(lqr, with_multipliers(rhs, rows, X.shape[-1], z, zN), sol.nu, sol.nuN)
+                residual = kernel(start_residual, opts.compile)(lqr, rhs, rows, sol, objective.params.rlb)
                 nu, nuN = sol.nu, sol.nuN
             out = _search_round(whole, factor, sol, pending, accepted, steps, per_round, opts)
         else:  # the pending instances alone, written into a round of the whole batch (the others not searched)
             sub = whole.rows(index)
-            sub_factor = factorized(sub.lqr, mu_V[index], opts.terminal_rows)
+            sub_factor = factorize_k(sub.lqr, mu_V[index], opts.terminal_rows)
             sub_accepted = Accepted(found=accepted.found[index], alpha=accepted.alpha[index],
                                     values=tuple(v[index] for v in accepted.values))
-            out = _search_round(sub, sub_factor, sub_factor.solve(sub.rhs), torch.ones_like(index, dtype=torch.bool),
+            out = _search_round(sub, sub_factor, solved(sub_factor, sub.rhs, False, opts.compile),
+                                torch.ones_like(index, dtype=torch.bool),
                                 sub_accepted, steps, per_round, opts)
             out = out.on_batch(index, _Round(ok=zero, full=decrease, still=zero, search=zero, K=K, weight=used,
                                              step=Accepted(found=zero, alpha=accepted.alpha, values=accepted.values)))
@@ -283,76 +290,40 @@ def _search_round(at: _Instances, factor, sol, pending: Tensor, accepted: Accept
                   opts) -> _Round:
     """One round of :func:`iterate` on the instances ``at``: the step ``sol`` of ``factor``, its merit, and the line
     search of the ``pending`` instances from ``accepted``, ``per_round`` step sizes a batched rollout."""
-    X, U, J, D, objective, params, segments, curved = (at.X, at.U, at.J, at.D, at.objective, at.params, at.segments,
-                                                       at.curved)
-    starts = segments.starts
-    dV1, dV2 = model_change(at.lqr, at.rhs, sol.dx, sol.du)
-    weight = merit_weight(dV1, dV2, D, opts.defect_weight)
-    if at.weight_floor is not None:  # never below the weight of an earlier iteration (no cycling between merits)
-        weight = torch.maximum(weight, at.weight_floor)
-    merit = J + weight * D
-    rounding = ROUNDING * torch.finfo(J.dtype).eps * merit.abs()
-    ok = factor.ok & torch.isfinite(dV1) & torch.isfinite(dV2)
-    full = -expected_change(steps[:1], dV1, dV2, D, weight)[:, 0]
+    dV1, dV2, weight, merit, rounding, ok, full, K = kernel(round_model, opts.compile)(
+        at.lqr, at.rhs, factor, sol, at.J, at.D, at.weight_floor, steps[:1], opts)
     still = ok & (full < opts.expected_decrease_tolerance)
     search = pending & ok
+    ratio_test_k = kernel(ratio_test, opts.compile)
 
-    def ratio_test(alphas, sol=sol):
-        a = alphas.reshape(1, -1, 1, 1)
-        nodes = X[:, starts].unsqueeze(1) + a * sol.dx[:, starts].unsqueeze(1)
-        nodes[:, :, 0] = X[:, 0].unsqueeze(1)
-        ff = a * feedforward_of(factor, sol).unsqueeze(1)
-        Xc, Uc, Dc = rollout_segments(at.problem.dynamics, params, nodes, U, segments, X, factor.K, ff,
-                                      objective.record)
-        Dc = Dc + objective.equality_residual(Xc, Uc, params)
-        Jc = objective.value(Xc, Uc, params)
-        expected = expected_change(alphas, dV1, dV2, D, weight)
-        change = Jc + weight.unsqueeze(1) * Dc - merit.unsqueeze(1)
-        ratio = change / expected
-        bounded = (Xc.abs().flatten(2).amax(-1) < opts.max_state) & (Jc < opts.max_cost)
-        # a change the merit cannot resolve (module docstring, "Round-off") is accepted as the model says
-        unresolved = rounding.unsqueeze(1)
-        below = (-expected <= unresolved) & (change <= unresolved)
-        accept = (torch.isfinite(Jc) & torch.isfinite(Dc) & bounded & (expected < 0)
-                  & (((ratio > opts.line_search_lower) & (ratio < opts.line_search_upper)) | below))
-        if curved is not None:  # a Newton model's step is shortened only so far, then regularised
-            accept = accept & (~curved.unsqueeze(1) | (alphas >= opts.curvature_step_min).unsqueeze(0))
-        return accept, (Xc, Uc, Jc, Dc)
+    def test(alphas, sol=sol):
+        return ratio_test_k(at.problem, at.objective, at.params, at.segments, at.X, at.U, factor, sol, alphas, dV1,
+                            dV2, at.D, weight, merit, rounding, at.curved, opts)
 
     start = Accepted(found=accepted.found | ~search, alpha=accepted.alpha, values=accepted.values)
     if opts.second_order_correction:
-        start = full_step_or_correction(at.problem, objective, params, segments, at.rhs, factor, sol, ratio_test,
-                                        steps[:1], search, start)
+        start = full_step_or_correction(at.problem, at.objective, at.params, at.segments, at.rhs, factor, sol, test,
+                                        steps[:1], search, start, opts.compile)
         # a round only where an instance still searches (one host read): after an accepted full step or correction
         # the first round's candidates would be simulated to be thrown away
-        step = backtrack(steps[1:], per_round, ratio_test, search, start, sync_first=True)
+        step = backtrack(steps[1:], per_round, test, search, start, sync_first=True)
     else:
-        step = backtrack(steps, per_round, ratio_test, search, start)
-    return _Round(ok=ok, full=full, still=still, search=search, K=factor.K, weight=weight, step=step)
+        step = backtrack(steps, per_round, test, search, start)
+    return _Round(ok=ok, full=full, still=still, search=search, K=K, weight=weight, step=step)
 
 
-def full_step_or_correction(problem, objective, params, segments, rhs, factor, sol, ratio_test, one, search,
-                            start: Accepted) -> Accepted:
+def full_step_or_correction(problem, objective, params, segments, rhs, factor, sol, test, one, search,
+                            start: Accepted, compile: bool = False) -> Accepted:
     """The full step ``α = 1`` where the ratio test accepts it, else its second-order correction where that is
     accepted (module docstring, "Second-order correction"); ``start`` elsewhere. ``one`` is ``α = 1`` as ``(1,)``."""
-    accept, values = ratio_test(one)
+    accept, values = test(one)
     full = accept[:, 0] & search & ~start.found
     if not bool((search & ~start.found & ~full).any()):  # no correction needed (one host read)
         return Accepted(found=start.found | full, alpha=torch.where(full, torch.ones_like(start.alpha), start.alpha),
                         values=tuple(where_rows(full, a[:, 0], c) for a, c in zip(values, start.values)))
     Xc, Uc = values[0][:, 0], values[1][:, 0]
-    # the trial point's own defects and held rows, C(w + p), added to C(w): the same factor solves for p + q
-    k = segments.starts[1:] - 1
-    d = torch.zeros_like(rhs.c)
-    if k.numel():
-        d[:, k] = map_stage(problem.dynamics, Xc[:, k], Uc[:, k], params) - Xc[:, k + 1]
-    corrected = dataclasses.replace(rhs, c=rhs.c + d)
-    held = objective.params.rlb.to(Xc.dtype)
-    if objective.me:
-        corrected.e = rhs.e + objective.stage_eq(Xc, Uc, params) * held.reshape(-1, 1, 1)
-    if objective.meN:
-        corrected.eN = rhs.eN + objective.terminal_eq(Xc, params) * held.reshape(-1, 1)
-    soc_accept, soc_values = ratio_test(one, sol=factor.solve(corrected))
+    sol_c = kernel(corrected_step, compile)(problem, objective, params, segments, rhs, factor, Xc, Uc)
+    soc_accept, soc_values = test(one, sol=sol_c)
     soc = soc_accept[:, 0] & search & ~start.found & ~full
     take = full | soc
     values = tuple(where_rows(full, a[:, 0], where_rows(soc, b[:, 0], c))

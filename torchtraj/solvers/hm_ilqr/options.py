@@ -172,7 +172,9 @@ class HMILQROptions:
     #: Divergence limits on the objective and on |x|.
     max_cost: float = 1e8
     max_state: float = 1e8
-    #: Accepted for the control-step interface; HM-iLQR has no compiled kernels.
+    #: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.core.compiled`): the expansion, the dynamics'
+    #: curvature, the backward pass, the solve of each right-hand side and the line search's batched rollouts (the
+    #: loop, CRLS's rounds and the masks stay eager). The first solve of a problem compiles them (minutes on a CPU).
     compile: bool = False
     #: Replay the expansions (the model's and the dynamics' curvature) and the rollouts' steps from their operator
     #: graphs recorded once per batch size (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper

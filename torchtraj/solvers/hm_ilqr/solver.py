@@ -46,6 +46,7 @@ from torch import Tensor
 
 from ...core.batch import Batch
 from ...core.batching import recorded_map_stage, rollout
+from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks
 from ...core.masks import RowPicker
 from ...core.problem import Problem
@@ -121,12 +122,14 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     stationarity = torch.zeros_like(mu_V)  # the last running iterate's: a stopped instance's history repeats it
     nu = nuN = None
     flat = torch.zeros(B, dtype=torch.bool, device=x0.device)
+    expand_k, measures_k = kernel(HybridObjective.expand, opts.compile), kernel(_measures, opts.compile)
+    curvature_k = kernel(HybridObjective.dynamics_curvature, opts.compile)
     for it in range(opts.iterations):
         active = status == Status.RUNNING
         if not bool(active.any()):  # the iteration's host synchronisation
             break
         s = objective.params
-        lqr, rhs, f, ineq = objective.expand(X, U, params)
+        lqr, rhs, f, ineq = expand_k(objective, X, U, params)
         rhs.c = defects(f, X, segments)
         crls = s.rlb & opts.crls
         start_mu_V = torch.where(crls, torch.full_like(mu_V, opts.regularization_initial), mu_V)
@@ -134,8 +137,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         factor = None
         if opts.dynamics_curvature and bool(curved.any()):  # the iteration's second host synchronisation
             lqr, curved, factor = with_curvature(
-                lqr, objective.dynamics_curvature(lqr, rhs, X, U, params, curved, nu, nuN), curved, start_mu_V,
-                opts.terminal_rows, opts.curvature_shifts)
+                lqr, curvature_k(objective, lqr, rhs, X, U, params, curved, nu, nuN), curved, start_mu_V,
+                opts.terminal_rows, opts.curvature_shifts, opts.compile)
         else:
             curved = torch.zeros_like(curved)
         t = iterate(problem, objective, params, segments, X, U, J, D, lqr, rhs, ineq, start_mu_V, active, crls, opts,
@@ -166,9 +169,8 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         plain = torch.where(t.took | t.stationary, (mu_V / opts.regularization_increase).clamp_min(
             opts.regularization_initial), (mu_V * opts.regularization_increase).clamp_max(opts.regularization_max))
         mu_V = torch.where(active, torch.where(crls, t.mu_V, plain), mu_V)
-        point = objective.point(X, U, params)  # the iterate's objective and rows, read by everything below
-        rows_violation = constraints.max_violation_of(point.h, point.g, point.hN, point.gN)
-        violation = torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments, opts.record))
+        # the iterate's objective and rows, read by everything below
+        point, rows_violation, violation = measures_k(objective, constraints, problem, segments, X, U, params)
         moved = t.took | t.stationary
         # the exit tests of an RLB instance, before its parameters move (its multipliers are those of this ψ): the
         # stationarity residual at the start point (above), or no step left, or the paper's ε_v
@@ -225,6 +227,16 @@ def _finite(new, old, active):
         old = torch.zeros_like(new)
     keep = active.reshape(-1, *([1] * (new.dim() - 1))) & torch.isfinite(new)
     return torch.where(keep, new, old)
+
+
+def _measures(objective: HybridObjective, constraints: Constraints, problem: Problem, segments: Segments, X: Tensor,
+              U: Tensor, params) -> tuple:
+    """``(point, rows_violation, violation)`` at ``(X, U)``: the objective's values and rows
+    (:meth:`HybridObjective.point`), the largest violation of the rows ``(B,)`` and with the defects at the nodes."""
+    point = objective.point(X, U, params)
+    rows_violation = constraints.max_violation_of(point.h, point.g, point.hN, point.gN)
+    return point, rows_violation, torch.maximum(rows_violation, _max_defect(X, U, problem, params, segments,
+                                                                            objective.record))
 
 
 def _max_defect(X, U, problem, params, segments, record) -> Tensor:

@@ -1,0 +1,63 @@
+"""eILQR's compiled kernels (``EILQROptions(compile=True)``, torchtraj.core.compiled).
+
+Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve (the expansion, the
+Newton step, the step's bound and slope, the trial points and their merit, the second-order correction's step, the
+choice of a step, the move, the initial rollout) is one graph with no break, and the solve is the eager one.
+``-m slow``: a later batch size captures none of them again, and the solve compiled by inductor against eager.
+"""
+
+import shutil
+
+import pytest
+from same_solutions import assert_close_solutions
+
+import torchtraj as tt
+from torchtraj.core import compiled
+from torchtraj.core.batching import rollout
+from torchtraj.solvers.eilqr import globalization, merit, model, newton, solver
+
+pytest.importorskip("torch._inductor")
+
+
+def pendulum():
+    return tt.problems.get("pendulum").replace(horizon=30)
+
+
+def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
+    x0 = tt.problems.sample_x0("pendulum", 2, seed=2)
+    solution = tt.solve(pendulum(), x0, "eilqr", options=tt.EILQROptions(compile=True))
+    frames, graphs = dynamo_capture["frames"]["total"], dynamo_capture["stats"]["unique_graphs"]
+    assert not dict(dynamo_capture["graph_break"]), dict(dynamo_capture["graph_break"])
+    kernels = set(compiled._KERNELS)
+    assert {model.expand, newton._direction_alone, merit.merit_at, globalization.corrected_step, rollout,
+            globalization.step_bound, globalization.trial_point, globalization.chosen_step,
+            solver._step} == kernels, kernels  # the corrections ran in their kernel, not eager
+    assert frames == graphs >= len(kernels), (frames, graphs)
+    assert bool((solution.status == tt.Status.CONVERGED).all())
+    assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
+
+
+@pytest.mark.slow  # two batch sizes captured, a minute; the default run keeps the test above
+def test_a_later_batch_size_captures_no_kernel_again(dynamo_capture):
+    """The batch dimension is dynamic in every kernel: after a batch of 3 (whose corrections and attempts on a
+    subset of the instances see subsets of one and of two), a batch of 4 captures no graph, with the eager answers."""
+    graphs = {}
+    for B in (3, 4):
+        x0 = tt.problems.sample_x0("pendulum", B, seed=B)
+        before = dynamo_capture["stats"]["unique_graphs"]
+        solution = tt.solve(pendulum(), x0, "eilqr", options=tt.EILQROptions(compile=True))
+        graphs[B] = dynamo_capture["stats"]["unique_graphs"] - before
+        assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
+    assert graphs[3] >= 5 and graphs[4] == 0, graphs
+
+
+@pytest.mark.slow  # compiling the kernels takes minutes on two cores
+@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
+                    reason="torch.compile's CPU backend needs a C++ compiler")
+def test_compiled_eilqr_matches_eager():
+    x0 = tt.problems.sample_x0("pendulum", 2, seed=2)
+    compiled_solution = tt.solve(pendulum(), x0, "eilqr", options=tt.EILQROptions(compile=True))
+    eager = tt.solve(pendulum(), x0, "eilqr")
+    assert bool((eager.status == tt.Status.CONVERGED).all())
+    # inductor's fused arithmetic rounds otherwise than the library calls; the iterations stay the same
+    assert_close_solutions(compiled_solution, eager, tol=1e-7, costate_rtol=1e-7)
