@@ -240,3 +240,19 @@ def test_bench_scale_out_rows_and_speed_up(monkeypatch):
     lines = out.getvalue().splitlines()
     assert "B = 16" in lines[0]
     assert lines[-1].split()[:4] == ["2", "4.00", "4.00", "2.00"]  # processes, wall s, inst/s, speed-up
+    # --fatrop K: FATROP's median time per instance first (replaced here by a fixed 10 ms), then each row's wall time
+    # per instance as a multiple of it: 8 s / 16 instances = 500 ms, 50 times FATROP's; 25 times on two processes
+    seen = []
+
+    def fatrop(args):
+        seen.append(args.fatrop)
+        return 10.0, "FATROP: 10 ms"
+
+    monkeypatch.setattr(scale_out, "fatrop_time", fatrop)
+    out = io.StringIO()
+    assert bench.main(["--scale-out", "--batch", "16", "--processes", "1", "2", "--fatrop", "4"], out) == 0
+    lines = out.getvalue().splitlines()
+    assert seen == [4] and lines[1] == "FATROP: 10 ms" and "x FATROP" in lines[2]
+    assert [line.split()[8] for line in lines[-2:]] == ["50.00", "25.00"]
+    with pytest.raises(SystemExit):  # FATROP solves the problem set's own horizon
+        bench.main(["--scale-out", "--fatrop", "4", "--horizon", "20"], io.StringIO())

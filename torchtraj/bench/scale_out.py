@@ -8,7 +8,10 @@ is the row's wall time and ``B / wall`` its throughput in instances per second. 
 do not share warm caches. The header states the CPUs this process may use, each row the load average before and
 after it: processes only add throughput where cores are free. So each row also gives the largest CPU time a rank
 spent in the timed solve (``time.process_time``) and ``B`` divided by it: the throughput the same launch would reach
-with a free core for every rank, which load from other work does not change much.
+with a free core for every rank, which load from other work does not change much. With ``--fatrop K``, FATROP
+(CasADi, built once, as the throughput rows of ``python -m torchtraj.bench`` run it) first solves the first K of the
+same instances one at a time in this process, and each row gives its wall time per instance as a multiple of FATROP's
+median (below 1: faster than FATROP).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import torch.multiprocessing as mp
 from .. import distributed, problems, solvers
 from ..core.status import Status
 from ..solve import solve
-from .runs import make_options
+from .runs import make_options, run_reference
 
 
 def parser() -> argparse.ArgumentParser:
@@ -44,8 +47,28 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of sample_x0")
     p.add_argument("--horizon", type=int, default=None, help="re-grid the problem to N intervals (at_horizon)")
     p.add_argument("--timeout", type=float, default=3600.0, help="collective timeout of each launch, seconds")
+    p.add_argument("--fatrop", type=int, default=0, metavar="K",
+                   help="also solve the first K instances with FATROP (needs the bench extra) and compare (0: off)")
     p.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
     return p
+
+
+def fatrop_time(args) -> tuple:
+    """``(ms, note)``: FATROP's median time per instance (ms) on the first ``args.fatrop`` instances of the batch and
+    a line that says so, or ``(None, why not)``."""
+    try:
+        from .reference import ReferenceSolver
+
+        solver = ReferenceSolver(args.problem, "fatrop", tol=1e-8)
+    except Exception as exc:  # no CasADi, or no FATROP plugin in it
+        return None, f"FATROP: not run ({type(exc).__name__}: {exc})"
+    row = run_reference(solver, args.problem, args.batch, args.seed, args.fatrop)
+    if row.error is not None:
+        return None, f"FATROP: failed ({row.error})"
+    failed = row.status.get("failed", 0)
+    return row.ms_per_instance, (f"FATROP (CasADi, built once, one instance at a time in this process): "
+                                 f"{row.ms_per_instance:.2f} ms per instance, the median of {row.instances}"
+                                 + (f" ({failed} failed)" if failed else ""))
 
 
 def _options(args):
@@ -101,8 +124,10 @@ def run_row(args, world: int) -> dict:
 def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     p = parser()
     args = p.parse_args(argv)
-    if args.batch < 1 or args.threads < 1 or any(w < 1 for w in args.processes):
-        p.error("--batch, --threads and --processes must be >= 1")
+    if args.batch < 1 or args.threads < 1 or any(w < 1 for w in args.processes) or args.fatrop < 0:
+        p.error("--batch, --threads and --processes must be >= 1, --fatrop >= 0")
+    if args.fatrop and args.horizon:
+        p.error("--fatrop compares the problem set's own problem: leave out --horizon")
     out = out or sys.stdout
 
     def say(text: str = "") -> None:
@@ -113,17 +138,24 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         + (f" at N = {args.horizon}" if args.horizon else "")
         + f", method {args.method}, B = {args.batch} (sample_x0 seed {args.seed}), {args.threads} thread(s) per "
           f"process, Gloo; {cpus} CPU(s) usable, torch {torch.__version__}")
+    fatrop_ms, note = fatrop_time(args) if args.fatrop else (None, None)
+    if note:
+        say(note)
     say(f"{'processes':>9} {'wall s':>9} {'inst/s':>9} {'speed-up':>9} {'rank CPU s':>11} {'free-core inst/s':>16} "
-        f"{'converged':>9} {'max it':>7}  load avg before/after")
+        f"{'converged':>9} {'max it':>7}" + (f" {'x FATROP':>9}" if fatrop_ms else "") + "  load avg before/after")
     rows = []
     for world in args.processes:
         row = run_row(args, world)
         rows.append(row)
         base = rows[0]["instances_per_s"]
+        if fatrop_ms:
+            row["times_fatrop"] = 1e3 * row["wall_s"] / args.batch / fatrop_ms
         say(f"{world:>9d} {row['wall_s']:>9.2f} {row['instances_per_s']:>9.2f} {row['instances_per_s'] / base:>9.2f} "
             f"{max(row['cpu_s']):>11.2f} {row['free_core_instances_per_s']:>16.2f} {100 * row['converged']:>8.1f}% "
-            f"{row['iterations_max']:>7d}  {row['load_before']:.2f}/{row['load_after']:.2f}")
+            f"{row['iterations_max']:>7d}" + (f" {row['times_fatrop']:>9.2f}" if fatrop_ms else "")
+            + f"  {row['load_before']:.2f}/{row['load_after']:.2f}")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"settings": vars(args), "cpus": cpus, "rows": rows}, f, indent=1)
+            json.dump({"settings": vars(args), "cpus": cpus, "fatrop_ms_per_instance": fatrop_ms, "rows": rows}, f,
+                      indent=1)
     return 0
