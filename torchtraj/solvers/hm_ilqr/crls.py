@@ -106,14 +106,14 @@ def _solve_rhs(factor, rhs, multipliers: bool):
     return factor.solve(rhs, multipliers=multipliers)
 
 
-def solved(factor, rhs, multipliers: bool, compile: bool):
+def solved(factor, rhs, multipliers: bool, compiled: bool):
     """``factor.solve(rhs, multipliers)`` (a :class:`~torchtraj.riccati.RiccatiFactor` or a range-space one),
-    compiled where ``compile`` (``HMILQROptions.compile``)."""
-    return kernel(_solve_rhs, compile)(factor, rhs, multipliers)
+    compiled where ``compiled`` (``HMILQROptions.compile``)."""
+    return kernel(_solve_rhs, compiled)(factor, rhs, multipliers)
 
 
 def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, terminal_rows: str,
-                   shifts: tuple = (), compile: bool = False) -> tuple:
+                   shifts: tuple = (), compiled: bool = False) -> tuple:
     """``lqr`` with the stage Hessians' ``curvature (B, N, nz, nz)`` added where ``curved (B,)``: as it is where the
     backward pass at ``mu_V (B,)`` succeeds with it; elsewhere with the stage Hessians shifted by ``δ I``, the
     smallest ``δ = s δ*`` for ``s`` in ``shifts`` (increasing) with which it succeeds, ``δ*`` the largest negative
@@ -121,12 +121,13 @@ def with_curvature(lqr, curvature: Tensor, curved: Tensor, mu_V: Tensor, termina
     Gauss-Newton model where none does. Returns the LQR, the instances that took the curvature, and, where every
     curved instance took it (shifted or not), the factorisation of the returned LQR at ``mu_V`` (else ``None``):
     the iteration's first backward pass, which :func:`iterate` need not repeat. Each attempt factorises the LQR it
-    would return if every instance still pending succeeded (the others' rows as they are: each row on its own)."""
+    would return if every instance still pending succeeded (the others' rows as they are: each row on its own);
+    ``compiled``: each attempt's backward pass a compiled kernel (``HMILQROptions.compile``)."""
     nx = lqr.A.shape[-1]
     full = dataclasses.replace(lqr, Q=lqr.Q + curvature[..., :nx, :nx], R=lqr.R + curvature[..., nx:, nx:],
                                S=lqr.S + curvature[..., nx:, :nx])
     tried = _taking(lqr, full, curved)
-    factorize_k = kernel(factorized, compile)
+    factorize_k = kernel(factorized, compiled)
     factor = factorize_k(tried, mu_V, terminal_rows)
     use = curved & factor.ok
     if not bool((curved & ~use).any()):  # a host synchronisation; every curved instance took its curvature
@@ -313,16 +314,18 @@ def _search_round(at: _Instances, factor, sol, pending: Tensor, accepted: Accept
 
 
 def full_step_or_correction(problem, objective, params, segments, rhs, factor, sol, test, one, search,
-                            start: Accepted, compile: bool = False) -> Accepted:
+                            start: Accepted, compiled: bool = False) -> Accepted:
     """The full step ``α = 1`` where the ratio test accepts it, else its second-order correction where that is
-    accepted (module docstring, "Second-order correction"); ``start`` elsewhere. ``one`` is ``α = 1`` as ``(1,)``."""
+    accepted (module docstring, "Second-order correction"); ``start`` elsewhere. ``one`` is ``α = 1`` as ``(1,)``,
+    ``test`` the round's ratio test (``test(alphas, sol=...)``), ``compiled`` whether the correction's step is a
+    compiled kernel."""
     accept, values = test(one)
     full = accept[:, 0] & search & ~start.found
     if not bool((search & ~start.found & ~full).any()):  # no correction needed (one host read)
         return Accepted(found=start.found | full, alpha=torch.where(full, torch.ones_like(start.alpha), start.alpha),
                         values=tuple(where_rows(full, a[:, 0], c) for a, c in zip(values, start.values)))
     Xc, Uc = values[0][:, 0], values[1][:, 0]
-    sol_c = kernel(corrected_step, compile)(problem, objective, params, segments, rhs, factor, Xc, Uc)
+    sol_c = kernel(corrected_step, compiled)(problem, objective, params, segments, rhs, factor, Xc, Uc)
     soc_accept, soc_values = test(one, sol=sol_c)
     soc = soc_accept[:, 0] & search & ~start.found & ~full
     take = full | soc
