@@ -1,6 +1,13 @@
-"""One check shared by the tests of batch work that must not change an answer (gathered rows, compaction)."""
+"""Checks shared by the tests of batch work that must not change an answer (gathered rows, compaction) and of
+compiled kernels, whose answers must be the eager ones to rounding."""
 
+import dataclasses
+import shutil
+
+import pytest
 import torch
+
+import torchtraj as tt
 
 #: the fields of a Solution and of its history that such a test compares
 SOLUTION_FIELDS = ("X", "U", "K", "cost", "max_violation", "status", "iterations", "costate")
@@ -31,3 +38,18 @@ def assert_close_solutions(got, want, tol: float, costate_rtol: float = 0.0):
     for name in ("X", "U", "cost"):
         torch.testing.assert_close(getattr(got, name), getattr(want, name), atol=tol, rtol=0, msg=name)
     torch.testing.assert_close(got.costate, want.costate, atol=tol, rtol=costate_rtol, msg="costate")
+
+
+#: a compiled solve on a CPU needs a C++ compiler (torch.compile's inductor backend)
+needs_compiler = pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
+                                    reason="torch.compile's CPU backend needs a C++ compiler")
+
+
+def assert_compiled_matches_eager(problem, x0, method: str, options, tol: float, costate_rtol: float = 0.0):
+    """``options`` with ``compile=True`` solve ``x0`` as ``options`` do, to ``tol`` (:func:`assert_close_solutions`):
+    inductor's fused arithmetic rounds otherwise than the library calls, the iterations stay the same. The eager
+    solve must converge on every instance."""
+    compiled = tt.solve(problem, x0, method, options=dataclasses.replace(options, compile=True))
+    eager = tt.solve(problem, x0, method, options=options)
+    assert bool((eager.status == tt.Status.CONVERGED).all())
+    assert_close_solutions(compiled, eager, tol, costate_rtol)

@@ -6,10 +6,8 @@ choice of a step, the move, the initial rollout) is one graph with no break, and
 ``-m slow``: a later batch size captures none of them again, and the solve compiled by inductor against eager.
 """
 
-import shutil
-
 import pytest
-from same_solutions import assert_close_solutions
+from same_solutions import assert_close_solutions, assert_compiled_matches_eager, needs_compiler
 
 import torchtraj as tt
 from torchtraj.core import compiled
@@ -52,12 +50,7 @@ def test_a_later_batch_size_captures_no_kernel_again(dynamo_capture):
 
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores
-@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
-                    reason="torch.compile's CPU backend needs a C++ compiler")
+@needs_compiler
 def test_compiled_eilqr_matches_eager():
     x0 = tt.problems.sample_x0("pendulum", 2, seed=2)
-    compiled_solution = tt.solve(pendulum(), x0, "eilqr", options=tt.EILQROptions(compile=True))
-    eager = tt.solve(pendulum(), x0, "eilqr")
-    assert bool((eager.status == tt.Status.CONVERGED).all())
-    # inductor's fused arithmetic rounds otherwise than the library calls; the iterations stay the same
-    assert_close_solutions(compiled_solution, eager, tol=1e-7, costate_rtol=1e-7)
+    assert_compiled_matches_eager(pendulum(), x0, "eilqr", tt.EILQROptions(), tol=1e-7, costate_rtol=1e-7)

@@ -6,10 +6,8 @@ search's batched rollouts and ratio test, the second-order correction's step, th
 with no break, and the solve is the eager one; and the same solve compiled by inductor, against eager.
 """
 
-import shutil
-
 import pytest
-from same_solutions import assert_close_solutions
+from same_solutions import assert_close_solutions, assert_compiled_matches_eager, needs_compiler
 
 import torchtraj as tt
 from torchtraj.core import compiled
@@ -39,12 +37,7 @@ def test_each_compiled_kernel_of_hm_ilqr_is_one_graph(dynamo_capture):
 
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores
-@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
-                    reason="torch.compile's CPU backend needs a C++ compiler")
+@needs_compiler
 def test_compiled_hm_ilqr_matches_eager():
     x0 = tt.problems.sample_x0("pendulum", 2, seed=2)
-    compiled_solution = tt.solve(pendulum(), x0, "hm-ilqr", options=tt.HMILQROptions(compile=True))
-    eager = tt.solve(pendulum(), x0, "hm-ilqr")
-    assert bool((eager.status == tt.Status.CONVERGED).all())
-    # inductor's fused arithmetic rounds otherwise than the library calls; the iterations stay the same
-    assert_close_solutions(compiled_solution, eager, tol=1e-7, costate_rtol=1e-7)
+    assert_compiled_matches_eager(pendulum(), x0, "hm-ilqr", tt.HMILQROptions(), tol=1e-7, costate_rtol=1e-7)

@@ -6,10 +6,8 @@ the kernels of the iteration's step and line search instead of specialisations o
 eager one. ``-m slow``: the same solve compiled by inductor, against eager.
 """
 
-import shutil
-
 import pytest
-from same_solutions import assert_close_solutions
+from same_solutions import assert_close_solutions, assert_compiled_matches_eager, needs_compiler
 
 import torchtraj as tt
 from torchtraj.core import compiled
@@ -52,15 +50,10 @@ def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(mon
 
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores
-@pytest.mark.skipif(not any(shutil.which(c) for c in ("g++", "c++", "clang++")),
-                    reason="torch.compile's CPU backend needs a C++ compiler")
+@needs_compiler
 def test_compiled_interior_point_matches_eager():
     x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
-    compiled_solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
-    eager = tt.solve(pendulum(), x0, "ipm")
-    assert bool((eager.status == tt.Status.CONVERGED).all())
-    # inductor's fused arithmetic rounds otherwise than the library calls; the iterations stay the same
-    assert_close_solutions(compiled_solution, eager, tol=1e-7)
+    assert_compiled_matches_eager(pendulum(), x0, "ipm", tt.IPOptions(), tol=1e-7)
 
 
 def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):

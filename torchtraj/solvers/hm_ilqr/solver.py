@@ -104,7 +104,7 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
         mu=like.new_full((B,), opts.penalty_initial), psi=like.new_full((B,), opts.barrier_initial),
         delta=like.new_full((B,), opts.relaxation_initial))
     objective = HybridObjective(constraints, stage_params, opts.record)
-    point = objective.point(X, U, params)
+    point, last_violation, violation = _measures(objective, constraints, problem, segments, X, U, params)
     J = objective.value(X, U, params, point)
     D = gaps + objective.equality_residual(X, U, params, point)
     status = torch.full((B,), int(Status.RUNNING), dtype=torch.long, device=x0.device)
@@ -115,8 +115,6 @@ def solve_hm_ilqr(problem: Problem, batch: Batch, options: HMILQROptions, method
     defect_weight = like.new_full((B,), opts.defect_weight)
     iterations = torch.zeros(B, dtype=torch.long, device=x0.device)
     al_iterations = torch.zeros_like(iterations)
-    last_violation = constraints.max_violation_of(point.h, point.g, point.hN, point.gN)
-    violation = torch.maximum(last_violation, _max_defect(X, U, problem, params, segments, opts.record))
     tol = opts.tolerances(x0.dtype)
     rows = []
     stationarity = torch.zeros_like(mu_V)  # the last running iterate's: a stopped instance's history repeats it
