@@ -274,6 +274,26 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
     assert later["slopes"] == {"al-ilqr": pytest.approx((second - first) / 5)}
     assert "past the setup on double_integrator: calls per iteration of iterations 3 to 4 alone" in text
 
+    # each iteration alone: iteration 3 is the solve capped at 3 less the one capped at 2, iteration 4 the one
+    # capped at 4 less that; the cheapest at each horizon and its slope
+    from torchtraj.bench.ops import count_solve  # one solve's count, checked against a direct count above
+
+    alone = sweep["each_iteration"]
+    cheapest = []
+    for rows, short, n in zip(alone["rows"]["al-ilqr"], (five, ten), (5, 10)):
+        counts = [(short["calls"], short["iterations"])]
+        for cap in (3, 4):
+            row = count_solve(with_horizon(problems.get("double_integrator"), n), solver,
+                              solver.step_options(solver.default_options(), cap))
+            counts.append((row.calls, row.iterations))
+        expected = [(b[0] - a[0], b[1] - a[1]) for a, b in zip(counts, counts[1:])]
+        assert [(r["calls"], r["iterations"]) for r in rows] == expected
+        cheapest.append(min(c for c, its in expected if its == 1))
+    assert [r["calls"] for r in alone["cheapest"]] == cheapest
+    assert alone["slopes"] == {"al-ilqr": pytest.approx((cheapest[1] - cheapest[0]) / 5)}
+    listed = " ".join(str(r["calls"]) if r["iterations"] == 1 else "-" for r in alone["rows"]["al-ilqr"][0])
+    assert f"  al-ilqr N=5, iterations 3 to 4: {listed}" in text
+
     # the MPC row: two control steps of the pendulum controller after MPC_WARMUP uncounted, counted here again
     (step,) = data["mpc"]
     env = gym.make("torchtraj/Pendulum-v0").unwrapped
@@ -325,7 +345,7 @@ def test_ops_sweep_of_whole_solves(tmp_path):
 
 def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeypatch):
     from torchtraj import solvers
-    from torchtraj.bench import ops as bench_ops
+    from torchtraj.bench import ops_report
 
     path = tmp_path / "ops.json"
     code, text = run(["--ops", "--method", "ilqr", "--problems", "double_integrator", "--ops-horizons", "5",
@@ -339,7 +359,7 @@ def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeyp
 
     seen = []
     empty = {"solves": [], "horizons": {"rows": []}}
-    monkeypatch.setattr(bench_ops, "run", lambda *args, **kwargs: seen.append(args[:4]) or empty)
+    monkeypatch.setattr(ops_report, "run", lambda *args, **kwargs: seen.append(args[:4]) or empty)
     assert run(["--ops"])[0] == 0
     assert run(["--ops", "--method", "ilqr", "--ops-horizons", "5", "7", "--ops-iterations", "3"])[0] == 0
     assert seen == [(solvers.names(), ["pendulum", "cartpole", "car_3obs"], [25, 50, 100, 200], 5),

@@ -23,7 +23,7 @@ from ..core.progress import Progress
 from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.base import Solver
-from . import compiled_ops, grad, ops, profile, table
+from . import compiled_ops, grad, ops, ops_report, profile, table
 from .runs import (
     Row,
     batch_x0,
@@ -265,8 +265,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
             counter = compiled_ops
             report = compiled_ops.run(methods, (args.problems or ["pendulum"])[0], say, dtype, device)
         else:
-            counter = ops
-            report = ops.run(methods, args.problems or list(ops.DEFAULT_PROBLEMS), args.ops_horizons,
+            counter = ops_report
+            report = ops_report.run(methods, args.problems or list(ops.DEFAULT_PROBLEMS), args.ops_horizons,
                              args.ops_iterations, say, dtype, device, args.ops_mpc_steps, record=args.record)
         if args.json:
             with open(args.json, "w") as f:

@@ -32,16 +32,15 @@ For each method (every registered one, unless ``--method``) on each problem (``p
 options, its operator calls, ``Solution.iterations``, calls per iteration and status. A method that ignores constraints
 is skipped on a constrained problem, with the reason (:func:`~torchtraj.bench.runs.skip_reason`).
 
-Then the horizon sweep on the first problem (``pendulum`` by default): the same problem at N = 25, 50, 100, 200
-(``--ops-horizons``; the dynamics' time step kept, the control guess resampled, :func:`with_horizon`), each
-solve capped at the first ``--ops-iterations`` iterations (the method's
+Then the horizon sweep on the first problem (``pendulum`` by default; :mod:`~torchtraj.bench.ops_sweep`): the
+same problem at N = 25, 50, 100, 200 (``--ops-horizons``; the dynamics' time step kept, the control guess resampled,
+:func:`with_horizon`), each solve capped at the first ``--ops-iterations`` iterations (the method's
 :meth:`~torchtraj.solvers.base.Solver.step_options`: a full solve at N = 200 under the counter takes minutes), its
 calls per iteration, and the least-squares slope of calls per iteration over N (:func:`slope`): the calls each
 added stage costs an iteration. A capped solve's calls per iteration include the solve's setup (and ALTRO's
-projection stage) spread over those few iterations, so they read higher than a full solve's. So the sweep counts the
-same solves capped at twice as many iterations too, and reports past the setup (:func:`past_setup`): the calls of
-iterations ``k+1`` to ``2k`` alone (the longer solve's calls less the shorter's, over the iterations between them),
-and their slope over N, the calls an added stage costs an iteration once the solve has started.
+projection stage) spread over those few iterations, so they read higher than a full solve's. So the sweep also
+reports past the setup (:func:`past_setup`): the calls of iterations ``k+1`` to ``2k`` together, and each of those
+iterations alone, with the slope of the cheapest at each horizon (why: :mod:`~torchtraj.bench.ops_sweep`).
 
 Last, the MPC row (:func:`count_mpc`): for each method that handles constraints, the calls per control step of
 the pendulum environment's warm-started controller (N = 30, 3 iterations a step, B = 1) over 10 steps of its
@@ -54,22 +53,18 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import datetime
-import platform
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence
+from typing import Optional, Sequence
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from .. import problems as problem_set
 from .. import solvers
 from ..core.problem import Problem
 from ..core.recorded import forget
 from ..core.status import Status
 from ..solve import solve
-from .ops_text import format_count, format_sweep, solve_header, sweep_header
-from .runs import skip_reason, state_guess, with_record
+from .runs import state_guess, with_record
 
 DEFAULT_PROBLEMS = ("pendulum", "cartpole", "car_3obs")
 DEFAULT_HORIZONS = (25, 50, 100, 200)
@@ -251,124 +246,3 @@ def past_setup(short: Count, long: Count) -> Count:
     if row.error is None and long.iterations is not None and short.iterations is not None:
         row.calls, row.iterations = long.calls - short.calls, long.iterations - short.iterations
     return row
-
-
-# ---------------------------------------------------------------------------------------------- report
-def run(methods: Sequence[str], names: Sequence[str], horizons: Sequence[int], iterations: int,
-        say: Callable[..., None], dtype: torch.dtype = torch.float64, device=None, mpc_steps: int = MPC_STEPS,
-        record: bool = False) -> dict:
-    """Count, print the two tables as their rows come (``say``) and return the report as JSON-able data:
-    ``header``, ``skipped`` (``[{problem, method, reason}]``), ``solves`` (:meth:`Count.to_json` each) and
-    ``horizons`` (``problem``, ``iterations`` cap, ``rows``, ``slopes`` per method) and ``mpc``
-    (:meth:`StepCount.to_json` each; ``mpc_steps = 0``: none). ``record``: also ``recorded``, the full solves again
-    with recorded kernels (:func:`count_recorded`), for the methods that have them."""
-    header = {
-        "methods": list(methods), "problems": list(names), "horizons": list(horizons), "sweep_iterations": iterations,
-        "dtype": str(dtype).replace("torch.", ""), "device": str(torch.device(device or "cpu")),
-        "torch": torch.__version__, "python": platform.python_version(), "date": datetime.date.today().isoformat(),
-    }
-    built = {name: problem_set.get(name, dtype=dtype, device=device) for name in names}
-    skipped = [{"problem": name, "method": solvers.get(m).name, "reason": skip_reason(m, problem)}
-               for name, problem in built.items() for m in methods if skip_reason(m, problem)]
-    say(f"torchtraj bench --ops: eager torch operator calls (torchtraj.bench.ops.OperatorCounter) at B = 1, "
-        f"{header['dtype']} on {header['device']}, torch {torch.__version__}, {header['date']}")
-    for reason in dict.fromkeys(s["reason"] for s in skipped):
-        which = [s for s in skipped if s["reason"] == reason]
-        say(f"skipped ({reason}): " + "; ".join(
-            f"{m} on " + ", ".join(s["problem"] for s in which if s["method"] == m)
-            for m in dict.fromkeys(s["method"] for s in which)))
-    say()
-    say("full solves from the problem's x0, each method's default options")
-    say(solve_header())
-    solves = []
-    for name in names:
-        for m in methods:
-            if not skip_reason(m, built[name]):
-                # a problem of its own per solve: a solve's one-time setup on a problem is always counted
-                row = count_solve(problem_set.get(name, dtype=dtype, device=device), m)
-                say(format_count(row))
-                solves.append(row)
-    recorded = []
-    if record:
-        say()
-        say("the same solves with recorded kernels (record=True), each after an uncounted solve that records them")
-        say(solve_header())
-        for name in names:
-            for m in methods:
-                if not skip_reason(m, built[name]) and solvers.get(m).records:
-                    row = count_recorded(problem_set.get(name, dtype=dtype, device=device), m)
-                    say(format_count(row))
-                    recorded.append(row)
-
-    sweep_name = names[0]
-    say()
-    over = (f"over the first {iterations} iterations of each solve (the method's step_options), so its setup is "
-            f"spread over those" if iterations else "over whole solves with the method's default options")
-    say(f"horizon sweep on {sweep_name} (the same time step, the control guess resampled): calls per iteration "
-        f"{over}; calls/stage: the least-squares slope over N")
-    say(sweep_header(horizons))
-    sweep, slopes, swept = [], {}, []
-    for m in methods:
-        if skip_reason(m, built[sweep_name]):
-            continue
-        solver = solvers.get(m)
-        rows = _sweep_rows(solver, sweep_name, horizons, iterations, dtype, device)
-        slopes[solver.name] = _say_sweep(solver.name, rows, horizons, say)
-        sweep += rows
-        swept.append((solver, rows))
-    later, later_slopes = [], {}
-    if iterations:
-        say()
-        say(f"past the setup on {sweep_name}: calls per iteration of iterations {iterations + 1} to "
-            f"{2 * iterations} alone (the solve capped at {2 * iterations} less the one capped at {iterations}); "
-            f"calls/stage: the least-squares slope over N")
-        say(sweep_header(horizons))
-        for solver, rows in swept:
-            longer = _sweep_rows(solver, sweep_name, horizons, 2 * iterations, dtype, device)
-            differences = [past_setup(short, long) for short, long in zip(rows, longer)]
-            later_slopes[solver.name] = _say_sweep(solver.name, differences, horizons, say)
-            later += differences
-    steps = []
-    if mpc_steps:
-        say()
-        say(f"MPC on the pendulum environment (tt.MPC(env.problem(horizon={MPC_HORIZON}), method, {MPC_ITERATIONS}), "
-            f"B = 1): calls per control step over {mpc_steps} steps of the swing-up")
-    for m in methods if mpc_steps else ():
-        if solvers.get(m).handles_constraints:
-            row = count_mpc(m, steps=mpc_steps)
-            calls = f"ERROR {row.error.splitlines()[0]}" if row.error else f"{row.calls_per_step:.0f}"
-            say(f"{row.method:7s}  {calls}")
-            steps.append(row)
-    return {
-        "header": header, "skipped": skipped, "solves": [r.to_json() for r in solves],
-        "recorded": [r.to_json() for r in recorded],
-        "horizons": {"problem": sweep_name, "iterations": iterations, "rows": [r.to_json() for r in sweep],
-                     "slopes": slopes,
-                     "past_setup": {"rows": [r.to_json() for r in later], "slopes": later_slopes}},
-        "mpc": [r.to_json() for r in steps],
-    }
-
-
-def _sweep_rows(solver, name: str, horizons: Sequence[int], iterations: int, dtype, device) -> list:
-    """The counts of ``solver`` on problem ``name`` at each horizon, capped at ``iterations`` (0: whole solves)."""
-    options = solver.step_options(solver.default_options(), iterations) if iterations else None
-    return [count_solve(with_horizon(problem_set.get(name, dtype=dtype, device=device), n), solver, options,
-                        iteration_cap=iterations or None) for n in horizons]
-
-
-def _say_sweep(method: str, rows: Sequence[Count], horizons: Sequence[int], say) -> Optional[float]:
-    """Print one line of a horizon table (and the rows' errors); return its slope."""
-    good = [r for r in rows if r.calls_per_iteration is not None]
-    fitted = None if len(good) < len(rows) else slope([r.horizon for r in good],
-                                                      [r.calls_per_iteration for r in good])
-    say(format_sweep(method, rows, fitted, horizons))
-    for r in rows:
-        if r.error:
-            say(f"  {method} N={r.horizon}: ERROR {r.error.splitlines()[0]}")
-    return fitted
-
-
-def failed(report: dict) -> bool:
-    """Whether some counted solve or control step of ``report`` (:func:`run`) raised."""
-    later = report["horizons"].get("past_setup", {}).get("rows", [])
-    return any(r["error"] for r in report["solves"] + report["horizons"]["rows"] + later + report.get("mpc", []))
