@@ -272,7 +272,7 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
         assert row["iterations"] == int(sol.iterations.max()) - short["iterations"] > 0
     first, second = (r["calls_per_iteration"] for r in later["rows"])
     assert later["slopes"] == {"al-ilqr": pytest.approx((second - first) / 5)}
-    assert "past the setup on double_integrator: calls per iteration of iterations 3 to 4 alone" in text
+    assert "past the setup on double_integrator: calls per iteration of iterations 3 to 4 together" in text
 
     # each iteration alone: iteration 3 is the solve capped at 3 less the one capped at 2, iteration 4 the one
     # capped at 4 less that; the cheapest at each horizon and its slope

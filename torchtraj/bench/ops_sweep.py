@@ -99,7 +99,7 @@ def sweep(methods: Sequence[str], name: str, horizons: Sequence[int], iterations
         capped[solver.name] += [sweep_rows(solver, name, horizons, cap, dtype, device)
                                 for cap in range(iterations + 1, 2 * iterations + 1)]
     say()
-    say(f"past the setup on {name}: calls per iteration of iterations {iterations + 1} to {2 * iterations} alone "
+    say(f"past the setup on {name}: calls per iteration of iterations {iterations + 1} to {2 * iterations} together "
         f"(the solve capped at {2 * iterations} less the one capped at {iterations}); calls/stage: the "
         f"least-squares slope over N")
     say(sweep_header(horizons))
