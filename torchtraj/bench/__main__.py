@@ -124,8 +124,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ops-horizons", nargs="+", type=int, metavar="N", default=list(ops.DEFAULT_HORIZONS),
                    help=f"with --ops: the horizons of the sweep (default: {' '.join(map(str, ops.DEFAULT_HORIZONS))})")
     p.add_argument("--ops-iterations", type=int, metavar="K", default=ops.SWEEP_ITERATIONS,
-                   help="with --ops: iterations counted per solve of the horizon sweep (0: whole solves with "
-                        f"default options, whose per-stage slope has no setup in it; default: {ops.SWEEP_ITERATIONS})")
+                   help="with --ops: the sweep counts iterations 1 to K, K+1 to 2K, and each of K+1 to 2K alone "
+                        f"(0: whole solves, default options, no setup in their slope; default: {ops.SWEEP_ITERATIONS})")
     p.add_argument("--ops-mpc-steps", type=int, metavar="K", default=ops.MPC_STEPS,
                    help=f"with --ops: control steps counted per MPC row (0: no MPC rows; default: {ops.MPC_STEPS})")
     return p
