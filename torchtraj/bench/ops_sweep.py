@@ -45,8 +45,8 @@ def sweep_rows(solver, name: str, horizons: Sequence[int], iterations: int, dtyp
 
 def each_iteration(capped: Sequence[Sequence[Count]]) -> list:
     """``capped[j][h]``, the solves at horizon ``h`` capped at ``k + j`` iterations, as the iterations alone:
-    ``[h][j]`` the calls of iteration ``k + j + 1`` (the solve capped one iteration later less this one; no calls
-    where the solve had ended)."""
+    ``[h][j]`` the calls of iteration ``k + j + 1`` (the solve capped one iteration later less this one; ``iterations``
+    0 where the solve had ended before it, an error where either solve raised)."""
     return [[past_setup(short[h], long[h]) for short, long in zip(capped, capped[1:])]
             for h in range(len(capped[0]))]
 
