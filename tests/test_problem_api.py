@@ -84,3 +84,20 @@ def test_linear_quadratic_declaration_is_checked():
     with pytest.raises(ValueError, match="terminal_ineq is not affine"):
         make(terminal_ineq=lambda x, p: (x * x).sum(-1, keepdim=True) - 1.0, linear_quadratic=True)
     make(stage_ineq=lambda x, u, p: torch.cat([x[:1] - 2.0, u - 1.0]), linear_quadratic=True)
+
+
+def test_to_takes_a_dtype_and_a_device_as_tensor_to_does():
+    """``problem.to("cpu")`` and ``problem.to(torch.float32)`` read as ``Tensor.to``'s: the first positional argument
+    was once the dtype, so a device string reached ``Tensor.to`` as a dtype and raised a TypeError about it."""
+    problem = make(u_lower=torch.tensor([-1.0], dtype=torch.float64), u_upper=torch.tensor([1.0], dtype=torch.float64))
+    for moved in (problem.to(torch.float32), problem.to("cpu", torch.float32), problem.to(torch.float32, "cpu"),
+                  problem.to(dtype=torch.float32, device="cpu")):
+        for t in (moved.x0, moved.params["k"], moved.u_lower, moved.u_upper):
+            assert (t.dtype, t.device) == (torch.float32, torch.device("cpu"))
+    same = problem.to("cpu")
+    assert (same.x0.dtype, same.x0.device) == (torch.float64, torch.device("cpu"))
+    assert problem.to(torch.device("cpu"), dtype=torch.float32).u_lower.dtype == torch.float32
+    with pytest.raises(TypeError, match="takes a dtype and a device"):
+        problem.to(1.5)
+    with pytest.raises(TypeError, match="takes a dtype and a device"):
+        problem.to(torch.float32, torch.float64)

@@ -232,8 +232,18 @@ class Problem:
             raise ValueError(f"unknown parameters {sorted(unknown)}; this problem has {sorted(self.params)}")
         return self.replace(params={**self.params, **params})
 
-    def to(self, dtype: Optional[torch.dtype] = None, device=None) -> "Problem":
-        """A copy with every tensor moved to ``dtype`` / ``device``."""
+    def to(self, *args, dtype: Optional[torch.dtype] = None, device=None) -> "Problem":
+        """A copy with every tensor moved to ``dtype`` / ``device``, given as :meth:`torch.Tensor.to` takes them:
+        ``problem.to("cuda")``, ``problem.to(torch.float32)``, ``problem.to("cuda", torch.float32)`` or by keyword.
+        Tensors that the problem's functions hold themselves (a closure's constant) are not the problem's to move."""
+        for arg in args:
+            if isinstance(arg, torch.dtype) and dtype is None:
+                dtype = arg
+            elif isinstance(arg, (str, int, torch.device)) and not isinstance(arg, bool) and device is None:
+                device = torch.device(arg)
+            elif arg is not None:
+                raise TypeError(f"Problem.to takes a dtype and a device (each at most once), not {arg!r}")
+
         def move(t):
             return None if t is None else t.to(dtype=dtype or t.dtype, device=device or t.device)
 
