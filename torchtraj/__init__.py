@@ -3,7 +3,8 @@
 Start with :class:`Problem` (a problem written as per-instance functions), :func:`solve` (one batched solve; the
 methods are listed by ``torchtraj.solvers.names()``) and :class:`MPC` (a receding-horizon controller). The problem
 set is :mod:`torchtraj.problems`, the models :mod:`torchtraj.models`, the Gymnasium environments
-:mod:`torchtraj.envs` (their ids, ``torchtraj/Pendulum-v0`` and others, are registered by ``import torchtraj``).
+:mod:`torchtraj.envs` (their ids, ``torchtraj/Pendulum-v0`` and others, are registered by ``import torchtraj``),
+pictures of a solve (its convergence, its trajectories) :mod:`torchtraj.plotting`.
 """
 
 from .control.mpc import MPC
@@ -29,7 +30,7 @@ __all__ = ["ALTROOptions", "EILQROptions", "HMILQROptions", "History", "ILQROpti
 __version__ = "0.1.0"
 
 #: Submodules imported on first use (``tt.problems``, ...): they cost import time most programs do not need.
-_LAZY = ("envs", "models", "problems")
+_LAZY = ("envs", "models", "plotting", "problems")
 
 _register_environments()  # strings only: gymnasium imports torchtraj.envs when it makes one
 
