@@ -17,10 +17,13 @@ from .status import Status
 class History:
     """Per-iteration record of a batched solve; every field is ``(B, T)`` for T iterations.
 
-    Entries after an instance stopped repeat its final values (its status says why it stopped). Besides the four
-    fields every method records, ``extra["stationarity"]`` holds the KKT conditions' stationarity residual at each
-    iterate as the method measures it (the Lagrangian's gradient, unscaled except for the IPM's IPOPT scalings,
-    of the multipliers and of the objective);
+    Entries after an instance stopped repeat its final values (its status says why it stopped). A row is one
+    iteration of the method's main loop; the interior point's ``Solution.iterations`` also counts the iterations of
+    its restoration phase (as IPOPT counts them) and its crossover rounds (each solves a Newton system), which add
+    no row, so an instance's count may exceed T (:func:`torchtraj.plotting.convergence` draws the rows). Besides
+    the four fields every method records, ``extra["stationarity"]`` holds the KKT conditions' stationarity residual
+    at each iterate as the method measures it (the Lagrangian's gradient, unscaled except for the IPM's IPOPT
+    scalings, of the multipliers and of the objective);
     ``max_violation`` is their feasibility residual, and the IPM's ``kkt_error`` their largest residual.
     """
 
