@@ -22,7 +22,9 @@ the stages: on the pendulum the interior point's iterations 6 to 10 factorised 1
 100, so their average grew by 2.9 calls a stage, less than one factorisation's share. The cheapest iteration at each
 horizon is the one that did the least, typically one factorisation, one solve and one trial; the slope of the
 cheapest is what an added stage costs such an iteration, and every other iteration costs more (the calls of each
-are listed to show by how much).
+are listed to show by how much). It measures one kind only where the solve made an iteration of that kind at every
+horizon; where it made none at some horizon (every iteration there factorised again, say), the listed calls show the
+jump, and the slope mixes kinds as the average does.
 """
 
 from __future__ import annotations
