@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from test_figures import explains_itself
 
 import torchtraj as tt
 
@@ -42,6 +43,9 @@ def test_convergence_draws_each_instance_up_to_its_own_last_iteration(solved):
     _, violation = violation_ax.get_lines()[2].get_data()
     assert violation.min() >= plotting.LOG_FLOOR
     assert "2 of 3 instance(s) converged" in fig._suptitle.get_text()
+    assert explains_itself(fig) == []  # the examples' standard: titles, labels with units, legends
+    legend = [text.get_text() for text in cost_ax.get_legend().get_texts()]
+    assert legend == ["converged", "not converged"]
 
 
 def test_trajectories_draw_states_controls_and_bounds(solved):
@@ -51,7 +55,9 @@ def test_trajectories_draw_states_controls_and_bounds(solved):
     fig = plotting.trajectories(sol, problem)
     nx, nu = sol.X.shape[-1], sol.U.shape[-1]
     shown = [ax for ax in fig.axes if ax.axison]
-    assert [ax.get_title() for ax in shown] == [f"x[{j}]" for j in range(nx)] + [f"u[{j}]" for j in range(nu)]
+    assert [ax.get_title() for ax in shown] == ([f"state x[{j}]" for j in range(nx)]
+                                                + [f"control u[{j}]" for j in range(nu)])
+    assert explains_itself(fig) == []
     x0_ax, u0_ax = shown[0], shown[nx]
     times = torch.arange(problem.horizon + 1, dtype=torch.float64) * problem.dt
     drawn = [line for line in x0_ax.get_lines() if len(line.get_xdata()) > 2]
@@ -61,8 +67,9 @@ def test_trajectories_draw_states_controls_and_bounds(solved):
     assert len(drawn) == 3
     bounds = {line.get_ydata()[0] for line in u0_ax.get_lines() if len(line.get_xdata()) == 2}
     expected = {float(b[0]) for b in (problem.u_lower, problem.u_upper) if b is not None}
-    assert bounds == expected and u0_ax.get_xlabel() == "time [s]"
-    assert plotting.trajectories(sol).axes[0].get_xlabel() == "knot"
+    assert bounds == expected and u0_ax.get_xlabel() == "time t [s]"
+    assert "bound" in [text.get_text() for text in u0_ax.get_legend().get_texts()]
+    assert plotting.trajectories(sol).axes[0].get_xlabel() == "knot k [index]"
 
 
 def test_without_matplotlib_the_error_says_what_to_install(solved, monkeypatch):

@@ -51,25 +51,27 @@ def convergence(sol: Solution, title: Optional[str] = None):
     """The per-iteration history of every instance of ``sol`` (module docstring): a ``Figure`` of four panels."""
     Figure = _figure_class()
     history = sol.history
-    panels = [("cost", history.cost, "linear"), ("largest constraint violation", history.max_violation, "log")]
+    panels = [("cost", "objective [problem units]", history.cost, "linear"),
+              ("largest constraint violation", "violation [problem units] (log)", history.max_violation, "log")]
     if "stationarity" in history.extra:
-        panels.append(("stationarity residual", history.extra["stationarity"], "log"))
-    panels.append(("step size", history.step_size, "log"))
-    fig = Figure(figsize=(3.6 * len(panels), 3.4), layout="constrained")
+        panels.append(("stationarity residual", "residual [problem units] (log)", history.extra["stationarity"],
+                       "log"))
+    panels.append(("step size", "step size α [1] (log)", history.step_size, "log"))
+    fig = Figure(figsize=(3.8 * len(panels), 3.6), layout="constrained")
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
     instances = _instances(sol)
-    for ax, (name, values, scale) in zip(axes, panels):
+    for ax, (name, ylabel, values, scale) in zip(axes, panels):
         values = values.detach().to("cpu", torch.float64)
         for i, count, converged in instances:
             curve = values[i, :count]
             if scale == "log":
                 curve = curve.abs().clamp_min(LOG_FLOOR)
-            ax.plot(range(1, count + 1), curve.numpy(), color=CONVERGED_COLOUR if converged else FAILED_COLOUR,
-                    alpha=0.5 if len(instances) > 1 else 1.0, lw=1)
-        ax.set(xlabel="iteration", title=name, yscale=scale)
+            ax.plot(range(1, count + 1), curve.numpy(), color=_colour(converged), lw=1,
+                    alpha=0.5 if len(instances) > 1 else 1.0)
+        ax.set(xlabel="iteration [count]", ylabel=ylabel, title=name, yscale=scale)
+        _legend(ax, instances)
     done = sum(converged for _, _, converged in instances)
-    fig.suptitle(title or f"{sol.method}: {done} of {len(instances)} instance(s) converged "
-                          f"(blue: converged, red: not)")
+    fig.suptitle(title or f"{sol.method}: {done} of {len(instances)} instance(s) converged")
     return fig
 
 
@@ -83,7 +85,7 @@ def trajectories(sol: Solution, problem: Optional[Problem] = None, title: Option
     dt = problem.dt if problem is not None and problem.dt is not None else None
     t = (torch.arange(N + 1, dtype=torch.float64) * (dt or 1.0)).numpy()
     columns = max(nx, nu)
-    fig = Figure(figsize=(min(3.4 * columns, 20.0), 5.6), layout="constrained")
+    fig = Figure(figsize=(min(3.6 * columns, 20.0), 6.0), layout="constrained")
     axes = fig.subplots(2, columns, squeeze=False)
     instances = _instances(sol)
     for row, (values, size, name, lower, upper) in enumerate((
@@ -91,24 +93,42 @@ def trajectories(sol: Solution, problem: Optional[Problem] = None, title: Option
             (U, nu, "u", _bound(problem, "u_lower"), _bound(problem, "u_upper")))):
         for j in range(columns):
             ax = axes[row, j]
-            if j >= size:
-                ax.set_axis_off()
+            if j >= size:  # a row with fewer components than the other
+                ax.remove()
                 continue
             for i, _, converged in instances:
-                colour = CONVERGED_COLOUR if converged else FAILED_COLOUR
                 alpha = 0.4 if len(instances) > 1 else 1.0
                 if row == 0:
-                    ax.plot(t, values[i, :, j].numpy(), color=colour, alpha=alpha, lw=1)
+                    ax.plot(t, values[i, :, j].numpy(), color=_colour(converged), alpha=alpha, lw=1)
                 else:
-                    ax.step(t[:-1], values[i, :, j].numpy(), where="post", color=colour, alpha=alpha, lw=1)
+                    ax.step(t[:-1], values[i, :, j].numpy(), where="post", color=_colour(converged), alpha=alpha,
+                            lw=1)
+            bounded = False
             for bound in (lower, upper):
                 if bound is not None and torch.isfinite(bound[j]):
                     ax.axhline(float(bound[j]), color="0.4", ls="--", lw=1)
-            ax.set(xlabel="time [s]" if dt else "knot", title=f"{name}[{j}]")
+                    bounded = True
+            ax.set(xlabel="time t [s]" if dt else "knot k [index]", ylabel=f"{name}[{j}] [problem units]",
+                   title=f"{'state' if row == 0 else 'control'} {name}[{j}]")
+            _legend(ax, instances, bounded)
     done = sum(converged for _, _, converged in instances)
-    fig.suptitle(title or f"{sol.method}: {len(instances)} instance(s), {done} converged "
-                          f"(blue: converged, red: not; dashed: bounds)")
+    fig.suptitle(title or f"{sol.method}: {len(instances)} instance(s), {done} converged")
     return fig
+
+
+def _colour(converged: bool) -> str:
+    return CONVERGED_COLOUR if converged else FAILED_COLOUR
+
+
+def _legend(ax, instances: list, bounded: bool = False) -> None:
+    """A legend of the colours present (and of the bounds' dashes)."""
+    from matplotlib.lines import Line2D
+
+    present = sorted({converged for _, _, converged in instances}, reverse=True)
+    handles = [Line2D([], [], color=_colour(c), label="converged" if c else "not converged") for c in present]
+    if bounded:
+        handles.append(Line2D([], [], color="0.4", ls="--", label="bound"))
+    ax.legend(handles=handles, fontsize=7)
 
 
 def _bound(problem: Optional[Problem], name: str) -> Optional[torch.Tensor]:
