@@ -48,7 +48,8 @@ def _instances(sol: Solution) -> list:
 
 
 def convergence(sol: Solution, title: Optional[str] = None):
-    """The per-iteration history of every instance of ``sol`` (module docstring): a ``Figure`` of four panels."""
+    """The per-iteration history of every instance of ``sol`` (module docstring): a ``Figure`` of four panels, three
+    where the method records no stationarity residual."""
     Figure = _figure_class()
     history = sol.history
     panels = [("cost", "objective [problem units]", history.cost, "linear"),
