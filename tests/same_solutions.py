@@ -53,3 +53,15 @@ def assert_compiled_matches_eager(problem, x0, method: str, options, tol: float,
     eager = tt.solve(problem, x0, method, options=options)
     assert bool((eager.status == tt.Status.CONVERGED).all())
     assert_close_solutions(compiled, eager, tol, costate_rtol)
+
+
+def assert_one_graph_per_kernel(capture, kernels: set) -> None:
+    """What a solve with compiled kernels captured (``capture``, the ``dynamo_capture`` fixture): no graph break,
+    exactly the kernel functions ``kernels`` compiled, and one graph for each frame Dynamo compiled (each kernel at
+    least once)."""
+    from torchtraj.core import compiled
+
+    assert not dict(capture["graph_break"]), dict(capture["graph_break"])
+    assert set(compiled._KERNELS) == kernels, set(compiled._KERNELS)
+    frames, graphs = capture["frames"]["total"], capture["stats"]["unique_graphs"]
+    assert frames == graphs >= len(kernels), (frames, graphs)
