@@ -34,12 +34,13 @@ def format_count(row: Count) -> str:
 
 
 def format_sweep(method: str, rows: Sequence[Count], fitted: Optional[float], horizons: Sequence[int]) -> str:
-    """One line of the horizon table: calls per iteration at each horizon, then the slope."""
+    """One line of the horizon table: calls per iteration at each horizon (``-`` where ``rows`` has none: no
+    iteration counted there), then the slope."""
     by_n = {r.horizon: r for r in rows}
     cells = [method]
     for n in horizons:
         r = by_n.get(n)
-        cells.append("ERROR" if r is None or r.error else _num(r.calls_per_iteration, ".0f"))
+        cells.append("-" if r is None else "ERROR" if r.error else _num(r.calls_per_iteration, ".0f"))
     cells.append(_num(fitted, ".1f"))
     return _line(cells, _sweep_widths(horizons), [False] + [True] * (len(horizons) + 1))
 
