@@ -318,6 +318,26 @@ def test_bench_mpc_flag_prints_the_timing_rows():
     assert code == 0 and len(rows) == 2 and all("horizon 30, 3 iterations/step" in r and "expansion" in r for r in rows)
 
 
+
+def test_bench_mpc_runs_another_method_at_another_iteration_budget():
+    from torchtraj.bench.__main__ import main
+
+    env = gym.make(bench.IDS["pendulum"])
+    mpc = bench.controller("pendulum", env, iterations=1, method="ipm")
+    assert mpc.method == "ipm" and mpc.options.iterations == 1
+    with pytest.raises(ValueError, match="ALTRO's"):
+        bench.controller("pendulum", env, method="ipm", penalty_initial=10.0)
+    out = io.StringIO()
+    main(["--mpc", "--tasks", "pendulum", "--episodes", "1", "--vector-envs", "0", "--timing-batch", "1",
+          "--timing-steps", "2", "--method", "ipm", "--iterations", "1"], out=out)
+    lines = out.getvalue().splitlines()
+    assert "controllers: method ipm, 1 iterations per control step" in lines
+    episodes = next(line for line in lines if line.startswith("pendulum")).split()
+    timing = next(line for line in lines if line.startswith("B=1"))
+    assert episodes[-5] == "1" and "horizon 30, 1 iterations/step" in timing
+    with pytest.raises(SystemExit):
+        main(["--mpc", "--iterations", "0"], out=io.StringIO())
+
 # ---------------------------------------------------------------------------------------------- acceptance (slow)
 @pytest.mark.slow
 @pytest.mark.parametrize("task", ["pendulum", "cartpole", "car"])

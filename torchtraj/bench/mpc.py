@@ -7,8 +7,8 @@ them with one batched :class:`~torchtraj.MPC` call per step), and the time per c
 Controllers (:func:`controller`): each environment's own problem, ``env.problem(...)`` (see the
 "Controller Problem" section of the environment's docstring: the pendulum's cost is its reward, negated; the
 cart-pole's and the car's are quadratics with the reward's optimum, the car's obstacles constraints), on the step
-the environment takes, solved by ``method="altro"`` without projection, 3 iterations per control step, warm-started
-from the previous step's shifted solution::
+the environment takes, solved by ``method="altro"`` without projection, 3 iterations per control step (``--method``
+and ``--iterations`` choose others), warm-started from the previous step's shifted solution::
 
     pendulum  N = 30 (1.5 s),  |τ| ≤ 3
     cartpole  N = 40 (2 s),    |F| ≤ 3,   |x| ≤ 2 (the rail ends at 2.4)
@@ -36,6 +36,7 @@ import torch
 
 from torchtraj.envs.core import upright_error  # importing torchtraj registers the environments
 
+from .. import solvers
 from ..control.mpc import DEFAULT_ALTRO, MPC
 from ..core.progress import Progress
 from ..core.status import Status
@@ -48,22 +49,28 @@ TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0
 
 
 def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, problem_options=None,
-               compile: bool = False, **options) -> MPC:
+               compile: bool = False, method: str = "altro", **options) -> MPC:
     """The :class:`~torchtraj.MPC` of ``task`` (``"pendulum"``, ``"cartpole"``, ``"car"``) for ``env``, a single or
     vector environment of that task; ``problem_options`` go to the environment's own problem builder,
-    ``env.problem(**problem_options)``, ``compile`` to the policy, ``options`` are :class:`~torchtraj.ALTROOptions`
-    fields to change from :data:`TASK_OPTIONS`."""
+    ``env.problem(**problem_options)``, ``compile`` to the policy. ``method`` ``"altro"`` (the tasks' controller):
+    ``options`` are :class:`~torchtraj.ALTROOptions` fields to change from :data:`TASK_OPTIONS`; another method
+    that handles constraints runs its own control-step options (``options`` are not taken then)."""
     if task not in IDS:
         raise ValueError(f"unknown task {task!r}; known tasks are {sorted(IDS)}")
     problem_options = dict(problem_options or {})
     if horizon is not None:
         problem_options["horizon"] = horizon
     problem = env.unwrapped.problem(**problem_options)  # gymnasium.make wraps
-    opts = dataclasses.replace(DEFAULT_ALTRO, **{**TASK_OPTIONS[task], **options})
+    if method == "altro":
+        opts = dataclasses.replace(DEFAULT_ALTRO, **{**TASK_OPTIONS[task], **options})
+    elif options:
+        raise ValueError(f"options {sorted(options)} are ALTRO's; method {method!r} takes its own step options")
+    else:
+        opts = None
     if task != "car":
-        return MPC(problem, "altro", iterations, opts, compile=compile)
+        return MPC(problem, method, iterations, opts, compile=compile)
     n = problem.params["obstacles"].shape[0]
-    return MPC(problem, "altro", iterations, opts, observation_to_state=lambda obs: obs[:, :3],
+    return MPC(problem, method, iterations, opts, observation_to_state=lambda obs: obs[:, :3],
                observation_to_params=lambda obs: {"obstacles": obs[:, 3:].reshape(obs.shape[0], n, 3)},
                compile=compile)
 
@@ -189,7 +196,8 @@ class Timing:
 
 
 def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: int = 0, profile_steps: int = 10,
-               horizon: Optional[int] = None, iterations: int = 3, compile: bool = False) -> Timing:
+               horizon: Optional[int] = None, iterations: int = 3, compile: bool = False,
+               method: str = "altro") -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
     and hold), after untimed warm-up steps; then profile ``profile_steps`` more to split the time into
     :data:`torchtraj.bench.profile.PARTS` (compiled: :data:`~torchtraj.bench.profile.COMPILED_PARTS`). Compiled
@@ -198,7 +206,7 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
     import gymnasium as gym
 
     venv = gym.make_vec(IDS[task], num_envs=batch)
-    mpc = controller(task, venv, horizon=horizon, iterations=iterations, compile=compile)
+    mpc = controller(task, venv, horizon=horizon, iterations=iterations, compile=compile, method=method)
     obs, _ = venv.reset(seed=seed)
     tick = time.perf_counter()
     for _ in range(3 if compile else 1):  # warm-up: torch.func's first call traces, torch.compile compiles
@@ -271,6 +279,17 @@ def parser():
                    help="run the episodes with torch.compile'd kernels (MPC(compile=True); "
                         "each batch size compiles first) "
                         "and time the policy both ways")
+    p.add_argument("--method", default="altro",
+                   choices=[m for m in solvers.names() if solvers.get(m).handles_constraints],
+                   help="the controllers' method (default: altro, with the tasks' options; another method runs its "
+                        "own control-step options; Pendulum-v1's example keeps its own controller)")
+    def positive(text: str) -> int:
+        if not text.isdigit() or int(text) < 1:
+            raise argparse.ArgumentTypeError(f"a positive number of iterations, not {text!r}")
+        return int(text)
+
+    p.add_argument("--iterations", type=positive, default=3,
+                   help="solver iterations per control step (default: 3)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
     return p
@@ -292,6 +311,8 @@ def main(argv: Optional[list] = None, out=None) -> int:
         torch.set_num_threads(args.threads)
     say(f"torchtraj MPC bench: float64 on cpu, {torch.get_num_threads()} threads, torch {torch.__version__}, "
         f"python {platform.python_version()}; success definitions in torchtraj/bench/mpc.py")
+    say(f"controllers: method {args.method}, {args.iterations} iterations per control step")
+    chosen = {"method": args.method, "iterations": args.iterations}
     failed = False
     runs = [(f"{args.episodes} seeded ({args.seed}..{args.seed + args.episodes - 1})", args.episodes, 1, args.seed),
             (f"vector {args.vector_envs} envs x {args.vector_episodes} (autoreset)", args.vector_envs,
@@ -301,7 +322,7 @@ def main(argv: Optional[list] = None, out=None) -> int:
         for label, envs_, per_env, seed in runs:
             if envs_ < 1 or per_env < 1:
                 continue
-            run = acceptance(task, envs_, per_env, seed, progress=True, compile=args.compile)
+            run = acceptance(task, envs_, per_env, seed, progress=True, compile=args.compile, **chosen)
             wins = sum(SUCCESS[task](e) for e in run.episodes)
             rate = wins / len(run.episodes)
             failed |= rate < 0.95
@@ -324,7 +345,7 @@ def main(argv: Optional[list] = None, out=None) -> int:
         for compiled in (False, True) if args.compile else (False,):
             for batch in args.timing_batch:
                 t = time_steps("pendulum", batch, args.timing_steps, args.seed,
-                               profile_steps=min(10, args.timing_steps), compile=compiled)
+                               profile_steps=min(10, args.timing_steps), compile=compiled, **chosen)
                 where = (f"compiled (warm-up steps {t.first_call_s:.0f} s); " if compiled else "eager; ")
                 where += profile.format_split(t.parts)
                 say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used "
