@@ -369,31 +369,3 @@ def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeyp
                  ["--ops", "--ops-mpc-steps", "-1"]):
         with pytest.raises(SystemExit):
             bench_main._check(parser, parser.parse_args(args))
-
-
-def test_profile_parts_name_functions_that_exist():
-    """Each part of the MPC timing's profile split names a function of the package by its file (the split matches
-    cProfile's entries by path and name: a moved file made every share 0 and "other" 100 %)."""
-    from pathlib import Path
-
-    from torchtraj.bench import profile
-
-    root = Path(tt.__file__).parent
-    for parts in (profile.PARTS, profile.COMPILED_PARTS):
-        for label, (file, name) in parts.items():
-            source = root / file
-            assert source.is_file(), (label, file)
-            assert f"def {name}(" in source.read_text(), (label, file, name)
-
-
-def test_profile_split_attributes_an_mpc_step():
-    """The shares of a profiled ALTRO solve: the expansion, the line search and the Riccati sweeps take time."""
-    from torchtraj.bench import profile
-
-    problem = tt.problems.get("pendulum").replace(horizon=10)
-    _, shares = profile.split(lambda: tt.solve(problem, method="altro", options=tt.ALTROOptions(
-        iterations_outer=1, iterations_inner=3)))
-    for label in ("expansion (torch.func derivatives)", "line search (batched rollouts)", "Riccati factorisation",
-                  "Riccati solve"):
-        assert shares[label] > 0.0, (label, shares)
-    assert shares["other"] < 1.0

@@ -74,7 +74,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="PATH", help="also write the header and all rows as JSON to PATH")
     p.add_argument("--profile", action="store_true",
                    help="after the rows, solve the throughput batch again under cProfile and print where its time "
-                        "goes (torchtraj.bench.profile.PARTS)")
+                        "goes (torchtraj.bench.profile.parts_of)")
     p.add_argument("--grad", action="store_true",
                    help="run the gradient benchmark instead (torchtraj.bench.grad: forward/backward times and "
                         "agreement with finite differences next to mpc.pytorch); --batch then defaults to "
@@ -225,9 +225,9 @@ def _throughput(name: str, rows: list, largest: int) -> str:
 
 def _profile_line(problem, method: Solver, batch: int, seed: int, options) -> str:
     """The batch of the throughput row solved again under cProfile: the share of each solver part."""
-    x0 = batch_x0(problem.name, batch, seed)
-    X0 = state_guess(method, problem)
-    seconds, parts = profile.split(lambda: solve(problem, x0, method, X0=X0, options=options))
+    x0, X0 = batch_x0(problem.name, batch, seed), state_guess(method, problem)
+    seconds, parts = profile.split(lambda: solve(problem, x0, method, X0=X0, options=options),
+                                   profile.parts_of(method.name))
     return (f"  where the time goes ({problem.name}, B={batch}, profiled run of {seconds:.1f} s): "
             f"{profile.format_split(parts)}")
 

@@ -179,8 +179,8 @@ SUCCESS = {"pendulum": pendulum_success, "cartpole": cartpole_success, "car": ca
 # ---------------------------------------------------------------------------------------------- timing
 @dataclass
 class Timing:
-    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of
-    :data:`torchtraj.bench.profile.PARTS`."""
+    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of the method's parts
+    (:func:`torchtraj.bench.profile.parts_of`)."""
 
     task: str
     batch: int
@@ -190,7 +190,7 @@ class Timing:
     ms_median: float
     ms_mean: float
     iterations_mean: float
-    parts: dict  # shares of profile.PARTS, or of profile.COMPILED_PARTS when compiled
+    parts: dict  # shares of profile.parts_of(method, compiled)
     compiled: bool = False
     first_call_s: float = float("nan")  # the untimed first step: torch.func's tracing, and compilation
 
@@ -199,8 +199,8 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
                horizon: Optional[int] = None, iterations: int = 3, compile: bool = False,
                method: str = "altro") -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
-    and hold), after untimed warm-up steps; then profile ``profile_steps`` more to split the time into
-    :data:`torchtraj.bench.profile.PARTS` (compiled: :data:`~torchtraj.bench.profile.COMPILED_PARTS`). Compiled
+    and hold), after untimed warm-up steps; then profile ``profile_steps`` more to split the time into the
+    method's parts (:func:`torchtraj.bench.profile.parts_of`, compiled or not). Compiled
     (``compile``), the warm-up is 3 steps (kernels that first run at the second or third step compile there), and
     ``first_call_s`` is all of it."""
     import gymnasium as gym
@@ -225,7 +225,7 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
         for _ in range(profile_steps):
             state["obs"], *_ = venv.step(mpc(state["obs"]))
 
-    parts = profile.split(profiled_steps, profile.COMPILED_PARTS if compile else profile.PARTS)[1]
+    parts = profile.split(profiled_steps, profile.parts_of(method, compile))[1]
     return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
                   1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts, compile, first_call_s)
 

@@ -1,7 +1,9 @@
 """Where the time of a solve goes: cumulative profile times of the solver's parts.
 
-:data:`PARTS` are disjoint (none calls another), so their shares and "other" add up to the whole. The split is
-taken from a separate, profiled run: cProfile slows Python-heavy code, so its total is not a timing to quote.
+A method's parts (:func:`parts_of`) are disjoint (none calls another), so their shares and "other" add up to the
+whole. ALTRO and AL-iLQR are split by :data:`PARTS`; iLQR by those of its parts it has; the other methods by their
+expansion and the Riccati core that every method shares. The split is taken from a separate, profiled run: cProfile
+slows Python-heavy code, so its total is not a timing to quote.
 """
 
 from __future__ import annotations
@@ -24,6 +26,17 @@ PARTS = {
 }
 
 
+#: each method's expansion (its model at an iterate), where it is not ALTRO's; none calls the Riccati core
+EXPANSIONS = {
+    "ilqr": ("iterations/ilqr.py", "expand"),
+    "ipm": ("solvers/ipm/expansion.py", "expand"),
+    "eilqr": ("solvers/eilqr/model.py", "expand"),
+    "hm-ilqr": ("solvers/hm_ilqr/objective.py", "expand"),
+}
+
+#: the labels of :data:`PARTS` that iLQR has (ALTRO's augmented Lagrangian and projection it has not)
+ILQR_PARTS = ("line search (batched rollouts)", "Riccati factorisation", "Riccati solve", "initial rollout")
+
 #: the same for compiled kernels (``ILQROptions.compile``), whose insides cProfile cannot see
 COMPILED_PARTS = {
     "iterations (compiled: expansion, Riccati, line search)": ("iterations/ilqr.py", "_iteration"),
@@ -34,6 +47,19 @@ COMPILED_PARTS = {
     "MPC multiplier update": ("solvers/altro/augmented_lagrangian.py", "updated_duals"),
     "final cost and violation": ("solvers/altro/stages.py", "_cost_and_violation"),
 }
+
+
+def parts_of(method: str, compiled: bool = False) -> dict:
+    """The parts that split ``method``'s time: :data:`PARTS` for ALTRO and AL-iLQR (:data:`COMPILED_PARTS` with
+    compiled kernels); for the others, eager, their expansion (:data:`EXPANSIONS`) and the Riccati core (iLQR also its
+    line search and initial rollout), and compiled none: their kernels hold those parts, and cProfile cannot see into
+    them."""
+    if method in ("altro", "al-ilqr"):
+        return COMPILED_PARTS if compiled else PARTS
+    if compiled:
+        return {}
+    riccati = ILQR_PARTS if method == "ilqr" else ("Riccati factorisation", "Riccati solve")
+    return {"expansion (torch.func derivatives)": EXPANSIONS[method], **{label: PARTS[label] for label in riccati}}
 
 
 def cumulative(stats: dict, file: str, name: str) -> float:
