@@ -229,7 +229,8 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
 
     path = tmp_path / "ops.json"
     code, text = run(["--ops", "--method", "al-ilqr", "--problems", "double_integrator", "--ops-horizons", "5", "10",
-                      "--ops-iterations", "2", "--ops-mpc-steps", "2", "--json", str(path)])
+                      "--ops-iterations", "2", "--ops-mpc-steps", "2", "--ops-mpc-iterations", "1",
+                      "--json", str(path)])
     assert code == 0, text
     data = json.loads(path.read_text())
     (solved,) = data["solves"]
@@ -294,10 +295,12 @@ def test_ops_report_counts_the_solves_it_prints(tmp_path):
     listed = " ".join(str(r["calls"]) if r["iterations"] == 1 else "-" for r in alone["rows"]["al-ilqr"][0])
     assert f"  al-ilqr N=5, iterations 3 to 4: {listed}" in text
 
-    # the MPC row: two control steps of the pendulum controller after MPC_WARMUP uncounted, counted here again
+    # the MPC row: two control steps of the pendulum controller (one iteration each, --ops-mpc-iterations) after
+    # MPC_WARMUP uncounted, counted here again
     (step,) = data["mpc"]
+    assert step["iterations"] == data["header"]["mpc_iterations"] == 1 and "method, 1), B = 1" in text
     env = gym.make("torchtraj/Pendulum-v0").unwrapped
-    policy = tt.MPC(env.problem(horizon=30), "al-ilqr", 3)
+    policy = tt.MPC(env.problem(horizon=30), "al-ilqr", 1)
     obs, _ = env.reset(seed=0)
     for _ in range(MPC_WARMUP):
         obs, *_ = env.step(policy(obs))
@@ -366,6 +369,6 @@ def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeyp
                     (["ilqr"], ["pendulum", "cartpole", "car_3obs"], [5, 7], 3)]
     parser = bench_main.parser()
     for args in (["--ops", "--grad"], ["--ops", "--ops-horizons", "0"], ["--ops", "--ops-iterations", "-1"],
-                 ["--ops", "--ops-mpc-steps", "-1"]):
+                 ["--ops", "--ops-mpc-steps", "-1"], ["--ops", "--ops-mpc-iterations", "0"]):
         with pytest.raises(SystemExit):
             bench_main._check(parser, parser.parse_args(args))

@@ -121,13 +121,7 @@ def parser() -> argparse.ArgumentParser:
                         "guess on the problem set instead, against IPOPT (torchtraj.bench.defaults); --method then "
                         "defaults to every such method, --batch to 1 (B > 1: sample_x0 batches, the first "
                         "--reference-instances compared with IPOPT)")
-    p.add_argument("--ops-horizons", nargs="+", type=int, metavar="N", default=list(ops.DEFAULT_HORIZONS),
-                   help=f"with --ops: the horizons of the sweep (default: {' '.join(map(str, ops.DEFAULT_HORIZONS))})")
-    p.add_argument("--ops-iterations", type=int, metavar="K", default=ops.SWEEP_ITERATIONS,
-                   help="with --ops: the sweep counts iterations 1 to K, K+1 to 2K, and each of K+1 to 2K alone "
-                        f"(0: whole solves, default options, no setup in their slope; default: {ops.SWEEP_ITERATIONS})")
-    p.add_argument("--ops-mpc-steps", type=int, metavar="K", default=ops.MPC_STEPS,
-                   help=f"with --ops: control steps counted per MPC row (0: no MPC rows; default: {ops.MPC_STEPS})")
+    ops_report.add_arguments(p)
     return p
 
 
@@ -151,11 +145,7 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error(f"--compile: method {args.method} has no compiled kernels (its compile option runs eager)")
     if args.ops and (args.grad or args.profile or (args.compile and args.record)):
         p.error("--ops goes without --grad and --profile, and with --compile or --record, not both")
-    if args.ops_mpc_steps < 0:
-        p.error(f"--ops-mpc-steps must be >= 0, got {args.ops_mpc_steps}")
-    if any(n < 1 for n in args.ops_horizons) or args.ops_iterations < 0:
-        p.error(f"--ops-horizons must be >= 1 and --ops-iterations >= 0, got {args.ops_horizons}, "
-                f"{args.ops_iterations}")
+    ops_report.check(p, args)
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch.cuda.is_available() is False")
 
@@ -267,7 +257,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         else:
             counter = ops_report
             report = ops_report.run(methods, args.problems or list(ops.DEFAULT_PROBLEMS), args.ops_horizons,
-                             args.ops_iterations, say, dtype, device, args.ops_mpc_steps, record=args.record)
+                                     args.ops_iterations, say, dtype, device, args.ops_mpc_steps, record=args.record,
+                                     mpc_iterations=args.ops_mpc_iterations)
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(report, f, indent=1)
