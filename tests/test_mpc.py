@@ -94,6 +94,23 @@ def test_a_multiple_shooting_method_starts_from_the_shifted_states(monkeypatch):
     assert given[2] is None and given[3] is None
 
 
+def test_the_ipms_control_steps_start_their_multipliers_at_zero(monkeypatch):
+    """A control step of the IPM (its step options) takes no least-squares multiplier estimate, and so one
+    factorisation fewer; a solve with the method's defaults takes it."""
+    import torchtraj.solvers.ipm.solver as ipm_solver
+
+    estimated = []
+    estimate = ipm_solver.least_squares_multipliers
+    monkeypatch.setattr(ipm_solver, "least_squares_multipliers", lambda *a: estimated.append(1) or estimate(*a))
+    env = envs.PendulumEnv()
+    ipm = tt.MPC(env.problem(), "ipm", 2)
+    ipm(STATES)
+    ipm(STATES + 0.01)
+    assert estimated == [] and not ipm.options.least_squares_multipliers
+    tt.solve(env.problem(), STATES, method="ipm", options=tt.IPOptions(iterations=2))
+    assert estimated == [1]
+
+
 @pytest.mark.parametrize("method", ["ipm", "hm-ilqr", "eilqr"])
 def test_a_cold_instance_among_warm_ones_starts_as_it_would_alone(method):
     """After a reset of one instance the others keep their shifted states, and the reset one starts where the
