@@ -259,6 +259,15 @@ def pendulum_v1_example():
 
 
 # ---------------------------------------------------------------------------------------------- CLI
+def _positive(text: str) -> int:
+    """``--iterations``' value: a positive int, else argparse's error."""
+    import argparse
+
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"a positive number of iterations, not {text!r}")
+    return int(text)
+
+
 def parser():
     import argparse
 
@@ -283,12 +292,7 @@ def parser():
                    choices=[m for m in solvers.names() if solvers.get(m).handles_constraints],
                    help="the controllers' method (default: altro, with the tasks' options; another method runs its "
                         "own control-step options; Pendulum-v1's example keeps its own controller)")
-    def positive(text: str) -> int:
-        if not text.isdigit() or int(text) < 1:
-            raise argparse.ArgumentTypeError(f"a positive number of iterations, not {text!r}")
-        return int(text)
-
-    p.add_argument("--iterations", type=positive, default=3,
+    p.add_argument("--iterations", type=_positive, default=3,
                    help="solver iterations per control step (default: 3)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default: 0)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
