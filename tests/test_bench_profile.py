@@ -49,3 +49,4 @@ def test_every_methods_split_names_its_own_expansion_and_the_riccati_core(method
     assert shares["other"] >= 0.0
     assert profile.parts_of(method, compiled=True) == {}
     assert profile.parts_of("al-ilqr") == profile.PARTS
+    assert set(profile.parts_of("a-new-method")) == {"Riccati factorisation", "Riccati solve"}  # no line: the core

@@ -26,7 +26,8 @@ PARTS = {
 }
 
 
-#: each method's expansion (its model at an iterate), where it is not ALTRO's; none calls the Riccati core
+#: each method's expansion (its model at an iterate), where it is not ALTRO's; none calls the Riccati core. A method
+#: without a line here is split by the Riccati core alone.
 EXPANSIONS = {
     "ilqr": ("iterations/ilqr.py", "expand"),
     "ipm": ("solvers/ipm/expansion.py", "expand"),
@@ -51,15 +52,16 @@ COMPILED_PARTS = {
 
 def parts_of(method: str, compiled: bool = False) -> dict:
     """The parts that split ``method``'s time: :data:`PARTS` for ALTRO and AL-iLQR (:data:`COMPILED_PARTS` with
-    compiled kernels); for the others, eager, their expansion (:data:`EXPANSIONS`) and the Riccati core (iLQR also its
-    line search and initial rollout), and compiled none: their kernels hold those parts, and cProfile cannot see into
-    them."""
+    compiled kernels); for the others, eager, their expansion (:data:`EXPANSIONS`, where it has a line) and the
+    Riccati core (iLQR also its line search and initial rollout), and compiled none: their kernels hold those parts,
+    and cProfile cannot see into them."""
     if method in ("altro", "al-ilqr"):
         return COMPILED_PARTS if compiled else PARTS
     if compiled:
         return {}
+    expansion = {"expansion (torch.func derivatives)": EXPANSIONS[method]} if method in EXPANSIONS else {}
     riccati = ILQR_PARTS if method == "ilqr" else ("Riccati factorisation", "Riccati solve")
-    return {"expansion (torch.func derivatives)": EXPANSIONS[method], **{label: PARTS[label] for label in riccati}}
+    return {**expansion, **{label: PARTS[label] for label in riccati}}
 
 
 def cumulative(stats: dict, file: str, name: str) -> float:
