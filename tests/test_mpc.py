@@ -335,7 +335,6 @@ def test_bench_mpc_flag_prints_the_timing_rows():
     assert code == 0 and len(rows) == 2 and all("horizon 30, 3 iterations/step" in r and "expansion" in r for r in rows)
 
 
-
 def test_bench_mpc_runs_another_method_at_another_iteration_budget():
     from torchtraj.bench.__main__ import main
 
@@ -354,6 +353,7 @@ def test_bench_mpc_runs_another_method_at_another_iteration_budget():
     assert episodes[-5] == "1" and "horizon 30, 1 iterations/step" in timing
     with pytest.raises(SystemExit):
         main(["--mpc", "--iterations", "0"], out=io.StringIO())
+
 
 # ---------------------------------------------------------------------------------------------- acceptance (slow)
 @pytest.mark.slow

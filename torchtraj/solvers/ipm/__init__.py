@@ -48,9 +48,8 @@ class IPM(Solver):
         (``compact_below=0``), so that a controller's steps repeat the same shapes, and with the multipliers started
         at zero instead of at their least-squares estimate (``least_squares_multipliers=False``, IPOPT's
         ``constr_mult_init_max = 0``): a step starts from the previous solution, shifted, whose first Newton step
-        gives the multipliers, and the estimate would cost each step an expansion and a factorisation more. With
-        it, the controllers of the three environments reached the goal no more often, in more time
-        (``docs/benchmarks.md``, section MPC)."""
+        gives the multipliers, and the estimate would cost each step an expansion and a factorisation more (the
+        controllers measured both ways: ``docs/benchmarks.md``, section MPC)."""
         return IPOptions(record=True, compact_below=0.0, least_squares_multipliers=False)
 
 
