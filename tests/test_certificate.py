@@ -142,3 +142,21 @@ def test_recorded_residuals_are_the_eager_ones_to_the_last_bit(name, B, method):
     assert isinstance(replay, (Scripted, torch.fx.GraphModule))  # traced, not left eager
     for key, value in eager.as_dict().items():
         assert torch.equal(recorded.as_dict()[key], value), key
+
+
+@pytest.mark.parametrize("name", ["car_3obs", "parallel_park", "quadrotor2d"])
+def test_the_feasibility_is_the_largest_violation_to_the_last_bit(name):
+    """The residuals take the violation from the dynamics' and the rows' values they evaluate for the derivatives:
+    the same numbers as :func:`~torchtraj.kkt.merit.largest_violation` evaluating them again, at points off the
+    constraints, with and without an initial defect."""
+    problem = problems.get(name)
+    c, params = Constraints.of(problem), problem.batched_params(3)
+    g = torch.Generator().manual_seed(3)
+    X = problem.x0 + 0.5 * torch.randn(3, problem.N + 1, problem.nx, dtype=F64, generator=g)
+    U = torch.randn(3, problem.N, problem.nu, dtype=F64, generator=g)
+    multipliers = {k: torch.rand(3, *v.shape[1:], dtype=F64, generator=g)
+                   for k, v in tt.solve(problem, method="ipm", options={"iterations": 1}).multipliers.items()}
+    for x0 in (None, problem.x0 + torch.randn(3, problem.nx, dtype=F64, generator=g)):
+        res = certificate.residuals(problem, X, U, multipliers, params, x0, c)
+        violation = tt.kkt.largest_violation(problem, X, U, params, x0=x0, constraints=c)
+        assert (violation > 0).all() and torch.equal(res.feasibility, violation)

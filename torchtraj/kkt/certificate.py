@@ -38,7 +38,7 @@ from ..core.problem import Problem
 from ..core.recorded import Recorded, under_transform
 from ..core.status import Status
 from ..riccati.sweep import costate_stages
-from .merit import largest_violation
+from .merit import violation_of
 from .model import total_cost
 
 #: IPOPT's ``s_max`` (Wächter & Biegler 2006, eq. (6)): multipliers larger on average than this scale the dual
@@ -117,17 +117,18 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
         g = torch.where(applies, values.ineq, torch.zeros_like(values.ineq))
         out = (total_cost(problem, X, U, params) + (z * g).sum((1, 2)) + (nu * values.eq).sum((1, 2))
                + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
-        return out.sum(), (g, values.ineqN)
+        return out.sum(), (g, values.eq, values.ineq, values.eqN, values.ineqN)
 
     if under_transform() or torch.is_inference_mode_enabled():
-        (gx, gu), (g, gN) = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
+        (gx, gu), values = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
     else:
         with torch.enable_grad():
             Xg, Ug = X.clone().requires_grad_(True), U.clone().requires_grad_(True)
-            total, (g, gN) = lagrangian(Xg, Ug)
+            total, values = lagrangian(Xg, Ug)
             gx, gu = torch.autograd.grad(total, (Xg, Ug))
-        g, gN = g.detach(), gN.detach()
-    jacobian = stage_jacobian(problem.dynamics, X[:, :-1], U, params)[1]
+        values = tuple(v.detach() for v in values)
+    g, eq, ineq, eqN, gN = values
+    f, jacobian = stage_jacobian(problem.dynamics, X[:, :-1], U, params)
     A, Bu = jacobian[..., :nx], jacobian[..., nx:]
     lam = costate_stages(A, gx[:, :-1], gx[:, -1])[:, 1:]  # λ_1 .. λ_N (the recursion's λ_0 is not a costate)
     reduced = gu + (Bu.mT @ lam.unsqueeze(-1)).squeeze(-1)
@@ -145,7 +146,8 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
         complementarity = products.amax(1) / s_c
         signs = torch.cat([(-z_on).flatten(1), -zN], 1)
         dual_sign = torch.clamp(signs.amax(1), min=0.0) / s_d
-    feasibility = largest_violation(problem, X, U, params, x0=x0, constraints=c)
+    # largest_violation's, from the values taken above
+    feasibility = violation_of(f - X[:, 1:], eq, ineq, eqN, gN, None if x0 is None else x0 - X[:, 0])
     return stationarity, feasibility, complementarity, dual_sign
 
 
