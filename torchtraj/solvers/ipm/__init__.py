@@ -49,8 +49,10 @@ class IPM(Solver):
         at zero instead of at their least-squares estimate (``least_squares_multipliers=False``, IPOPT's
         ``constr_mult_init_max = 0``): a step starts from the previous solution, shifted, whose first Newton step
         gives the multipliers, and the estimate would cost each step an expansion and a factorisation more (the
-        controllers measured both ways: ``docs/benchmarks.md``, section MPC)."""
-        return IPOptions(record=True, compact_below=0.0, least_squares_multipliers=False)
+        controllers measured both ways: ``docs/benchmarks.md``, section MPC); and with the last iterate evaluated
+        untested (``test_last_iterate=False``): the controller applies the plan whatever its status, so a step
+        whose budget runs out reports ``MAX_ITERATIONS`` without the expansion that would test it."""
+        return IPOptions(record=True, compact_below=0.0, least_squares_multipliers=False, test_last_iterate=False)
 
 
 __all__ = ["IPM"]

@@ -73,9 +73,11 @@ class Final:
     K: Tensor
 
     @classmethod
-    def of(cls, it: Iterate, model: Model, status: Tensor, iterations: Tensor, K: Tensor) -> "Final":
-        return cls(X=it.X, U=it.U, s=it.s, sN=it.sN, lam=it.lam, z=it.z, zN=it.zN, nu=it.nu, nuN=it.nuN, J=model.J,
-                   violation=model.violation, status=status, iterations=iterations, K=K)
+    def of(cls, it: Iterate, measures: tuple, status: Tensor, iterations: Tensor, K: Tensor) -> "Final":
+        """The final values of ``it``, with its ``measures``: the objective and the largest violation ``(B,)``."""
+        J, violation = measures
+        return cls(X=it.X, U=it.U, s=it.s, sN=it.sN, lam=it.lam, z=it.z, zN=it.zN, nu=it.nu, nuN=it.nuN, J=J,
+                   violation=violation, status=status, iterations=iterations, K=K)
 
     def write(self, index: Tensor, rows: "Final") -> "Final":
         """Overwrite the rows ``index`` with ``rows`` (in place: the buffers are this object's own copies)."""

@@ -49,7 +49,7 @@ from ...core.derivatives import (
     terminal_jacobian,
 )
 from ...core.masks import RowPicker
-from ...core.one_pass import problem_kkt_expansion
+from ...core.one_pass import problem_kkt_expansion, problem_values
 from ...core.problem import Problem
 from ...kkt.merit import violation_of
 from ...kkt.model import total_cost
@@ -221,6 +221,14 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOpt
     return Model(J=J, Lz=e.Lz, Lzz=e.Lzz, LNx=e.LNx, LNxx=e.LNxx, f=e.f, fz=e.fz, g=r.g, Gz=r.Gz, h=r.h, Hz=r.Hz,
                  gN=r.gN, GN=r.GN, hN=r.hN, HN=r.HN, theta=theta, violation=violation, dual_error=dual_error,
                  primal_error=primal_error, finite=finite, knots=knots)
+
+
+def last_values(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions) -> tuple:
+    """``(J, violation, finite)`` ``(B,)`` at ``it`` from the functions' values alone, no derivatives: the last
+    iterate of a solve whose iterations ran out, untested (``IPOptions.test_last_iterate`` off)."""
+    v = problem_values(problem, cons, it.X, it.U, params, record=opts.record)
+    violation = violation_of(v.f - it.X[:, 1:], v.h, v.g * cons.ineq_knot_mask, v.hN, v.gN)
+    return v.cost, violation, torch.isfinite(v.cost) & torch.isfinite(violation)
 
 
 #: The fields of a linear-quadratic problem's :class:`Model` that change from point to point (its Jacobians and

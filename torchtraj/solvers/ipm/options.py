@@ -20,6 +20,11 @@ class IPOptions:
     tolerance: Optional[float] = None
     #: Maximum iterations (steps taken or attempted; ``max_iter``).
     iterations: int = 1000
+    #: Where the iterations run out, expand the last iterate and test it for convergence. ``False``: its objective
+    #: and violation alone are evaluated (no derivatives), and an instance still running reports
+    #: ``MAX_ITERATIONS`` even where that iterate would pass the test (``NON_FINITE`` and ``DIVERGED`` are still
+    #: told): a control step's real-time iteration, which applies its plan whatever the status, saves an expansion.
+    test_last_iterate: bool = True
     #: Initial barrier parameter ``μ_0`` (``mu_init``).
     barrier_initial: float = 0.1
     #: ``κ_μ`` and ``θ_μ`` of the barrier update (``mu_linear_decrease_factor``, ``mu_superlinear_decrease_power``).

@@ -66,7 +66,7 @@ from ...riccati.range_space import formed, select_gains
 from .barrier import average_complementarity, mehrotra_step, monotone_update
 from .compaction import Final, full_history, gather_rows, history_row, pick
 from .crossover_driver import cross_over
-from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error, with_values
+from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error, last_values, with_values
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import kernel_of, uses_graphs
@@ -188,7 +188,16 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
         return error, torch.where(running & model.finite & done, int(Status.CONVERGED), status)
 
+    measures = None  # the last iterate's objective and violation, where it is evaluated untested
     for step in range(opts.iterations + 1):
+        if step == opts.iterations and not opts.test_last_iterate and hooks.leave is None:
+            J, violation, finite = kernel_of(last_values, opts, x0.device)(problem, cons, params, it, opts)
+            running = status == Status.RUNNING
+            status = torch.where(running & ~finite, int(Status.NON_FINITE), status)
+            diverged = running & finite & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
+            status = torch.where(diverged, int(Status.DIVERGED), status)
+            measures = (J, violation)
+            break
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
             base = Base(it.X, it.U, model)
@@ -229,7 +238,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             break
         if compacting and fewest <= count <= opts.compact_below * running.shape[0]:
             # the finished instances' results are final: iterate on the running ones alone
-            now = Final.of(it, model, status, iterations, formed(K))
+            now = Final.of(it, (model.J, model.violation), status, iterations, formed(K))
             final = gather_rows(now, torch.arange(running.shape[0], device=x0.device)) if final is None \
                 else final.write(index, now)  # the first: copies of the full batch's
             # what the history repeats for the instances that leave (its values at their final iterate)
@@ -344,5 +353,5 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                         model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),
                         running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    out = Final.of(it, model, status, iterations, formed(K))
+    out = Final.of(it, (model.J, model.violation) if measures is None else measures, status, iterations, formed(K))
     return (out if final is None else final.write(index, out)), cons, records

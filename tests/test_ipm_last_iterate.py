@@ -1,0 +1,101 @@
+"""The interior point's last iterate untested (``IPOptions.test_last_iterate=False``), as its control steps run.
+
+Where the iterations run out, the tested solve expands its last iterate to test it; the untested one evaluates the
+functions' values there alone. Everything but the status must be the tested solve's: the same iterates, gains and
+multipliers to the last bit, the same cost and violation; the status says ``MAX_ITERATIONS`` where the test would
+have said ``CONVERGED`` at the cap, and keeps every status told before it.
+"""
+
+import dataclasses
+
+import pytest
+import torch
+
+import torchtraj as tt
+import torchtraj.solvers.ipm.solver as ipm_solver
+from torchtraj import envs, problems
+
+STATES = torch.tensor([[0.3, 2.0], [3.0, 0.2], [0.05, 0.0]], dtype=torch.float64)
+
+
+def counting_expansions(monkeypatch) -> list:
+    """A list that grows by one at every expansion of the interior point's iterations."""
+    calls, expand = [], ipm_solver.expand
+    monkeypatch.setattr(ipm_solver, "expand", lambda *a: calls.append(1) or expand(*a))
+    return calls
+
+
+def solve(problem, x0, cap, tested, **options):
+    return tt.solve(problem, x0, method="ipm", options=tt.IPOptions(iterations=cap, test_last_iterate=tested,
+                                                                      **options))
+
+
+def assert_same_point(a: tt.Solution, b: tt.Solution) -> None:
+    for name in ("X", "U", "K", "costate", "iterations"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert a.multipliers.keys() == b.multipliers.keys()
+    assert all(torch.equal(a.multipliers[k], b.multipliers[k]) for k in a.multipliers)
+    torch.testing.assert_close(a.cost, b.cost, rtol=1e-14, atol=0)
+    torch.testing.assert_close(a.max_violation, b.max_violation, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize("cap", [1, 3])
+def test_a_capped_solve_untested_ends_at_the_tested_ones_point_with_one_expansion_fewer(monkeypatch, cap):
+    problem = problems.get("car_3obs")  # stage and terminal rows, the obstacles nonconvex
+    x0 = problem.x0 + torch.tensor([[0.0, 0.0, 0.0], [0.1, -0.1, 0.2]], dtype=torch.float64)
+    calls = counting_expansions(monkeypatch)
+    tested = solve(problem, x0, cap, True)
+    expansions = len(calls)
+    untested = solve(problem, x0, cap, False)
+    assert len(calls) - expansions == expansions - 1
+    assert_same_point(tested, untested)
+    assert (tested.status == tt.Status.MAX_ITERATIONS).all()
+    assert torch.equal(untested.status, tested.status)
+    assert untested.kkt is not None  # the certificate's residuals are reported all the same
+
+
+def test_an_untested_instance_reports_max_iterations_where_the_test_would_have_said_converged():
+    problem = problems.get("pendulum")
+    x0 = torch.tensor([[0.0, 0.0], [0.5, 0.0]], dtype=torch.float64)
+    full = tt.solve(problem, x0, method="ipm")
+    assert (full.status == tt.Status.CONVERGED).all() and full.iterations[0] != full.iterations[1]
+    cap = int(full.iterations.max())  # the slower instance converges at the cap, the other one before it
+    slower = int(full.iterations.argmax())
+    tested, untested = solve(problem, x0, cap, True), solve(problem, x0, cap, False)
+    assert (tested.status == tt.Status.CONVERGED).all()
+    assert_same_point(tested, untested)
+    expected = tested.status.clone()
+    expected[slower] = int(tt.Status.MAX_ITERATIONS)
+    assert torch.equal(untested.status, expected)
+
+
+def test_an_untested_last_iterate_that_is_not_finite_is_told_for_that_instance_alone(monkeypatch):
+    values = ipm_solver.last_values
+
+    def broken_first(*args):  # the first instance's cost is NaN at the last iterate
+        J, violation, finite = values(*args)
+        J = J.clone()
+        J[0] = float("nan")
+        return J, violation, finite & torch.isfinite(J)
+
+    monkeypatch.setattr(ipm_solver, "last_values", broken_first)
+    sol = solve(problems.get("pendulum"), STATES, 2, False)
+    assert sol.status.tolist() == [int(tt.Status.NON_FINITE)] + [int(tt.Status.MAX_ITERATIONS)] * 2
+
+
+def test_the_ipms_control_steps_leave_their_last_iterate_untested_and_apply_the_same_controls(monkeypatch):
+    env = envs.PendulumEnv()
+    untested = tt.MPC(env.problem(), "ipm", 2)
+    assert not untested.options.test_last_iterate
+    tested = tt.MPC(env.problem(), "ipm", 2, options=dataclasses.replace(untested.options, test_last_iterate=True))
+    calls = counting_expansions(monkeypatch)
+    x = STATES
+    for _ in range(4):
+        before = len(calls)
+        u = untested(x)
+        between = len(calls)
+        assert torch.equal(u, tested(x))
+        assert len(calls) - between == between - before + 1  # the tested step's one expansion more
+        assert (untested.status == tt.Status.MAX_ITERATIONS).all()
+        x = x + 0.05 * torch.cat([x[:, 1:], u], -1)
+    assert torch.equal(untested.X, tested.X) and torch.equal(untested.U, tested.U)
