@@ -61,7 +61,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from .. import solvers
 from ..core.problem import Problem
-from ..core.recorded import forget
+from ..core.recorded import TRACE_AT, forget
 from ..core.status import Status
 from ..solve import solve
 from .runs import state_guess, with_record
@@ -75,8 +75,11 @@ TOP_OPS = 10
 #: The MPC row: the pendulum environment's controller over this horizon, with this many iterations a step,
 #: counted over this many steps.
 MPC_HORIZON, MPC_ITERATIONS, MPC_STEPS = 30, 3, 10
-#: Uncounted control steps before the counted ones (:func:`count_mpc`).
-MPC_WARMUP = 5
+#: Uncounted control steps before the counted ones (:func:`count_mpc`): as many as a recorded kernel's calls before
+#: its trace, so that a kernel a step calls once is traced before the count and the counted steps are the
+#: controller's from then on (with 5, the count of a one-iteration step held the last eager calls of a kernel called
+#: once a step).
+MPC_WARMUP = TRACE_AT
 
 
 class OperatorCounter(TorchDispatchMode):
