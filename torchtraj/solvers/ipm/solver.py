@@ -23,6 +23,10 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
    ``LOCALLY_INFEASIBLE``;
 7. finished instances leave the batch being iterated (:mod:`~torchtraj.solvers.ipm.compaction`).
 
+Where the iterations run out, the last iterate is expanded and tested as every other; with
+``IPOptions.test_last_iterate`` off (the control steps), its values alone are evaluated: its cost and violation,
+and ``MAX_ITERATIONS`` for the instances still running.
+
 The defaults are IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), in :class:`IPOptions`, but for the
 restoration phase's penalty ``ρ`` (see there).
 
