@@ -7,6 +7,7 @@ choice of a step, the move, the initial rollout) is one graph with no break, and
 """
 
 import pytest
+import torch
 from same_solutions import (
     assert_close_solutions,
     assert_compiled_matches_eager,
@@ -34,6 +35,23 @@ def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
         globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step})
     assert bool((solution.status == tt.Status.CONVERGED).all())
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
+
+
+def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_capture):
+    """The control steps' options (``EILQR.step_defaults``: the last iterate untested) compiled: the barrier
+    multipliers of that iterate are one more kernel, one graph with no break, and each step applies the eager
+    controller's control."""
+    x = tt.problems.sample_x0("pendulum", 2, seed=2)
+    short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
+    steps = tt.MPC(short, "eilqr", 2, compile=True), tt.MPC(short, "eilqr", 2)
+    for _ in range(2):
+        u, expected = (mpc(x) for mpc in steps)
+        torch.testing.assert_close(u, expected, rtol=0, atol=1e-9)
+        assert (steps[0].status == tt.Status.MAX_ITERATIONS).all()
+        x = x + 0.02
+    assert_one_graph_per_kernel(dynamo_capture, {
+        model.expand, model.last_multipliers, newton._direction_alone, merit.merit_at, globalization.corrected_step,
+        globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step, rollout})
 
 
 @pytest.mark.slow  # two batch sizes captured, a minute; the default run keeps the test above

@@ -51,8 +51,12 @@ class EILQR(Solver):
         """A control step's options: the paper's fixed weight (a few warm-started iterations a step track the moving
         optimum, no continuation), ten times stiffer than a solve's first (``w = 1e-3``, ``δ = 1e-4``); with
         ``w = 1e-4`` three iterations a step did not swing the contract test's pendulum up. The expansion is
-        replayed from its recorded graph (``record``): a controller's steps repeat the same shapes."""
-        return EILQROptions(barrier_weight=1e-3, barrier_relaxation=1e-4, barrier_continuation=False, record=True)
+        replayed from its recorded graph (``record``): a controller's steps repeat the same shapes. The last
+        iterate is left untested (``test_last_iterate=False``): the controller applies the plan whatever its
+        status, so a step whose budget runs out reports ``MAX_ITERATIONS`` without the expansion that would test
+        it."""
+        return EILQROptions(barrier_weight=1e-3, barrier_relaxation=1e-4, barrier_continuation=False, record=True,
+                            test_last_iterate=False)
 
     def step_options(self, options, iterations, compile=False) -> EILQROptions:
         """The base's, never from the problem's state guess: a control step starts from the shifted controls of

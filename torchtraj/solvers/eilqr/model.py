@@ -112,6 +112,22 @@ def _slacks(cons: Constraints, X: Tensor, U: Tensor, params) -> tuple:
     return t, tN
 
 
+def _barrier_point(cons: Constraints, params, it: Iterate, weights: Weights) -> tuple:
+    """``(t, tN, mask, z, zN)`` at ``it``: the rows' slacks, the stage rows' knot mask and the safeguarded barrier
+    multipliers, from the rows' values alone."""
+    X, U = it.X, it.U
+    t, tN = _slacks(cons, X, U, params)
+    mask = cons.ineq_knot_mask if cons.mi else X.new_zeros(U.shape[1], 0)
+    zw, zwN = barrier_multipliers(Rows(t=t, G=None, tN=tN, GN=None, mask=mask), weights)
+    return t, tN, mask, safeguarded(it.z, zw) * mask, safeguarded(it.zN, zwN)
+
+
+def last_multipliers(cons: Constraints, params, it: Iterate, weights: Weights) -> tuple:
+    """``(z, zN)``: the barrier multipliers :func:`expand` would give ``it``, from the rows' values alone (the last
+    iterate of a solve whose iterations ran out, untested: ``EILQROptions.test_last_iterate`` off)."""
+    return _barrier_point(cons, params, it, weights)[3:]
+
+
 def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor, rows, weights: Weights,
            record: Optional[bool] = False) -> Model:
     """Everything an iteration needs at ``it`` (module docstring): ``cons`` the problem's constraints, ``x0 (B, nx)``
@@ -122,10 +138,7 @@ def expand(problem: Problem, cons: Constraints, params, it: Iterate, x0: Tensor,
     nx = X.shape[-1]
     # the barrier's multipliers come from the rows' values, the Lagrangian's Hessian from the multipliers: the values
     # first, then everything else in one pass (the rows' Jacobians with it)
-    t, tN = _slacks(cons, X, U, params)
-    mask = cons.ineq_knot_mask if cons.mi else X.new_zeros(U.shape[1], 0)
-    zw, zwN = barrier_multipliers(Rows(t=t, G=None, tN=tN, GN=None, mask=mask), weights)
-    z, zN = safeguarded(it.z, zw) * mask, safeguarded(it.zN, zwN)
+    t, tN, mask, z, zN = _barrier_point(cons, params, it, weights)
     e = problem_kkt_expansion(problem, cons, X, U, params, it.lam, it.nu, z, it.nuN, zN, record=record)
     ineq = Rows(t=t, G=e.Gz, tN=tN, GN=e.GN, mask=mask)
     f, fz, h, Hz, hN, HN = e.f, e.fz, e.h, e.Hz, e.hN, e.HN

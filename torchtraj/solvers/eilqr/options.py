@@ -133,6 +133,11 @@ class EILQROptions:
             guess: from the rollout (its own ``x0`` inside the walls) 300 iterations, ``MAX_ITERATIONS``; from its
             ``X_init`` IPOPT's optimum in 219. A control step never takes it (:meth:`EILQR.step_options`).
         max_state: ``|x|`` above which an instance is ``DIVERGED``.
+        test_last_iterate: where the iterations run out, expand the last iterate and test it for convergence.
+            ``False``: its barrier multipliers are taken from the rows' values alone (no derivatives), and an
+            instance still running reports ``MAX_ITERATIONS`` even where that iterate would pass the test
+            (``NON_FINITE`` where its cost or violation is not finite, ``DIVERGED``): a control step, whose plan
+            is applied whatever the status, saves an expansion.
         compile: ``torch.compile`` the per-iteration kernels (:mod:`torchtraj.core.compiled`): the expansion, the
             Newton step, the step's bound and slope, the trial points and their merit, the second-order correction's
             step, the choice of a step, the move and the initial rollout (the loop, its masks and the
@@ -182,6 +187,7 @@ class EILQROptions:
     initial_eq: Optional[Callable] = None
     problem_state_guess: bool = True
     max_state: float = 1e8
+    test_last_iterate: bool = True
     compile: bool = False
     record: Optional[bool] = None
     verbose: bool = False

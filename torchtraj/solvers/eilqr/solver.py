@@ -57,7 +57,7 @@ from .continuation import barrier_multipliers, final_weight, first_weight, next_
 from .globalization import globalized_step
 from .initial_state import InitialState
 from .merit import MeritMemory, model_infeasibility, penalty
-from .model import Iterate, expand, with_weight
+from .model import Iterate, expand, last_multipliers, with_weight
 from .newton import compiled_direction, empty_multipliers, instances, multiplier_size, regularized_direction
 from .options import EILQROptions
 
@@ -121,7 +121,13 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     rows = []
     memory = MeritMemory.empty(B, opts.nonmonotone_memory, x0)
     expand_k, direction_k = kernel(expand, opts.compile), compiled_direction(opts.compile)
+    untested = None  # the instances whose last iterate the iterations left untested (test_last_iterate off)
     for step in range(opts.iterations + 1):
+        if step == opts.iterations and not opts.test_last_iterate:
+            z, zN = kernel(last_multipliers, opts.compile)(cons, params, it, weights)
+            it = dataclasses.replace(it, z=z, zN=zN)
+            untested = status == Status.RUNNING
+            break
         model = expand_k(problem, cons, params, it, x0, initial, weights, opts.record)
         it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
         running = status == Status.RUNNING
@@ -194,7 +200,15 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                         model.J.min().item(), model.J.max().item(), model.error.max().item(),
                         gamma.max().item(), running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    return _solution(problem, it, formed(K), status, iterations, rows, x0, params, initial, method)
+    solution = _solution(problem, it, formed(K), status, iterations, rows, x0, params, initial, method)
+    if untested is None:
+        return solution
+    # an untested last iterate is told from its cost and violation, which the solution evaluates
+    finite = torch.isfinite(solution.cost) & torch.isfinite(solution.max_violation)
+    diverged = untested & finite & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
+    status = torch.where(untested & ~finite, int(Status.NON_FINITE), torch.where(diverged, int(Status.DIVERGED),
+                                                                                  status))
+    return dataclasses.replace(solution, status=status)
 
 
 def start_states(problem: Problem, batch: Batch, opts: EILQROptions) -> torch.Tensor:

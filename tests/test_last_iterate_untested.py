@@ -1,4 +1,4 @@
-"""The interior point's last iterate untested (``IPOptions.test_last_iterate=False``), as its control steps run.
+"""The last iterate untested (``test_last_iterate=False``, the IPM's and eILQR's options), as their control steps run.
 
 Where the iterations run out, the tested solve expands its last iterate to test it; the untested one evaluates the
 functions' values there alone. Everything but the status must be the tested solve's: the same iterates, gains and
@@ -12,22 +12,26 @@ import pytest
 import torch
 
 import torchtraj as tt
+import torchtraj.solvers.eilqr.solver as eilqr_solver
 import torchtraj.solvers.ipm.solver as ipm_solver
 from torchtraj import envs, problems
 
 STATES = torch.tensor([[0.3, 2.0], [3.0, 0.2], [0.05, 0.0]], dtype=torch.float64)
+MODULES = {"ipm": ipm_solver, "eilqr": eilqr_solver}
 
 
-def counting_expansions(monkeypatch) -> list:
-    """A list that grows by one at every expansion of the interior point's iterations."""
-    calls, expand = [], ipm_solver.expand
-    monkeypatch.setattr(ipm_solver, "expand", lambda *a: calls.append(1) or expand(*a))
+def counting_expansions(monkeypatch, method) -> list:
+    """A list that grows by one at every expansion of the method's iterations."""
+    module = MODULES[method]
+    calls, expand = [], module.expand
+    monkeypatch.setattr(module, "expand", lambda *a: calls.append(1) or expand(*a))
     return calls
 
 
-def solve(problem, x0, cap, tested, **options):
-    return tt.solve(problem, x0, method="ipm", options=tt.IPOptions(iterations=cap, test_last_iterate=tested,
-                                                                      **options))
+def solve(problem, x0, method, cap, tested):
+    solver = tt.solvers.get(method)
+    options = dataclasses.replace(solver.default_options(), iterations=cap, test_last_iterate=tested)
+    return tt.solve(problem, x0, method=method, options=options)
 
 
 def assert_same_point(a: tt.Solution, b: tt.Solution) -> None:
@@ -39,14 +43,15 @@ def assert_same_point(a: tt.Solution, b: tt.Solution) -> None:
     torch.testing.assert_close(a.max_violation, b.max_violation, rtol=1e-14, atol=1e-15)
 
 
+@pytest.mark.parametrize("method", ["ipm", "eilqr"])
 @pytest.mark.parametrize("cap", [1, 3])
-def test_a_capped_solve_untested_ends_at_the_tested_ones_point_with_one_expansion_fewer(monkeypatch, cap):
+def test_a_capped_solve_untested_ends_at_the_tested_ones_point_with_one_expansion_fewer(monkeypatch, method, cap):
     problem = problems.get("car_3obs")  # stage and terminal rows, the obstacles nonconvex
     x0 = problem.x0 + torch.tensor([[0.0, 0.0, 0.0], [0.1, -0.1, 0.2]], dtype=torch.float64)
-    calls = counting_expansions(monkeypatch)
-    tested = solve(problem, x0, cap, True)
+    calls = counting_expansions(monkeypatch, method)
+    tested = solve(problem, x0, method, cap, True)
     expansions = len(calls)
-    untested = solve(problem, x0, cap, False)
+    untested = solve(problem, x0, method, cap, False)
     assert len(calls) - expansions == expansions - 1
     assert_same_point(tested, untested)
     assert (tested.status == tt.Status.MAX_ITERATIONS).all()
@@ -54,14 +59,15 @@ def test_a_capped_solve_untested_ends_at_the_tested_ones_point_with_one_expansio
     assert untested.kkt is not None  # the certificate's residuals are reported all the same
 
 
-def test_an_untested_instance_reports_max_iterations_where_the_test_would_have_said_converged():
+@pytest.mark.parametrize("method", ["ipm", "eilqr"])
+def test_an_untested_instance_reports_max_iterations_where_the_test_would_have_said_converged(method):
     problem = problems.get("pendulum")
     x0 = torch.tensor([[0.0, 0.0], [0.5, 0.0]], dtype=torch.float64)
-    full = tt.solve(problem, x0, method="ipm")
+    full = tt.solve(problem, x0, method=method)
     assert (full.status == tt.Status.CONVERGED).all() and full.iterations[0] != full.iterations[1]
     cap = int(full.iterations.max())  # the slower instance converges at the cap, the other one before it
     slower = int(full.iterations.argmax())
-    tested, untested = solve(problem, x0, cap, True), solve(problem, x0, cap, False)
+    tested, untested = solve(problem, x0, method, cap, True), solve(problem, x0, method, cap, False)
     assert (tested.status == tt.Status.CONVERGED).all()
     assert_same_point(tested, untested)
     expected = tested.status.clone()
@@ -69,7 +75,7 @@ def test_an_untested_instance_reports_max_iterations_where_the_test_would_have_s
     assert torch.equal(untested.status, expected)
 
 
-def test_an_untested_last_iterate_that_is_not_finite_is_told_for_that_instance_alone(monkeypatch):
+def test_an_ipms_untested_last_iterate_that_is_not_finite_is_told_for_that_instance_alone(monkeypatch):
     values = ipm_solver.last_values
 
     def broken_first(*args):  # the first instance's cost is NaN at the last iterate
@@ -79,16 +85,32 @@ def test_an_untested_last_iterate_that_is_not_finite_is_told_for_that_instance_a
         return J, violation, finite & torch.isfinite(J)
 
     monkeypatch.setattr(ipm_solver, "last_values", broken_first)
-    sol = solve(problems.get("pendulum"), STATES, 2, False)
+    sol = solve(problems.get("pendulum"), STATES, "ipm", 2, False)
     assert sol.status.tolist() == [int(tt.Status.NON_FINITE)] + [int(tt.Status.MAX_ITERATIONS)] * 2
 
 
-def test_the_ipms_control_steps_leave_their_last_iterate_untested_and_apply_the_same_controls(monkeypatch):
+def test_an_eilqr_untested_last_iterate_that_is_not_finite_is_told_for_that_instance_alone(monkeypatch):
+    """eILQR tells an untested last iterate from the cost and violation its solution evaluates there."""
+    solution_of = eilqr_solver._solution
+
+    def broken_first(*args):  # the first instance's cost is NaN at the last iterate
+        sol = solution_of(*args)
+        cost = sol.cost.clone()
+        cost[0] = float("nan")
+        return dataclasses.replace(sol, cost=cost)
+
+    monkeypatch.setattr(eilqr_solver, "_solution", broken_first)
+    sol = solve(problems.get("pendulum"), STATES, "eilqr", 2, False)
+    assert sol.status.tolist() == [int(tt.Status.NON_FINITE)] + [int(tt.Status.MAX_ITERATIONS)] * 2
+
+
+@pytest.mark.parametrize("method", ["ipm", "eilqr"])
+def test_the_control_steps_leave_their_last_iterate_untested_and_apply_the_same_controls(monkeypatch, method):
     env = envs.PendulumEnv()
-    untested = tt.MPC(env.problem(), "ipm", 2)
+    untested = tt.MPC(env.problem(), method, 2)
     assert not untested.options.test_last_iterate
-    tested = tt.MPC(env.problem(), "ipm", 2, options=dataclasses.replace(untested.options, test_last_iterate=True))
-    calls = counting_expansions(monkeypatch)
+    tested = tt.MPC(env.problem(), method, 2, options=dataclasses.replace(untested.options, test_last_iterate=True))
+    calls = counting_expansions(monkeypatch, method)
     x = STATES
     for _ in range(4):
         before = len(calls)
