@@ -65,3 +65,17 @@ def assert_one_graph_per_kernel(capture, kernels: set) -> None:
     assert set(compiled._KERNELS) == kernels, set(compiled._KERNELS)
     frames, graphs = capture["frames"]["total"], capture["stats"]["unique_graphs"]
     assert frames == graphs >= len(kernels), (frames, graphs)
+
+
+def assert_compiled_steps_apply_eager_controls(problem, x0, method: str, steps: int = 2) -> None:
+    """``steps`` control steps of ``tt.MPC(problem, method, 2, compile=True)`` from the states ``x0`` (moved a little
+    after each) apply the eager controller's controls to 1e-9, each spending its budget (``MAX_ITERATIONS``)."""
+    import torch
+
+    controllers = tt.MPC(problem, method, 2, compile=True), tt.MPC(problem, method, 2)
+    x = x0
+    for _ in range(steps):
+        u, expected = (mpc(x) for mpc in controllers)
+        torch.testing.assert_close(u, expected, rtol=0, atol=1e-9)
+        assert (controllers[0].status == tt.Status.MAX_ITERATIONS).all()
+        x = x + 0.02

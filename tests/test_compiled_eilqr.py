@@ -7,10 +7,10 @@ choice of a step, the move, the initial rollout) is one graph with no break, and
 """
 
 import pytest
-import torch
 from same_solutions import (
     assert_close_solutions,
     assert_compiled_matches_eager,
+    assert_compiled_steps_apply_eager_controls,
     assert_one_graph_per_kernel,
     needs_compiler,
 )
@@ -41,14 +41,8 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     """The control steps' options (``EILQR.step_defaults``: the last iterate untested) compiled: the barrier
     multipliers of that iterate are one more kernel, one graph with no break, and each step applies the eager
     controller's control."""
-    x = tt.problems.sample_x0("pendulum", 2, seed=2)
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
-    steps = tt.MPC(short, "eilqr", 2, compile=True), tt.MPC(short, "eilqr", 2)
-    for _ in range(2):
-        u, expected = (mpc(x) for mpc in steps)
-        torch.testing.assert_close(u, expected, rtol=0, atol=1e-9)
-        assert (steps[0].status == tt.Status.MAX_ITERATIONS).all()
-        x = x + 0.02
+    assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=2), "eilqr")
     assert_one_graph_per_kernel(dynamo_capture, {
         model.expand, model.last_multipliers, newton._direction_alone, merit.merit_at, globalization.corrected_step,
         globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step, rollout})

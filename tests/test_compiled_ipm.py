@@ -7,14 +7,19 @@ eager one. ``-m slow``: the same solve compiled by inductor, against eager.
 """
 
 import pytest
-import torch
-from same_solutions import assert_close_solutions, assert_compiled_matches_eager, needs_compiler
+from same_solutions import (
+    assert_close_solutions,
+    assert_compiled_matches_eager,
+    assert_compiled_steps_apply_eager_controls,
+    assert_one_graph_per_kernel,
+    needs_compiler,
+)
 
 import torchtraj as tt
 from torchtraj.core import compiled
-from torchtraj.solvers.ipm import soc
+from torchtraj.core.batching import rollout
+from torchtraj.solvers.ipm import expansion, line_search, newton, soc
 from torchtraj.solvers.ipm import solver as ipm_solver
-from torchtraj.solvers.ipm.expansion import last_values
 
 pytest.importorskip("torch._inductor")
 
@@ -96,14 +101,8 @@ def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_cap
 def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_capture):
     """The control steps' options (``IPM.step_defaults``: the last iterate untested) compiled: its values are one
     more kernel, one graph with no break, and each step applies the eager controller's control."""
-    x = tt.problems.sample_x0("pendulum", 2, seed=0)
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
-    steps = tt.MPC(short, "ipm", 2, compile=True), tt.MPC(short, "ipm", 2)
-    for _ in range(2):
-        u, expected = (mpc(x) for mpc in steps)
-        torch.testing.assert_close(u, expected, rtol=0, atol=1e-9)
-        assert (steps[0].status == tt.Status.MAX_ITERATIONS).all()
-        x = x + 0.02
-    assert last_values in compiled._KERNELS
-    assert not dict(dynamo_capture["graph_break"])
-    assert dynamo_capture["frames"]["total"] == len(compiled._KERNELS)
+    assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
+    assert_one_graph_per_kernel(dynamo_capture, {
+        expansion.expand, expansion.last_values, line_search.step_measures, line_search.trial, line_search.advance,
+        newton.direction, rollout})
