@@ -7,6 +7,7 @@ episodes per task, a 64-environment vector run with autoresets, Pendulum-v1 over
 """
 
 import dataclasses
+import gc
 import io
 
 import gymnasium as gym
@@ -333,6 +334,28 @@ def test_bench_mpc_flag_prints_the_timing_rows():
                  "--timing-steps", "2"], out=out)
     rows = [line for line in out.getvalue().splitlines() if line.startswith("B=")]
     assert code == 0 and len(rows) == 2 and all("horizon 30, 3 iterations/step" in r and "expansion" in r for r in rows)
+
+
+def test_full_collections_counts_the_garbage_collector_s_full_passes_alone():
+    with bench.FullCollections() as seen:
+        gc.collect(0)
+        gc.collect(1)
+        assert seen.count == 0
+        gc.collect()
+        assert seen.count == 1
+    gc.collect()
+    assert seen.count == 1 and seen._seen not in gc.callbacks
+
+
+def test_bench_mpc_timing_reports_the_slowest_step_and_freezes_for_the_timed_steps_alone():
+    from torchtraj.bench.__main__ import main
+
+    out = io.StringIO()
+    main(["--mpc", "--tasks", "pendulum", "--episodes", "0", "--vector-envs", "0", "--v1-seeds", "0",
+          "--timing-batch", "1", "--timing-steps", "2", "--freeze-gc"], out=out)
+    row = next(line for line in out.getvalue().splitlines() if line.startswith("B=1"))
+    assert "ms max per step (" in row and "full garbage collections, objects frozen)" in row
+    assert gc.get_freeze_count() == 0  # unfrozen after the profiled steps
 
 
 def test_bench_mpc_runs_another_method_at_another_iteration_budget():

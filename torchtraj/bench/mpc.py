@@ -27,6 +27,7 @@ Success of an episode (200 steps, 10 s):
 from __future__ import annotations
 
 import dataclasses
+import gc
 import time
 from dataclasses import dataclass
 from typing import Callable, Optional
@@ -39,6 +40,7 @@ from torchtraj.envs.core import upright_error  # importing torchtraj registers t
 from .. import solvers
 from ..control.mpc import DEFAULT_ALTRO, MPC
 from ..core.progress import Progress
+from ..core.recorded import TRACE_AT
 from ..core.status import Status
 from . import profile
 
@@ -179,8 +181,7 @@ SUCCESS = {"pendulum": pendulum_success, "cartpole": cartpole_success, "car": ca
 # ---------------------------------------------------------------------------------------------- timing
 @dataclass
 class Timing:
-    """Per-control-step time of ``steps`` batched calls; ``parts`` the share of each of the method's parts
-    (:func:`torchtraj.bench.profile.parts_of`)."""
+    """Per-control-step time of ``steps`` batched calls after the warm-up; ``parts``: :func:`profile.parts_of`'s."""
 
     task: str
     batch: int
@@ -192,42 +193,73 @@ class Timing:
     iterations_mean: float
     parts: dict  # shares of profile.parts_of(method, compiled)
     compiled: bool = False
-    first_call_s: float = float("nan")  # the untimed first step: torch.func's tracing, and compilation
+    first_call_s: float = float("nan")  # the untimed warm-up steps: traces of records, torch.compile's compilation
+    ms_max: float = float("nan")  # the slowest timed step
+    full_collections: int = 0  # Python's full garbage collections during the timed steps (FullCollections)
+    frozen: bool = False  # the objects made before the timed steps were frozen (gc.freeze)
+
+
+class FullCollections:
+    """Counts the full (generation 2) collections of Python's garbage collector while it is entered: each walks
+    every object it tracks, some 300,000 with torch imported (``docs/benchmarks.md``, "MPC")."""
+
+    def __enter__(self) -> "FullCollections":
+        self.count = 0
+        gc.callbacks.append(self._seen)
+        return self
+
+    def _seen(self, phase: str, info: dict) -> None:
+        if phase == "start" and info["generation"] == 2:
+            self.count += 1
+
+    def __exit__(self, *exc) -> None:
+        gc.callbacks.remove(self._seen)
 
 
 def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: int = 0, profile_steps: int = 10,
                horizon: Optional[int] = None, iterations: int = 3, compile: bool = False,
-               method: str = "altro") -> Timing:
+               method: str = "altro", freeze: bool = False) -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
     and hold), after untimed warm-up steps; then profile ``profile_steps`` more to split the time into the
-    method's parts (:func:`torchtraj.bench.profile.parts_of`, compiled or not). Compiled
-    (``compile``), the warm-up is 3 steps (kernels that first run at the second or third step compile there), and
-    ``first_call_s`` is all of it."""
+    method's parts (:func:`torchtraj.bench.profile.parts_of`, compiled or not). The warm-up is
+    :data:`~torchtraj.core.recorded.TRACE_AT` steps, in which a controller's records are traced (a kernel that a
+    step calls once, at the last of them), so that the timed steps are the controller's from then on; compiled
+    (``compile``), 3 steps (kernels that first run at the second or third step compile there). ``first_call_s`` is
+    the warm-up's time. ``freeze``: ``gc.freeze()`` after the warm-up (undone after the profiled steps), so that
+    Python's full collections skip the objects made until then (torch's modules among them)."""
     import gymnasium as gym
 
     venv = gym.make_vec(IDS[task], num_envs=batch)
     mpc = controller(task, venv, horizon=horizon, iterations=iterations, compile=compile, method=method)
     obs, _ = venv.reset(seed=seed)
     tick = time.perf_counter()
-    for _ in range(3 if compile else 1):  # warm-up: torch.func's first call traces, torch.compile compiles
+    for _ in range(3 if compile else TRACE_AT):
         obs, *_ = venv.step(mpc(obs))
     first_call_s = time.perf_counter() - tick
+    if freeze:
+        gc.freeze()
     seconds, taken = [], []
-    for _ in range(steps):
-        tick = time.perf_counter()
-        actions = mpc(obs)
-        seconds.append(time.perf_counter() - tick)
-        taken.append(float(mpc.solution.iterations.max()))
-        obs, *_ = venv.step(actions)
-    state = {"obs": obs}
+    try:
+        with FullCollections() as collections:
+            for _ in range(steps):
+                tick = time.perf_counter()
+                actions = mpc(obs)
+                seconds.append(time.perf_counter() - tick)
+                taken.append(float(mpc.solution.iterations.max()))
+                obs, *_ = venv.step(actions)
+        state = {"obs": obs}
 
-    def profiled_steps():
-        for _ in range(profile_steps):
-            state["obs"], *_ = venv.step(mpc(state["obs"]))
+        def profiled_steps():
+            for _ in range(profile_steps):
+                state["obs"], *_ = venv.step(mpc(state["obs"]))
 
-    parts = profile.split(profiled_steps, profile.parts_of(method, compile))[1]
+        parts = profile.split(profiled_steps, profile.parts_of(method, compile))[1]
+    finally:
+        if freeze:
+            gc.unfreeze()
     return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
-                  1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts, compile, first_call_s)
+                  1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts, compile, first_call_s,
+                  1e3 * float(np.max(seconds)), collections.count, freeze)
 
 
 # ---------------------------------------------------------------------------------------------- acceptance
@@ -284,6 +316,9 @@ def parser():
     p.add_argument("--timing-batch", nargs="*", type=int, default=[1, 64],
                    help="B of the timing rows (none: skip; default: 1 64)")
     p.add_argument("--timing-steps", type=int, default=100, help="timed control steps per row (default: 100)")
+    p.add_argument("--freeze-gc", action="store_true",
+                   help="timing rows: gc.freeze() after the warm-up steps, so that Python's full garbage collections "
+                        "skip the objects made until then (torch's modules among them)")
     p.add_argument("--compile", action="store_true",
                    help="run the episodes with torch.compile'd kernels (MPC(compile=True); "
                         "each batch size compiles first) "
@@ -349,11 +384,16 @@ def main(argv: Optional[list] = None, out=None) -> int:
         for compiled in (False, True) if args.compile else (False,):
             for batch in args.timing_batch:
                 t = time_steps("pendulum", batch, args.timing_steps, args.seed,
-                               profile_steps=min(10, args.timing_steps), compile=compiled, **chosen)
+                               profile_steps=min(10, args.timing_steps), compile=compiled, freeze=args.freeze_gc,
+                               **chosen)
                 where = (f"compiled (warm-up steps {t.first_call_s:.0f} s); " if compiled else "eager; ")
                 where += profile.format_split(t.parts)
+                frozen = ", objects frozen" if t.frozen else ""
                 say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used "
-                    f"{t.iterations_mean:.2f}): {t.ms_median:.1f} ms median, {t.ms_mean:.1f} ms mean per step; {where}")
+                    f"{t.iterations_mean:.2f}): {t.ms_median:.1f} ms median, {t.ms_mean:.1f} ms mean, "
+                    f"{t.ms_max:.1f} ms max per step ({t.full_collections} full garbage collections{frozen}); "
+                    f"{where}")
     say("rate: share of episodes meeting the task's success definition (target >= 0.95); return: mean episode "
-        "return; ms/step: median time of one batched MPC call")
+        "return; ms/step: median time of one batched MPC call; timing rows: after "
+        f"{TRACE_AT} untimed steps (3 compiled), in which the controller traces its records")
     return 1 if failed else 0
