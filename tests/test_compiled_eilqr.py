@@ -2,7 +2,8 @@
 
 Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve (the expansion, the
 Newton step, the step's bound and slope, the trial points and their merit, the second-order correction's step, the
-choice of a step, the move, the initial rollout) is one graph with no break, and the solve is the eager one.
+choice of a step, the move, the initial rollout, the answer's cost and violation) is one graph with no break, and
+the solve is the eager one.
 ``-m slow``: a later batch size captures none of them again, and the solve compiled by inductor against eager.
 """
 
@@ -17,6 +18,7 @@ from same_solutions import (
 
 import torchtraj as tt
 from torchtraj.core.batching import rollout
+from torchtraj.kkt import merit as answer
 from torchtraj.solvers.eilqr import globalization, merit, model, newton, solver
 
 pytest.importorskip("torch._inductor")
@@ -32,7 +34,8 @@ def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
     # the corrections ran in their kernel, not eager
     assert_one_graph_per_kernel(dynamo_capture, {
         model.expand, newton._direction_alone, merit.merit_at, globalization.corrected_step, rollout,
-        globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step})
+        globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step,
+        answer.cost_and_violation})
     assert bool((solution.status == tt.Status.CONVERGED).all())
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
 
@@ -45,7 +48,8 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=2), "eilqr")
     assert_one_graph_per_kernel(dynamo_capture, {
         model.expand, model.last_multipliers, newton._direction_alone, merit.merit_at, globalization.corrected_step,
-        globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step, rollout})
+        globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step, rollout,
+        answer.cost_and_violation})
 
 
 @pytest.mark.slow  # two batch sizes captured, a minute; the default run keeps the test above

@@ -179,22 +179,26 @@ def test_an_altro_solve_with_recorded_kernels_is_the_eager_solve():
     assert_same_solutions(recorded, eager)
 
 
-def test_altros_measures_of_its_answer_replay_to_the_last_bit():
-    """ALTRO's cost and largest violation of its answer, taken once a solve (a controller's every step), replay
-    from their record (``ILQROptions.record``) with the eager bits, defects and violated rows included."""
-    from torchtraj.solvers.altro import stages
+@pytest.mark.parametrize("initial", [False, True])
+def test_a_solutions_measures_replay_to_the_last_bit(initial):
+    """The cost and largest violation of a method's answer (ALTRO's and eILQR's), taken once a solve (a
+    controller's every step), replay from their record (the methods' ``record`` option) with the eager bits, defects,
+    violated rows and the initial defect (``x0``, eILQR's fixed start) included."""
+    from torchtraj.kkt import merit
     p = problems.get("car_3obs")
     g = torch.Generator().manual_seed(0)
     X = torch.randn(2, p.N + 1, p.nx, dtype=F64, generator=g)
     U = torch.randn(2, p.N, p.nu, dtype=F64, generator=g)
-    args = (p, Constraints.of(p), X, U, p.batched_params(2))
-    eager = stages._cost_and_violation(*args)
-    measure = stages._final_measures(tt.ALTROOptions(ilqr=tt.ILQROptions(record=True)))
+    x0 = X[:, 0] + 10.0 if initial else None  # a defect larger than any other violation
+    args = (p, Constraints.of(p), X, U, p.batched_params(2), x0)
+    eager = merit.cost_and_violation(*args)
+    measure = merit.solution_measures(False, True)
     for _ in range(TRACE_AT):
         recorded = measure(*args)
-    record = next(reversed(stages._RECORDED_COST_AND_VIOLATION.records.values()))  # the last one used
+    record = next(reversed(merit._RECORDED_COST_AND_VIOLATION.records.values()))  # the last one used
     assert isinstance(record[0], REPLAYS) and all(torch.equal(a, b) for a, b in zip(recorded, eager))
     assert bool((eager[1] > 0).all())
+    assert not initial or bool((eager[1] >= 10.0).all())
 
 
 @pytest.mark.parametrize("method,options", [("eilqr", tt.EILQROptions), ("hm-ilqr", tt.HMILQROptions)])

@@ -46,7 +46,7 @@ COMPILED_PARTS = {
     "initial AL objective": ("solvers/altro/augmented_lagrangian.py", "value"),
     "initial AL violation": ("solvers/altro/augmented_lagrangian.py", "violation"),
     "MPC multiplier update": ("solvers/altro/augmented_lagrangian.py", "updated_duals"),
-    "final cost and violation": ("solvers/altro/stages.py", "_cost_and_violation"),
+    "final cost and violation": ("kkt/merit.py", "cost_and_violation"),
 }
 
 

@@ -13,13 +13,11 @@ from torch import Tensor
 from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks, stack_blocks
 from ...core.problem import Problem
-from ...core.recorded import Recorded
 from ...core.solution import History, Solution
 from ...core.status import Status
 from ...iterations.ilqr import ilqr_step, log_iteration, riccati_backward, start_status
 from ...kkt.certificate import Tolerances
-from ...kkt.merit import largest_violation
-from ...kkt.model import total_cost
+from ...kkt.merit import solution_measures
 from ...riccati.square_root import factorize_sqrt
 from .augmented_lagrangian import AugmentedLagrangian, Duals, penalty_limit, resolution_floor
 from .options import ALTROOptions
@@ -194,23 +192,6 @@ def _refined(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, 
             torch.where(take.reshape(-1, 1), held.terminal, terminal))
 
 
-def _cost_and_violation(problem: Problem, constraints: Constraints, X: Tensor, U: Tensor, params):
-    """Objective ``(B,)`` and largest violation ``(B,)`` of constraints and dynamics (defects) at ``(X, U)``
-    (:func:`~torchtraj.kkt.merit.largest_violation`; ALTRO's states start at ``x0``, rolled out from it)."""
-    return total_cost(problem, X, U, params), largest_violation(problem, X, U, params, constraints=constraints)
-
-
-# one record per signature, shared by every solve in the process (a controller measures its answer every step)
-_RECORDED_COST_AND_VIOLATION = Recorded(_cost_and_violation)
-
-
-def _final_measures(opts: ALTROOptions):
-    """:func:`_cost_and_violation` compiled (``compile``), replayed from its record (``record``) or eager."""
-    if opts.ilqr.compile:
-        return kernel(_cost_and_violation, True)
-    return _RECORDED_COST_AND_VIOLATION.option(opts.ilqr.record)
-
-
 def _largest_penalty(duals: Duals) -> Tensor:
     both = torch.cat([duals.stage_penalty.flatten(1), duals.terminal_penalty,
                       duals.terminal.new_zeros(duals.terminal.shape[0], 1)], -1)
@@ -241,7 +222,8 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
         # the gains of the last backward pass, at the iterate before the last step: a converged step is below
         # the tolerances, and a new expansion and factorisation only for K would cost a third of an MPC step
         K = coarse.K
-    cost, violation = _final_measures(opts)(problem, constraints, X, U, params)
+    # ALTRO's states start at x0, rolled out from it: no initial defect
+    cost, violation = solution_measures(opts.ilqr.compile, opts.ilqr.record)(problem, constraints, X, U, params)
     return Solution(
         X=X, U=U, K=K, cost=cost, max_violation=violation, status=status, iterations=coarse.iterations,
         history=History.from_rows(coarse.rows), costate=costate,

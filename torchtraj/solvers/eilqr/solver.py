@@ -50,8 +50,7 @@ from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
-from ...kkt.merit import largest_violation
-from ...kkt.model import total_cost
+from ...kkt.merit import solution_measures
 from ...riccati.range_space import formed, select_gains
 from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done, weights_for
 from .globalization import globalized_step
@@ -200,7 +199,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
                         model.J.min().item(), model.J.max().item(), model.error.max().item(),
                         gamma.max().item(), running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    solution = _solution(problem, it, formed(K), status, iterations, rows, x0, params, initial, method)
+    solution = _solution(problem, it, formed(K), status, iterations, rows, x0, params, initial, method, opts)
     if untested is None:
         return solution
     # an untested last iterate is told from its cost and violation, which the solution evaluates
@@ -238,21 +237,23 @@ def _equality(model) -> torch.Tensor:
     return torch.cat([model.h.reshape(B, -1).abs(), model.hN.abs(), model.J.new_zeros(B, 1)], -1).amax(-1)
 
 
-def _solution(problem, it, K, status, iterations, rows, x0, params, initial, method) -> Solution:
+def _solution(problem, it, K, status, iterations, rows, x0, params, initial, method, opts) -> Solution:
     """The shared :class:`~torchtraj.Solution`: the problem's own cost and violation (the barrier's are not the
-    problem's), the costates, the equalities' multipliers and the inequality rows' (the primal-dual iterates,
-    ``w s(t)`` to the complementarity tolerance)."""
+    problem's; replayed from their record where ``opts.record`` says so, a controller's every step), the costates,
+    the equalities' multipliers and the inequality rows' (the primal-dual iterates, ``w s(t)`` to the
+    complementarity tolerance)."""
     cons = Constraints.of(problem)
     stage = torch.cat([it.z, it.nu], -1)
     terminal = torch.cat([it.zN, it.nuN], -1)
     multipliers = multiplier_blocks(cons, stage, terminal)
     if initial is not None:
         multipliers["initial"] = it.mu0
-    violation = largest_violation(problem, it.X, it.U, params, x0=None if initial is not None else x0)
+    cost, violation = solution_measures(opts.compile, opts.record)(problem, cons, it.X, it.U, params,
+                                                                   None if initial is not None else x0)
     if initial is not None:
         e0 = initial.evaluate(it.X[:, 0], params).e0
         violation = torch.maximum(violation, torch.cat([e0.abs(), e0.new_zeros(e0.shape[0], 1)], -1).amax(-1))
     history = History.from_rows(rows)
-    return Solution(X=it.X, U=it.U, K=K, cost=total_cost(problem, it.X, it.U, params), max_violation=violation,
+    return Solution(X=it.X, U=it.U, K=K, cost=cost, max_violation=violation,
                     status=status, iterations=iterations, history=history, costate=it.lam,
                     multipliers=multipliers, method=method)
