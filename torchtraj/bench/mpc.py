@@ -193,7 +193,7 @@ class Timing:
     iterations_mean: float
     parts: dict  # shares of profile.parts_of(method, compiled)
     compiled: bool = False
-    first_call_s: float = float("nan")  # the untimed warm-up steps: traces of records, torch.compile's compilation
+    warm_up_s: float = float("nan")  # the untimed warm-up steps: traces of records, torch.compile's compilation
     ms_max: float = float("nan")  # the slowest timed step
     full_collections: int = 0  # Python's full garbage collections during the timed steps (FullCollections)
     frozen: bool = False  # the objects made before the timed steps were frozen (gc.freeze)
@@ -224,7 +224,7 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
     method's parts (:func:`torchtraj.bench.profile.parts_of`, compiled or not). The warm-up is
     :data:`~torchtraj.core.recorded.TRACE_AT` steps, in which a controller's records are traced (a kernel that a
     step calls once, at the last of them), so that the timed steps are the controller's from then on; compiled
-    (``compile``), 3 steps (kernels that first run at the second or third step compile there). ``first_call_s`` is
+    (``compile``), 3 steps (kernels that first run at the second or third step compile there). ``warm_up_s`` is
     the warm-up's time. ``freeze``: ``gc.freeze()`` after the warm-up (undone after the profiled steps), so that
     Python's full collections skip the objects made until then (torch's modules among them)."""
     import gymnasium as gym
@@ -235,7 +235,7 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
     tick = time.perf_counter()
     for _ in range(3 if compile else TRACE_AT):
         obs, *_ = venv.step(mpc(obs))
-    first_call_s = time.perf_counter() - tick
+    warm_up_s = time.perf_counter() - tick
     if freeze:
         gc.freeze()
     seconds, taken = [], []
@@ -258,7 +258,7 @@ def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: i
         if freeze:
             gc.unfreeze()
     return Timing(task, batch, mpc.problem.N, iterations, steps, 1e3 * float(np.median(seconds)),
-                  1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts, compile, first_call_s,
+                  1e3 * float(np.mean(seconds)), float(np.mean(taken)), parts, compile, warm_up_s,
                   1e3 * float(np.max(seconds)), collections.count, freeze)
 
 
@@ -386,7 +386,7 @@ def main(argv: Optional[list] = None, out=None) -> int:
                 t = time_steps("pendulum", batch, args.timing_steps, args.seed,
                                profile_steps=min(10, args.timing_steps), compile=compiled, freeze=args.freeze_gc,
                                **chosen)
-                where = (f"compiled (warm-up steps {t.first_call_s:.0f} s); " if compiled else "eager; ")
+                where = (f"compiled (warm-up steps {t.warm_up_s:.0f} s); " if compiled else "eager; ")
                 where += profile.format_split(t.parts)
                 frozen = ", objects frozen" if t.frozen else ""
                 say(f"B={batch:<4} horizon {t.horizon}, {t.iterations} iterations/step (mean used "
