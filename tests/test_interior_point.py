@@ -340,10 +340,11 @@ def test_gradients_agree_with_altro():
 
 
 # ---------------------------------------------------------------------------------- input errors
-def test_duals_are_refused():
+def test_penalties_and_a_misshapen_state_guess_are_refused():
+    """The IPM takes multipliers, costates and a barrier as duals (tests/test_ipm_warm_start.py), no penalties."""
     problem = tt.problems.get("double_integrator")
-    with pytest.raises(ValueError, match="ipm"):
-        tt.solve(problem, method="ipm", duals={"multipliers": {}})
+    with pytest.raises(ValueError, match="method 'ipm' takes"):
+        tt.solve(problem, method="ipm", duals={"penalties": {}})
     with pytest.raises(ValueError, match="X0"):
         tt.solve(problem, method="ipm", X0=torch.zeros(problem.N, problem.nx, dtype=F64))
 

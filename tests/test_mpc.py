@@ -95,9 +95,10 @@ def test_a_multiple_shooting_method_starts_from_the_shifted_states(monkeypatch):
     assert given[2] is None and given[3] is None
 
 
-def test_the_ipms_control_steps_start_their_multipliers_at_zero(monkeypatch):
+def test_the_ipms_control_steps_take_no_least_squares_multipliers(monkeypatch):
     """A control step of the IPM (its step options) takes no least-squares multiplier estimate, and so one
-    factorisation fewer; a solve with the method's defaults takes it."""
+    factorisation fewer: its first step starts the costates at zero, the later ones from the carried duals; a solve
+    with the method's defaults takes it."""
     import torchtraj.solvers.ipm.solver as ipm_solver
 
     estimated = []
@@ -136,7 +137,7 @@ def test_instances_that_converge_still_get_one_multiplier_update():
     x = torch.tensor([[torch.pi + 0.05, 0.0], [torch.pi - 0.02, 0.1]], dtype=torch.float64)
     mpc(x)
     # over-estimated multipliers on bounds that are inactive near upright (as a swing-up can leave them)
-    mpc._multipliers = {k: torch.full_like(v, 0.5) for k, v in mpc.solution.multipliers.items()}
+    mpc._duals = {"multipliers": {k: torch.full_like(v, 0.5) for k, v in mpc.solution.multipliers.items()}}
     mpc._warm[:] = True
     mpc(x)
     sol = mpc.solution

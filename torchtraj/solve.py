@@ -67,12 +67,16 @@ def solve(
             (``takes_state_guess``); for ``"altro"`` it triggers the infeasible start (slack controls, ALTRO §III-B),
             which the problem's own ``X_init`` triggers where no ``X0`` is given.
         options: the method's options dataclass (or a dict of its fields).
-        duals: warm start of the methods that take one (``takes_duals``: the augmented-Lagrangian methods),
-            ``{"multipliers": ..., "penalties": ...}``, each a dict of per-block tensors laid out like
-            :attr:`Solution.multipliers` (a previous solution's, shifted by MPC for instance); missing blocks
-            start at 0 and ``penalty_initial``.
-            With ``X0``, an optional ``"costate": (B, N+1, nx)`` (:attr:`Solution.costate`) starts the
-            multipliers of the slack rows ``s_k = 0`` at ``−λ_{k+1}``, their value at a KKT point.
+        duals: warm start of the methods that take one (``takes_duals``; each method's ``dual_entries``).
+            The augmented-Lagrangian methods take ``{"multipliers": ..., "penalties": ...}``, each a dict of
+            per-block tensors laid out like :attr:`Solution.multipliers` (a previous solution's, shifted by MPC
+            for instance); missing blocks start at 0 and ``penalty_initial``. With ``X0``, an optional
+            ``"costate": (B, N+1, nx)`` (:attr:`Solution.costate`) starts the multipliers of the slack rows
+            ``s_k = 0`` at ``−λ_{k+1}``, their value at a KKT point.
+            The interior point takes ``"multipliers"``, ``"costate"`` and ``"barrier": (B,)`` (the last entry of
+            a solution's ``history.extra["barrier"]``; an instance whose barrier is 0 starts cold), its start
+            from the primal-dual point of a solution near this one
+            (:mod:`torchtraj.solvers.ipm.warm_start`): pass that solution's ``U0`` and ``X0`` with them.
         gradients: how a differentiable solve (below) differentiates: ``"implicit"`` (exact: the
             implicit function theorem at the refined KKT point) or ``"unrolled"`` (cheaper, approximate:
             the derivative of one final iLQR step at the solver's point, :mod:`torchtraj.differentiation.implicit`).
@@ -187,7 +191,7 @@ def _check_declarations(solver: Solver, problem: Problem, batch: Batch) -> None:
         raise ValueError(f"method {solver.name!r} takes no warm-started duals; duals is for "
                          f"{_declaring('takes_duals')}")
     if batch.duals is not None:
-        check_duals(Constraints.of(problem), batch.duals, batch.B)
+        check_duals(Constraints.of(problem), batch.duals, batch.B, solver.dual_entries, solver.name)
     if batch.X0 is not None and not solver.takes_state_guess:
         raise ValueError(f"method {solver.name!r} simulates its states from x0 and cannot take X0; use a method "
                          f"that accepts a state guess: {_declaring('takes_state_guess')}")

@@ -17,7 +17,8 @@ bounds. The iterations are not run to convergence: the warm start carries the wo
     U^{\text{warm}} = (u_1, \dots, u_{N-1}, u_{N-1}), \qquad
     \lambda^{\text{warm}}_k = \lambda_{k+1}\ (k < N-1), \quad \lambda^{\text{warm}}_{N-1} = \lambda_{N-1},
 
-(the controls and the multipliers the method carries; terminal multipliers are kept), and the solver starts from
+(the controls and the duals the method carries: its multipliers, and the interior point's costates as well;
+terminal multipliers and the interior point's barrier parameter are kept), and the solver starts from
 the rollout of :math:`U^{\text{warm}}` from the measured state; a method that
 :attr:`~torchtraj.solvers.base.Solver.starts_from_shifted_states` (multiple shooting: the interior point) starts
 from the shifted states :math:`X^{\text{warm}} = (\hat x_t, x_2, \dots, x_N, x_N)` instead, and no rollout is made.
@@ -29,8 +30,9 @@ registry, for
   defaults for a control step, with the iteration budget and, with ``compile``, compiled kernels;
 - the arguments of a warm-started solve (:meth:`~torchtraj.solvers.base.Solver.warm_start`), from the shifted
   controls and carried multipliers;
-- the multipliers to carry to the next step (:meth:`~torchtraj.solvers.base.Solver.carried_duals`), none for a
-  method that takes no warm-started duals.
+- the duals to carry to the next step (:meth:`~torchtraj.solvers.base.Solver.carried_duals`), none for a
+  method that takes no warm-started duals (ALTRO carries its multipliers; the interior point its multipliers,
+  costates and last barrier parameter, :mod:`torchtraj.solvers.ipm.warm_start`).
 
 The shifted states are passed only to such a method: ALTRO's ``X0`` would switch to its infeasible start, a
 different problem with slack controls and costs, and its rollout of the shifted controls reproduces the shifted
@@ -67,7 +69,7 @@ from torch import Tensor
 from .. import solvers
 from ..core.batch import Batch
 from ..core.constraints import Constraints
-from ..core.masks import where_rows
+from ..core.masks import RowPicker, where_rows
 from ..core.problem import Problem
 from ..core.solution import Solution
 from ..core.status import Status
@@ -81,6 +83,12 @@ DEFAULT_ALTRO = solvers.get("altro").step_defaults()
 def _shift(t: Tensor) -> Tensor:
     """``(B, N, ...)`` moved one step earlier along N, the last entry repeated."""
     return torch.cat([t[:, 1:], t[:, -1:]], 1)
+
+
+def _each(duals: dict, change: Callable) -> dict:
+    """``duals`` (``tt.solve``'s, entries of tensors or dicts of per-block tensors) with ``change`` applied to
+    every tensor."""
+    return {k: _each(v, change) if isinstance(v, dict) else change(v) for k, v in duals.items()}
 
 
 class MPC(torch.nn.Module):
@@ -149,7 +157,7 @@ class MPC(torch.nn.Module):
         p = self.problem
         self._U = p.u_init.expand(batch, p.N, p.nu).clone()
         self._X = None if not self.solver.starts_from_shifted_states else p.x0.new_zeros(batch, p.N + 1, p.nx)
-        self._multipliers: dict = {}
+        self._duals: dict = {}
         self._warm = torch.zeros(batch, dtype=torch.bool, device=p.device)
 
     @property
@@ -168,23 +176,31 @@ class MPC(torch.nn.Module):
                              f"{tuple(mask.shape)}")
         self._warm = self._warm & ~mask
 
-    def warm_start(self) -> tuple[Tensor, Optional[dict]]:
-        """The next solve's initial controls ``(B, N, nu)`` and multipliers: shifted where warm, cold elsewhere."""
-        p = self.problem
-        cold = p.u_init.expand_as(self._U)
+    def warm_start(self, warm: Optional[int] = None) -> tuple[Tensor, Optional[dict]]:
+        """The next solve's initial controls ``(B, N, nu)`` and duals (``tt.solve``'s, as the method carries them):
+        shifted where warm; elsewhere the problem's controls and zero duals (which a method reads as its cold
+        start: ALTRO's multipliers start at zero, the interior point starts cold where the barrier is 0); no duals
+        (``None``) where every instance is cold. ``warm``: the number of warm instances, where the caller has read
+        it (else read here); with every instance warm, the carried values are used as they are."""
+        warm = int(self._warm.sum()) if warm is None else warm
+        cold = self.problem.u_init.expand_as(self._U)
+        if warm == 0:
+            return cold, None
+        if warm == self.batch_size:
+            return self._U, self._duals or None
         U0 = where_rows(self._warm, self._U, cold)
-        if not self._multipliers:
+        if not self._duals:
             return U0, None
-        mult = {k: where_rows(self._warm, v, torch.zeros_like(v)) for k, v in self._multipliers.items()}
-        return U0, {"multipliers": mult}
+        pick = RowPicker(self._warm)
+        return U0, _each(self._duals, lambda v: pick(v, torch.zeros_like(v)))
 
-    def start_states(self, x: Tensor, U0: Tensor) -> Optional[Tensor]:
+    def start_states(self, x: Tensor, U0: Tensor, warm: Optional[int] = None) -> Optional[Tensor]:
         """The next solve's initial states ``(B, N+1, nx)`` for a method that starts from shifted states: the shifted
         states after the measured ``x`` where warm, the method's own cold start elsewhere; ``None`` where every
-        instance is cold or the method takes none (one read of the warm count)."""
+        instance is cold or the method takes none. ``warm``: the number of warm instances (else read here)."""
         if self._X is None:
             return None
-        warm = int(self._warm.sum())
+        warm = int(self._warm.sum()) if warm is None else warm
         if warm == 0:
             return None
         X = torch.cat([x.unsqueeze(1), self._X[:, 1:]], 1)
@@ -230,8 +246,9 @@ class MPC(torch.nn.Module):
     @torch.no_grad()
     def _step(self, x: Tensor) -> Tensor:
         p = self.problem
-        U0, duals = self.warm_start()
-        X0 = self.start_states(x, U0)
+        warm = int(self._warm.sum())  # the step's one read of the warm count
+        U0, duals = self.warm_start(warm)
+        X0 = self.start_states(x, U0, warm)
         start = time.perf_counter()
         with warnings.catch_warnings():
             if self._ignores_constraints:  # said once, at construction
@@ -253,7 +270,7 @@ class MPC(torch.nn.Module):
         carried = {}
         if self.solver.takes_duals:  # else none to carry, and no constraints to make for it
             carried = self.solver.carried_duals(Constraints.of(p), sol, self.options)
-        self._multipliers = {k: _shift(v) if v.dim() == 3 else v for k, v in carried.items()}
+        self._duals = _each(carried, lambda v: _shift(v) if v.dim() == 3 else v)  # per-knot entries shifted
         self._warm = usable
         return u
 

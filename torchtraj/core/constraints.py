@@ -254,19 +254,23 @@ def stack_blocks(constraints: Constraints, blocks: dict, fill: float, like: Tens
     return stage, terminal
 
 
-#: The entries of a warm start of the multipliers (``tt.solve``'s ``duals``).
-DUAL_ENTRIES = ("multipliers", "penalties", "costate")
+#: The entries of a warm start of the multipliers (``tt.solve``'s ``duals``); each method takes some of them
+#: (:attr:`~torchtraj.solvers.base.Solver.dual_entries`).
+DUAL_ENTRIES = ("multipliers", "penalties", "costate", "barrier")
 
 
-def check_duals(constraints: Constraints, duals: dict, batch: int) -> None:
-    """A clear error for a warm start ``duals`` that does not fit ``constraints``: an unknown entry or block name
-    (the valid ones listed), a block whose shape does not broadcast to ``(B, N, rows)`` (stage) or ``(B, rows)``
-    (terminal), or a costate not broadcasting to ``(B, N+1, nx)``."""
+def check_duals(constraints: Constraints, duals: dict, batch: int, entries: tuple = DUAL_ENTRIES,
+                method: str = "") -> None:
+    """A clear error for a warm start ``duals`` that does not fit ``constraints``: an entry that is not among
+    ``entries`` (those ``method`` takes; listed), an unknown block name (the valid ones listed), a block whose shape
+    does not broadcast to ``(B, N, rows)`` (stage) or ``(B, rows)`` (terminal), a costate not broadcasting to
+    ``(B, N+1, nx)``, a barrier not broadcasting to ``(B,)``."""
     if not isinstance(duals, dict):
-        raise TypeError(f"duals must be a dict with entries among {DUAL_ENTRIES}, got {type(duals).__name__}")
-    unknown = sorted(set(duals) - set(DUAL_ENTRIES))
+        raise TypeError(f"duals must be a dict with entries among {entries}, got {type(duals).__name__}")
+    unknown = sorted(set(duals) - set(entries))
     if unknown:
-        raise ValueError(f"duals has unknown entries {unknown}; the valid ones are {list(DUAL_ENTRIES)}")
+        owner = f"method {method!r} takes" if method else "the valid ones are"
+        raise ValueError(f"duals has unknown entries {unknown}; {owner} {list(entries)}")
     c, prob = constraints, constraints.problem
     shapes = {name: (batch, prob.N, rows.stop - rows.start) for name, rows in c.ineq_blocks.items()
               if rows.stop > rows.start}
@@ -284,10 +288,14 @@ def check_duals(constraints: Constraints, duals: dict, batch: int) -> None:
         for name, value in blocks.items():
             _check_dual(f"duals[{entry!r}][{name!r}]", value, shapes[name])
     if duals.get("costate") is not None:
-        _check_dual("duals['costate']", duals["costate"], (batch, prob.N + 1, prob.nx))
+        _check_dual("duals['costate']", duals["costate"], (batch, prob.N + 1, prob.nx), "(B, N+1, nx)")
+    if duals.get("barrier") is not None:
+        _check_dual("duals['barrier']", duals["barrier"], (batch,), "(B,): one barrier parameter per instance")
 
 
-def _check_dual(where: str, value, shape: tuple) -> None:
+def _check_dual(where: str, value, shape: tuple,
+                hint: str = "(B, N, rows) / (B, rows): one value per knot and row, as Solution.multipliers holds them"
+                ) -> None:
     # shapes only: the values are not read (no host synchronisation in a control loop's warm starts)
     value = value if isinstance(value, Tensor) else torch.as_tensor(value)
     try:
@@ -295,5 +303,4 @@ def _check_dual(where: str, value, shape: tuple) -> None:
     except RuntimeError:
         fits = False
     if not fits:
-        raise ValueError(f"{where} has shape {tuple(value.shape)}, which does not broadcast to {shape} "
-                         f"(B, N, rows) / (B, rows): one value per knot and row, as Solution.multipliers holds them")
+        raise ValueError(f"{where} has shape {tuple(value.shape)}, which does not broadcast to {shape} {hint}")

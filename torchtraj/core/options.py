@@ -11,7 +11,8 @@ own and a new method is checked as soon as it names its fields as the others do:
 * iteration budgets and counts (``iterations``, ``iterations_*``, ``*_steps``, ``*_attempts``, ``segments``,
   ``filter_size``, ``per_round``) are at least 1; a stage's budget (``*_iterations``) at least 0 (0 skips it);
 * tolerances (``*tolerance*``) are at least 0; barriers (``barrier_*``), penalties (``penalty_*``), limits
-  (``*_max``, ``max_*``) and the other positive constants below are above 0;
+  (``*_max``, ``max_*``), a warm start's floors (``warm_start_*``) and the other positive constants below are
+  above 0;
 * decrease factors (``*_decrease``, ``backtracking``, ``fraction_to_boundary``) lie in (0, 1) and increase factors
   (``*_increase*``, ``penalty_scaling``) above 1.
 
@@ -42,7 +43,7 @@ def _rule(name: str):
         return "> 1", lambda v: v > 1
     if "tolerance" in name:
         return ">= 0", lambda v: v >= 0
-    if (name.startswith(("barrier_", "penalty_", "max_")) or name.endswith("_max")
+    if (name.startswith(("barrier_", "penalty_", "max_", "warm_start_")) or name.endswith("_max")
             or name in ("slack_cost", "dual_initial", "bound_push")):
         return "> 0", lambda v: v > 0
     if name.startswith("regularization"):

@@ -14,7 +14,8 @@ Every method solves the same problem, for each instance i of a batch,
   of the constrained problem, else of the unconstrained one (the implicit layer's ``constrained`` flag);
 - ``takes_state_guess``: whether ``X0 (B, N+1, nx)`` is accepted (a multiple-shooting start, or ALTRO's
   infeasible start);
-- ``takes_duals``: whether a warm start of the multipliers (``tt.solve``'s ``duals``) is accepted;
+- ``takes_duals``: whether a warm start of the multipliers (``tt.solve``'s ``duals``) is accepted, and
+  ``dual_entries`` which of its entries (:data:`~torchtraj.core.constraints.DUAL_ENTRIES`);
 - ``starts_from_shifted_states``: whether a control step starts from the previous step's states, shifted by one
   knot, as well as its controls (a multiple-shooting start: the shift replaces the rollout of the shifted controls;
   ALTRO's ``X0`` would be its infeasible start, another problem);
@@ -59,6 +60,8 @@ class Solver(abc.ABC):
     handles_constraints: ClassVar[bool]
     takes_state_guess: ClassVar[bool]
     takes_duals: ClassVar[bool]
+    #: The entries of ``tt.solve``'s ``duals`` it takes (none unless :attr:`takes_duals`).
+    dual_entries: ClassVar[tuple] = ()
     starts_from_shifted_states: ClassVar[bool] = False
     kkt_point: ClassVar[bool] = True
     #: Whether its options' ``record`` (:meth:`kernel_options`) replays its expansion from recorded graphs
@@ -145,7 +148,7 @@ class Solver(abc.ABC):
 
     def warm_start(self, U0: Tensor, duals: Optional[dict], X0: Optional[Tensor] = None) -> dict:
         """``tt.solve``'s keyword arguments that start a control step from the shifted controls ``U0 (B, N, nu)``,
-        the shifted carried duals ``{"multipliers": ...}`` (``None`` when none are carried) and, for a method that
+        the shifted carried duals (:meth:`carried_duals`; ``None`` when none are carried) and, for a method that
         :attr:`starts_from_shifted_states`, the shifted states ``X0 (B, N+1, nx)`` (``None``: every instance starts
         cold, from the method's own start)."""
         kwargs = {"U0": U0, "duals": duals if self.takes_duals else None}
@@ -160,7 +163,9 @@ class Solver(abc.ABC):
         return rollout(problem.dynamics, batch.x0, batch.U0, batch.params)
 
     def carried_duals(self, constraints: Constraints, solution: Solution, options) -> dict:
-        """The multipliers, per block as in :attr:`Solution.multipliers`, that the next control step starts from
-        (before the shift); ``{}``: none. Asked only of a method that :attr:`takes_duals`. ``constraints`` are
+        """The duals, as ``tt.solve``'s ``duals`` (entries among :attr:`dual_entries`), that the next control step
+        starts from before the shift: by default ``{"multipliers": ...}``, per block as in
+        :attr:`Solution.multipliers`; ``{}``: none. Asked only of a method that :attr:`takes_duals`. The controller
+        shifts every entry with a knot dimension by one knot and gives a cold instance zeros. ``constraints`` are
         those of ``solution``'s problem, kept by the caller from one step to the next."""
-        return dict(solution.multipliers)
+        return {"multipliers": dict(solution.multipliers)}

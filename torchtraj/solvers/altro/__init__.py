@@ -48,6 +48,7 @@ class ALTRO(Solver):
     compiles = True
     takes_state_guess = True
     takes_duals = True
+    dual_entries = ("multipliers", "penalties", "costate")
 
     def solve(self, problem: Problem, batch: Batch, options: ALTROOptions) -> Solution:
         return solve_altro(problem, batch, options, method=self.name)

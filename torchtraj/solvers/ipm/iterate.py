@@ -60,10 +60,13 @@ class Hooks:
     restoration phase (:mod:`~torchtraj.solvers.ipm.restoration`) solves its own problem with them.
 
     ``barrier (B,)``: initial ``μ`` (else ``IPOptions.barrier_initial``); ``budget (B,)``: iterations left (else
-    ``IPOptions.iterations``); ``start(it) -> Iterate``: changes the initial iterate; ``leave(params, it, model)
-    -> (B,)``: the instances that may stop now, reported ``CONVERGED``."""
+    ``IPOptions.iterations``); ``start(it) -> Iterate``: changes the initial iterate; ``estimate (B,)``: with a
+    ``start``, the instances whose multipliers still take the least-squares estimate at the first iterate (where
+    ``IPOptions.least_squares_multipliers``; ``None``: none; without a ``start``, all do); ``leave(params, it,
+    model) -> (B,)``: the instances that may stop now, reported ``CONVERGED``."""
 
     barrier: Optional[Tensor] = None
     budget: Optional[Tensor] = None
     start: Optional[Callable] = None
+    estimate: Optional[Tensor] = None
     leave: Optional[Callable] = None

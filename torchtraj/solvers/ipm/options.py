@@ -112,6 +112,11 @@ class IPOptions:
     #: ``multiplier_init_max`` (``constr_mult_init_max``), else zero.
     least_squares_multipliers: bool = True
     multiplier_init_max: float = 1000.0
+    #: A start from given multipliers (``tt.solve``'s ``duals``, :mod:`~torchtraj.solvers.ipm.warm_start`): the
+    #: inequality multipliers at least ``warm_start_mult_bound_push`` (IPOPT's), and the given barrier at least
+    #: ``warm_start_barrier_min`` (at most ``barrier_initial``).
+    warm_start_mult_bound_push: float = 1e-3
+    warm_start_barrier_min: float = 1e-3
     #: Second-order corrections of a rejected full step (W&B 2006 §2.3, :mod:`~torchtraj.solvers.ipm.soc`): at most
     #: this many (``max_soc``; 0: none), stopped when ``θ`` does not fall by ``soc_decrease`` (``kappa_soc``).
     second_order_corrections: int = 4

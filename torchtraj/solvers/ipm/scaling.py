@@ -14,7 +14,8 @@ objective against something else is absolute, so the factor changes the path: th
 applies to the scaled problem, as in IPOPT, so the stationarity of the problem as given is at most ``tol / s_f``:
 ``tt.solve``'s certificate (1e-6 on the problem as given) holds at the default ``tol = 1e-8`` for ``s_f ≥ 0.01``
 (quadrotor2d, the smallest of the problem set: 0.026); for a cost gradient above 1e4 at the start, a smaller
-``IPOptions.tolerance`` or ``scaling="none"`` keeps it. The history's errors are the scaled problem's.
+``IPOptions.tolerance`` or ``scaling="none"`` keeps it. The history's errors are the scaled problem's; its cost
+and barrier are the problem's (:func:`unscale`).
 
 Why it is here: start 59 of ``sample_x0("cartpole_unconstrained", 64, seed=0)`` (``‖∇J(w_0)‖_∞ = 309``, from
 the terminal weight ``Q_f = 100``: ``s_f = 0.3238``, IPOPT's factor to 16 digits) took another path from the first
@@ -105,13 +106,18 @@ def scaled_costs(problem: Problem) -> Problem:
 def unscale(out, history: History, scale: Tensor):
     """The problem's cost and multipliers from the scaled problem's final values ``out``
     (:class:`~torchtraj.solvers.ipm.compaction.Final`) and history, ``scale (B,)`` = ``s_f``: the cost and every
-    multiplier divided by ``s_f``; the history's cost likewise (its errors stay the scaled problem's, as the
-    convergence test measured them)."""
+    multiplier divided by ``s_f``; the history's cost and barrier likewise (``min s_f J − μ Σ log s`` is
+    ``min J − (μ/s_f) Σ log s``: the barrier of the problem as given, in the multipliers' units, as a warm start
+    takes it back, :mod:`~torchtraj.solvers.ipm.warm_start`); its errors stay the scaled problem's, as the
+    convergence test measured them."""
     def per(value: Tensor) -> Tensor:
         return value / scale.reshape(-1, *[1] * (value.dim() - 1))
 
     out = dataclasses.replace(out, J=out.J / scale, lam=per(out.lam), z=per(out.z), zN=per(out.zN), nu=per(out.nu),
                               nuN=per(out.nuN))
     if history.cost.numel():
-        history = dataclasses.replace(history, cost=history.cost / scale.unsqueeze(-1))
+        extra = dict(history.extra)
+        if "barrier" in extra:
+            extra["barrier"] = extra["barrier"] / scale.unsqueeze(-1)
+        history = dataclasses.replace(history, cost=history.cost / scale.unsqueeze(-1), extra=extra)
     return out, history

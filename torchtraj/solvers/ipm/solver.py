@@ -80,6 +80,7 @@ from .options import IPOptions
 from .restoration import restore
 from .scaling import scaled_problem, unscale
 from .soc import correction_of_rows, second_order_correction
+from .warm_start import warm_start_hooks
 from .watchdog import Watchdog, count_steps, merge_steps, watched_step
 
 logger = logging.getLogger("torchtraj")
@@ -96,7 +97,8 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     opts = options or IPOptions()
     X0 = start_states(problem, batch, opts)  # given, for the objective's scaling
     problem, batch, scale = scaled_problem(problem, dataclasses.replace(batch, X0=X0), opts)  # W&B §3.8
-    out, cons, records = run(problem, batch, opts, method=method)
+    hooks = warm_start_hooks(Constraints.of(problem), batch.duals, scale, batch.B, batch.x0, opts)
+    out, cons, records = run(problem, batch, opts, hooks, method=method)
     history = full_history(records)
     if scale is not None:
         out, history = unscale(out, history, scale)
@@ -192,6 +194,10 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
         return error, torch.where(running & model.finite & done, int(Status.CONVERGED), status)
 
+    # the instances whose multipliers take the least-squares estimate (a warm start's cold ones: Hooks.estimate)
+    estimated = hooks.estimate if hooks.start is not None and hooks.estimate is not None and bool(
+        opts.least_squares_multipliers and hooks.estimate.any()) else None
+    estimated_rows = (lambda rows: rows) if estimated is None else (lambda rows: rows & estimated)
     measures = None  # the last iterate's objective and violation, where it is evaluated untested
     for step in range(opts.iterations + 1):
         if step == opts.iterations and not opts.test_last_iterate and hooks.leave is None:
@@ -207,9 +213,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             base = Base(it.X, it.U, model)
         # W&B §3.6, then re-expanded; where the crossover starts from the unconstrained optimum, after it, for the
         # instances it did not end (its first candidate holds no row and reads no multiplier)
-        estimating = step == 0 and opts.least_squares_multipliers and hooks.start is None
+        estimating = step == 0 and opts.least_squares_multipliers and (hooks.start is None or estimated is not None)
         if estimating and not starting:
-            it = least_squares_multipliers(cons, model, it, status == Status.RUNNING, opts)
+            it = least_squares_multipliers(cons, model, it, estimated_rows(status == Status.RUNNING), opts)
             model = expand_k(problem, cons, params, it, opts, base)
         if theta_max is None:
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
@@ -232,7 +238,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             iterations = iterations + taken.abs()  # each round solves a Newton system, as an iteration
             running = status == Status.RUNNING
         if estimating and starting and bool(running.any()):
-            it = least_squares_multipliers(cons, model, it, running, opts)
+            it = least_squares_multipliers(cons, model, it, estimated_rows(running), opts)
             model = with_values(running, expand_k(problem, cons, params, it, opts, base), model)
             estimated_error, status = tested(params, model, it, status, running)
             error = torch.where(running, estimated_error, error)
