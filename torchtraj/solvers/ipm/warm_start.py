@@ -27,6 +27,10 @@ relation at a KKT point (the slack's stationarity row). The least-squares estima
   (a controller's instance that restarted: its carried duals are zeros); the others start at :math:`\mu_0` above.
   :math:`\mu_{min}` keeps a step from starting at the small barrier where the previous one ended while the
   measured state has moved the problem (the floor's effect on the controllers: ``docs/benchmarks.md``, MPC).
+- **With the primal point they belong to.** The duals of one point given with another start mislead the
+  iteration: car_3obs from its default start (the rollout of its controls, through the obstacles) with the duals of
+  its optimum ends ``LOCALLY_INFEASIBLE`` after 21 iterations, where the cold solve converges. Pass the solution's
+  ``U0`` and ``X0`` with its duals (a controller passes the shifted plan).
 - **Units.** :attr:`Solution.multipliers`, :attr:`Solution.costate` and the history's ``barrier`` are in the
   units of the problem as given; the factor :math:`s_f` of this solve's start converts them, so that a warm
   start is the same whatever the two solves' factors.
