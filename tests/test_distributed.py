@@ -256,3 +256,14 @@ def test_bench_scale_out_rows_and_speed_up(monkeypatch):
     assert [line.split()[8] for line in lines[-2:]] == ["50.00", "25.00"]
     with pytest.raises(SystemExit):  # FATROP solves the problem set's own horizon
         bench.main(["--scale-out", "--fatrop", "4", "--horizon", "20"], io.StringIO())
+    # --compile: the ranks run the method's compiled kernels, and each row gives its warm-up (which compiles them)
+    monkeypatch.setattr(scale_out, "run_row", lambda args, world: {**row(args, world), "warmup_s": 30.0 / world})
+    out = io.StringIO()
+    assert bench.main(["--scale-out", "--batch", "16", "--processes", "1", "2", "--method", "ipm", "--compile"],
+                      out) == 0
+    lines = out.getvalue().splitlines()
+    assert "compiled kernels" in lines[0] and "compile s" in lines[1]
+    assert [line.split()[8] for line in lines[-2:]] == ["30.0", "15.0"]
+    args = scale_out.parser().parse_args(["--method", "ipm", "--compile"])
+    assert scale_out._options(args).compile and not scale_out._options(
+        scale_out.parser().parse_args(["--method", "ipm"])).compile

@@ -11,7 +11,10 @@ spent in the timed solve (``time.process_time``) and ``B`` divided by it: the th
 with a free core for every rank, which load from other work does not change much. With ``--fatrop K``, FATROP
 (CasADi, built once, as the throughput rows of ``python -m torchtraj.bench`` run it) first solves the first K of the
 same instances one at a time in this process, and each row gives its wall time per instance as a multiple of FATROP's
-median (below 1: faster than FATROP).
+median (below 1: faster than FATROP). With ``--compile`` the method runs its compiled kernels
+(:mod:`torchtraj.core.compiled`), which specialise to a rank's share of the batch: every rank's untimed first solve
+is then its share of the whole batch, which compiles them (or loads them from Inductor's cache on disk), and each row
+gives that warm-up's wall time.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ import torch.multiprocessing as mp
 from .. import distributed, problems, solvers
 from ..core.status import Status
 from ..solve import solve
-from .runs import make_options, run_reference
+from .runs import make_options, run_reference, with_compile
 
 
 def parser() -> argparse.ArgumentParser:
@@ -47,6 +50,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of sample_x0")
     p.add_argument("--horizon", type=int, default=None, help="re-grid the problem to N intervals (at_horizon)")
     p.add_argument("--timeout", type=float, default=3600.0, help="collective timeout of each launch, seconds")
+    p.add_argument("--compile", action="store_true",
+                   help="run the method's compiled kernels (torch.compile); the untimed warm-up solves the whole batch")
     p.add_argument("--fatrop", type=int, default=0, metavar="K",
                    help="also solve the first K instances with FATROP (needs the bench extra) and compare (0: off)")
     p.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
@@ -73,8 +78,10 @@ def fatrop_time(args) -> tuple:
 
 def _options(args):
     if solvers.get(args.method).options_class.__name__ == "ALTROOptions":
-        return problems.altro_options(args.problem)
-    return make_options(args.method, cost_tolerance=1e-8, gradient_tolerance=1e-6)[0]
+        options = problems.altro_options(args.problem)
+    else:
+        options = make_options(args.method, cost_tolerance=1e-8, gradient_tolerance=1e-6)[0]
+    return with_compile(args.method, options) if args.compile else options
 
 
 def _rank(rank: int, world: int, port: int, args, path: str) -> None:
@@ -86,8 +93,13 @@ def _rank(rank: int, world: int, port: int, args, path: str) -> None:
         name = problems.at_horizon(args.problem, args.horizon) if args.horizon else args.problem
         problem, options = problems.get(name), _options(args)
         x0 = problems.sample_x0(args.problem, args.batch, seed=args.seed)
-        solve(problem, x0[:1], args.method, options=options)  # untimed: imports and first-call costs
+        warmup = time.perf_counter()
+        if args.compile:  # the kernels of this rank's share of the batch (compiled kernels specialise to it)
+            distributed.solve(problem, x0, args.method, options=options, gather=0)
+        else:
+            solve(problem, x0[:1], args.method, options=options)  # untimed: imports and first-call costs
         dist.barrier()
+        warmup = time.perf_counter() - warmup
         start, cpu = time.perf_counter(), time.process_time()
         sol = distributed.solve(problem, x0, args.method, options=options, gather=0)
         wall, cpu = time.perf_counter() - start, time.process_time() - cpu
@@ -97,7 +109,7 @@ def _rank(rank: int, world: int, port: int, args, path: str) -> None:
             converged = float((sol.status == Status.CONVERGED).double().mean())
             with open(path, "w") as f:
                 json.dump({"wall_s": wall, "cpu_s": cpus, "converged": converged,
-                           "iterations_max": int(sol.iterations.max())}, f)
+                           "iterations_max": int(sol.iterations.max()), "warmup_s": warmup}, f)
         dist.barrier()
     finally:
         dist.destroy_process_group()
@@ -136,13 +148,16 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     say(f"torchtraj scale-out: {args.problem}"
         + (f" at N = {args.horizon}" if args.horizon else "")
-        + f", method {args.method}, B = {args.batch} (sample_x0 seed {args.seed}), {args.threads} thread(s) per "
+        + f", method {args.method}"
+        + (" (compiled kernels; compile s: the untimed warm-up of each launch)" if args.compile else "")
+        + f", B = {args.batch} (sample_x0 seed {args.seed}), {args.threads} thread(s) per "
           f"process, Gloo; {cpus} CPU(s) usable, torch {torch.__version__}")
     fatrop_ms, note = fatrop_time(args) if args.fatrop else (None, None)
     if note:
         say(note)
     say(f"{'processes':>9} {'wall s':>9} {'inst/s':>9} {'speed-up':>9} {'rank CPU s':>11} {'free-core inst/s':>16} "
-        f"{'converged':>9} {'max it':>7}" + (f" {'x FATROP':>9}" if fatrop_ms else "") + "  load avg before/after")
+        f"{'converged':>9} {'max it':>7}" + (f" {'x FATROP':>9}" if fatrop_ms else "")
+        + (f" {'compile s':>9}" if args.compile else "") + "  load avg before/after")
     rows = []
     for world in args.processes:
         row = run_row(args, world)
@@ -153,6 +168,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         say(f"{world:>9d} {row['wall_s']:>9.2f} {row['instances_per_s']:>9.2f} {row['instances_per_s'] / base:>9.2f} "
             f"{max(row['cpu_s']):>11.2f} {row['free_core_instances_per_s']:>16.2f} {100 * row['converged']:>8.1f}% "
             f"{row['iterations_max']:>7d}" + (f" {row['times_fatrop']:>9.2f}" if fatrop_ms else "")
+            + (f" {row['warmup_s']:>9.1f}" if args.compile else "")
             + f"  {row['load_before']:.2f}/{row['load_after']:.2f}")
     if args.json:
         with open(args.json, "w") as f:
