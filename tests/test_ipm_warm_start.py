@@ -4,7 +4,10 @@ and the IPM controller's carried duals.
 A solve near an earlier one, from its primal-dual point, reaches the same optimum as a cold solve in fewer
 iterations; an instance whose barrier is 0 starts as a cold solve does, whatever its batch; the duals are in the
 problem's units (the objective's scaling factor of each solve converts them); a control step carries its
-multipliers, costates and last barrier to the next, shifted."""
+multipliers, costates and last barrier to the next, shifted; ``tt.warm_start(solution)`` gives each method's
+arguments of such a start."""
+
+import warnings
 
 import pytest
 import torch
@@ -126,3 +129,37 @@ def test_a_control_step_carries_its_multipliers_costates_and_last_barrier_shifte
     mpc.reset(torch.tensor([False, True, False]))
     _, after = mpc.warm_start()
     assert float(after["barrier"][1]) == 0.0 and bool((after["barrier"][[0, 2]] > 0).all())
+
+
+@pytest.mark.parametrize("method", ["ipm", "altro", "ilqr"])
+def test_tt_warm_start_gives_what_each_method_takes(method):
+    """The interior point: controls, states and duals; ALTRO: controls and multipliers (its X0 would be its
+    infeasible start); iLQR: controls alone. The solve from them is the solve from the same arguments by hand."""
+    problem = tt.problems.get("pendulum")
+    options = {"iterations": 30} if method != "altro" else None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # iLQR ignores the pendulum's constraints
+        first = tt.solve(problem, method=method, options=options)
+        kwargs = tt.warm_start(first)
+        expected = {"ipm": {"U0", "X0", "duals"}, "altro": {"U0", "duals"}, "ilqr": {"U0", "duals"}}[method]
+        assert set(kwargs) == expected
+        assert (kwargs["duals"] is None) == (method == "ilqr")
+        if method == "ipm":
+            assert set(kwargs["duals"]) == {"multipliers", "costate", "barrier"}
+        x1 = problem.x0 + 0.01
+        again = tt.solve(problem, x1, method=method, options=options, **kwargs)
+        by_hand = tt.solve(problem, x1, method=method, options=options, U0=first.U,
+                           X0=first.X if method == "ipm" else None,
+                           duals=None if method == "ilqr" else carried(first) if method == "ipm"
+                           else {"multipliers": first.multipliers})
+    torch.testing.assert_close(again.U, by_hand.U, rtol=0, atol=0)
+
+
+def test_tt_warm_start_detaches_a_differentiable_solution():
+    problem = tt.problems.get("double_integrator")
+    x0 = problem.x0.clone().requires_grad_(True)
+    first = tt.solve(problem, x0, method="ipm")
+    assert first.U.requires_grad
+    kwargs = tt.warm_start(first)
+    assert not kwargs["U0"].requires_grad and not kwargs["X0"].requires_grad
+    assert not any(v.requires_grad for v in kwargs["duals"]["multipliers"].values())

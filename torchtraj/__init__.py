@@ -15,7 +15,7 @@ from .integrators import euler, rk4
 from .iterations.ilqr import ILQROptions
 from .minimum_time import MinimumTime, minimum_time
 from .registration import register as _register_environments
-from .solve import Method, solve
+from .solve import Method, solve, warm_start
 from .solvers import Solver
 from .solvers.altro.options import ALTROOptions
 from .solvers.altro.projection import ProjectionOptions
@@ -26,7 +26,7 @@ from .time_penalty import TimePenalized, time_penalized
 
 __all__ = ["ALTROOptions", "EILQROptions", "HMILQROptions", "History", "ILQROptions", "IPOptions", "MPC",
            "ProjectionOptions", "Method", "MinimumTime", "Problem", "Solution", "Solver", "Status", "TimePenalized",
-           "euler", "minimum_time", "rk4", "solve", "time_penalized"]
+           "euler", "minimum_time", "rk4", "solve", "time_penalized", "warm_start"]
 __version__ = "0.1.0"
 
 #: Submodules imported on first use (``tt.problems``, ...): they cost import time most programs do not need.

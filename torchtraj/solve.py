@@ -231,3 +231,23 @@ def _verbose_logging(verbose: bool):
         logger.setLevel(level)
         if handler is not None:
             logger.removeHandler(handler)
+
+
+def warm_start(solution: Solution) -> dict:
+    """``tt.solve``'s keyword arguments that start a solve of a nearby problem (another ``x0``, other parameters)
+    from ``solution``: its controls ``U0``; its states ``X0`` where its method starts from states (multiple
+    shooting: :attr:`~torchtraj.solvers.base.Solver.starts_from_shifted_states`); its duals where the method takes
+    them, as a controller carries them (:meth:`~torchtraj.solvers.base.Solver.carried_duals`: ALTRO's multipliers,
+    the interior point's multipliers, costates and last barrier parameter). Every tensor is detached.
+    ``tt.solve(problem, x1, method=solution.method, **tt.warm_start(solution))``."""
+    solver = solvers.get(solution.method)
+
+    def detach(value):
+        if isinstance(value, torch.Tensor):
+            return value.detach()
+        return {k: v.detach() for k, v in value.items()} if isinstance(value, dict) else value
+
+    detached = dataclasses.replace(solution, **{f.name: detach(getattr(solution, f.name))
+                                                for f in dataclasses.fields(solution) if f.name != "history"})
+    duals = solver.carried_duals(None, detached, solver.default_options()) if solver.takes_duals else None
+    return solver.warm_start(detached.U, duals or None, detached.X)
