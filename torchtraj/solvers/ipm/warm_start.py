@@ -57,11 +57,12 @@ def warm_start_hooks(cons: Constraints, duals: Optional[dict], scale: Optional[T
     without ``duals``. ``like``: a tensor of the batch's dtype and device."""
     if duals is None:
         return None
-    def given(entry):
-        value = duals.get(entry)
+
+    def entry(name: str) -> Optional[Tensor]:
+        value = duals.get(name)
         return None if value is None else torch.as_tensor(value, dtype=like.dtype, device=like.device)
 
-    barrier, lam = given("barrier"), given("costate")
+    barrier, lam = entry("barrier"), entry("costate")
     warm = None if barrier is None else barrier.expand(B) > 0
     stage, terminal = stack_blocks(cons, duals.get("multipliers") or {}, 0.0, like.new_zeros(B))
     if scale is not None:  # into the scaled problem's units
@@ -75,14 +76,14 @@ def warm_start_hooks(cons: Constraints, duals: Optional[dict], scale: Optional[T
     def start(it: Iterate) -> Iterate:
         z = torch.clamp(stage[..., :cons.mi], min=push) * knots
         zN = torch.clamp(terminal[..., :cons.miN], min=push)
-        given = {"z": z, "zN": zN, "y": z.clone(), "yN": zN.clone(), "nu": stage[..., cons.mi:],
-                 "nuN": terminal[..., cons.miN:]}
+        values = {"z": z, "zN": zN, "y": z.clone(), "yN": zN.clone(), "nu": stage[..., cons.mi:],
+                  "nuN": terminal[..., cons.miN:]}
         if lam is not None:
-            given["lam"] = lam.expand_as(it.lam)
+            values["lam"] = lam.expand_as(it.lam)
         if warm is not None:  # the cold instances keep the cold start's values
             pick = RowPicker(warm)
-            given = {name: pick(value, getattr(it, name)) for name, value in given.items()}
-        return dataclasses.replace(it, **given)
+            values = {name: pick(value, getattr(it, name)) for name, value in values.items()}
+        return dataclasses.replace(it, **values)
 
     cold_barrier = like.new_full((B,), opts.barrier_initial)
     if warm is None:
