@@ -214,9 +214,14 @@ def test_undeclared_arguments_are_refused_by_name(method):
     if not solver.takes_state_guess:
         with pytest.raises(ValueError, match=f"method '{method}'.*cannot take X0"):
             tt.solve(problem, method=method, X0=X0)
+    assert bool(solver.dual_entries) == solver.takes_duals  # a method that takes duals says which
     if not solver.takes_duals:
         with pytest.raises(ValueError, match=f"method '{method}' takes no warm-started duals"):
             tt.solve(problem, method=method, duals={"multipliers": {}})
+    else:
+        unknown = next(e for e in ("multipliers", "penalties", "costate", "barrier") if e not in solver.dual_entries)
+        with pytest.raises(ValueError, match=rf"duals has unknown entries \['{unknown}'\]; method '{method}' takes"):
+            tt.solve(problem, method=method, duals={unknown: {}})
     with pytest.raises(TypeError, match=f"options for method '{method}' must be {solver.options_class.__name__}"):
         tt.solve(problem, method=method, options=3)
 
