@@ -31,6 +31,9 @@ relation at a KKT point (the slack's stationarity row). The least-squares estima
   iteration: car_3obs from its default start (the rollout of its controls, through the obstacles) with the duals of
   its optimum ends ``LOCALLY_INFEASIBLE`` after 21 iterations, where the cold solve converges. Pass the solution's
   ``U0`` and ``X0`` with its duals (a controller passes the shifted plan).
+- **A branch of local optima.** From a solution's point, the iteration follows that solution's local optimum as
+  the problem moves; a cold solve of the moved problem may reach another, lower or higher (``docs/benchmarks.md``,
+  MPC, has examples).
 - **Units.** :attr:`Solution.multipliers`, :attr:`Solution.costate` and the history's ``barrier`` are in the
   units of the problem as given; the factor :math:`s_f` of this solve's start converts them, so that a warm
   start is the same whatever the two solves' factors.
