@@ -53,6 +53,7 @@ import torch.distributed as dist
 from torch import Tensor
 
 from .core.batch import Batch
+from .core.constraints import map_duals
 from .core.problem import Problem
 from .core.solution import History, Solution
 from .solve import solve as solve_one
@@ -179,13 +180,11 @@ def _shard_problem(problem: Problem, part: slice, count: int) -> Problem:
     return problem.with_params(**cut) if cut else problem
 
 
-def _cut(tree, part: slice, count: int):
-    """Every tensor of a nested dict with leading dimension ``count`` cut to ``part`` (the ``duals`` warm start)."""
-    if isinstance(tree, dict):
-        return {k: _cut(v, part, count) for k, v in tree.items()}
-    if isinstance(tree, Tensor) and tree.dim() and tree.shape[0] == count:
-        return tree[part]
-    return tree
+def _cut(duals: Optional[dict], part: slice, count: int) -> Optional[dict]:
+    """Every tensor of the ``duals`` warm start with leading dimension ``count`` cut to ``part``."""
+    if duals is None:
+        return None
+    return map_duals(duals, lambda t: t[part] if t.dim() and t.shape[0] == count else t)
 
 
 def _fields(sol: Solution) -> dict:

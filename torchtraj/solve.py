@@ -22,7 +22,7 @@ from torch.utils import _python_dispatch
 
 from . import solvers
 from .core.batch import Batch
-from .core.constraints import Constraints, check_duals
+from .core.constraints import Constraints, check_duals, map_duals
 from .core.graphs import graphs_used
 from .core.problem import Problem
 from .core.solution import Solution, without_inference_tensors
@@ -241,13 +241,6 @@ def warm_start(solution: Solution) -> dict:
     the interior point's multipliers, costates and last barrier parameter). Every tensor is detached.
     ``tt.solve(problem, x1, method=solution.method, **tt.warm_start(solution))``."""
     solver = solvers.get(solution.method)
-
-    def detach(value):
-        if isinstance(value, torch.Tensor):
-            return value.detach()
-        return {k: v.detach() for k, v in value.items()} if isinstance(value, dict) else value
-
-    detached = dataclasses.replace(solution, **{f.name: detach(getattr(solution, f.name))
-                                                for f in dataclasses.fields(solution) if f.name != "history"})
-    duals = solver.carried_duals(None, detached, solver.default_options()) if solver.takes_duals else None
-    return solver.warm_start(detached.U, duals or None, detached.X)
+    duals = solver.carried_duals(None, solution, solver.default_options()) if solver.takes_duals else {}
+    duals = map_duals(duals, torch.Tensor.detach)
+    return solver.warm_start(solution.U.detach(), duals or None, solution.X.detach())

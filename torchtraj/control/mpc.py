@@ -68,7 +68,7 @@ from torch import Tensor
 
 from .. import solvers
 from ..core.batch import Batch
-from ..core.constraints import Constraints
+from ..core.constraints import Constraints, map_duals
 from ..core.masks import RowPicker, where_rows
 from ..core.problem import Problem
 from ..core.solution import Solution
@@ -83,12 +83,6 @@ DEFAULT_ALTRO = solvers.get("altro").step_defaults()
 def _shift(t: Tensor) -> Tensor:
     """``(B, N, ...)`` moved one step earlier along N, the last entry repeated."""
     return torch.cat([t[:, 1:], t[:, -1:]], 1)
-
-
-def _each(duals: dict, change: Callable) -> dict:
-    """``duals`` (``tt.solve``'s, entries of tensors or dicts of per-block tensors) with ``change`` applied to
-    every tensor."""
-    return {k: _each(v, change) if isinstance(v, dict) else change(v) for k, v in duals.items()}
 
 
 class MPC(torch.nn.Module):
@@ -192,7 +186,7 @@ class MPC(torch.nn.Module):
         if not self._duals:
             return U0, None
         pick = RowPicker(self._warm)
-        return U0, _each(self._duals, lambda v: pick(v, torch.zeros_like(v)))
+        return U0, map_duals(self._duals, lambda v: pick(v, torch.zeros_like(v)))
 
     def start_states(self, x: Tensor, U0: Tensor, warm: Optional[int] = None) -> Optional[Tensor]:
         """The next solve's initial states ``(B, N+1, nx)`` for a method that starts from shifted states: the shifted
@@ -270,7 +264,7 @@ class MPC(torch.nn.Module):
         carried = {}
         if self.solver.takes_duals:  # else none to carry, and no constraints to make for it
             carried = self.solver.carried_duals(Constraints.of(p), sol, self.options)
-        self._duals = _each(carried, lambda v: _shift(v) if v.dim() == 3 else v)  # per-knot entries shifted
+        self._duals = map_duals(carried, lambda v: _shift(v) if v.dim() == 3 else v)  # per-knot entries shifted
         self._warm = usable
         return u
 

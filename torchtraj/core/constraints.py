@@ -16,6 +16,7 @@ report multipliers per block.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -257,6 +258,13 @@ def stack_blocks(constraints: Constraints, blocks: dict, fill: float, like: Tens
 #: The entries of a warm start of the multipliers (``tt.solve``'s ``duals``); each method takes some of them
 #: (:attr:`~torchtraj.solvers.base.Solver.dual_entries`).
 DUAL_ENTRIES = ("multipliers", "penalties", "costate", "barrier")
+
+
+def map_duals(duals: dict, change: Callable) -> dict:
+    """``duals`` (``tt.solve``'s: entries of tensors, or of dicts of per-block tensors) with ``change`` applied to
+    every tensor; any other value is kept as it is."""
+    return {k: map_duals(v, change) if isinstance(v, dict) else change(v) if isinstance(v, Tensor) else v
+            for k, v in duals.items()}
 
 
 def check_duals(constraints: Constraints, duals: dict, batch: int, entries: tuple = DUAL_ENTRIES,
