@@ -89,8 +89,8 @@ def warm_start_hooks(cons: Constraints, duals: Optional[dict], scale: Optional[T
         return dataclasses.replace(it, **values)
 
     cold_barrier = like.new_full((B,), opts.barrier_initial)
-    if warm is None:
-        return Hooks(start=start, barrier=cold_barrier, estimate=like.new_zeros(B, dtype=torch.bool))
+    if warm is None:  # every instance warm: none takes the least-squares estimate
+        return Hooks(start=start, barrier=cold_barrier)
     mu = torch.where(warm, torch.clamp(barrier, min=opts.warm_start_barrier_min, max=opts.barrier_initial),
                      cold_barrier)
     return Hooks(start=start, barrier=mu, estimate=~warm)
