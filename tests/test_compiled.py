@@ -8,6 +8,7 @@ alone, the ``dynamo_capture`` fixture: seconds), compiled iterations run on the 
 ``mark_batch`` marks the batch's tensors alone.
 """
 
+import contextlib
 import dataclasses
 import shutil
 
@@ -16,7 +17,7 @@ import torch
 
 import torchtraj as tt
 from torchtraj import envs
-from torchtraj.core.compiled import mark_batch
+from torchtraj.core.compiled import batch_of, mark_batch
 from torchtraj.core.constraints import Constraints
 from torchtraj.solvers.altro.augmented_lagrangian import AugmentedLagrangian, Duals
 
@@ -101,6 +102,20 @@ def test_mark_batch_marks_the_batch_dimension_alone():
     assert _marked(x0) and _marked(params["mass"]) and _marked(al.duals.stage) and _marked(al.duals.terminal)
     assert not _marked(steps) and not _marked(al.knot_mask)
     assert not any(_marked(t) for t in (problem.u_lower, problem.u_upper, constraints.ineq_knot_mask))
+
+
+def test_a_solve_of_one_instance_marks_nothing_and_a_batch_its_batch():
+    """Inside ``batch_of(1)`` (``tt.solve`` of one instance) no argument is marked, whatever its sizes; inside
+    ``batch_of(3)`` and outside any, the batch's tensors are."""
+    batch = torch.zeros(3, 2, dtype=torch.float64)
+    with batch_of(1):
+        mark_batch((batch, torch.zeros(3, 9, dtype=torch.float64)), {})
+    assert not _marked(batch)
+    for context in (batch_of(3), contextlib.nullcontext()):
+        fresh = torch.zeros(3, 2, dtype=torch.float64)
+        with context:
+            mark_batch((fresh, torch.zeros(3, 9, dtype=torch.float64)), {})
+        assert _marked(fresh)
 
 
 def test_one_capture_of_each_altro_kernel_serves_every_batch_size(dynamo_capture):

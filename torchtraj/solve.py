@@ -21,6 +21,7 @@ import torch
 from torch.utils import _python_dispatch
 
 from . import solvers
+from .core import compiled
 from .core.batch import Batch
 from .core.constraints import Constraints, check_duals, map_duals
 from .core.graphs import graphs_used
@@ -96,7 +97,7 @@ def solve(
     _check_declarations(solver, problem, batch)
     if eager_despite_compile(solver, opts):
         warnings.warn(f"method {solver.name!r} has no compiled kernels: compile=True runs it eager", stacklevel=2)
-    with _verbose_logging(getattr(opts, "verbose", False)):
+    with _verbose_logging(getattr(opts, "verbose", False)), compiled.batch_of(batch.B):
         return _solve(solver, problem, batch, opts, gradients)
 
 

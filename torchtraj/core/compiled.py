@@ -50,6 +50,8 @@ requirement).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import types
 from typing import Callable
 
@@ -70,6 +72,9 @@ DYNAMIC_FROM = 2
 RECOMPILE_LIMIT = 64
 
 _KERNELS: dict = {}
+
+#: The batch size of the solve running in this context (:func:`batch_of`; 0: not told).
+_BATCH: contextvars.ContextVar = contextvars.ContextVar("torchtraj_batch", default=0)
 
 
 def kernel(fn: Callable, enabled: bool) -> Callable:
@@ -100,8 +105,21 @@ def _compile(fn: Callable) -> Callable:
     return batch_dynamic
 
 
+@contextlib.contextmanager
+def batch_of(size: int):
+    """Tell the kernels called inside that the solve's batch has ``size`` instances: below :data:`DYNAMIC_FROM`
+    (a single instance, whose graphs Dynamo specialises anyway) :func:`mark_batch` marks nothing without walking
+    the arguments, about a third of a small kernel's call."""
+    token = _BATCH.set(size)
+    try:
+        yield
+    finally:
+        _BATCH.reset(token)
+
+
 def mark_batch(*args) -> None:
-    """Mark dim 0 of the tensors in ``args`` that carry the batch dynamic for ``torch.compile``.
+    """Mark dim 0 of the tensors in ``args`` that carry the batch dynamic for ``torch.compile`` (nothing inside
+    :func:`batch_of` a single instance).
 
     The tensors are those in ``args``' containers (tuples, lists, dicts) and in the
     attributes of the objects among them (an augmented Lagrangian's multipliers, the IPM's iterate and model
@@ -112,6 +130,8 @@ def mark_batch(*args) -> None:
     chance, its mark does no harm: a marked dim gets a symbol of its own (no duck shaping), which the kernel's first
     use of it against a static size specialises, or which stays symbolic in a graph correct for any value.
     """
+    if 0 < _BATCH.get() < DYNAMIC_FROM:
+        return
     tensors: list = []
     _collect(args, tensors, set())
     if not tensors:
@@ -133,7 +153,8 @@ _LEAVES = frozenset({type(None), bool, int, float, str})
 
 def _collect(value, tensors: list, seen: set) -> None:
     # by hand rather than with torch.utils._pytree, whose flattening was most of a call's cost for an ALTRO
-    # iteration's arguments; leaves are skipped by the caller, a set lookup per value
+    # iteration's arguments; a tensor is taken where its container is walked (most values are tensors: a call
+    # each cost more than the rest of the walk), leaves are skipped by a set lookup per value
     if isinstance(value, Tensor):
         if value.dim():
             tensors.append(value)
@@ -147,7 +168,13 @@ def _collect(value, tensors: list, seen: set) -> None:
         seen.add(id(value))
         value = vars(value).values()
     for v in value:
-        if type(v) not in _LEAVES:
+        kind = type(v)
+        if kind in _LEAVES:
+            continue
+        if kind is Tensor or isinstance(v, Tensor):
+            if v.dim():
+                tensors.append(v)
+        else:
             _collect(v, tensors, seen)
 
 
