@@ -1,11 +1,14 @@
 """eILQR's compiled kernels (``EILQROptions(compile=True)``, torchtraj.core.compiled).
 
-Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve (the expansion, the
-Newton step, the step's bound and slope, the trial points and their merit, the second-order correction's step, the
-choice of a step, the move, the initial rollout, the answer's cost and violation) is one graph with no break, and
-the solve is the eager one.
-``-m slow``: a later batch size captures none of them again, and the solve compiled by inductor against eager.
+Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve (the expansion with
+its tests, the Newton step, the merit's weight and the step's bound with the first trial point, the second-order
+correction's step and its merit, the choice of a step, the move with its bookkeeping and the next expansion, the
+initial rollout, the answer's cost and violation) is one graph with no break, and the solve is the eager one.
+``-m slow``: a later batch size captures none of them again; kernels captured for one problem are captured again for
+another, and a later trial's kernel is one graph; the solve compiled by inductor against eager.
 """
+
+import dataclasses
 
 import pytest
 from same_solutions import (
@@ -17,9 +20,10 @@ from same_solutions import (
 )
 
 import torchtraj as tt
+from torchtraj.core import compiled
 from torchtraj.core.batching import rollout
 from torchtraj.kkt import merit as answer
-from torchtraj.solvers.eilqr import globalization, merit, model, newton, solver
+from torchtraj.solvers.eilqr import globalization, merit, model, newton, verdicts
 
 pytest.importorskip("torch._inductor")
 
@@ -33,11 +37,26 @@ def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
     solution = tt.solve(pendulum(), x0, "eilqr", options=tt.EILQROptions(compile=True))
     # the corrections ran in their kernel, not eager
     assert_one_graph_per_kernel(dynamo_capture, {
-        model.expand, newton._direction_alone, merit.merit_at, globalization.corrected_step, rollout,
-        globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step,
+        verdicts.expanded, newton._direction_alone, merit.merit_at, globalization.corrected_step, rollout,
+        globalization.first_tried, globalization.chosen_step, verdicts.advanced, verdicts.advanced_expanded,
         answer.cost_and_violation})
     assert bool((solution.status == tt.Status.CONVERGED).all())
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
+
+
+@pytest.mark.slow  # two problems captured, two minutes
+def test_the_kernels_compile_again_for_another_problem_and_a_later_trial_is_one_graph(dynamo_capture):
+    """Kernels compiled for the car (its parameters hold obstacles) serve the cart-pole after it, compiled again
+    (Dynamo's reason for compiling again once failed on a kernel given one tensor twice), and with two corrected
+    trials the second one's kernel (the cart-pole's) is one graph too; the answers are the eager ones."""
+    opts = tt.EILQROptions(second_order_trials=2)
+    for name in ("car_3obs", "cartpole"):
+        problem = tt.problems.get(name).replace(horizon=8 if name == "car_3obs" else 10)
+        x0 = tt.problems.sample_x0(name, 2, seed=2)
+        solution = tt.solve(problem, x0, "eilqr", options=dataclasses.replace(opts, compile=True))
+        assert_close_solutions(solution, tt.solve(problem, x0, "eilqr", options=opts), tol=1e-9, costate_rtol=1e-9)
+    assert globalization.tried in compiled._KERNELS
+    assert not dict(dynamo_capture["graph_break"]), dict(dynamo_capture["graph_break"])
 
 
 def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_capture):
@@ -47,9 +66,9 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=2), "eilqr")
     assert_one_graph_per_kernel(dynamo_capture, {
-        model.expand, model.last_multipliers, newton._direction_alone, merit.merit_at, globalization.corrected_step,
-        globalization.step_bound, globalization.trial_point, globalization.chosen_step, solver._step, rollout,
-        answer.cost_and_violation})
+        verdicts.expanded, model.last_multipliers, newton._direction_alone, merit.merit_at,
+        globalization.corrected_step, globalization.first_tried, globalization.chosen_step, verdicts.advanced,
+        verdicts.advanced_expanded, rollout, answer.cost_and_violation})
 
 
 @pytest.mark.slow  # two batch sizes captured, a minute; the default run keeps the test above

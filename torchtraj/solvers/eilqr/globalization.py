@@ -39,7 +39,7 @@ from ...core.batching import param_rows
 from ...core.compiled import kernel
 from ...globalization.line_search import Accepted
 from .initial_state import InitialRows
-from .merit import armijo_bound, constraint_values, line_search, merit_at, slope, trial_steps
+from .merit import armijo_bound, constraint_values, line_search, merit_at, slope, trial_steps, weighed
 from .model import Iterate, Model
 from .newton import Direction, direction, instances, pick_direction, resolve, write_direction
 
@@ -150,49 +150,81 @@ def chosen_step(passed: Tensor, step: Direction, it: Iterate, alpha: Tensor, cho
     return pick_direction(passed, _through(step, it, alpha), chosen)
 
 
+def tried(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weights, reference, derivative, waiting,
+          chosen, opts) -> tuple:
+    """The trial ``a`` (a 0-d tensor) of the truncated step ``α_max d``: ``(step, merit, Armijo bound, passed,
+    choice)``, ``passed (B,)`` where a ``waiting`` instance's merit is finite and within the bound from its
+    ``reference`` and slope ``derivative``, and the choice :func:`chosen_step` of ``passed`` over ``chosen`` (the
+    one a trial takes where no instance's step is corrected)."""
+    step, m = trial_point(problem, cons, params, d, it, a * alpha_max, x0, initial, gamma, weights, opts.record)
+    bound = armijo_bound(reference, derivative, a.reshape(1), opts)[:, 0]
+    passed = waiting & torch.isfinite(m) & (m <= bound)
+    return step, m, bound, passed, chosen_step(passed, step, it, a.expand(m.shape), chosen)
+
+
+def first_tried(problem, cons, params, model, d, it, a, x0, initial, gamma, l1, weights, memory, pending, opts,
+                truncate: bool) -> tuple:
+    """The merit's weight (:func:`~torchtraj.solvers.eilqr.merit.weighed`), :func:`step_bound`, then :func:`tried`
+    of the first trial ``a`` for the ``pending`` instances: ``(γ, memory, m(w), reference, α_max, D m, *trial)``."""
+    gamma, memory, merit0, reference = weighed(d, gamma, pending, initial is not None, model.J, l1, memory, opts)
+    alpha_max, derivative = step_bound(model, d, it, weights, gamma, l1, opts.boundary_fraction, truncate)
+    return (gamma, memory, merit0, reference, alpha_max, derivative,
+            *tried(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weights, reference, derivative,
+                   pending, d, opts))
+
+
 def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts, weights,
-                    reference=None):
+                    memory):
     """The accepted step of the ``pending (B,)`` instances from the direction ``d`` (computed with ``eps (B,)``):
-    ``(direction, Accepted, merit0 (B,))``: the accepted ``α`` moves the iterate by the direction returned to the
-    accepted point (the truncated step ``α α_max p``, or its correction ``α α_max p + q``). The Armijo test
-    starts from ``reference (B,)`` (the nonmonotone one, :class:`~torchtraj.solvers.eilqr.merit.MeritMemory`;
-    ``None``: the current merit ``m(w)``)."""
-    merit0 = model.J + gamma * l1
-    if reference is None:
-        reference = merit0
+    ``(direction, Accepted, merit0 (B,), γ (B,), memory)``: the accepted ``α`` moves the iterate by the direction
+    returned to the accepted point (the truncated step ``α α_max p``, or its correction ``α α_max p + q``). The
+    merit's weight ``γ`` is updated from ``d``'s multipliers and the ``memory`` records the iterate
+    (:func:`~torchtraj.solvers.eilqr.merit.weighed`); the Armijo test starts from the nonmonotone reference (the
+    largest merit the memory holds, :class:`~torchtraj.solvers.eilqr.merit.MeritMemory`)."""
+    weigh = (d, gamma, pending, initial is not None, model.J, l1, memory, opts)
     if not opts.globalization:
+        gamma, memory, merit0, _ = weighed(*weigh)
         ls = line_search(problem, cons, params, it.X, it.U, x0, initial, d, merit0, slope(model, d, gamma, l1),
                          gamma, pending, trial_steps(opts, merit0), opts, weights)
-        return d, ls, merit0
+        return d, ls, merit0, gamma, memory
     # with the paper's fixed weight the relaxed barrier is the problem (its rows may end in the quadratic branch):
     # no domain to stay in, and the minimum-time double integrator's fixed-weight solve then ended MAX_REGULARIZATION
     truncate = opts.boundary_fraction is not None and opts.barrier_continuation
-    alpha_max, derivative = kernel(step_bound, opts.compile)(model, d, it, weights, gamma, l1, opts.boundary_fraction,
-                                                             truncate)
-    steps = trial_steps(opts, merit0)
+    steps = trial_steps(opts, l1)
     corrected_trials = min(opts.second_order_trials, steps.shape[0]) if opts.second_order_correction else 0
+    alpha_max = derivative = trial = None
+    if corrected_trials and bool(pending.any()):  # the weight and the step's bound in the first trial's kernel
+        gamma, memory, merit0, reference, alpha_max, derivative, *trial = kernel(first_tried, opts.compile)(
+            problem, cons, params, model, d, it, steps[0], x0, initial, gamma, l1, weights, memory, pending, opts,
+            truncate)
+    else:
+        gamma, memory, merit0, reference = weighed(*weigh)
     found, alpha, value, chosen = ~pending, torch.zeros_like(merit0), merit0, d
-    trial_k, chosen_k = kernel(trial_point, opts.compile), kernel(chosen_step, opts.compile)
-    for a in steps[:corrected_trials]:  # at most two host reads a trial
+    for a in steps[:corrected_trials if trial is not None else 0]:  # at most two host reads a trial
         waiting = pending & ~found
-        if not bool(waiting.any()):
-            break
-        step, m = trial_k(problem, cons, params, d, it, a * alpha_max, x0, initial, gamma, weights, opts.record)
-        bound = armijo_bound(reference, derivative, a.reshape(1), opts)[:, 0]
-        passed = waiting & torch.isfinite(m) & (m <= bound)
+        if trial is None:  # the trials after the first
+            if not bool(waiting.any()):
+                break
+            trial = kernel(tried, opts.compile)(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma,
+                                                weights, reference, derivative, waiting, chosen, opts)
+        (step, m, bound, passed, picked), trial = trial, None
         if bool((waiting & ~passed).any()):
             soc, ms = _correction(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps, gamma,
                                   weights, waiting & ~passed, opts)
             taken = waiting & ~passed & soc.ok & torch.isfinite(ms) & (ms <= bound)
             step, m, passed = pick_direction(taken, soc, step), torch.where(taken, ms, m), passed | taken
-        chosen = chosen_k(passed, step, it, torch.full_like(merit0, float(a)), chosen)
+            picked = kernel(chosen_step, opts.compile)(passed, step, it, torch.full_like(merit0, float(a)), chosen)
+        chosen = picked
         found, alpha, value = found | passed, torch.where(passed, a, alpha), torch.where(passed, m, value)
     refused = pending & ~found
     if steps.shape[0] > corrected_trials and bool(refused.any()):  # the shorter steps plain, in batched rounds
+        if alpha_max is None:  # no trial was corrected
+            alpha_max, derivative = kernel(step_bound, opts.compile)(model, d, it, weights, gamma, l1,
+                                                                     opts.boundary_fraction, truncate)
         p = truncated(d, it, alpha_max)
         rest = line_search(problem, cons, params, it.X, it.U, x0, initial, p, reference, derivative, gamma, refused,
                            steps[corrected_trials:], opts, weights)
         chosen = pick_direction(refused & rest.found, p, chosen)
         found, alpha = found | rest.found, torch.where(refused, rest.alpha, alpha)
         value = torch.where(refused & rest.found, rest.values[0], value)
-    return chosen, Accepted(found=found, alpha=alpha, values=(value,)), merit0
+    return chosen, Accepted(found=found, alpha=alpha, values=(value,)), merit0, gamma, memory

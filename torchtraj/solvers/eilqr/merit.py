@@ -57,37 +57,45 @@ from ...globalization.line_search import Accepted, backtrack
 from .continuation import Weights, barrier_cost
 from .initial_state import InitialState
 from .model import Model
-from .newton import Direction
+from .newton import Direction, multiplier_size
 from .options import EILQROptions
 
 
 @dataclass
 class MeritMemory:
-    """The cost ``J (B, M)`` and infeasibility ``‖C‖₁ (B, M)`` of each instance's last ``M`` iterates (``J = −∞``
-    where empty) and the next slot: the nonmonotone reference (module docstring)."""
+    """The cost ``J (B, M)`` and infeasibility ``‖C‖₁ (B, M)`` of each instance's last ``M`` iterates, oldest first
+    (``J = −∞`` where empty): the nonmonotone reference (module docstring)."""
 
     J: Tensor
     l1: Tensor
-    slot: int = 0
 
     @classmethod
     def empty(cls, batch: int, memory: int, like: Tensor) -> "MeritMemory":
         return cls(like.new_full((batch, max(memory, 1)), float("-inf")), like.new_zeros(batch, max(memory, 1)))
 
     def record(self, J: Tensor, l1: Tensor) -> "MeritMemory":
-        """The memory with the current iterates' ``J``, ``‖C‖₁`` (``(B,)`` each) over the oldest."""
-        size = self.J.shape[1]
-        here = torch.arange(size, device=J.device) == self.slot % size
-        return MeritMemory(torch.where(here, J.unsqueeze(-1), self.J), torch.where(here, l1.unsqueeze(-1), self.l1),
-                           self.slot + 1)
+        """The memory with the current iterates' ``J``, ``‖C‖₁`` (``(B,)`` each) in place of the oldest (a shift:
+        no slot counter, which a compiled kernel would take as a constant)."""
+        return MeritMemory(torch.cat([self.J[:, 1:], J.unsqueeze(-1)], -1),
+                           torch.cat([self.l1[:, 1:], l1.unsqueeze(-1)], -1))
 
     def forget(self, mask: Tensor) -> "MeritMemory":
         """The memory emptied for the instances of ``mask (B,)`` (their barrier's weight changed)."""
-        return MeritMemory(torch.where(mask.unsqueeze(-1), float("-inf"), self.J), self.l1, self.slot)
+        return MeritMemory(torch.where(mask.unsqueeze(-1), float("-inf"), self.J), self.l1)
 
     def reference(self, gamma: Tensor) -> Tensor:
         """``max_j J_j + γ ‖C_j‖₁ (B,)`` over the remembered iterates, with the current ``gamma (B,)``."""
         return (self.J + gamma.unsqueeze(-1) * self.l1).amax(-1)
+
+
+def weighed(d: Direction, gamma: Tensor, factored: Tensor, free: bool, J: Tensor, l1: Tensor, memory: MeritMemory,
+            opts: EILQROptions) -> tuple:
+    """The merit's weight after the step ``d``: ``(γ, memory, m(w), reference)``, ``γ`` from ``d``'s multipliers
+    where ``factored (B,)`` (:func:`penalty`; ``free``: the start is a variable), the memory with the iterate's
+    ``J`` and ``‖C‖₁ = l1`` (``(B,)`` each), the merit ``J + γ ‖C‖₁`` and the Armijo test's nonmonotone reference."""
+    gamma = torch.where(factored, penalty(gamma, multiplier_size(d, free), opts), gamma)
+    memory = memory.record(J, l1)
+    return gamma, memory, J + gamma * l1, memory.reference(gamma)
 
 
 def constraint_values(problem: Problem, cons: Constraints, params, X: Tensor, U: Tensor, x0: Tensor,

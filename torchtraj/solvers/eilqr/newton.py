@@ -143,9 +143,12 @@ def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last
     worked: :func:`~torchtraj.globalization.regularization.corrected_attempts`); ``regularize=False`` takes the
     first attempt as it is. ``attempt(ε)`` factorises and solves the batch, ``attempt(ε, rows)`` the instances
     ``rows`` alone, which the attempts after the first take (``corrected_attempts``' ``write``, here
-    :func:`write_direction`). Returns ``(direction, ε (B,))``."""
-    return corrected_attempts(attempt, floor, last, running, opts, pick_direction,
-                              opts.regularization_attempts if regularize else 0, write_direction)
+    :func:`write_direction`). Returns ``(direction, ε (B,))``, ``ε`` never ``floor`` itself (a kernel given both
+    would see one tensor twice: a graph of its own, and Dynamo's reason for compiling it again failed on another
+    problem's parameters)."""
+    d, eps = corrected_attempts(attempt, floor, last, running, opts, pick_direction,
+                                opts.regularization_attempts if regularize else 0, write_direction)
+    return d, (eps.clone() if eps is floor else eps)
 
 
 def write_direction(step: Direction, rows: Tensor, new: Direction) -> Direction:
@@ -167,7 +170,7 @@ def multiplier_size(d: Direction, free: bool) -> Tensor:
     start's, ``λ_0``), the equalities and a free start's rows."""
     B = d.lam.shape[0]
     parts = [d.lam[:, 1:] if free else d.lam, d.nu, d.nuN, d.mu0]
-    return torch.cat([p.reshape(B, -1).abs() for p in parts] + [d.lam.new_zeros(B, 1)], -1).amax(-1)
+    return torch.cat([p.reshape(B, -1) for p in parts] + [d.lam.new_zeros(B, 1)], -1).abs().amax(-1)
 
 
 def empty_multipliers(X: Tensor, me: int, meN: int, m0: Optional[int]) -> tuple:

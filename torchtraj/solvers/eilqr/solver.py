@@ -46,36 +46,21 @@ from ...core.batch import Batch
 from ...core.batching import rollout
 from ...core.compiled import kernel
 from ...core.constraints import Constraints, multiplier_blocks
-from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import History, Solution
 from ...core.status import Status
 from ...kkt.merit import solution_measures
 from ...riccati.range_space import formed, select_gains
-from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, stage_done, weights_for
+from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, weights_for
 from .globalization import globalized_step
 from .initial_state import InitialState
-from .merit import MeritMemory, model_infeasibility, penalty
-from .model import Iterate, expand, last_multipliers, with_weight
-from .newton import compiled_direction, empty_multipliers, instances, multiplier_size, regularized_direction
+from .merit import MeritMemory
+from .model import Iterate, last_multipliers, with_weight
+from .newton import compiled_direction, empty_multipliers, instances, regularized_direction
 from .options import EILQROptions
+from .verdicts import advanced, advanced_expanded, expanded
 
 logger = logging.getLogger("torchtraj")
-
-#: A full Newton step of at most this many rounding errors of the iterate (``ε (1 + max(|X|∞, |U|∞))``) ends the
-#: solve as converged at the dtype's resolution (module docstring).
-RESOLVED = 10.0
-
-
-def _step(it: Iterate, d, alpha, take) -> Iterate:
-    """``it`` moved by ``α`` along ``d`` where ``take (B,)``: the primal step and ``y ← y + α (y⁺ − y)``."""
-    def move(x, dx):
-        return where_rows(take, x + alpha.reshape(-1, *([1] * (x.dim() - 1))) * dx, x)
-
-    return Iterate(X=move(it.X, d.dX), U=move(it.U, d.dU), lam=move(it.lam, d.lam - it.lam),
-                   nu=move(it.nu, d.nu - it.nu), nuN=move(it.nuN, d.nuN - it.nuN), mu0=move(it.mu0, d.mu0 - it.mu0),
-                   z=move(it.z, d.z - it.z), zN=move(it.zN, d.zN - it.zN))
-
 
 def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] = None,
                 method: str = "eilqr") -> Solution:
@@ -119,37 +104,27 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     unresolved = torch.zeros(B, dtype=torch.bool, device=x0.device)
     rows = []
     memory = MeritMemory.empty(B, opts.nonmonotone_memory, x0)
-    expand_k, direction_k = kernel(expand, opts.compile), compiled_direction(opts.compile)
+    expanded_k, advanced_k = kernel(expanded, opts.compile), kernel(advanced, opts.compile)
+    direction_k, onward_k = compiled_direction(opts.compile), kernel(advanced_expanded, opts.compile)
     untested = None  # the instances whose last iterate the iterations left untested (test_last_iterate off)
+    tests = None  # the iterate's expansion and tests, made with the move that reached it
     for step in range(opts.iterations + 1):
         if step == opts.iterations and not opts.test_last_iterate:
             z, zN = kernel(last_multipliers, opts.compile)(cons, params, it, weights)
             it = dataclasses.replace(it, z=z, zN=zN)
             untested = status == Status.RUNNING
             break
-        model = expand_k(problem, cons, params, it, x0, initial, weights, opts.record)
+        if tests is None:
+            tests = expanded_k(problem, cons, params, it, x0, initial, weights, opts.record, status, final, tol,
+                               unresolved, opts)
+        model, status, advance, l1, defects, equality = tests
         it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
-        running = status == Status.RUNNING
-        status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
-        last_stage = weights.weight <= final
-        # the paper's fixed weight solves the soft problem, whose stationarity takes the barrier's multipliers
-        # w s(t): the primal-dual z must be them to the tolerance (the t-scaled complementarity lets them differ
-        # by tol / t, 1e-5 / 1e-5 = 1 at an active row in float32)
-        error = model.error if opts.barrier_continuation else torch.maximum(model.error, model.barrier_gap)
-        status = torch.where(running & model.finite & last_stage & ((error <= tol) | unresolved),
-                             int(Status.CONVERGED), status)
-        # the barrier continuation: a stage whose KKT error is within κ_ε w (or whose step the dtype no longer
-        # resolves) ends, the next weight's model differs only in the barrier's terms
-        advance = running & model.finite & ~last_stage & (stage_done(model.error, weights.weight, opts) | unresolved)
         if bool(advance.any()):
             weights = weights_for(torch.where(advance, next_weight(weights.weight, final, opts), weights.weight),
                                   opts)
             model = with_weight(model, weights)
             memory = memory.forget(advance)  # the barrier's new weight changes J: the past merits do not compare
-        diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
-        status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
         running = status == Status.RUNNING
-        l1 = model_infeasibility(model, x0, it.X)
         if step == opts.iterations or not bool(running.any()):
             break
         def attempt(e, rows=None):  # `rows`: the instances of a correction alone
@@ -159,39 +134,19 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
 
         d, eps = regularized_direction(attempt, floor, last, running, opts, regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
-        gamma = torch.where(factored, penalty(gamma, multiplier_size(d, initial is not None), opts), gamma)
-        memory = memory.record(model.J, l1)
-        d, ls, merit0 = globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, factored,
-                                        opts, weights, memory.reference(gamma))
-        take = factored & ls.found
-        # a full step below the dtype's resolution of the iterate: it cannot move any further in this dtype
-        unresolved = take & (ls.alpha == 1.0) & (_largest(d.dX, d.dU) <= RESOLVED * torch.finfo(x0.dtype).eps
-                                                   * (1 + _largest(it.X, it.U)))
-        it = kernel(_step, opts.compile)(it, d, ls.alpha, take)
+        d, ls, merit0, gamma, memory = globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma,
+                                                       l1, factored, opts, weights, memory)
+        if step + 1 < opts.iterations or opts.test_last_iterate:  # the next iteration's tests with the move
+            it, take, unresolved, floor, last, iterations, step_size, tests = onward_k(
+                problem, cons, params, x0, initial, weights, opts.record, final, tol, it, d, ls.alpha, ls.found,
+                factored, running, eps, floor, last, status, iterations, opts)
+        else:
+            it, take, unresolved, floor, last, status, iterations, step_size = advanced_k(
+                it, d, ls.alpha, ls.found, factored, running, eps, floor, last, status, iterations, opts)
+            tests = None
         K = select_gains(take, d.K, K)  # formed for the solution (range-space rows: once, at the end)
-        last = torch.where(take & (eps > 0), eps, last)
-        # Fig. 5's adaptive ε_reg: a step the merit refuses or cuts short asks for more regularisation (a shorter,
-        # more gradient-like step) at the next iteration, a full one for less, down to none
-        # an instance whose inertia correction ran out of attempts below ``regularization_max`` keeps its iterate and
-        # starts the next iteration's correction above the largest ε tried (IPOPT's correction goes on up to
-        # δ_w^max; one iteration's attempts from a carried ε of 1e-20 reach only about 1e-9)
-        short = (factored & (~ls.found | (ls.alpha < opts.short_step))) | (running & ~factored)
-        larger = torch.clamp(opts.regularization_increase * torch.maximum(floor, eps), min=opts.regularization_first)
-        smaller = opts.regularization_decrease * eps
-        smaller = torch.where(smaller < opts.regularization_min, 0.0, smaller)
-        full = take & (ls.alpha == 1.0)
-        # a step cut to α ≥ short_step: the model held over α of the step only; the regularised step's length goes
-        # as 1/ε where ε dominates the reduced Hessian's smallest eigenvalue, so ε/α (at most ×κ_w^+) asks for
-        # a step about as long as the accepted one (a trust region's radius set from the accepted step)
-        growth = torch.clamp(1.0 / torch.clamp(ls.alpha, min=opts.short_step), max=opts.regularization_increase)
-        partial = eps * growth if opts.regularization_partial else eps
-        floor = torch.where(short, larger, torch.where(full, smaller, torch.where(take, partial, floor)))
-        blown = running & (floor > opts.regularization_max)
-        status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
-        iterations = iterations + running.long()
-        rows.append(dict(cost=model.J, max_violation=model.primal, step_size=torch.where(take, ls.alpha, 0.0),
-                         regularization=eps, defects=model.defects.abs().flatten(1).amax(-1),
-                         equality=_equality(model), merit=merit0, gamma=gamma, kkt_error=model.error,
+        rows.append(dict(cost=model.J, max_violation=model.primal, step_size=step_size, regularization=eps,
+                         defects=defects, equality=equality, merit=merit0, gamma=gamma, kkt_error=model.error,
                          stationarity=model.dual, complementarity=model.complementarity,
                          barrier_weight=weights.weight))
         if opts.verbose:
@@ -224,17 +179,6 @@ def state_guess(problem: Problem, batch: Batch, opts: EILQROptions) -> Optional[
     if batch.X0 is not None or not opts.problem_state_guess or problem.X_init is None:
         return batch.X0
     return problem.X_init.to(batch.x0).expand(batch.B, *problem.X_init.shape)
-
-
-def _largest(X: torch.Tensor, U: torch.Tensor) -> torch.Tensor:
-    """``max(|X|∞, |U|∞)`` per instance ``(B,)``."""
-    return torch.maximum(X.abs().flatten(1).amax(-1), U.abs().flatten(1).amax(-1))
-
-
-def _equality(model) -> torch.Tensor:
-    """``‖(h, h_N)‖∞ (B,)`` of the model."""
-    B = model.J.shape[0]
-    return torch.cat([model.h.reshape(B, -1).abs(), model.hN.abs(), model.J.new_zeros(B, 1)], -1).amax(-1)
 
 
 def _solution(problem, it, K, status, iterations, rows, x0, params, initial, method, opts) -> Solution:
