@@ -13,11 +13,12 @@ import torch
 
 import torchtraj as tt
 import torchtraj.solvers.eilqr.solver as eilqr_solver
+import torchtraj.solvers.eilqr.verdicts as eilqr_verdicts
 import torchtraj.solvers.ipm.solver as ipm_solver
 from torchtraj import envs, problems
 
 STATES = torch.tensor([[0.3, 2.0], [3.0, 0.2], [0.05, 0.0]], dtype=torch.float64)
-MODULES = {"ipm": ipm_solver, "eilqr": eilqr_solver}
+MODULES = {"ipm": ipm_solver, "eilqr": eilqr_verdicts}  # where each method calls its expansion
 
 
 def counting_expansions(monkeypatch, method) -> list:
