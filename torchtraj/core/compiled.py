@@ -13,7 +13,9 @@ arithmetic, is the time. Compiled by inductor into fused loops, a control step t
 * per ALTRO iteration, the violation, the multiplier update and the objective under the new multipliers
   (:func:`torchtraj.solvers.altro.stages._measures`), and the MPC policy's own multiplier update.
 * the interior point's, eILQR's and HM-iLQR's expansions, Newton steps (or backward passes and solves) and trial
-  points (:mod:`torchtraj.solvers.ipm.kernels`, ``EILQROptions.compile``, ``HMILQROptions.compile``).
+  points (:mod:`torchtraj.solvers.ipm.kernels`, ``EILQROptions.compile``, ``HMILQROptions.compile``); eILQR's
+  per-instance decisions ride in its kernels (:mod:`torchtraj.solvers.eilqr.verdicts`), so an iteration is about
+  four compiled calls.
 
 The loops over iterations, the masks and the host synchronisations stay in Python, so the solver's logic is the
 same code in both modes and its answers agree to rounding (``tests/test_compiled.py``).
@@ -29,7 +31,8 @@ over the horizon and choose their contractions by size (:func:`matmul`). ``torch
 dynamic) was the alternative: it compiles again at the second batch size seen, and would make any other size that
 changed between two calls symbolic too. ``maybe_mark_dynamic``, not ``mark_dynamic``: a kernel whose traced code
 specialises the batch size does so without an error, and compiles once per batch size as before. Dynamo specialises
-sizes 0 and 1, so B = 1 always has graphs of its own.
+sizes 0 and 1, so B = 1 always has graphs of its own; ``tt.solve`` tells its kernels the batch size
+(:func:`batch_of`), and a solve of one instance marks nothing.
 
 Every kernel of iLQR, ALTRO (its AL objective, violation and multiplier update) and the interior point is compiled
 once for every B ≥ 2 (``tests/test_compiled.py``, ``tests/test_compiled_ipm.py``). Two things in their code keep it
