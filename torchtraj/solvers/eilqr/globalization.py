@@ -192,22 +192,24 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
     truncate = opts.boundary_fraction is not None and opts.barrier_continuation
     steps = trial_steps(opts, l1)
     corrected_trials = min(opts.second_order_trials, steps.shape[0]) if opts.second_order_correction else 0
-    alpha_max = derivative = trial = None
+    alpha_max = derivative = first = None
     if corrected_trials and bool(pending.any()):  # the weight and the step's bound in the first trial's kernel
-        gamma, memory, merit0, reference, alpha_max, derivative, *trial = kernel(first_tried, opts.compile)(
+        gamma, memory, merit0, reference, alpha_max, derivative, *first = kernel(first_tried, opts.compile)(
             problem, cons, params, model, d, it, steps[0], x0, initial, gamma, l1, weights, memory, pending, opts,
             truncate)
     else:
         gamma, memory, merit0, reference = weighed(*weigh)
     found, alpha, value, chosen = ~pending, torch.zeros_like(merit0), merit0, d
-    for a in steps[:corrected_trials if trial is not None else 0]:  # at most two host reads a trial
+    for a in steps[:corrected_trials] if first is not None else ():  # at most two host reads a trial
         waiting = pending & ~found
-        if trial is None:  # the trials after the first
-            if not bool(waiting.any()):
-                break
-            trial = kernel(tried, opts.compile)(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma,
-                                                weights, reference, derivative, waiting, chosen, opts)
-        (step, m, bound, passed, picked), trial = trial, None
+        if first is not None:  # the first trial, made with the weight and the bound
+            (step, m, bound, passed, picked), first = first, None
+        elif not bool(waiting.any()):
+            break
+        else:
+            step, m, bound, passed, picked = kernel(tried, opts.compile)(
+                problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weights, reference, derivative,
+                waiting, chosen, opts)
         if bool((waiting & ~passed).any()):
             soc, ms = _correction(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps, gamma,
                                   weights, waiting & ~passed, opts)
