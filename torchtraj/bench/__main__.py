@@ -23,7 +23,7 @@ from ..core.progress import Progress
 from ..solve import solve
 from ..solvers.altro.options import ALTROOptions
 from ..solvers.base import Solver
-from . import compiled_ops, grad, ops, ops_report, profile, table
+from . import compiled_ops, grad, launches, ops, ops_report, profile, table
 from .runs import (
     Row,
     batch_x0,
@@ -93,8 +93,9 @@ def parser() -> argparse.ArgumentParser:
                         "built once); with --ops, also count every full solve again with them, after an uncounted "
                         "solve that records")
     p.add_argument("--cuda-graphs", action="store_true",
-                   help="with --grad --method ipm: replay the IPM's per-iteration kernels from CUDA graphs "
-                        "(IPOptions.cuda_graphs; no effect on a CPU)")
+                   help="with --method ipm (the timing rows or --grad): replay the IPM's per-iteration kernels from "
+                        "CUDA graphs (IPOptions.cuda_graphs; no effect on a CPU); a timing row first runs untimed at "
+                        "its own batch size, again while a run captures a new graph (at most 3)")
     p.add_argument("--barrier", choices=("monotone", "mehrotra"), default="monotone",
                    help="with --grad --method ipm: the barrier strategy of the linear_box rows "
                         "(IPOptions.barrier_strategy; mehrotra is for convex problems, so the pendulum rows stay "
@@ -122,6 +123,7 @@ def parser() -> argparse.ArgumentParser:
                         "defaults to every such method, --batch to 1 (B > 1: sample_x0 batches, the first "
                         "--reference-instances compared with IPOPT)")
     ops_report.add_arguments(p)
+    launches.add_arguments(p)
     return p
 
 
@@ -132,8 +134,8 @@ def _check(p: argparse.ArgumentParser, args) -> None:
         p.error("--reference-instances and --warmup-iterations must be >= 1")
     if args.threads is not None and args.threads < 1:
         p.error(f"--threads must be >= 1, got {args.threads}")
-    if args.cuda_graphs and not (args.grad and _has_option(args.method, "cuda_graphs") and not args.compile):
-        p.error("--cuda-graphs goes with --grad --method ipm, without --compile")
+    if args.cuda_graphs and not (_has_option(args.method, "cuda_graphs") and not (args.compile or args.ops)):
+        p.error("--cuda-graphs goes with --method ipm, without --compile and --ops")
     if args.barrier != "monotone" and not (args.grad and _has_option(args.method, "barrier_strategy")
                                            and not args.compile and not args.cuda_graphs):
         p.error("--barrier mehrotra goes with --grad --method ipm, without --compile and --cuda-graphs")
@@ -146,6 +148,7 @@ def _check(p: argparse.ArgumentParser, args) -> None:
     if args.ops and (args.grad or args.profile or (args.compile and args.record)):
         p.error("--ops goes without --grad and --profile, and with --compile or --record, not both")
     ops_report.check(p, args)
+    launches.check(p, args)
     if args.device == "cuda" and not torch.cuda.is_available():
         p.error("--device cuda: torch.cuda.is_available() is False")
 
@@ -344,6 +347,8 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
             problem_options = with_compile(method, problem_options)
         if args.record:
             problem_options = with_record(method, problem_options)
+        if args.cuda_graphs:  # _check: the method's options have the field
+            problem_options = dataclasses.replace(problem_options, cuda_graphs=True)
         for batch in batches:
             ours = run_torchtraj(problem, method, batch, args.seed, problem_options, args.warmup_iterations)
             group = [ours]
@@ -361,14 +366,18 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
                     say(f"  (the untimed run of this batch before it, which compiled the kernels: "
                         f"{row.compile_seconds:.1f} s)")
                 if row.record_seconds is not None:
-                    say(f"  (the untimed runs of this batch before it, which recorded the kernels: "
-                        f"{row.record_seconds:.1f} s)")
+                    say(f"  (the untimed runs of this batch before it, which recorded the kernels"
+                        f"{' (CUDA graphs)' if args.cuda_graphs else ''}: {row.record_seconds:.1f} s)")
             problem_rows += group
             bar.update(converged=torch.tensor(ours.instance_ok or [False], dtype=torch.bool),
                        violation=ours.max_violation, problem=problem.name)
         throughput.append(_throughput(problem.name, problem_rows, max(batches)))
         if args.profile and max(batches) > 1:
             throughput.append(_profile_line(problem, method, max(batches), args.seed, problem_options))
+        if args.launches:
+            x0, X0 = batch_x0(problem.name, max(batches), args.seed), state_guess(method, problem)
+            throughput.append(launches.report(problem, method.name, max(batches), lambda: solve(
+                problem, x0, method, X0=X0, options=problem_options)))
         rows += problem_rows
     bar.close()
     say()

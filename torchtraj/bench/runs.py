@@ -26,6 +26,8 @@ import numpy as np
 import torch
 
 from .. import problems, solvers
+from ..core.graphs import captures as graph_captures
+from ..core.graphs import graphs_used
 from ..core.problem import Problem
 from ..core.recorded import traces as recorded_traces
 from ..core.status import Status
@@ -156,7 +158,10 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
             row.compile_seconds = time.perf_counter() - start
         elif recorded(method, options):
             row.record_seconds = _record_warm_up(lambda: solve(problem, x0, method, X0=X0, options=options),
-                                                 problem.device)
+                                                 problem.device, recorded_traces)
+        elif graphs_used(options, problem.device):
+            row.record_seconds = _record_warm_up(lambda: solve(problem, x0, method, X0=X0, options=options),
+                                                 problem.device, graph_captures)
         else:
             solve(problem, None, method, X0=X0, options=warm)
         _sync(problem.device)
@@ -183,15 +188,16 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
 RECORD_WARM_UPS = 3
 
 
-def _record_warm_up(run: Callable, device) -> float:
-    """Seconds of the untimed runs before a recorded row's timed one: again while a run traced something new (at
-    most :data:`RECORD_WARM_UPS`), so that the timed run replays what a run of repeated solves replays."""
+def _record_warm_up(run: Callable, device, recordings: Callable) -> float:
+    """Seconds of the untimed runs before a recorded row's timed one (recorded kernels or CUDA graphs): again while
+    a run recorded something new (``recordings()``, a count, grew; at most :data:`RECORD_WARM_UPS` runs), so that
+    the timed run replays what a run of repeated solves replays."""
     start = time.perf_counter()
     for _ in range(RECORD_WARM_UPS):
-        before = recorded_traces()
+        before = recordings()
         run()
         _sync(device)
-        if recorded_traces() == before:
+        if recordings() == before:
             break
     return time.perf_counter() - start
 

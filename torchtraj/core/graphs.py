@@ -190,3 +190,8 @@ def graphed(fn: Callable) -> Graphed:
     if wrapper is None:
         wrapper = _GRAPHED[fn] = Graphed(fn)
     return wrapper
+
+
+def captures() -> int:
+    """Graphs captured so far by every :func:`graphed` wrapper (a run that captured none replayed its graphs)."""
+    return sum(wrapper.captures for wrapper in _GRAPHED.values())
