@@ -56,8 +56,12 @@ class IPM(Solver):
         gives the multipliers, and the estimate would cost each step an expansion and a factorisation more (the
         controllers measured both ways: ``docs/benchmarks.md``, section MPC); and with the last iterate evaluated
         untested (``test_last_iterate=False``): the controller applies the plan whatever its status, so a step
-        whose budget runs out reports ``MAX_ITERATIONS`` without the expansion that would test it."""
-        return IPOptions(record=True, compact_below=0.0, least_squares_multipliers=False, test_last_iterate=False)
+        whose budget runs out reports ``MAX_ITERATIONS`` without the expansion that would test it; and with an
+        adaptive budget (``stop_feasible_after=1``): a step whose plan is feasible after one iteration (to IPOPT's
+        ``acceptable_constr_viol_tol``) ends there, and one whose plan is not takes more, up to the controller's
+        ``iterations``."""
+        return IPOptions(record=True, compact_below=0.0, least_squares_multipliers=False, test_last_iterate=False,
+                         stop_feasible_after=1)
 
     def carried_duals(self, constraints: Constraints, solution: Solution, options: IPOptions) -> dict:
         """The multipliers and costates of ``solution``, and its last barrier parameter (the history's, in the

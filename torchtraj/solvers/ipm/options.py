@@ -25,6 +25,16 @@ class IPOptions:
     #: ``MAX_ITERATIONS`` even where that iterate would pass the test (``NON_FINITE`` and ``DIVERGED`` are still
     #: told): a control step's real-time iteration, which applies its plan whatever the status, saves an expansion.
     test_last_iterate: bool = True
+    #: A control step's adaptive budget (with ``test_last_iterate`` off): from its ``stop_feasible_after``-th
+    #: iteration on, an instance whose iterate violates its constraints (the largest violation: defects, equality
+    #: rows, inequality rows' excess, as :attr:`~torchtraj.Solution.max_violation`) by at most
+    #: ``stop_feasible_violation`` stops there, its values alone evaluated, and reports ``MAX_ITERATIONS``; the
+    #: others go on, up to ``iterations``. ``0``: off. The violation's default is IPOPT's
+    #: ``acceptable_constr_viol_tol``: its level of a point acceptable to stop at. :meth:`IPM.step_defaults` stops
+    #: after one iteration, so that a controller's step whose plan is feasible costs one iteration and one whose plan
+    #: is not takes more (``docs/benchmarks.md``, MPC).
+    stop_feasible_after: int = 0
+    stop_feasible_violation: float = 1e-2
     #: Initial barrier parameter ``μ_0`` (``mu_init``).
     barrier_initial: float = 0.1
     #: ``κ_μ`` and ``θ_μ`` of the barrier update (``mu_linear_decrease_factor``, ``mu_superlinear_decrease_power``).
@@ -194,6 +204,12 @@ class IPOptions:
         if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:
             raise ValueError(f"crossover_rounds and crossover_start_rounds must be >= 0, got {self.crossover_rounds} "
                              f"and {self.crossover_start_rounds}")
+        if self.stop_feasible_after < 0 or not self.stop_feasible_violation > 0:
+            raise ValueError(f"stop_feasible_after must be >= 0 and stop_feasible_violation > 0, got "
+                             f"{self.stop_feasible_after} and {self.stop_feasible_violation}")
+        if self.stop_feasible_after > 0 and self.test_last_iterate:
+            raise ValueError("stop_feasible_after stops an instance on its iterate's values alone, untested: it goes "
+                             "with test_last_iterate=False (a control step's options, IPM.step_defaults)")
         if self.barrier_strategy == "mehrotra" and (self.compile or self.cuda_graphs):
             raise ValueError("barrier_strategy='mehrotra' runs eager: set compile=False and cuda_graphs=False")
 

@@ -25,7 +25,9 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 
 Where the iterations run out, the last iterate is expanded and tested as every other; with
 ``IPOptions.test_last_iterate`` off (the control steps), its values alone are evaluated: its cost and violation,
-and ``MAX_ITERATIONS`` for the instances still running.
+and ``MAX_ITERATIONS`` for the instances still running. With ``IPOptions.stop_feasible_after`` (a control step's
+adaptive budget), an instance whose iterate is feasible to ``stop_feasible_violation`` after that many iterations
+stops there as if its budget were spent: each iteration from then on first evaluates the iterate's values.
 
 The defaults are IPOPT's (Wächter & Biegler 2006; FATROP §III defers to it), in :class:`IPOptions`, but for the
 restoration phase's penalty ``ρ`` (see there).
@@ -208,6 +210,15 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             status = torch.where(diverged, int(Status.DIVERGED), status)
             measures = (J, violation)
             break
+        if 0 < opts.stop_feasible_after <= step and hooks.leave is None:  # a control step's adaptive budget
+            J, violation, finite = kernel_of(last_values, opts, x0.device)(problem, cons, params, it, opts)
+            running = status == Status.RUNNING
+            stop = running & finite & (violation <= opts.stop_feasible_violation) \
+                & (iterations >= opts.stop_feasible_after) & (it.X.abs().flatten(1).amax(-1) <= opts.max_state)
+            status = torch.where(stop, int(Status.MAX_ITERATIONS), status)
+            if not bool((running & ~stop).any()):  # every instance stopped or ended: these values are the answer's
+                measures = (J, violation)
+                break
         model = expand_k(problem, cons, params, it, opts, base)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
             base = Base(it.X, it.U, model)
