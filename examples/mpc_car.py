@@ -7,7 +7,8 @@ goal (3, 3); the episode ends on reaching the goal (within 0.2) or on a collisio
 the environment's own (``venv.problem()``, i.e. torchtraj.envs.car.problem, on the step the environment takes):
 it minimises the squared distance to the goal over a 1.5 s horizon (N = 30), ten times more at its end, with
 0 ≤ v ≤ 3, |ω| ≤ 3 and every circle (inflated by 0.15) as constraints. The circles are a per-instance parameter
-read from each observation, so one batched ALTRO solve (3 iterations, warm-started) serves every layout. An episode
+read from each observation, so one batched interior-point solve (at most 3 iterations, warm-started) serves every
+layout. An episode
 succeeds when the car reaches the goal without a collision.
 """
 

@@ -6,7 +6,7 @@ The environment is ``torchtraj/CartPoleSwingUp-v0`` (|F| ≤ 3 N; the episode en
 |x| ≤ 2.4), one sub-environment per seed. The controller's problem is the environment's own (``venv.problem()``,
 i.e. envs.cartpole.problem, on the step the environment takes): it minimises x² + wrap(θ − π)² + 0.01 (ẋ² + θ̇² +
 F²) over a 2 s horizon (N = 40) plus x² + wrap(θ − π)² + 0.1 (ẋ² + θ̇²) at its end, with the force bound and
-|x| ≤ 2 as constraints (ALTRO, 3 iterations per control step, warm-started). An
+|x| ≤ 2 as constraints (the interior point, at most 3 iterations per control step, warm-started). An
 episode succeeds when the cart never leaves the rail and the pole is within 0.1 rad of upright at every step of the
 last 2.5 s of the 10 s episode.
 """
@@ -34,7 +34,7 @@ def main(argv=None):
     venv = gym.make_vec("torchtraj/CartPoleSwingUp-v0", num_envs=seeds,
                         **({"max_episode_steps": steps} if steps else {}))
     problem = venv.problem()  # the environment hands over its controller's problem: its own step and cost
-    mpc = tt.MPC(problem, "altro", iterations=3)  # warm-started from the previous step's shifted solution
+    mpc = tt.MPC(problem, iterations=3)  # warm-started from the previous step's shifted solution
     print(f"MPC: {mpc}")
     run = bench.run_episodes(venv, mpc, seed=args.seed, progress=True)
     wins = 0

@@ -5,8 +5,8 @@ Run:  python examples/mpc_pendulum.py [--seeds 4] [--quick]     (saves mpc_pendu
 The environment is ``torchtraj/Pendulum-v0`` (|τ| ≤ 3 < m g l, so the pendulum must be pumped up), as a vector
 environment of one sub-environment per seed. The controller's problem is the environment's own (``venv.problem()``,
 i.e. envs.pendulum.problem): the step the environment takes, and its reward negated, wrap(θ − π)² + 0.1 ω² +
-0.001 τ², over a 1.5 s horizon (N = 30), solved with ALTRO, 3 iterations per control step, warm-started from the
-previous step's shifted solution. An episode succeeds when the pendulum is within 0.1 rad of upright at every step
+0.001 τ², over a 1.5 s horizon (N = 30), solved by ``tt.MPC``'s default, the interior point (at most 3 iterations
+per control step, one where the plan is feasible after it), warm-started from the previous step's shifted solution. An episode succeeds when the pendulum is within 0.1 rad of upright at every step
 of its second half (5 s to 10 s).
 """
 
@@ -36,7 +36,7 @@ def main(argv=None):
 
     venv = gym.make_vec("torchtraj/Pendulum-v0", num_envs=seeds, **({"max_episode_steps": steps} if steps else {}))
     problem = venv.problem()  # the environment hands over its controller's problem: its own step and cost
-    mpc = tt.MPC(problem, "altro", iterations=3)  # warm-started from the previous step's shifted solution
+    mpc = tt.MPC(problem, iterations=3)  # warm-started from the previous step's shifted solution
     print(f"MPC: {mpc}")
     plans = {}
 

@@ -56,7 +56,7 @@ def test_compiled_altro_matches_eager_on_a_constrained_problem():
 def test_compiled_mpc_steps_match_eager():
     env = envs.PendulumEnv()
     problem = env.problem(horizon=5)
-    eager, compiled = tt.MPC(problem, iterations=2), tt.MPC(problem, iterations=2, compile=True)
+    eager, compiled = tt.MPC(problem, "altro", iterations=2), tt.MPC(problem, "altro", iterations=2, compile=True)
     assert compiled.options.ilqr.compile and not eager.options.ilqr.compile
     x = torch.tensor([[0.3, 2.0], [3.0, 0.2]], dtype=torch.float64)
     for _ in range(3):

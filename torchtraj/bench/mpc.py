@@ -7,14 +7,14 @@ them with one batched :class:`~torchtraj.MPC` call per step), and the time per c
 Controllers (:func:`controller`): each environment's own problem, ``env.problem(...)`` (see the
 "Controller Problem" section of the environment's docstring: the pendulum's cost is its reward, negated; the
 cart-pole's and the car's are quadratics with the reward's optimum, the car's obstacles constraints), on the step
-the environment takes, solved by ``method="altro"`` without projection, 3 iterations per control step (``--method``
-and ``--iterations`` choose others), warm-started from the previous step's shifted solution::
+the environment takes, solved by :class:`~torchtraj.MPC`'s default, the interior point (at most 3 iterations a step;
+``--method``, ``--iterations`` choose others), warm-started from the previous step's shifted solution::
 
     pendulum  N = 30 (1.5 s),  |τ| ≤ 3
     cartpole  N = 40 (2 s),    |F| ≤ 3,   |x| ≤ 2 (the rail ends at 2.4)
     car       N = 30 (1.5 s),  0 ≤ v ≤ 3,   |ω| ≤ 3,   ‖p − c_i‖ ≥ r_i + 0.15 for each observed obstacle
 
-The car's penalties start at ``penalty_initial = 100`` (:data:`TASK_OPTIONS`): with ALTRO's default of 1, 17 of
+ALTRO's car penalties start at ``penalty_initial = 100`` (:data:`TASK_OPTIONS`): with ALTRO's default of 1, 17 of
 64 seeds drive into an obstacle right ahead in the first steps from a cold start, before the multipliers have grown.
 
 Success of an episode (200 steps, 10 s):
@@ -51,12 +51,12 @@ TASK_OPTIONS = {"pendulum": {}, "cartpole": {}, "car": {"penalty_initial": 100.0
 
 
 def controller(task: str, env, horizon: Optional[int] = None, iterations: int = 3, problem_options=None,
-               compile: bool = False, method: str = "altro", **options) -> MPC:
+               compile: bool = False, method: str = "ipm", **options) -> MPC:
     """The :class:`~torchtraj.MPC` of ``task`` (``"pendulum"``, ``"cartpole"``, ``"car"``) for ``env``, a single or
     vector environment of that task; ``problem_options`` go to the environment's own problem builder,
-    ``env.problem(**problem_options)``, ``compile`` to the policy. ``method`` ``"altro"`` (the tasks' controller):
-    ``options`` are :class:`~torchtraj.ALTROOptions` fields to change from :data:`TASK_OPTIONS`; another method
-    that handles constraints runs its own control-step options (``options`` are not taken then)."""
+    ``env.problem(**problem_options)``, ``compile`` to the policy. ``method``: one that handles constraints, with its
+    control-step options; for ``"altro"``, ``options`` are :class:`~torchtraj.ALTROOptions` fields to change from
+    :data:`TASK_OPTIONS` (another method takes none)."""
     if task not in IDS:
         raise ValueError(f"unknown task {task!r}; known tasks are {sorted(IDS)}")
     problem_options = dict(problem_options or {})
@@ -218,7 +218,7 @@ class FullCollections:
 
 def time_steps(task: str = "pendulum", batch: int = 1, steps: int = 100, seed: int = 0, profile_steps: int = 10,
                horizon: Optional[int] = None, iterations: int = 3, compile: bool = False,
-               method: str = "altro", freeze: bool = False) -> Timing:
+               method: str = "ipm", freeze: bool = False) -> Timing:
     """Time ``steps`` control steps of ``task`` on a ``batch``-environment vector env from its seeded reset (swing-up
     and hold), after untimed warm-up steps; then profile ``profile_steps`` more to split the time into the
     method's parts (:func:`torchtraj.bench.profile.parts_of`, compiled or not). The warm-up is
@@ -323,10 +323,10 @@ def parser():
                    help="run the episodes with torch.compile'd kernels (MPC(compile=True); "
                         "each batch size compiles first) "
                         "and time the policy both ways")
-    p.add_argument("--method", default="altro",
+    p.add_argument("--method", default="ipm",
                    choices=[m for m in solvers.names() if solvers.get(m).handles_constraints],
-                   help="the controllers' method (default: altro, with the tasks' options; another method runs its "
-                        "own control-step options; Pendulum-v1's example keeps its own controller)")
+                   help="the controllers' method (default: ipm, tt.MPC's, with its control-step options; altro runs "
+                        "the tasks' options; Pendulum-v1's example keeps its own controller)")
     p.add_argument("--iterations", type=_positive, default=3,
                    help="solver iterations per control step (default: 3)")
     p.add_argument("--seed", type=int, default=0, help="seed of the first episode (default: 0)")

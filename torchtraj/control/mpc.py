@@ -46,9 +46,11 @@ The penalties restart at ``penalty_initial`` each step: carried over, ALTRO's sc
 
 With ``iterations`` set, each step runs at most that many iterations; ALTRO runs one inner AL-iLQR solve of at
 most ``iterations`` iLQR iterations (``iterations_inner = iterations``, ``iterations_outer = 1``) and carries
-multipliers improved by one update (eq. 17, with ``μ = penalty_initial``, :mod:`torchtraj.solvers.altro`). An
-instance that spends its budget reports ``Status.MAX_ITERATIONS``; its controls are still the best iterate and are
-applied.
+multipliers improved by one update (eq. 17, with ``μ = penalty_initial``, :mod:`torchtraj.solvers.altro`). The
+default method, the interior point (``tt.solve``'s for a constrained problem), spends its budget adaptively: an
+instance whose plan is feasible after one iteration (``IPOptions.stop_feasible_after`` in its step options) ends
+there, and one whose plan is not takes more, up to ``iterations``. An instance that spends its budget reports
+``Status.MAX_ITERATIONS``; its controls are still the best iterate and are applied.
 
 Warm starts are per instance: :meth:`MPC.reset` with a ``(B,)`` mask drops those of the instances whose episode
 restarted (a vector environment's autoreset), by masks and ``torch.where``, with no loop over the batch. An instance
@@ -75,7 +77,7 @@ from ..core.solution import Solution
 from ..core.status import Status
 from ..solve import Method, check_problem_and_method, eager_despite_compile, solve
 
-#: ALTRO's (the default method's) control-step options when none are given: its ``step_defaults``, ALTRO without
+#: ALTRO's control-step options when none are given: its ``step_defaults``, ALTRO without
 #: the projection (:data:`torchtraj.solvers.altro.MPC_OPTIONS`). Kept under this name for the callers that build on it.
 DEFAULT_ALTRO = solvers.get("altro").step_defaults()
 
@@ -93,12 +95,15 @@ class MPC(torch.nn.Module):
             call by the measured states; its ``u_init`` is the cold start.
         method: a registered method (:func:`torchtraj.solvers.names`), checked here: an unknown name is a
             ``ValueError`` listing the valid ones; a method that ignores constraints, as ``"ilqr"``, on a
-            constrained problem warns once, here, rather than at every control step.
+            constrained problem warns once, here, rather than at every control step. Default ``"ipm"``, the
+            interior point with its adaptive budget (module docstring; its controllers' acceptance runs and
+            timings against ALTRO's: ``docs/benchmarks.md``, "MPC").
         iterations: solver iterations per control step (the method's ``step_options``: ALTRO's
-            ``iterations_inner`` with ``iterations_outer = 1``, the others' ``iterations``). ``None`` uses
-            ``options`` as given.
-        options: the method's options; default its ``step_defaults`` (:data:`DEFAULT_ALTRO` for ALTRO, the options
-            class's defaults for the others).
+            ``iterations_inner`` with ``iterations_outer = 1``, the others' ``iterations``; the interior point's
+            steps end sooner where their plan is feasible). ``None`` uses ``options`` as given.
+        options: the method's options; default its control-step options
+            (:meth:`~torchtraj.solvers.base.Solver.step_defaults`: :data:`DEFAULT_ALTRO` for ALTRO,
+            :meth:`IPM.step_defaults <torchtraj.solvers.ipm.IPM.step_defaults>` for the interior point).
         observation_to_state: maps observations ``(B, n_obs)`` (torch, in the problem's dtype) to states
             ``(B, nx)``; default identity.
         observation_to_params: maps observations to per-instance parameters ``{name: (B, ...)}`` (a car's observed
@@ -118,7 +123,7 @@ class MPC(torch.nn.Module):
     :attr:`U` ``(B, N, nu)`` the predicted trajectories, :attr:`status` ``(B,)``, :attr:`solve_seconds`.
     """
 
-    def __init__(self, problem: Problem, method: Union[str, Method, solvers.Solver] = "altro",
+    def __init__(self, problem: Problem, method: Union[str, Method, solvers.Solver] = "ipm",
                  iterations: Optional[int] = 3, options=None, observation_to_state: Optional[Callable] = None,
                  observation_to_params: Optional[Callable] = None, compile: bool = False):
         super().__init__()
