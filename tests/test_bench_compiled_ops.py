@@ -82,6 +82,25 @@ def test_ops_compile_rows_count_the_solves_they_report(tmp_path, monkeypatch):
                     f"{row['eager_seconds']:.3f}", f"{row['compiled_seconds']:.3f}", "converged"]
 
 
+def test_ops_compile_sweeps_the_horizons_given_and_fits_the_calls_per_stage(tmp_path, monkeypatch):
+    """With ``--ops-horizons`` the compiled count runs at each horizon (with the compile option left off, as above,
+    so that nothing compiles) and its table gives the least-squares slope of those rows over N."""
+    monkeypatch.setattr(compiled_ops, "with_compile", lambda solver, options: options)
+    path = tmp_path / "sweep.json"
+    code, text = run(["--ops", "--compile", "--method", "al-ilqr", "--problems", "double_integrator",
+                      "--ops-horizons", "10", "20", "40", "--json", str(path)])
+    assert code == 0, text
+    rows = json.loads(path.read_text())["rows"]
+    assert [r["horizon"] for r in rows] == [10, 20, 40] and all(r["error"] is None for r in rows)
+    calls = torch.tensor([r["compiled_calls"] for r in rows], dtype=torch.float64)
+    n = torch.tensor([10.0, 20.0, 40.0], dtype=torch.float64)
+    fitted = float(((n - n.mean()) * (calls - calls.mean())).sum() / ((n - n.mean()) ** 2).sum())
+    assert fitted > 1  # eager, as run here, the calls grow with the stages
+    (line,) = [line.split() for line in text.splitlines() if line.startswith("al-ilqr ") and "/" in line]
+    assert line[1:4] == [f"{c:.0f}" for c in calls.tolist()] and line[4] == f"{fitted:.1f}"
+    assert "N = 10:" in text and "calls/stage" in text
+
+
 def test_ops_compile_skips_what_a_method_cannot_solve_and_checks_its_flags(monkeypatch):
     code, text = run(["--ops", "--compile", "--method", "ilqr", "--problems", "double_integrator"])
     assert code == 0 and "ilqr     skipped (" in text, text

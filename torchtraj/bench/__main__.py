@@ -252,11 +252,11 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         torch.set_num_threads(args.threads)
     dtype, device = getattr(torch, args.dtype), torch.device(args.device)
     if args.ops:
-        chosen = _named_method(argv)
-        methods = [chosen] if chosen else solvers.names()
+        methods = [_named_method(argv)] if _named_method(argv) else solvers.names()
         if args.compile:
             counter = compiled_ops
-            report = compiled_ops.run(methods, (args.problems or ["pendulum"])[0], say, dtype, device)
+            report = compiled_ops.run(methods, (args.problems or ["pendulum"])[0], say, dtype, device,
+                                      args.ops_horizons if "--ops-horizons" in argv else None)
         else:
             counter = ops_report
             report = ops_report.run(methods, args.problems or list(ops.DEFAULT_PROBLEMS), args.ops_horizons,

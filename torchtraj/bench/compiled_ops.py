@@ -36,8 +36,8 @@ from ..core.problem import Problem
 from ..core.recorded import forget
 from ..core.status import Status
 from ..solve import solve
-from .ops import OperatorCounter
-from .ops_text import compiled_header, format_compiled
+from .ops import OperatorCounter, slope, with_horizon
+from .ops_text import compiled_header, compiled_sweep_header, format_compiled, format_compiled_sweep
 from .runs import skip_reason, state_guess, with_compile
 
 #: Where Dynamo's call of a compiled function shows in the profiler.
@@ -83,6 +83,7 @@ class CompiledCount:
 
     problem: str
     method: str
+    horizon: Optional[int] = None
     #: of the eager and the compiled solve (their arithmetic agrees to rounding, not to the bit)
     iterations: Optional[int] = None
     compiled_iterations: Optional[int] = None
@@ -107,7 +108,7 @@ def count_compiled(problem: Problem, method) -> CompiledCount:
     """Count and time ``method``'s solve of ``problem`` (B = 1, its ``x0``) eager and compiled (module docstring).
     Never raises: an exception is kept in ``error``."""
     solver = solvers.get(method)
-    row = CompiledCount(problem.name, solver.name)
+    row = CompiledCount(problem.name, solver.name, problem.N)
     eager = solver.default_options()
     compiled = with_compile(solver, eager)
 
@@ -149,22 +150,39 @@ def _seconds(run: Callable, options) -> float:
 
 
 def run(methods: Sequence[str], name: str, say: Callable[..., None], dtype: torch.dtype = torch.float64,
-        device=None) -> dict:
+        device=None, horizons: Optional[Sequence[int]] = None) -> dict:
     """Count each of ``methods`` on problem ``name`` (skipping those that cannot solve it), print the table as its
-    rows come (``say``) and return ``{"problem", "rows"}`` (:meth:`CompiledCount.to_json` each)."""
+    rows come (``say``) and return ``{"problem", "rows"}`` (:meth:`CompiledCount.to_json` each). ``horizons``: the
+    same problem at each of these horizons (:func:`~torchtraj.bench.ops.with_horizon`; each compiles its kernels
+    anew, the stage loops unrolled), then per method the least-squares slope of the compiled solve's calls per
+    iteration over N and each horizon's compile time."""
     say(f"torchtraj bench --ops --compile: {name} at B = 1, {str(dtype).replace('torch.', '')}, torch "
         f"{torch.__version__}; calls and kernels per iteration (torchtraj.bench.compiled_ops)")
-    say(compiled_header())
-    rows = []
+    base = problem_set.get(name, dtype=dtype, device=device)
+    todo = []
     for m in methods:
-        problem = problem_set.get(name, dtype=dtype, device=device)
-        reason = skip_reason(m, problem) or (None if solvers.get(m).compiles else NO_KERNELS)
+        reason = skip_reason(m, base) or (None if solvers.get(m).compiles else NO_KERNELS)
         if reason:
             say(f"{solvers.get(m).name:7s}  skipped ({reason})")
-            continue
-        row = count_compiled(problem, m)
-        say(format_compiled(row))
-        rows.append(row)
+        else:
+            todo.append(m)
+    rows = []
+    for n in horizons or [None]:
+        problem = base if n is None else with_horizon(base, n)
+        if n is not None:
+            say(f"N = {n}:")
+        say(compiled_header())
+        for m in todo:
+            row = count_compiled(problem, m)
+            say(format_compiled(row))
+            rows.append(row)
+    if horizons and len(horizons) > 1:
+        say()
+        say(compiled_sweep_header(horizons))
+        for m in todo:
+            mine = [r for r in rows if r.method == solvers.get(m).name and not r.error]
+            fitted = slope([r.horizon for r in mine], [r.compiled_calls for r in mine]) if len(mine) > 1 else None
+            say(format_compiled_sweep(solvers.get(m).name, mine, fitted, horizons))
     return {"problem": name, "rows": [r.to_json() for r in rows]}
 
 

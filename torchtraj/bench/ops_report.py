@@ -31,7 +31,8 @@ from .runs import skip_reason
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``--ops-*`` options of ``python -m torchtraj.bench`` (with ``--ops``), which :func:`run` takes."""
     p.add_argument("--ops-horizons", nargs="+", type=int, metavar="N", default=list(DEFAULT_HORIZONS),
-                   help=f"with --ops: the horizons of the sweep (default: {' '.join(map(str, DEFAULT_HORIZONS))})")
+                   help=f"with --ops: the horizons of the sweep (default: {' '.join(map(str, DEFAULT_HORIZONS))}); "
+                        "with --ops --compile, only where given: each compiles every kernel anew")
     p.add_argument("--ops-iterations", type=int, metavar="K", default=SWEEP_ITERATIONS,
                    help="with --ops: the sweep counts iterations 1 to K, K+1 to 2K, and each of K+1 to 2K alone "
                         f"(0: whole solves, default options, no setup in their slope; default: {SWEEP_ITERATIONS})")

@@ -76,3 +76,20 @@ def format_compiled(row: CompiledCount) -> str:
              f"{row.compiled_calls:.0f}", f"{row.kernels:.1f}", f"{row.compile_seconds:.1f}",
              f"{row.eager_seconds:.3f}", f"{row.compiled_seconds:.3f}", row.status]
     return _line(cells, _COMPILED_WIDTHS, _COMPILED_RIGHT)
+
+
+def compiled_sweep_header(horizons: Sequence[int]) -> str:
+    titles = _line(["method"] + [f"N={n}" for n in horizons] + ["calls/stage", "compile s"],
+                   _sweep_widths(horizons) + [24], [False] + [True] * (len(horizons) + 1) + [False])
+    return titles + "\n" + "-" * len(titles)
+
+
+def format_compiled_sweep(method: str, rows: Sequence[CompiledCount], fitted: Optional[float],
+                          horizons: Sequence[int]) -> str:
+    """One line of the compiled horizon table: the compiled solve's calls per iteration at each horizon (``-``
+    where none was counted), their slope over N, and each horizon's compile seconds."""
+    by_n = {r.horizon: r for r in rows}
+    cells = [method] + ["-" if by_n.get(n) is None else _num(by_n[n].compiled_calls, ".0f") for n in horizons]
+    seconds = " / ".join("-" if by_n.get(n) is None else _num(by_n[n].compile_seconds, ".0f") for n in horizons)
+    return _line(cells + [_num(fitted, ".1f"), seconds], _sweep_widths(horizons) + [24],
+                 [False] + [True] * (len(horizons) + 1) + [False])
