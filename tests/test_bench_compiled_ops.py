@@ -12,8 +12,8 @@ from torchtraj import problems, solvers
 from torchtraj.bench import compiled_ops
 from torchtraj.bench.__main__ import main
 from torchtraj.bench.compiled_ops import LibraryCalls
-from torchtraj.bench.ops import OperatorCounter
-from torchtraj.bench.runs import compiled, with_compile
+from torchtraj.bench.ops import OperatorCounter, with_horizon
+from torchtraj.bench.runs import compiled, state_guess, with_compile
 from torchtraj.core.recorded import forget
 
 
@@ -84,21 +84,32 @@ def test_ops_compile_rows_count_the_solves_they_report(tmp_path, monkeypatch):
 
 def test_ops_compile_sweeps_the_horizons_given_and_fits_the_calls_per_stage(tmp_path, monkeypatch):
     """With ``--ops-horizons`` the compiled count runs at each horizon (with the compile option left off, as above,
-    so that nothing compiles) and its table gives the least-squares slope of those rows over N."""
+    so that nothing compiles), counts the iterations past the first ``--ops-iterations`` (the solve capped at 2k
+    less the one capped at k) and its table gives their least-squares slope over N."""
     monkeypatch.setattr(compiled_ops, "with_compile", lambda solver, options: options)
     path = tmp_path / "sweep.json"
-    code, text = run(["--ops", "--compile", "--method", "al-ilqr", "--problems", "double_integrator",
-                      "--ops-horizons", "10", "20", "40", "--json", str(path)])
+    code, text = run(["--ops", "--compile", "--method", "eilqr", "--problems", "double_integrator",
+                      "--ops-horizons", "4", "8", "--ops-iterations", "1", "--json", str(path)])
     assert code == 0, text
     rows = json.loads(path.read_text())["rows"]
-    assert [r["horizon"] for r in rows] == [10, 20, 40] and all(r["error"] is None for r in rows)
-    calls = torch.tensor([r["compiled_calls"] for r in rows], dtype=torch.float64)
-    n = torch.tensor([10.0, 20.0, 40.0], dtype=torch.float64)
-    fitted = float(((n - n.mean()) * (calls - calls.mean())).sum() / ((n - n.mean()) ** 2).sum())
+    assert [r["horizon"] for r in rows] == [4, 8] and all(r["error"] is None for r in rows)
+    solver = solvers.get("eilqr")
+    problem = with_horizon(problems.get("double_integrator"), 8)
+    tt.solve(problem, None, solver, X0=state_guess(solver, problem))  # the problem's caches made, as in the bench
+    counts = []
+    for cap in (1, 2):  # the second iteration's calls at N = 8, counted here
+        forget()
+        with LibraryCalls() as library:
+            tt.solve(problem, None, solver, X0=state_guess(solver, problem),
+                     options=solver.step_options(solver.default_options(), cap))
+        counts.append(library.calls)
+    assert rows[1]["past_setup_calls"] == counts[1] - counts[0]
+    calls = torch.tensor([r["past_setup_calls"] for r in rows], dtype=torch.float64)
+    fitted = float(calls[1] - calls[0]) / 4
     assert fitted > 1  # eager, as run here, the calls grow with the stages
-    (line,) = [line.split() for line in text.splitlines() if line.startswith("al-ilqr ") and "/" in line]
-    assert line[1:4] == [f"{c:.0f}" for c in calls.tolist()] and line[4] == f"{fitted:.1f}"
-    assert "N = 10:" in text and "calls/stage" in text
+    (line,) = [line.split() for line in text.splitlines() if line.startswith("eilqr ") and "/" in line]
+    assert line[1:3] == [f"{c:.0f}" for c in calls.tolist()] and line[3] == f"{fitted:.1f}"
+    assert "N = 4:" in text and "calls/stage" in text
 
 
 def test_ops_compile_skips_what_a_method_cannot_solve_and_checks_its_flags(monkeypatch):

@@ -256,7 +256,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         if args.compile:
             counter = compiled_ops
             report = compiled_ops.run(methods, (args.problems or ["pendulum"])[0], say, dtype, device,
-                                      args.ops_horizons if "--ops-horizons" in argv else None)
+                                      args.ops_horizons if "--ops-horizons" in argv else None, args.ops_iterations)
         else:
             counter = ops_report
             report = ops_report.run(methods, args.problems or list(ops.DEFAULT_PROBLEMS), args.ops_horizons,

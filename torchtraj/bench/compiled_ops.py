@@ -95,6 +95,9 @@ class CompiledCount:
     #: the compiled solve: ATen calls and compiled-function calls (module docstring)
     compiled_calls: Optional[float] = None
     kernels: Optional[float] = None
+    #: with a horizon sweep: the compiled solve's calls per iteration past the setup (the solve capped at ``2k``
+    #: iterations less the one capped at ``k``, over the iterations between), where it made ``2k``
+    past_setup_calls: Optional[float] = None
     compile_seconds: Optional[float] = None
     eager_seconds: Optional[float] = None
     compiled_seconds: Optional[float] = None
@@ -104,9 +107,10 @@ class CompiledCount:
         return dataclasses.asdict(self)
 
 
-def count_compiled(problem: Problem, method) -> CompiledCount:
-    """Count and time ``method``'s solve of ``problem`` (B = 1, its ``x0``) eager and compiled (module docstring).
-    Never raises: an exception is kept in ``error``."""
+def count_compiled(problem: Problem, method, setup: int = 0) -> CompiledCount:
+    """Count and time ``method``'s solve of ``problem`` (B = 1, its ``x0``) eager and compiled (module docstring);
+    ``setup > 0``: also the compiled calls past the first ``setup`` iterations (``past_setup_calls``). Never raises:
+    an exception is kept in ``error``."""
     solver = solvers.get(method)
     row = CompiledCount(problem.name, solver.name, problem.N)
     eager = solver.default_options()
@@ -135,9 +139,25 @@ def count_compiled(problem: Problem, method) -> CompiledCount:
         row.eager_mode_calls, row.eager_calls = mode.total / iterations, library.calls / iterations
         row.compiled_calls = kernels.calls / row.compiled_iterations
         row.kernels = kernels.kernels / row.compiled_iterations
+        if setup:
+            row.past_setup_calls = _past_setup(run, solver, compiled, setup)
     except Exception as exc:  # one failing method must not stop the report
         row.error = f"{type(exc).__name__}: {exc}"
     return row
+
+
+def _past_setup(run: Callable, solver, options, k: int) -> Optional[float]:
+    """Library calls per iteration of iterations ``k+1`` to ``2k``: the solve capped at ``2k`` (the method's
+    :meth:`~torchtraj.solvers.base.Solver.step_options`) less the one capped at ``k``; None where it ended before
+    ``2k``."""
+    counts = []
+    for cap in (k, 2 * k):
+        forget()
+        with LibraryCalls() as library:
+            sol = run(solver.step_options(options, cap))
+        counts.append((library.calls, int(sol.iterations.max())))
+    (short, k_made), (long, made) = counts
+    return (long - short) / (made - k_made) if made == 2 * k and k_made == k else None
 
 
 def _seconds(run: Callable, options) -> float:
@@ -150,12 +170,13 @@ def _seconds(run: Callable, options) -> float:
 
 
 def run(methods: Sequence[str], name: str, say: Callable[..., None], dtype: torch.dtype = torch.float64,
-        device=None, horizons: Optional[Sequence[int]] = None) -> dict:
+        device=None, horizons: Optional[Sequence[int]] = None, setup: int = 5) -> dict:
     """Count each of ``methods`` on problem ``name`` (skipping those that cannot solve it), print the table as its
     rows come (``say``) and return ``{"problem", "rows"}`` (:meth:`CompiledCount.to_json` each). ``horizons``: the
     same problem at each of these horizons (:func:`~torchtraj.bench.ops.with_horizon`; each compiles its kernels
-    anew, the stage loops unrolled), then per method the least-squares slope of the compiled solve's calls per
-    iteration over N and each horizon's compile time."""
+    anew, the stage loops unrolled), then per method the compiled calls per iteration past the first ``setup``
+    iterations at each horizon (whole solves take other paths at other horizons: restorations, more corrections),
+    their least-squares slope over N, and each horizon's compile time."""
     say(f"torchtraj bench --ops --compile: {name} at B = 1, {str(dtype).replace('torch.', '')}, torch "
         f"{torch.__version__}; calls and kernels per iteration (torchtraj.bench.compiled_ops)")
     base = problem_set.get(name, dtype=dtype, device=device)
@@ -173,15 +194,15 @@ def run(methods: Sequence[str], name: str, say: Callable[..., None], dtype: torc
             say(f"N = {n}:")
         say(compiled_header())
         for m in todo:
-            row = count_compiled(problem, m)
+            row = count_compiled(problem, m, setup if n is not None else 0)
             say(format_compiled(row))
             rows.append(row)
     if horizons and len(horizons) > 1:
         say()
         say(compiled_sweep_header(horizons))
         for m in todo:
-            mine = [r for r in rows if r.method == solvers.get(m).name and not r.error]
-            fitted = slope([r.horizon for r in mine], [r.compiled_calls for r in mine]) if len(mine) > 1 else None
+            mine = [r for r in rows if r.method == solvers.get(m).name and r.past_setup_calls is not None]
+            fitted = slope([r.horizon for r in mine], [r.past_setup_calls for r in mine]) if len(mine) > 1 else None
             say(format_compiled_sweep(solvers.get(m).name, mine, fitted, horizons))
     return {"problem": name, "rows": [r.to_json() for r in rows]}
 

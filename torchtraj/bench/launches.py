@@ -88,7 +88,8 @@ def count(fn: Callable, device: torch.device):
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize(device)
-    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+    # the CPU activity as well: the runtime calls are host events, which some builds record under it alone
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         result = fn()
         torch.cuda.synchronize(device)
     return result, tally(prof.key_averages())

@@ -41,7 +41,6 @@ from .. import solvers
 from ..control.mpc import DEFAULT_ALTRO, MPC
 from ..core.progress import Progress
 from ..core.recorded import TRACE_AT
-from ..core.status import Status
 from . import profile
 
 IDS = {"pendulum": "torchtraj/Pendulum-v0", "cartpole": "torchtraj/CartPoleSwingUp-v0", "car": "torchtraj/Car-v0"}
@@ -113,7 +112,7 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
     ``policy`` once per step on the whole batch of observations and ``policy.reset(mask)`` with the
     sub-environments that just restarted. Sub-environments that are done wait (their extra episodes are dropped).
     ``progress`` draws a bar on stderr (:class:`~torchtraj.core.progress.Progress`): episodes finished, and the
-    share of the last control step's solves that converged and their largest violation."""
+    last control step's iterations (the batch's mean) and its plans' largest violation."""
     B = venv.num_envs
     bar = Progress(B * episodes_per_env, label, unit="episodes", enabled=progress)
     obs, _ = venv.reset(seed=seed)
@@ -148,8 +147,9 @@ def run_episodes(venv, policy, episodes_per_env: int = 1, seed: int = 0, on_step
         count = count + done
         restarted = done
         solution = getattr(policy, "solution", None)
-        if solution is not None:
-            bar.update(finished, converged=solution.status == Status.CONVERGED, violation=solution.max_violation)
+        if solution is not None and bar.enabled:
+            bar.update(finished, violation=solution.max_violation,
+                       **{"iterations a step": float(solution.iterations.double().mean())})
         else:
             bar.update(finished)
     bar.close()

@@ -86,10 +86,10 @@ def compiled_sweep_header(horizons: Sequence[int]) -> str:
 
 def format_compiled_sweep(method: str, rows: Sequence[CompiledCount], fitted: Optional[float],
                           horizons: Sequence[int]) -> str:
-    """One line of the compiled horizon table: the compiled solve's calls per iteration at each horizon (``-``
-    where none was counted), their slope over N, and each horizon's compile seconds."""
+    """One line of the compiled horizon table: the compiled solve's calls per iteration past its setup at each
+    horizon (``-`` where none was counted), their slope over N, and each horizon's compile seconds."""
     by_n = {r.horizon: r for r in rows}
-    cells = [method] + ["-" if by_n.get(n) is None else _num(by_n[n].compiled_calls, ".0f") for n in horizons]
+    cells = [method] + ["-" if by_n.get(n) is None else _num(by_n[n].past_setup_calls, ".0f") for n in horizons]
     seconds = " / ".join("-" if by_n.get(n) is None else _num(by_n[n].compile_seconds, ".0f") for n in horizons)
     return _line(cells + [_num(fitted, ".1f"), seconds], _sweep_widths(horizons) + [24],
                  [False] + [True] * (len(horizons) + 1) + [False])
