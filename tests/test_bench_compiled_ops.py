@@ -93,6 +93,7 @@ def test_ops_compile_sweeps_the_horizons_given_and_fits_the_calls_per_stage(tmp_
     assert code == 0, text
     rows = json.loads(path.read_text())["rows"]
     assert [r["horizon"] for r in rows] == [4, 8] and all(r["error"] is None for r in rows)
+    assert all(r["eager_calls"] is None for r in rows)  # the eager solves are not profiled in a sweep
     solver = solvers.get("eilqr")
     problem = with_horizon(problems.get("double_integrator"), 8)
     tt.solve(problem, None, solver, X0=state_guess(solver, problem))  # the problem's caches made, as in the bench

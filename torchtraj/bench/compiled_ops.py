@@ -109,8 +109,9 @@ class CompiledCount:
 
 def count_compiled(problem: Problem, method, setup: int = 0) -> CompiledCount:
     """Count and time ``method``'s solve of ``problem`` (B = 1, its ``x0``) eager and compiled (module docstring);
-    ``setup > 0``: also the compiled calls past the first ``setup`` iterations (``past_setup_calls``). Never raises:
-    an exception is kept in ``error``."""
+    ``setup > 0``: also the compiled calls past the first ``setup`` iterations (``past_setup_calls``), and the eager
+    solve is not profiled (``eager_calls`` None: the profiler's events of a long eager solve take gigabytes). Never
+    raises: an exception is kept in ``error``."""
     solver = solvers.get(method)
     row = CompiledCount(problem.name, solver.name, problem.N)
     eager = solver.default_options()
@@ -124,9 +125,11 @@ def count_compiled(problem: Problem, method, setup: int = 0) -> CompiledCount:
         with OperatorCounter() as mode:
             sol = run(eager)
         iterations = int(sol.iterations.max())
-        forget()
-        with LibraryCalls() as library:
-            run(eager)
+        if not setup:
+            forget()
+            with LibraryCalls() as library:
+                run(eager)
+            row.eager_calls = library.calls / iterations
         start = time.perf_counter()
         run(compiled)
         row.compile_seconds = time.perf_counter() - start
@@ -136,7 +139,7 @@ def count_compiled(problem: Problem, method, setup: int = 0) -> CompiledCount:
         row.eager_seconds, row.compiled_seconds = _seconds(run, eager), _seconds(run, compiled)
         row.iterations, row.compiled_iterations = iterations, int(sol_c.iterations.max())
         row.status = ", ".join(Status.describe(sol_c.status))
-        row.eager_mode_calls, row.eager_calls = mode.total / iterations, library.calls / iterations
+        row.eager_mode_calls = mode.total / iterations
         row.compiled_calls = kernels.calls / row.compiled_iterations
         row.kernels = kernels.kernels / row.compiled_iterations
         if setup:

@@ -72,7 +72,7 @@ def format_compiled(row: CompiledCount) -> str:
         return _line([row.method], _COMPILED_WIDTHS, _COMPILED_RIGHT) + "  ERROR " + row.error.splitlines()[0]
     iterations = str(row.iterations) if row.iterations == row.compiled_iterations else \
         f"{row.iterations}/{row.compiled_iterations}"
-    cells = [row.method, iterations, f"{row.eager_mode_calls:.0f}", f"{row.eager_calls:.0f}",
+    cells = [row.method, iterations, f"{row.eager_mode_calls:.0f}", _num(row.eager_calls, ".0f"),
              f"{row.compiled_calls:.0f}", f"{row.kernels:.1f}", f"{row.compile_seconds:.1f}",
              f"{row.eager_seconds:.3f}", f"{row.compiled_seconds:.3f}", row.status]
     return _line(cells, _COMPILED_WIDTHS, _COMPILED_RIGHT)
