@@ -252,7 +252,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         torch.set_num_threads(args.threads)
     dtype, device = getattr(torch, args.dtype), torch.device(args.device)
     if args.ops:
-        methods = [_named_method(argv)] if _named_method(argv) else solvers.names()
+        methods = [chosen] if (chosen := _named_method(argv)) else solvers.names()
         if args.compile:
             counter = compiled_ops
             report = compiled_ops.run(methods, (args.problems or ["pendulum"])[0], say, dtype, device,

@@ -202,19 +202,19 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     estimated_rows = (lambda rows: rows) if estimated is None else (lambda rows: rows & estimated)
     measures = None  # the last iterate's objective and violation, where it is evaluated untested
     for step in range(opts.iterations + 1):
-        if step == opts.iterations and not opts.test_last_iterate and hooks.leave is None:
+        ran_out = step == opts.iterations and not opts.test_last_iterate
+        adaptive = 0 < opts.stop_feasible_after <= step  # a control step's adaptive budget
+        if (ran_out or adaptive) and hooks.leave is None:  # the iterate's values alone, untested
             J, violation, finite = kernel_of(last_values, opts, x0.device)(problem, cons, params, it, opts)
             running = status == Status.RUNNING
-            status = torch.where(running & ~finite, int(Status.NON_FINITE), status)
-            diverged = running & finite & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
-            status = torch.where(diverged, int(Status.DIVERGED), status)
-            measures = (J, violation)
-            break
-        if 0 < opts.stop_feasible_after <= step and hooks.leave is None:  # a control step's adaptive budget
-            J, violation, finite = kernel_of(last_values, opts, x0.device)(problem, cons, params, it, opts)
-            running = status == Status.RUNNING
+            largest = it.X.abs().flatten(1).amax(-1)
+            if ran_out:  # the iterations ran out: NON_FINITE and DIVERGED are still told
+                status = torch.where(running & ~finite, int(Status.NON_FINITE), status)
+                status = torch.where(running & finite & (largest > opts.max_state), int(Status.DIVERGED), status)
+                measures = (J, violation)
+                break
             stop = running & finite & (violation <= opts.stop_feasible_violation) \
-                & (iterations >= opts.stop_feasible_after) & (it.X.abs().flatten(1).amax(-1) <= opts.max_state)
+                & (iterations >= opts.stop_feasible_after) & (largest <= opts.max_state)
             status = torch.where(stop, int(Status.MAX_ITERATIONS), status)
             if not bool((running & ~stop).any()):  # every instance stopped or ended: these values are the answer's
                 measures = (J, violation)
