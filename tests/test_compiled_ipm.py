@@ -105,4 +105,4 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
         expansion.expand, expansion.last_values, line_search.step_measures, line_search.trial, line_search.advance,
-        newton.direction, rollout})
+        newton.newton_direction, rollout})

@@ -76,7 +76,7 @@ def cross_over(problem: Problem, cons: Constraints, params, model: Model, it: It
     # one expansion checks them all (eager: the gathered batch changes from call to call)
     new_model = expand(problem, cons, param_rows(params, done), new, opts,
                        None if base is None else gather_rows(base, done))
-    new_error = kkt_error(cons, new_model, new, opts)
+    new_error = kkt_error(new_model)
     accept = torch.cat([e[3] for e in ended]) & new_model.finite & (new_error <= tol)
     rows = accept.nonzero().squeeze(-1)
     done, new = done[rows], gather_rows(new, rows)
@@ -110,7 +110,7 @@ def _cross_over_masked(problem: Problem, cons: Constraints, params, model: Model
             break
         active = following  # the rows no longer going ignore theirs
     new_model = kernel_of(expand, opts, x0.device)(problem, cons, params, ended.point, opts, base)
-    new_error = kkt_error(cons, new_model, ended.point, opts)
+    new_error = kkt_error(new_model)
     accept = trying & ended.ok & new_model.finite & (new_error <= tol)
     return (pick(accept, ended.point, it), with_values(accept, new_model, model), torch.where(accept, new_error, error),
             where_rows(accept, ended.K, K), torch.where(accept, taken, -taken))

@@ -50,6 +50,7 @@ class Model:
     violation: Tensor  # (B,) largest violation of the problem's constraints and the dynamics
     dual_error: Tensor  # (B,) scaled largest Lagrangian gradient entry
     primal_error: Tensor  # (B,) largest residual of the barrier problem's constraints
+    complementarity_error: Tensor  # (B,) scaled largest ``s z`` (the complementarity error at μ = 0)
     finite: Tensor  # (B,)
     knots: Tensor  # (N, mi): 1 where a stage inequality row applies
 

@@ -83,13 +83,17 @@ def fraction_to_boundary(it: Iterate, d: Direction, tau: Tensor) -> tuple:
 
 def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):
     """At the current iterate, for the line search (``(B,)`` each): the largest primal and dual steps of the
-    fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``, the barrier objective ``φ`` and its slope ``∇φ · Δ``."""
+    fraction-to-boundary rule, ``τ = max(τ_min, 1 − μ)``, the barrier objective ``φ`` and its slope ``∇φ · Δ``;
+    whether the step is at round-off (IPOPT's tiny step, :func:`step_and_round_off`), and the candidate step sizes
+    ``α_max β^j`` ``(B, line_search_steps)``: in one kernel where the solve's kernels are compiled."""
     a_max, a_dual = fraction_to_boundary(it, d, torch.clamp(1.0 - mu, min=opts.fraction_to_boundary))
     knots = model.knots
     phi = model.J - mu * log_barrier(it.s, it.sN, knots)
     barrier_slope = torch.where(knots > 0, d.ds / it.s, 0.0).flatten(1).sum(-1) + (d.dsN / it.sN).sum(-1)
     slope = _cost_directional(model, it, d) - mu * barrier_slope
-    return a_max, a_dual, phi, slope
+    size, round_off = step_and_round_off(it, d)
+    powers = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=it.X.dtype, device=it.X.device)
+    return a_max, a_dual, phi, slope, size < round_off, a_max.unsqueeze(1) * powers
 
 
 def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
@@ -180,11 +184,8 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`) of the instances ``need (B,)``
     whose first trial point was rejected with ``θ`` not below the current one; where it finds a step, that step is
     taken instead of a shorter one (W&B 2006 §2.3)."""
-    L = opts.line_search_steps
-    a_max, a_dual, phi, slope = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
-    size, round_off = step_and_round_off(it, d)
-    tiny = size < round_off  # IPOPT's tiny step: taken whole, no filter entry
-    powers = opts.line_search_decrease ** torch.arange(L, dtype=it.X.dtype, device=it.X.device)
+    # tiny: IPOPT's tiny step, taken whole, no filter entry
+    a_max, a_dual, phi, slope, tiny, candidates = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
     filter_test = kernel_of(trial, opts, it.X.device)
 
     first = []  # the first round's rejected full steps, for the second-order correction
@@ -211,7 +212,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
-    steps = backtrack(a_max.unsqueeze(1) * powers, max(1, opts.line_search_parallel), acceptable, pending, start,
+    steps = backtrack(candidates, max(1, opts.line_search_parallel), acceptable, pending, start,
                       sync_first=True, by_rows=eager)
     found, alpha, (unfiltered, blocked) = steps.found, steps.alpha, steps.values
     shortened = found & ~tiny & (alpha < a_max)

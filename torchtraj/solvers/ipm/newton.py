@@ -151,6 +151,15 @@ def direction(lqr: LQR, rhs: LQRVectors, delta: Tensor, model: Model, it: Iterat
                      dnuN=dnuN, K=gains_of(factor), ok=factor.ok & finite, factor=factor if keep_factor else None)
 
 
+def newton_direction(model: Model, it: Iterate, mu: Tensor, x0: Tensor, delta: Tensor, sweep: str = "sequential",
+                     terminal_rows: str = "back-propagation") -> Direction:
+    """:func:`newton_lqr` and :func:`direction` in one function: the Newton step of a compiled solve
+    (``IPOptions.compile``), whose kernel forms the reduced system from the model itself, so that its matrices and
+    right-hand side are not some eighty eager calls an iteration between kernels."""
+    lqr, rhs = newton_lqr(model, it, mu, x0, it.X.shape[-1])
+    return direction(lqr, rhs, delta, model, it, mu, None, None, False, sweep, terminal_rows)
+
+
 def _none_factorised(factor: RiccatiFactor) -> bool:
     """Whether no instance's system is positive definite, read where a host read costs nothing: eager and on a
     CPU (a traced kernel or a captured graph cannot read it, and on an accelerator it would wait for the device)."""

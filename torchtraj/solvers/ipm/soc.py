@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -39,7 +40,7 @@ from .compaction import gather_rows, pick, write_rows
 from .iterate import Iterate, Model
 from .kernels import uses_graphs
 from .line_search import advance, fraction_to_boundary, trial
-from .newton import Direction, direction, factorize_step, newton_rhs
+from .newton import Direction, direction, factorize_step, newton_direction, newton_rhs
 from .options import IPOptions
 
 
@@ -70,10 +71,12 @@ def _laid_out_as(value: Tensor, like: Tensor) -> Tensor:
 
 def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
                             mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
-                            theta_min: Tensor, need: Tensor, a_max: Tensor, first: tuple, lqr: LQR, delta: Tensor,
-                            x0: Tensor, opts: IPOptions) -> Correction:
+                            theta_min: Tensor, need: Tensor, a_max: Tensor, first: tuple, lqr: Optional[LQR],
+                            delta: Tensor, x0: Tensor, opts: IPOptions) -> Correction:
     """The corrections (module docstring) of the instances ``need (B,)``, from the residuals ``first`` of the rejected
-    trial points (``(B, l, ...)`` each, the full step first) and the system ``lqr`` regularised by ``δ_w``."""
+    trial points (``(B, l, ...)`` each, the full step first) and the system ``lqr`` regularised by ``δ_w`` (``None``
+    with compiled kernels, whose Newton step forms it from the model:
+    :func:`~torchtraj.solvers.ipm.newton.newton_direction`)."""
     knots, nx = model.knots, it.X.shape[-1]
     tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
     current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
@@ -95,9 +98,9 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         if compiled:  # laid out as the step's own (views of the expansion's rows): the same compiled kernels
             values = {name: _laid_out_as(value, getattr(model, name)) for name, value in values.items()}
         corrected = dataclasses.replace(model, **values)
-        rhs = newton_rhs(corrected, it, mu, x0, nx)
-        step = kernel(direction, compiled)(lqr, rhs, delta, corrected, it, mu, None, factor, False, opts.sweep,
-                                           opts.terminal_rows)
+        step = kernel(newton_direction, True)(corrected, it, mu, x0, delta, opts.sweep, opts.terminal_rows) \
+            if compiled else direction(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, None,
+                                       factor, False, opts.sweep, opts.terminal_rows)
         a_soc, a_dual_soc = kernel(fraction_to_boundary, compiled)(it, step, tau)
         # compiled: the one trial point as many times as a line-search round has candidates, laid out as a round's
         # step sizes (line_search.line_search, globalization.line_search.backtrack): the round's kernel

@@ -77,7 +77,7 @@ from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import kernel_of, uses_graphs
 from .line_search import line_search
-from .newton import batch_sweep, direction, newton_lqr, regularized_direction
+from .newton import batch_sweep, direction, newton_direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
 from .scaling import scaled_problem, unscale
@@ -154,8 +154,12 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     if hooks.start is not None:
         it = hooks.start(it)
     expand_k = kernel_of(expand, opts, x0.device)
-    direction_k = kernel_of(direction, opts, x0.device)
-    eager = direction_k is direction
+    graphs = uses_graphs(opts, x0.device)
+    eager = not (opts.compile or graphs)
+    # compiled kernels: the Newton step's kernel forms its system (Mehrotra's steps run eager, on a kept factor)
+    fused = opts.compile and not graphs and opts.barrier_strategy != "mehrotra"
+    newton_k = kernel_of(newton_direction, opts, x0.device) if fused else None
+    direction_k = None if fused else kernel_of(direction, opts, x0.device)
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
         else hooks.barrier.clone()
     budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
@@ -178,7 +182,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     records = []  # the history's rows (compaction.full_history)
     theta_max = theta_min = None
     base = None
-    compacting = opts.compact_below > 0 and not uses_graphs(opts, x0.device)
+    compacting = opts.compact_below > 0 and not graphs
     fewest = DYNAMIC_FROM if opts.compile else 1  # compiled kernels have graphs of their own for one instance
     crossing = opts.crossover and problem.linear_quadratic and cons.mi + cons.miN > 0
     # from the unconstrained optimum only where every row is a control bound: with state rows the active-set
@@ -191,7 +195,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     may_reset = opts.filter_reset_trigger <= 1  # a filter reset may come at this step (the same synchronisation)
 
     def tested(params, model, it, status, running):  # the KKT error, and the running instances that end here
-        error = kkt_error(cons, model, it, opts)
+        error = kkt_error(model)
         status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
         done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
         return error, torch.where(running & model.finite & done, int(Status.CONVERGED), status)
@@ -286,10 +290,12 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             tiny_steps = torch.where(forced, 0, tiny_steps)
             wd = wd.stop(mu != updated)  # its reference φ^W belongs to the old μ
             target_mu = mu
-        lqr, rhs = newton_lqr(model, it, target_mu, x0, nx)
+        lqr, rhs = (None, None) if fused else newton_lqr(model, it, target_mu, x0, nx)
 
         def attempt(delta, rows=None):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels:
             # no kwargs); `rows`: the instances of a correction alone (eager only, regularized_direction's by_rows)
+            if fused:
+                return newton_k(model, it, target_mu, x0, delta, opts.sweep, opts.terminal_rows)
             system = (lqr, rhs, delta, model, it, target_mu) if rows is None else (
                 lqr.rows(rows), gather_rows(rhs, rows), delta[rows], gather_rows(model, rows), gather_rows(it, rows),
                 target_mu[rows])

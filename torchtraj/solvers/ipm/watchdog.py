@@ -84,7 +84,7 @@ def watched_step(problem: Problem, cons, params, it: Iterate, d: Direction, mode
     (``wd.trials == 0``) store the current point and its last ``δ_w``, ``last (B,)``, first. Returns ``(step,
     watchdog, returned (B,))``: ``step.found`` where the full step was taken (accepted or not), ``step.it`` its
     iterate, or ``w^W`` where the watchdog gave up (``returned``)."""
-    a_max, a_dual, phi, slope = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
+    a_max, a_dual, phi, slope, _, _ = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
     starting = watching & (wd.trials == 0)
     wd = replace(wd, it=pick(starting, it, wd.it), phi=torch.where(starting, phi, wd.phi),
                  slope=torch.where(starting, slope, wd.slope), theta=torch.where(starting, model.theta, wd.theta),
