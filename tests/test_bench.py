@@ -372,3 +372,40 @@ def test_ops_skips_like_the_bench_and_defaults_to_every_method(tmp_path, monkeyp
                  ["--ops", "--ops-mpc-steps", "-1"], ["--ops", "--ops-mpc-iterations", "0"]):
         with pytest.raises(SystemExit):
             bench_main._check(parser, parser.parse_args(args))
+
+
+def test_a_repeated_row_reports_the_median_of_its_timed_solves(monkeypatch):
+    """``--repeat K``: torchtraj's row is the median of K timed solves of the batch (after the warm-up), a
+    reference's row each instance's median of K solves; a clock that the solves advance by set amounts stands in
+    for the real one."""
+    from torchtraj.bench import runs
+    from torchtraj.bench.reference import ReferenceResult
+
+    now, durations, calls = [0.0], iter([9.0, 3.0, 1.0, 2.0]), []  # the warm-up, then three timed solves
+    solve = runs.solve
+
+    def timed_solve(*args, **kwargs):
+        calls.append(kwargs["options"])
+        now[0] += next(durations)
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(runs, "solve", timed_solve)
+    monkeypatch.setattr(runs.time, "perf_counter", lambda: now[0])
+    options = tt.ILQROptions(cost_tolerance=1e-3, gradient_tolerance=1e-1, iterations=20)
+    row = runs.run_torchtraj(problems.get("pendulum_unconstrained"), "ilqr", 2, 0, options, 2, repeat=3)
+    assert row.error is None, row.error
+    assert len(calls) == 4 and calls[0].iterations == 2 and all(c is options for c in calls[1:])
+    assert (row.seconds, row.ms_per_instance, row.repeat) == (2.0, 1e3, 3)
+
+    class Scripted:  # two instances, three solves each, taking these seconds
+        solver_name, seconds = "fatrop", iter([5.0, 1.0, 3.0, 2.0, 8.0, 4.0])
+
+        def solve(self, x0):
+            return ReferenceResult(ok=True, cost=1.0, iterations=3, max_violation=0.0, seconds=next(self.seconds),
+                                   X=None, U=None, status="Solve_Succeeded")
+
+    reference = runs.run_reference(Scripted(), "pendulum", 2, 0, 16, repeat=3)
+    assert reference.error is None, reference.error
+    assert (reference.instances, reference.seconds, reference.ms_per_instance) == (2, 7.0, 3.5e3)
+    with pytest.raises(SystemExit):
+        run(["--repeat", "0", "--problems", "pendulum_unconstrained", "--no-reference"])

@@ -66,6 +66,9 @@ def parser() -> argparse.ArgumentParser:
                    help="the method options' iteration cap (default: the options' own default)")
     p.add_argument("--warmup-iterations", type=int, default=5,
                    help="iteration cap of the untimed one-instance warm-up solve before each timed row (default: 5)")
+    p.add_argument("--repeat", type=int, default=1, metavar="K",
+                   help="time each row K times: torchtraj's time is the median of K solves of the batch, a "
+                        "reference's each instance's median of K solves (default: 1)")
     p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: torch's choice)")
     p.add_argument("--no-reference", action="store_true", help="skip the CasADi IPOPT / FATROP rows")
     p.add_argument("--reference-instances", type=int, default=16,
@@ -130,8 +133,8 @@ def parser() -> argparse.ArgumentParser:
 def _check(p: argparse.ArgumentParser, args) -> None:
     if any(b < 1 for b in args.batch):
         p.error(f"--batch sizes must be >= 1, got {args.batch}")
-    if args.reference_instances < 1 or args.warmup_iterations < 1:
-        p.error("--reference-instances and --warmup-iterations must be >= 1")
+    if min(args.reference_instances, args.warmup_iterations, args.repeat) < 1:
+        p.error("--reference-instances, --warmup-iterations and --repeat must be >= 1")
     if args.threads is not None and args.threads < 1:
         p.error(f"--threads must be >= 1, got {args.threads}")
     if args.cuda_graphs and not (_has_option(args.method, "cuda_graphs") and not (args.compile or args.ops)):
@@ -196,24 +199,6 @@ def _build_references(name: str, tol: float) -> dict:
         except Exception as exc:  # reported in each of its rows
             built[solver] = f"{type(exc).__name__}: {exc}"
     return built
-
-
-def _throughput(name: str, rows: list, largest: int) -> str:
-    ours = next((r for r in rows if r.batch == largest and r.method not in REFERENCE_SOLVERS), None)
-    fatrop = next((r for r in rows if r.batch == largest and r.method == "fatrop"), None)
-    if ours is None or ours.error:
-        return f"throughput {name}: no torchtraj result at B={largest}"
-    text = f"throughput {name}: {ours.method} {ours.ms_per_instance:.3f} ms/instance at B={largest}"
-    if ours.compile_seconds is not None:
-        text += f" (compiled kernels; the untimed run before, which compiled them, took {ours.compile_seconds:.1f} s)"
-    if ours.record_seconds is not None:
-        text += f" (recorded kernels; the untimed runs before, which recorded them, took {ours.record_seconds:.1f} s)"
-    if fatrop is None or fatrop.error:
-        return text + "; no FATROP result to compare"
-    ratio = ours.ms_per_instance / fatrop.ms_per_instance
-    return (text + f" vs FATROP {fatrop.ms_per_instance:.3f} ms/instance (median of {fatrop.instances}); "
-            f"ratio {ours.method}/FATROP = {ratio:.3g} ({'<' if ratio < 1 else '>='}1: "
-            f"{ours.method} {'faster' if ratio < 1 else 'not faster'} per instance)")
 
 
 def _profile_line(problem, method: Solver, batch: int, seed: int, options) -> str:
@@ -350,13 +335,15 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
         if args.cuda_graphs:  # _check: the method's options have the field
             problem_options = dataclasses.replace(problem_options, cuda_graphs=True)
         for batch in batches:
-            ours = run_torchtraj(problem, method, batch, args.seed, problem_options, args.warmup_iterations)
+            ours = run_torchtraj(problem, method, batch, args.seed, problem_options, args.warmup_iterations,
+                                 args.repeat)
             group = [ours]
             for solver, built in refs.items():
                 if isinstance(built, str):
                     group.append(Row(problem.name, solver, batch, error=built))
                 else:
-                    group.append(run_reference(built, problem.name, batch, args.seed, args.reference_instances))
+                    group.append(run_reference(built, problem.name, batch, args.seed, args.reference_instances,
+                                               args.repeat))
             ipopt = next((r for r in group if r.method == "ipopt"), None)
             for row in group:
                 if ipopt is not None and row is not ipopt:
@@ -371,7 +358,7 @@ def main(argv: Optional[list] = None, out: Optional[TextIO] = None) -> int:
             problem_rows += group
             bar.update(converged=torch.tensor(ours.instance_ok or [False], dtype=torch.bool),
                        violation=ours.max_violation, problem=problem.name)
-        throughput.append(_throughput(problem.name, problem_rows, max(batches)))
+        throughput.append(table.throughput(problem.name, problem_rows, max(batches), REFERENCE_SOLVERS))
         if args.profile and max(batches) > 1:
             throughput.append(_profile_line(problem, method, max(batches), args.seed, problem_options))
         if args.launches:

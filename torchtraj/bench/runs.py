@@ -6,10 +6,13 @@ Rows never raise: an exception is caught and kept in ``Row.error`` so the rest o
 
 Timing. torchtraj is timed around one ``tt.solve`` of the whole batch (``time.perf_counter``, with
 ``torch.cuda.synchronize`` on CUDA) after an untimed warm-up solve of one instance; its
-``ms_per_instance`` is the total divided by B. The warm-up's few iterations leave the recorded kernels' call counts
-low (:mod:`torchtraj.core.recorded`): with the default ``record=None`` a long timed solve traces the shapes it
-evaluates often within its own time, as a user's first solve would, and a short one runs eager. A reference solver
-is timed around each solve call alone (its NLP is built once beforehand,
+``ms_per_instance`` is the total divided by B. With ``repeat`` K > 1 (``--repeat``) the batch is solved K times and
+its time is their median, and a reference solver solves each instance K times and takes each instance's median: a
+short solve's single time moves with the machine's load and the garbage collector by more than a change measures.
+The warm-up's few iterations leave the recorded kernels' call counts low (:mod:`torchtraj.core.recorded`): with
+the default ``record=None`` a long timed solve traces the shapes it evaluates often within its own time, as a user's
+first solve would, and a short one runs eager. A reference solver is timed around each solve call alone (its NLP is
+built once beforehand,
 :class:`~torchtraj.bench.reference.ReferenceSolver`); its ``ms_per_instance`` is the median over instances and
 ``seconds`` their sum.
 """
@@ -53,6 +56,8 @@ class Row:
     instance_ok: list = field(default_factory=list)
     seconds: float = float("nan")
     ms_per_instance: float = float("nan")
+    #: timed solves of the batch (torchtraj) or of each instance (references) whose median is the time
+    repeat: int = 1
     #: max over the compared instances of ``|J − J_ipopt| / |J_ipopt|`` (None where not compared).
     vs_ipopt: Optional[float] = None
     #: compiled kernels: seconds of the untimed run of the whole batch before the timed one, which compiles them
@@ -136,8 +141,9 @@ def _sync(device: torch.device) -> None:
 
 
 def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
-                  warmup_iterations: int) -> Row:
-    """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch. With compiled
+                  warmup_iterations: int, repeat: int = 1) -> Row:
+    """Warm up on one instance (at most ``warmup_iterations`` iterations), then time the batch (the median of
+    ``repeat`` timed solves). With compiled
     kernels (``ILQROptions.compile``), which specialise to the batch size, the warm-up is the whole batch, timed
     (``compile_seconds``); so it is with recorded kernels (``record=True``), whose records are per batch size too,
     repeated while a run traces anything new (``record_seconds``, :func:`_record_warm_up`): the timed solve is then
@@ -165,10 +171,13 @@ def run_torchtraj(problem: Problem, method, batch: int, seed: int, options,
         else:
             solve(problem, None, method, X0=X0, options=warm)
         _sync(problem.device)
-        start = time.perf_counter()
-        sol = solve(problem, x0, method, X0=X0, options=options)
-        _sync(problem.device)
-        row.seconds = time.perf_counter() - start
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            sol = solve(problem, x0, method, X0=X0, options=options)
+            _sync(problem.device)
+            times.append(time.perf_counter() - start)
+        row.seconds, row.repeat = statistics.median(times), repeat
         iters = sol.iterations.cpu().tolist()
         row.instances = len(iters)
         row.iterations_median, row.iterations_max = float(statistics.median(iters)), int(max(iters))
@@ -202,13 +211,15 @@ def _record_warm_up(run: Callable, device, recordings: Callable) -> float:
     return time.perf_counter() - start
 
 
-def run_reference(solver, name: str, batch: int, seed: int, instances: int) -> Row:
-    """Solve the first ``min(batch, instances)`` of the row's initial states with a built ``ReferenceSolver``."""
-    row = Row(name, solver.solver_name, batch)
+def run_reference(solver, name: str, batch: int, seed: int, instances: int, repeat: int = 1) -> Row:
+    """Solve the first ``min(batch, instances)`` of the row's initial states with a built ``ReferenceSolver``, each
+    ``repeat`` times (its time: the median)."""
+    row = Row(name, solver.solver_name, batch, repeat=repeat)
     try:
         x0 = batch_x0(name, batch, seed)
         starts = [None] if x0 is None else list(x0[: min(batch, instances)].numpy())
-        results = [solver.solve(x) for x in starts]
+        solves = [[solver.solve(x) for _ in range(repeat)] for x in starts]
+        results = [each[0] for each in solves]
         row.instances = len(results)
         iters = [r.iterations for r in results]
         row.iterations_median, row.iterations_max = float(statistics.median(iters)), int(max(iters))
@@ -217,7 +228,7 @@ def run_reference(solver, name: str, batch: int, seed: int, instances: int) -> R
         row.max_violation = max(r.max_violation for r in results)
         ok = sum(r.ok for r in results)
         row.status = {k: v for k, v in (("ok", ok), ("failed", len(results) - ok)) if v}
-        times = [r.seconds for r in results]
+        times = [statistics.median(r.seconds for r in each) for each in solves]
         row.seconds, row.ms_per_instance = sum(times), 1e3 * statistics.median(times)
         row.instance_ok = [r.ok for r in results]
     except Exception as exc:

@@ -51,3 +51,26 @@ def legend() -> str:
     return ("iters: median/max over instances; cost: B = 1 the cost, else the median; n: instances solved "
             "(references: min(B, --reference-instances));\nms/inst: torchtraj total / B, references median "
             "solve call; vs IPOPT: max |J - J_ipopt| / |J_ipopt| over the instances IPOPT solved.")
+
+
+def throughput(name: str, rows: list, largest: int, references: tuple) -> str:
+    """The line comparing torchtraj's time per instance at the batch size ``largest`` with FATROP's (``references``:
+    the reference solvers' method names)."""
+    ours = next((r for r in rows if r.batch == largest and r.method not in references), None)
+    fatrop = next((r for r in rows if r.batch == largest and r.method == "fatrop"), None)
+    if ours is None or ours.error:
+        return f"throughput {name}: no torchtraj result at B={largest}"
+    text = f"throughput {name}: {ours.method} {ours.ms_per_instance:.3f} ms/instance at B={largest}"
+    if ours.repeat > 1:
+        text += f" (the median of {ours.repeat} timed solves)"
+    if ours.compile_seconds is not None:
+        text += f" (compiled kernels; the untimed run before, which compiled them, took {ours.compile_seconds:.1f} s)"
+    if ours.record_seconds is not None:
+        text += f" (recorded kernels; the untimed runs before, which recorded them, took {ours.record_seconds:.1f} s)"
+    if fatrop is None or fatrop.error:
+        return text + "; no FATROP result to compare"
+    ratio = ours.ms_per_instance / fatrop.ms_per_instance
+    each = f", each the median of {fatrop.repeat} solves" if fatrop.repeat > 1 else ""
+    return (text + f" vs FATROP {fatrop.ms_per_instance:.3f} ms/instance (median of {fatrop.instances}{each}); "
+            f"ratio {ours.method}/FATROP = {ratio:.3g} ({'<' if ratio < 1 else '>='}1: "
+            f"{ours.method} {'faster' if ratio < 1 else 'not faster'} per instance)")
