@@ -118,6 +118,35 @@ def test_a_solve_of_one_instance_marks_nothing_and_a_batch_its_batch():
         assert _marked(fresh)
 
 
+def test_a_single_instance_calls_kernels_compiled_with_pooled_buffers(monkeypatch):
+    """A kernel is compiled twice: with :data:`~torchtraj.core.compiled.SINGLE_OPTIONS` (inductor's pooled buffers)
+    for the calls inside ``batch_of(1)``, and with the batched options for the others, told a batch or not."""
+    from torchtraj.core import compiled
+    from torchtraj.core.batching import rollout
+
+    calls = []
+
+    def recorded(fn, dynamic, options):
+        def run(*args, **kwargs):
+            calls.append(options)
+            return fn(*args, **kwargs)
+        return run
+
+    monkeypatch.setattr(torch, "compile", recorded)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    problem = small_pendulum()
+    step = compiled.kernel(rollout, True)
+    for size, context in ((1, batch_of(1)), (3, batch_of(3)), (1, contextlib.nullcontext())):
+        with context:
+            params = {name: torch.as_tensor(v).expand(size, *torch.as_tensor(v).shape)
+                      for name, v in problem.params.items()}
+            X = step(problem.dynamics, torch.zeros(size, 2, dtype=torch.float64),
+                     torch.zeros(size, 8, 1, dtype=torch.float64), params)
+        assert X.shape == (size, 9, 2)
+    assert calls == [compiled.SINGLE_OPTIONS, compiled.OPTIONS, compiled.OPTIONS]
+    assert compiled.SINGLE_OPTIONS["memory_planning"] and not compiled.OPTIONS.get("memory_planning", False)
+
+
 def test_one_capture_of_each_altro_kernel_serves_every_batch_size(dynamo_capture):
     """ALTRO's kernels (the AL objective and violation, the iLQR iteration, the multiplier update) take the batch as
     a symbol: a batch of 3 after one of 2 captures no graph, and none breaks (Dynamo's capture alone), with the eager
