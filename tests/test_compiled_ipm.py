@@ -104,5 +104,5 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
-        expansion.expand, expansion.last_values, line_search.step_measures, line_search.trial, line_search.advance,
+        expansion.expand, expansion.last_values, line_search.measured_first_round, line_search.advance,
         newton.newton_direction, rollout})

@@ -38,7 +38,7 @@ from ...globalization.filter import Filter
 from ...globalization.line_search import Accepted, backtrack
 from .compaction import gather_rows, pick
 from .iterate import Iterate, Model
-from .kernels import kernel_of
+from .kernels import kernel_of, uses_graphs
 from .newton import Direction
 from .options import IPOptions
 
@@ -141,6 +141,18 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
     return sufficient & acceptable, switching & armijo, sufficient & ~acceptable, theta_c, parts
 
 
+def measured_first_round(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
+                         mu: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, opts: IPOptions) -> tuple:
+    """:func:`step_measures` and the :func:`trial` of the first round of step sizes (the first
+    ``line_search_parallel`` candidates) in one function: a compiled solve's one kernel call for both. Returns
+    ``(measures, first round)``, each the tuple its function returns."""
+    measures = step_measures(model, it, d, mu, opts)
+    a_max, a_dual, phi, slope, tiny, candidates = measures
+    alphas = candidates[:, :max(1, opts.line_search_parallel)].contiguous()
+    return measures, trial(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min, alphas,
+                           opts)
+
+
 def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor, knots: Tensor,
             opts: IPOptions) -> Iterate:
     """The iterate after primal step ``alpha (B,)`` and dual step ``a_dual (B,)``, with the multipliers ``z``
@@ -184,20 +196,28 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`) of the instances ``need (B,)``
     whose first trial point was rejected with ``θ`` not below the current one; where it finds a step, that step is
     taken instead of a shorter one (W&B 2006 §2.3)."""
-    # tiny: IPOPT's tiny step, taken whole, no filter entry
-    a_max, a_dual, phi, slope, tiny, candidates = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
-    filter_test = kernel_of(trial, opts, it.X.device)
+    # compiled kernels: the measures and the first round's trial points in one kernel call (evaluated even where
+    # every instance took a tiny step, and then unused: the answers are the same)
+    ready = []  # the first round, evaluated with the measures
+    if opts.compile and not uses_graphs(opts, it.X.device):
+        measures, first_round = kernel_of(measured_first_round, opts, it.X.device)(
+            problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, opts)
+        ready.append(first_round)
+    else:
+        measures = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
+    a_max, a_dual, phi, slope, tiny, candidates = measures  # tiny: IPOPT's tiny step, whole, no filter entry
 
     first = []  # the first round's rejected full steps, for the second-order correction
     previous = [torch.zeros_like(pending)]  # was the last candidate of the previous round blocked by the filter
 
     def acceptable(alphas, rows=None):  # `rows`: a later round's instances still looking, alone (eager)
         if rows is None:
-            accept, unfiltered, blocked, theta_c, parts = filter_test(problem, cons, params, it, d, model, mu, phi,
-                                                                      slope, filt, theta_max, theta_min, alphas, opts)
+            accept, unfiltered, blocked, theta_c, parts = ready.pop() if ready else kernel_of(
+                trial, opts, it.X.device)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
+                                          theta_min, alphas, opts)
             last = previous[0]
         else:
-            accept, unfiltered, blocked, theta_c, parts = filter_test(
+            accept, unfiltered, blocked, theta_c, parts = trial(
                 problem, cons, param_rows(params, rows), gather_rows(it, rows), gather_rows(d, rows),
                 gather_rows(model, rows), *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
                 theta_max[rows], theta_min[rows], alphas, opts)
@@ -208,7 +228,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         previous[0] = blocked[:, -1] if rows is None else previous[0].index_copy(0, rows, blocked[:, -1])
         return accept, (unfiltered, before)
 
-    eager = filter_test is trial  # compiled or graphed kernels keep the batch's shape
+    eager = not (opts.compile or uses_graphs(opts, it.X.device))  # compiled or graphed kernels keep the batch's shape
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
