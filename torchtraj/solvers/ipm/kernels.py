@@ -19,6 +19,16 @@ def uses_graphs(opts: IPOptions, device: torch.device) -> bool:
     return graphs_used(opts, device)
 
 
+def compiled_kernels(opts: IPOptions, device: torch.device) -> bool:
+    """Whether :func:`kernel_of` compiles the solve's kernels (``opts.compile``, and no CUDA graphs)."""
+    return opts.compile and not uses_graphs(opts, device)
+
+
+def eager_kernels(opts: IPOptions, device: torch.device) -> bool:
+    """Whether :func:`kernel_of` returns every function itself: neither compiled nor replayed from CUDA graphs."""
+    return not opts.compile and not uses_graphs(opts, device)
+
+
 def kernel_of(fn, opts: IPOptions, device: torch.device):
     """``fn`` compiled (``opts.compile``), replayed from CUDA graphs (:func:`uses_graphs`), or itself."""
     if uses_graphs(opts, device):

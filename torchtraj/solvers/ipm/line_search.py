@@ -38,7 +38,7 @@ from ...globalization.filter import Filter
 from ...globalization.line_search import Accepted, backtrack
 from .compaction import gather_rows, pick
 from .iterate import Iterate, Model
-from .kernels import kernel_of, uses_graphs
+from .kernels import compiled_kernels, eager_kernels, kernel_of
 from .newton import Direction
 from .options import IPOptions
 
@@ -147,7 +147,7 @@ def measured_first_round(problem: Problem, cons: Constraints, params, it: Iterat
     ``line_search_parallel`` candidates) in one function: a compiled solve's one kernel call for both. Returns
     ``(measures, first round)``, each the tuple its function returns."""
     measures = step_measures(model, it, d, mu, opts)
-    a_max, a_dual, phi, slope, tiny, candidates = measures
+    _, _, phi, slope, _, candidates = measures
     alphas = candidates[:, :max(1, opts.line_search_parallel)].contiguous()
     return measures, trial(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min, alphas,
                            opts)
@@ -199,7 +199,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     # compiled kernels: the measures and the first round's trial points in one kernel call (evaluated even where
     # every instance took a tiny step, and then unused: the answers are the same)
     ready = []  # the first round, evaluated with the measures
-    if opts.compile and not uses_graphs(opts, it.X.device):
+    if compiled_kernels(opts, it.X.device):
         measures, first_round = kernel_of(measured_first_round, opts, it.X.device)(
             problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, opts)
         ready.append(first_round)
@@ -228,7 +228,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         previous[0] = blocked[:, -1] if rows is None else previous[0].index_copy(0, rows, blocked[:, -1])
         return accept, (unfiltered, before)
 
-    eager = not (opts.compile or uses_graphs(opts, it.X.device))  # compiled or graphed kernels keep the batch's shape
+    eager = eager_kernels(opts, it.X.device)  # compiled or graphed kernels keep the batch's shape
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated

@@ -38,7 +38,7 @@ from ...globalization.filter import Filter
 from ...riccati import LQR
 from .compaction import gather_rows, pick, write_rows
 from .iterate import Iterate, Model
-from .kernels import uses_graphs
+from .kernels import compiled_kernels
 from .line_search import advance, fraction_to_boundary, trial
 from .newton import Direction, direction, factorize_step, newton_direction, newton_rhs
 from .options import IPOptions
@@ -84,7 +84,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     theta_old = torch.cat([t[:, 0].reshape(t.shape[0], -1).abs() for t in first], -1).sum(-1)
     # compiled kernels (no factorisation kept): each correction's step, its boundary and its trial point in the
     # kernels of the iteration's own step and line search; eager: the step's factorisation, else one made here
-    compiled = opts.compile and not uses_graphs(opts, it.X.device)
+    compiled = compiled_kernels(opts, it.X.device)
     factor = None if compiled else d.factor if d.factor is not None else factorize_step(lqr, delta, opts)
     found = torch.zeros_like(need)
     alpha, unfiltered, best = torch.zeros_like(mu), torch.zeros_like(need), d

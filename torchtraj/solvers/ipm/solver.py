@@ -75,7 +75,7 @@ from .crossover_driver import cross_over
 from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error, last_values, with_values
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
-from .kernels import kernel_of, uses_graphs
+from .kernels import compiled_kernels, eager_kernels, kernel_of, uses_graphs
 from .line_search import line_search
 from .newton import batch_sweep, direction, newton_direction, newton_lqr, regularized_direction
 from .options import IPOptions
@@ -154,10 +154,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     if hooks.start is not None:
         it = hooks.start(it)
     expand_k = kernel_of(expand, opts, x0.device)
-    graphs = uses_graphs(opts, x0.device)
-    eager = not (opts.compile or graphs)
+    eager = eager_kernels(opts, x0.device)
     # compiled kernels: the Newton step's kernel forms its system (Mehrotra's steps run eager, on a kept factor)
-    fused = opts.compile and not graphs and opts.barrier_strategy != "mehrotra"
+    fused = compiled_kernels(opts, x0.device) and opts.barrier_strategy != "mehrotra"
     newton_k = kernel_of(newton_direction, opts, x0.device) if fused else None
     direction_k = None if fused else kernel_of(direction, opts, x0.device)
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
@@ -182,7 +181,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     records = []  # the history's rows (compaction.full_history)
     theta_max = theta_min = None
     base = None
-    compacting = opts.compact_below > 0 and not graphs
+    compacting = opts.compact_below > 0 and not uses_graphs(opts, x0.device)
     fewest = DYNAMIC_FROM if opts.compile else 1  # compiled kernels have graphs of their own for one instance
     crossing = opts.crossover and problem.linear_quadratic and cons.mi + cons.miN > 0
     # from the unconstrained optimum only where every row is a control bound: with state rows the active-set
