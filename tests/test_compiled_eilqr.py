@@ -1,9 +1,11 @@
 """eILQR's compiled kernels (``EILQROptions(compile=True)``, torchtraj.core.compiled).
 
 Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve (the expansion with
-its tests, the Newton step, the merit's weight and the step's bound with the first trial point, the second-order
-correction's step and its merit, the choice of a step, the move with its bookkeeping and the next expansion, the
-initial rollout, the answer's cost and violation) is one graph with no break, and the solve is the eager one.
+its tests, the Newton step with the merit's weight, the step's bound and the first trial point, and each of these
+alone where the inertia correction attempts a step again, the second-order correction with its merit and the choice
+of a step, and each of these alone where some instances are corrected, the move with its bookkeeping and the next
+expansion, the initial rollout, the answer's cost and violation) is one graph with no break, and the solve is the
+eager one.
 ``-m slow``: a later batch size captures none of them again; kernels captured for one problem are captured again for
 another, and a later trial's kernel is one graph; the solve compiled by inductor against eager.
 """
@@ -37,9 +39,9 @@ def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
     solution = tt.solve(pendulum(), x0, "eilqr", options=tt.EILQROptions(compile=True))
     # the corrections ran in their kernel, not eager
     assert_one_graph_per_kernel(dynamo_capture, {
-        verdicts.expanded, newton._direction_alone, merit.merit_at, globalization.corrected_step, rollout,
-        globalization.first_tried, globalization.chosen_step, verdicts.advanced, verdicts.advanced_expanded,
-        answer.cost_and_violation})
+        verdicts.expanded, newton.direction_alone, merit.merit_at, globalization.corrected_step, rollout,
+        globalization.first_tried, globalization.direction_and_first_trial, globalization.chosen_step,
+        verdicts.advanced, verdicts.advanced_expanded, answer.cost_and_violation})
     assert bool((solution.status == tt.Status.CONVERGED).all())
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
 
@@ -66,8 +68,8 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=2), "eilqr")
     assert_one_graph_per_kernel(dynamo_capture, {
-        verdicts.expanded, model.last_multipliers, newton._direction_alone, merit.merit_at,
-        globalization.corrected_step, globalization.first_tried, globalization.chosen_step, verdicts.advanced,
+        verdicts.expanded, model.last_multipliers, newton.direction_alone, merit.merit_at,
+        globalization.corrected_choice, globalization.direction_and_first_trial, verdicts.advanced,
         verdicts.advanced_expanded, rollout, answer.cost_and_violation})
 
 

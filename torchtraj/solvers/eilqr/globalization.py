@@ -41,7 +41,7 @@ from ...globalization.line_search import Accepted
 from .initial_state import InitialRows
 from .merit import armijo_bound, constraint_values, line_search, merit_at, slope, trial_steps, weighed
 from .model import Iterate, Model
-from .newton import Direction, direction, instances, pick_direction, resolve, write_direction
+from .newton import Direction, direction, direction_alone, instances, pick_direction, resolve, write_direction
 
 #: the direction's multiplier fields, moved as ``y ← y + α (y⁺ − y)``
 _MULTIPLIERS = ("lam", "nu", "nuN", "mu0", "z", "zN")
@@ -101,24 +101,50 @@ def corrected_step(problem, cons, params, model, it, x0, initial, d, p, alpha, e
     return dataclasses.replace(step, dX=p.dX + soc.dX - d.dX, dU=p.dU + soc.dU - d.dU, ok=soc.ok)
 
 
-def _correction(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, gamma, weights, need,
-                opts) -> tuple:
-    """The corrected step of :func:`corrected_step` and its merit ``(B,)``, for the instances ``need (B,)`` (the
-    others' are ``step``'s and a merit they do not read). Where ``d`` kept no factorisation (the inertia correction
-    mixed them) the corrected system is factorised again, for the instances that need it alone (a fixed start; one
-    read of their count by the host): each instance's arithmetic is the same."""
-    corrected_k, merit_k = kernel(corrected_step, opts.compile), kernel(merit_at, opts.compile)
+def corrected_choice(problem, cons, params, model, it, x0, initial, d, step, m, bound, passed, need, a, alpha_max,
+                     eps, gamma, weights, chosen, opts) -> tuple:
+    """The correction of the trial ``a`` (a 0-d tensor) of the truncated step ``α_max d`` for the whole batch, in one
+    function (a compiled solve's one kernel): :func:`corrected_step`, its merit, :func:`_judged` and
+    :func:`chosen_step`. Returns ``(step, merit, passed, choice)``."""
+    soc = corrected_step(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps,
+                         opts.terminal_rows)
+    ms = merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights, opts.record)
+    step, m, passed = _judged(soc, ms, step, m, bound, passed, need)
+    return step, m, passed, chosen_step(passed, step, it, a.expand(m.shape), chosen)
+
+
+def _judged(soc, ms, step, m, bound, passed, need) -> tuple:
+    """``(step, merit, passed)`` with the corrected step ``soc`` and its merit ``ms`` taken where a ``need`` instance
+    (one whose plain trial failed) passes the Armijo ``bound`` with it."""
+    taken = need & soc.ok & torch.isfinite(ms) & (ms <= bound)
+    return pick_direction(taken, soc, step), torch.where(taken, ms, m), passed | taken
+
+
+def _corrected(problem, cons, params, model, it, x0, initial, d, step, m, bound, passed, need, a, alpha_max, eps, gamma,
+               weights, chosen, opts) -> tuple:
+    """:func:`corrected_choice` for the ``need (B,)`` instances, those whose trial failed (the others keep their
+    trial). Where ``d`` kept no factorisation (the inertia correction mixed them, or a compiled kernel made it) the
+    corrected system is factorised again, for the instances that need it alone (a fixed start; one read of their
+    count by the host): each instance's arithmetic is the same."""
     rows = None if d.factor is not None or initial is not None else need.nonzero().squeeze(-1)
-    if rows is None or rows.numel() == need.shape[0]:
+    whole = rows is None or rows.numel() == need.shape[0]
+    if whole and opts.compile:
+        return kernel(corrected_choice, True)(problem, cons, params, model, it, x0, initial, d, step, m, bound,
+                                              passed, need, a, alpha_max, eps, gamma, weights, chosen, opts)
+    corrected_k, merit_k = kernel(corrected_step, opts.compile), kernel(merit_at, opts.compile)
+    alpha = a * alpha_max
+    if whole:
         soc = corrected_k(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, opts.terminal_rows)
-        return soc, merit_k(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights,
-                            opts.record)
-    at_rows, it_rows, params_rows = instances(model, rows), instances(it, rows), param_rows(params, rows)
-    soc = corrected_k(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
-                      instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)
-    merit = merit_k(problem, cons, params_rows, it_rows.X + soc.dX, it_rows.U + soc.dU, x0[rows], None, gamma[rows],
-                    instances(weights, rows), opts.record)
-    return write_direction(step, rows, soc), torch.zeros_like(gamma).index_copy(0, rows, merit)
+        ms = merit_k(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights, opts.record)
+    else:
+        at_rows, it_rows, params_rows = instances(model, rows), instances(it, rows), param_rows(params, rows)
+        soc = corrected_k(problem, cons, params_rows, at_rows, it_rows, x0[rows], None, instances(d, rows),
+                          instances(step, rows), alpha[rows], eps[rows], opts.terminal_rows)
+        merit = merit_k(problem, cons, params_rows, it_rows.X + soc.dX, it_rows.U + soc.dU, x0[rows], None,
+                        gamma[rows], instances(weights, rows), opts.record)
+        soc, ms = write_direction(step, rows, soc), torch.zeros_like(gamma).index_copy(0, rows, merit)
+    step, m, passed = _judged(soc, ms, step, m, bound, passed, need)
+    return step, m, passed, kernel(chosen_step, opts.compile)(passed, step, it, torch.full_like(m, float(a)), chosen)
 
 
 def _through(step: Direction, it: Iterate, alpha: Tensor) -> Direction:
@@ -165,61 +191,92 @@ def tried(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weight
 def first_tried(problem, cons, params, model, d, it, a, x0, initial, gamma, l1, weights, memory, pending, opts,
                 truncate: bool) -> tuple:
     """The merit's weight (:func:`~torchtraj.solvers.eilqr.merit.weighed`), :func:`step_bound`, then :func:`tried`
-    of the first trial ``a`` for the ``pending`` instances: ``(γ, memory, m(w), reference, α_max, D m, *trial)``."""
+    of the first trial ``a`` for the ``pending`` instances: ``(γ, memory, m(w), reference, α_max, D m, *trial, need,
+    found, α, m)``, ``need (B,)`` the pending instances the trial failed, and the line search's ``found``, ``α`` and
+    merit where no instance needs a correction (then every pending instance passed: the search ends here)."""
     gamma, memory, merit0, reference = weighed(d, gamma, pending, initial is not None, model.J, l1, memory, opts)
     alpha_max, derivative = step_bound(model, d, it, weights, gamma, l1, opts.boundary_fraction, truncate)
-    return (gamma, memory, merit0, reference, alpha_max, derivative,
-            *tried(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weights, reference, derivative,
-                   pending, d, opts))
+    trial = tried(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weights, reference, derivative,
+                  pending, d, opts)
+    step, m, bound, passed, picked = trial
+    found, alpha, value = ~pending | passed, torch.where(passed, a, torch.zeros_like(m)), torch.where(passed, m, merit0)
+    return gamma, memory, merit0, reference, alpha_max, derivative, *trial, pending & ~passed, found, alpha, value
+
+
+def first_trial_ahead(opts) -> bool:
+    """Whether a solve makes its first trial point in its Newton step's kernel (:func:`direction_and_first_trial`):
+    with compiled kernels, where :func:`globalized_step` corrects its first trial."""
+    return bool(opts.compile and opts.globalization and opts.second_order_correction
+                and min(opts.second_order_trials, opts.line_search_steps) > 0)
+
+
+def _truncates(opts) -> bool:
+    # with the paper's fixed weight the relaxed barrier is the problem (its rows may end in the quadratic branch):
+    # no domain to stay in, and the minimum-time double integrator's fixed-weight solve then ended MAX_REGULARIZATION
+    return opts.boundary_fraction is not None and opts.barrier_continuation
+
+
+def direction_and_first_trial(model, it, x0, eps, problem, cons, params, initial, gamma, l1, weights, memory,
+                              running, opts) -> tuple:
+    """The Newton step of :func:`~torchtraj.solvers.eilqr.newton.direction` without its factorisation, and
+    :func:`first_tried` of it for the ``running (B,)`` instances it factorised (``ok``), in one compiled kernel: one
+    compiled call an iteration fewer. Where the inertia correction attempts some instances again, the step changes
+    and the loop makes the first trial anew (:func:`globalized_step`); each instance's arithmetic is the same."""
+    d = direction_alone(model, it, x0, eps, opts.terminal_rows)
+    first = first_tried(problem, cons, params, model, d, it, trial_steps(opts, l1)[0], x0, initial, gamma, l1,
+                        weights, memory, running & d.ok, opts, _truncates(opts))
+    return d, first
 
 
 def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma, l1, pending, opts, weights,
-                    memory):
+                    memory, first_trial=None):
     """The accepted step of the ``pending (B,)`` instances from the direction ``d`` (computed with ``eps (B,)``):
     ``(direction, Accepted, merit0 (B,), γ (B,), memory)``: the accepted ``α`` moves the iterate by the direction
     returned to the accepted point (the truncated step ``α α_max p``, or its correction ``α α_max p + q``). The
     merit's weight ``γ`` is updated from ``d``'s multipliers and the ``memory`` records the iterate
     (:func:`~torchtraj.solvers.eilqr.merit.weighed`); the Armijo test starts from the nonmonotone reference (the
-    largest merit the memory holds, :class:`~torchtraj.solvers.eilqr.merit.MeritMemory`)."""
+    largest merit the memory holds, :class:`~torchtraj.solvers.eilqr.merit.MeritMemory`). ``first_trial``: the
+    outputs of :func:`first_tried` for ``d``, ``pending`` and these ``gamma`` and ``memory``, where its Newton step's
+    kernel made them (:func:`direction_and_first_trial`)."""
     weigh = (d, gamma, pending, initial is not None, model.J, l1, memory, opts)
     if not opts.globalization:
         gamma, memory, merit0, _ = weighed(*weigh)
         ls = line_search(problem, cons, params, it.X, it.U, x0, initial, d, merit0, slope(model, d, gamma, l1),
                          gamma, pending, trial_steps(opts, merit0), opts, weights)
         return d, ls, merit0, gamma, memory
-    # with the paper's fixed weight the relaxed barrier is the problem (its rows may end in the quadratic branch):
-    # no domain to stay in, and the minimum-time double integrator's fixed-weight solve then ended MAX_REGULARIZATION
-    truncate = opts.boundary_fraction is not None and opts.barrier_continuation
+    truncate = _truncates(opts)
     steps = trial_steps(opts, l1)
     corrected_trials = min(opts.second_order_trials, steps.shape[0]) if opts.second_order_correction else 0
     alpha_max = derivative = first = None
     if corrected_trials and bool(pending.any()):  # the weight and the step's bound in the first trial's kernel
-        gamma, memory, merit0, reference, alpha_max, derivative, *first = kernel(first_tried, opts.compile)(
-            problem, cons, params, model, d, it, steps[0], x0, initial, gamma, l1, weights, memory, pending, opts,
-            truncate)
+        gamma, memory, merit0, reference, alpha_max, derivative, *first = first_trial if first_trial is not None \
+            else kernel(first_tried, opts.compile)(problem, cons, params, model, d, it, steps[0], x0, initial, gamma,
+                                                   l1, weights, memory, pending, opts, truncate)
     else:
         gamma, memory, merit0, reference = weighed(*weigh)
     found, alpha, value, chosen = ~pending, torch.zeros_like(merit0), merit0, d
+    settled = False  # every pending instance passed the first trial
     for a in steps[:corrected_trials] if first is not None else ():  # at most two host reads a trial
-        waiting = pending & ~found
         if first is not None:  # the first trial, made with the weight and the bound
-            (step, m, bound, passed, picked), first = first, None
-        elif not bool(waiting.any()):
-            break
+            (step, m, bound, passed, picked, need, *after), first = first, None
+            if not bool(need.any()):
+                settled, chosen, (found, alpha, value) = True, picked, after
+                break
         else:
+            waiting = pending & ~found
+            if not bool(waiting.any()):
+                break
             step, m, bound, passed, picked = kernel(tried, opts.compile)(
                 problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weights, reference, derivative,
                 waiting, chosen, opts)
-        if bool((waiting & ~passed).any()):
-            soc, ms = _correction(problem, cons, params, model, it, x0, initial, d, step, a * alpha_max, eps, gamma,
-                                  weights, waiting & ~passed, opts)
-            taken = waiting & ~passed & soc.ok & torch.isfinite(ms) & (ms <= bound)
-            step, m, passed = pick_direction(taken, soc, step), torch.where(taken, ms, m), passed | taken
-            picked = kernel(chosen_step, opts.compile)(passed, step, it, torch.full_like(merit0, float(a)), chosen)
+            need = waiting & ~passed
+        if bool(need.any()):
+            step, m, passed, picked = _corrected(problem, cons, params, model, it, x0, initial, d, step, m, bound,
+                                                 passed, need, a, alpha_max, eps, gamma, weights, chosen, opts)
         chosen = picked
         found, alpha, value = found | passed, torch.where(passed, a, alpha), torch.where(passed, m, value)
     refused = pending & ~found
-    if steps.shape[0] > corrected_trials and bool(refused.any()):  # the shorter steps plain, in batched rounds
+    if steps.shape[0] > corrected_trials and not settled and bool(refused.any()):  # the shorter steps plain
         if alpha_max is None:  # no trial was corrected
             alpha_max, derivative = kernel(step_bound, opts.compile)(model, d, it, weights, gamma, l1,
                                                                      opts.boundary_fraction, truncate)

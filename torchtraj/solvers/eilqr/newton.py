@@ -87,7 +87,7 @@ def direction(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
     return _completed(ns.factor, rhs, ns.step, model, it)
 
 
-def _direction_alone(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
+def direction_alone(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
                      terminal_rows: str = "back-propagation") -> Direction:
     """:func:`direction` without its factorisation (a compiled kernel hands back tensors only): a second-order
     correction then factorises its system again (the same ``ε``, the same arithmetic)."""
@@ -96,8 +96,8 @@ def _direction_alone(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
 
 def compiled_direction(enabled: bool) -> Callable[..., Direction]:
     """:func:`direction`, or (``enabled``, ``EILQROptions.compile``) its compiled kernel, which keeps no
-    factorisation (:func:`_direction_alone`)."""
-    return kernel(_direction_alone, True) if enabled else direction
+    factorisation (:func:`direction_alone`)."""
+    return kernel(direction_alone, True) if enabled else direction
 
 
 def resolve(d: Direction, model: Model, it: Iterate, x0: Tensor) -> Direction:

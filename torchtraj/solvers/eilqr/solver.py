@@ -52,7 +52,7 @@ from ...core.status import Status
 from ...kkt.merit import solution_measures
 from ...riccati.range_space import formed, select_gains
 from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, weights_for
-from .globalization import globalized_step
+from .globalization import direction_and_first_trial, first_trial_ahead, globalized_step
 from .initial_state import InitialState
 from .merit import MeritMemory
 from .model import Iterate, last_multipliers, with_weight
@@ -106,6 +106,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     memory = MeritMemory.empty(B, opts.nonmonotone_memory, x0)
     expanded_k, advanced_k = kernel(expanded, opts.compile), kernel(advanced, opts.compile)
     direction_k, onward_k = compiled_direction(opts.compile), kernel(advanced_expanded, opts.compile)
+    both_k = kernel(direction_and_first_trial, True) if first_trial_ahead(opts) else None
     untested = None  # the instances whose last iterate the iterations left untested (test_last_iterate off)
     tests = None  # the iterate's expansion and tests, made with the move that reached it
     for step in range(opts.iterations + 1):
@@ -127,15 +128,22 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         running = status == Status.RUNNING
         if step == opts.iterations or not bool(running.any()):
             break
+        ahead = {}  # the first attempt's step and its first trial point, made in one kernel
+
         def attempt(e, rows=None):  # `rows`: the instances of a correction alone
-            if rows is None:
+            if rows is not None:
+                return direction_k(instances(model, rows), instances(it, rows), x0[rows], e[rows], opts.terminal_rows)
+            if both_k is None or ahead:  # the attempts after the first: their step alone
                 return direction_k(model, it, x0, e, opts.terminal_rows)
-            return direction_k(instances(model, rows), instances(it, rows), x0[rows], e[rows], opts.terminal_rows)
+            ahead["d"], ahead["trial"] = both_k(model, it, x0, e, problem, cons, params, initial, gamma, l1, weights,
+                                                memory, running, opts)
+            return ahead["d"]
 
         d, eps = regularized_direction(attempt, floor, last, running, opts, regularize=opts.globalization)
         factored = running & (d.ok | (not opts.globalization))
         d, ls, merit0, gamma, memory = globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma,
-                                                       l1, factored, opts, weights, memory)
+                                                       l1, factored, opts, weights, memory,
+                                                       ahead["trial"] if ahead.get("d") is d else None)
         if step + 1 < opts.iterations or opts.test_last_iterate:  # the next iteration's tests with the move
             it, take, unresolved, floor, last, iterations, step_size, tests = onward_k(
                 problem, cons, params, x0, initial, weights, opts.record, final, tol, it, d, ls.alpha, ls.found,
