@@ -65,14 +65,7 @@ def test_eilqr_corrections_on_rows(monkeypatch, rounds_of_rows):
     whole_batch_rounds(monkeypatch, merit)
     attempts = newton.corrected_attempts
     monkeypatch.setattr(newton, "corrected_attempts", lambda *args: attempts(*args[:-1]))  # no write: whole batch
-
-    def whole_correction(problem, cons, params, model, it, x0, initial, d, step, alpha, eps, gamma, weights, need,
-                         opts):
-        soc = globalization.corrected_step(problem, cons, params, model, it, x0, initial, d, step, alpha, eps,
-                                           opts.terminal_rows)
-        return soc, merit.merit_at(problem, cons, params, it.X + soc.dX, it.U + soc.dU, x0, initial, gamma, weights)
-
-    monkeypatch.setattr(globalization, "_correction", whole_correction)
+    monkeypatch.setattr(globalization, "_correction_rows", lambda d, initial, need: None)  # the whole batch
     assert_same_solutions(by_rows, tt.solve(PENDULUM, X0, method="eilqr", options=options))
 
 

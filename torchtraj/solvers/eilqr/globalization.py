@@ -126,7 +126,7 @@ def _corrected(problem, cons, params, model, it, x0, initial, d, step, m, bound,
     trial). Where ``d`` kept no factorisation (the inertia correction mixed them, or a compiled kernel made it) the
     corrected system is factorised again, for the instances that need it alone (a fixed start; one read of their
     count by the host): each instance's arithmetic is the same."""
-    rows = None if d.factor is not None or initial is not None else need.nonzero().squeeze(-1)
+    rows = _correction_rows(d, initial, need)
     whole = rows is None or rows.numel() == need.shape[0]
     if whole and opts.compile:
         return kernel(corrected_choice, True)(problem, cons, params, model, it, x0, initial, d, step, m, bound,
@@ -145,6 +145,12 @@ def _corrected(problem, cons, params, model, it, x0, initial, d, step, m, bound,
         soc, ms = write_direction(step, rows, soc), torch.zeros_like(gamma).index_copy(0, rows, merit)
     step, m, passed = _judged(soc, ms, step, m, bound, passed, need)
     return step, m, passed, kernel(chosen_step, opts.compile)(passed, step, it, torch.full_like(m, float(a)), chosen)
+
+
+def _correction_rows(d: Direction, initial, need: Tensor):
+    """The instances ``need (B,)`` as indices ``(R,)`` where their correction is factorised again on their rows alone
+    (:func:`_corrected`), None where the batch's is made (``d`` kept its factorisation, or a free start)."""
+    return None if d.factor is not None or initial is not None else need.nonzero().squeeze(-1)
 
 
 def _through(step: Direction, it: Iterate, alpha: Tensor) -> Direction:
