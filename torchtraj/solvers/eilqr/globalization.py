@@ -205,8 +205,14 @@ def first_tried(problem, cons, params, model, d, it, a, x0, initial, gamma, l1, 
     trial = tried(problem, cons, params, d, it, alpha_max, a, x0, initial, gamma, weights, reference, derivative,
                   pending, d, opts)
     step, m, bound, passed, picked = trial
-    found, alpha, value = ~pending | passed, torch.where(passed, a, torch.zeros_like(m)), torch.where(passed, m, merit0)
-    return gamma, memory, merit0, reference, alpha_max, derivative, *trial, pending & ~passed, found, alpha, value
+    return (gamma, memory, merit0, reference, alpha_max, derivative, *trial, pending & ~passed,
+            *_recorded(~pending, torch.zeros_like(m), merit0, a, passed, m))
+
+
+def _recorded(found, alpha, value, a, passed, m) -> tuple:
+    """The line search's ``(found, α, merit)`` ``(B,)`` after the trial ``a`` that the instances ``passed`` took, at
+    the merit ``m``."""
+    return found | passed, torch.where(passed, a, alpha), torch.where(passed, m, value)
 
 
 def first_trial_ahead(opts) -> bool:
@@ -261,13 +267,12 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
     else:
         gamma, memory, merit0, reference = weighed(*weigh)
     found, alpha, value, chosen = ~pending, torch.zeros_like(merit0), merit0, d
-    settled = False  # every pending instance passed the first trial
     for a in steps[:corrected_trials] if first is not None else ():  # at most two host reads a trial
         if first is not None:  # the first trial, made with the weight and the bound
             (step, m, bound, passed, picked, need, *after), first = first, None
-            if not bool(need.any()):
-                settled, chosen, (found, alpha, value) = True, picked, after
-                break
+            if not bool(need.any()):  # every pending instance passed it: the search ends here
+                found, alpha, value = after
+                return picked, Accepted(found=found, alpha=alpha, values=(value,)), merit0, gamma, memory
         else:
             waiting = pending & ~found
             if not bool(waiting.any()):
@@ -280,9 +285,9 @@ def globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma
             step, m, passed, picked = _corrected(problem, cons, params, model, it, x0, initial, d, step, m, bound,
                                                  passed, need, a, alpha_max, eps, gamma, weights, chosen, opts)
         chosen = picked
-        found, alpha, value = found | passed, torch.where(passed, a, alpha), torch.where(passed, m, value)
+        found, alpha, value = _recorded(found, alpha, value, a, passed, m)
     refused = pending & ~found
-    if steps.shape[0] > corrected_trials and not settled and bool(refused.any()):  # the shorter steps plain
+    if steps.shape[0] > corrected_trials and bool(refused.any()):  # the shorter steps plain, in batched rounds
         if alpha_max is None:  # no trial was corrected
             alpha_max, derivative = kernel(step_bound, opts.compile)(model, d, it, weights, gamma, l1,
                                                                      opts.boundary_fraction, truncate)

@@ -88,7 +88,7 @@ def direction(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
 
 
 def direction_alone(model: Model, it: Iterate, x0: Tensor, eps: Tensor,
-                     terminal_rows: str = "back-propagation") -> Direction:
+                    terminal_rows: str = "back-propagation") -> Direction:
     """:func:`direction` without its factorisation (a compiled kernel hands back tensors only): a second-order
     correction then factorises its system again (the same ``ε``, the same arithmetic)."""
     return dataclasses.replace(direction(model, it, x0, eps, terminal_rows), factor=None)
