@@ -63,12 +63,15 @@ def _stage_inputs(W: Tensor, Hs: Tensor, rho: Tensor, held: Optional[Tensor], ne
     one of ``sym(X)``, one call a stage fewer, and the stack of them is halved once."""
     Bsz, nu = W.shape[1], W.shape[-1] - W.shape[-2]
     rho = rho.reshape(Bsz, 1, 1) * torch.eye(nu, dtype=W.dtype, device=W.device)
-    held_terms = (None, None, None)
-    if held is not None:
-        free = 1.0 - held
-        held_terms = (_stages(free.unsqueeze(-1) * free.unsqueeze(-2)), _stages(torch.diag_embed(held)),
-                      _stages(free.unsqueeze(-1)))
+    held_terms = (None, None, None) if held is None else tuple(_stages(term) for term in _held_terms(held))
     return rho, (0.5 * W).unbind(0), _mT(W).unbind(0), (Hs.neg() if negated else Hs).unbind(0), held_terms
+
+
+def _held_terms(held: Tensor) -> tuple:
+    """``(outer, held_diag, free_rows)`` ``(B, N, ...)`` of the held controls ``held (B, N, nu)``: the free
+    controls' outer product, the held ones' diagonal and the free ones as a column."""
+    free = 1.0 - held
+    return free.unsqueeze(-1) * free.unsqueeze(-2), torch.diag_embed(held), free.unsqueeze(-1)
 
 
 def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optional[Tensor]):
@@ -127,43 +130,53 @@ def factorize_stages(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optio
 
 def _factorize_stages_traced(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, held: Optional[Tensor]):
     """:func:`factorize_stages` traced by ``torch.compile`` or under autograd: the same recursion with new tensors
-    for every stage's results, stacked after the loop (writes into views of buffers make a compiled kernel's batch
-    size static, and ``out=`` takes no part in autograd)."""
+    for every stage's results (writes into views of buffers make a compiled kernel's batch size static, and ``out=``
+    takes no part in autograd). The loop keeps ``H`` and ``2 P`` of each stage; the gains, pivots and tests of all
+    stages are made again from the stack of ``H`` after it, by the same elementwise arithmetic. In a compiled kernel
+    each stage's result that leaves the loop is a tensor handle of its own, and at a batch of one the handles cost
+    more than the arithmetic."""
     N, Bsz, nx, n = W.shape
-    nu = n - nx
     eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
     rho, Ws, WTs, Hss, (outer, held_diag, free_rows) = _stage_inputs(W, Hs, rho, held)
-    minus_rho, minus_one = -rho, W.new_full((), -1.0)
     P2 = QN + QN
-    Ps, Ks, Quus, Quxs, chols, oks = [None] * (N + 1), [None] * N, [None] * N, [None] * N, [None] * N, [None] * N
+    Ps, Hs_stages = [None] * (N + 1), [None] * N
     Ps[N] = P2
     for t in range(N - 1, -1, -1):
         H = addmatmul(Hss[t], WTs[t], matmul(P2, Ws[t]))
-        Qux, Quu = H[:, nx:].split([nx, nu], -1)
-        rows = Qux
-        if nu == 1:  # K = Q_ux / −(Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
-            negative = torch.sub(minus_rho, Quu)
-            if held is not None:  # the held controls out of the free ones' system
-                negative = negative * outer[t] - held_diag[t]
-                rows = Qux * free_rows[t]
-            ok = negative < 0
-            L = torch.where(ok, negative, minus_one)
-            K = rows / L
-        else:
-            Hu = Quu + rho
-            if held is not None:
-                Hu = Hu * outer[t] + held_diag[t]
-                rows = Qux * free_rows[t]
-            L, info = _cholesky(Hu)
-            ok = info == 0
-            K = -_cholesky_solve(rows, L)
+        K = _stage_gains(H, nx, rho, None if held is None else (outer[t], held_diag[t], free_rows[t]))[0]
         E = torch.cat([eye_x, K], -2)
         X = matmul(_mT(E), matmul(H, E))
         P2 = X + _mT(X)
-        Ps[t], Ks[t], Quus[t], Quxs[t], chols[t], oks[t] = P2, K, Quu, Qux, L, ok
-    ok = torch.stack(oks, 0) if nu == 1 else torch.stack(oks, 1).all(1)
-    chol = _time_major(chols)
-    return _time_major(Ps) * 0.5, _time_major(Ks), _time_major(Quus), _time_major(Quxs), chol, ok
+        Ps[t], Hs_stages[t] = P2, H
+    K, Quu, Qux, L, ok = _stage_gains(torch.stack(Hs_stages, 1), nx, rho.unsqueeze(1),
+                                      None if held is None else _held_terms(held))
+    return _time_major(Ps) * 0.5, K, Quu, Qux, L, (ok.transpose(0, 1) if K.shape[-2] == 1 else ok.all(1))
+
+
+def _stage_gains(H: Tensor, nx: int, rho: Tensor, held_terms: Optional[tuple]) -> tuple:
+    """``(K, Q_uu, Q_ux, L, ok)`` of the traced sweep from ``H (..., n, n)``, one stage's ``(B, n, n)`` or every
+    stage's ``(B, N, n, n)``, with ``ρ I`` and the held controls' terms (``None``: none held) shaped to match: the
+    gain ``K = −(Q_uu + ρ)⁻¹ Q_ux`` (a single control: ``Q_ux / −(Q_uu + ρ)``, ``L = −(Q_uu + ρ)`` and −1 where
+    the pivot is not positive), the factor ``L`` and the test ``ok``."""
+    nu = H.shape[-1] - nx
+    Qux, Quu = H[..., nx:, :].split([nx, nu], -1)
+    rows = Qux
+    if nu == 1:  # K = Q_ux / −(Q_uu + ρ), the identity in place of a reduced Hessian that is not positive
+        negative = torch.sub(-rho, Quu)
+        if held_terms is not None:  # the held controls out of the free ones' system
+            outer, held_diag, free_rows = held_terms
+            negative = negative * outer - held_diag
+            rows = Qux * free_rows
+        ok = negative < 0
+        L = torch.where(ok, negative, -1.0)
+        return rows / L, Quu, Qux, L, ok
+    Hu = Quu + rho
+    if held_terms is not None:
+        outer, held_diag, free_rows = held_terms
+        Hu = Hu * outer + held_diag
+        rows = Qux * free_rows
+    L, info = _cholesky(Hu)
+    return -_cholesky_solve(rows, L), Quu, Qux, L, info == 0
 
 
 class _Buffers:
