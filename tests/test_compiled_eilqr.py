@@ -3,9 +3,9 @@
 Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve (the expansion with
 its tests, the Newton step with the merit's weight, the step's bound and the first trial point, and each of these
 alone where the inertia correction attempts a step again, the second-order correction with its merit and the choice
-of a step, and each of these alone where some instances are corrected, the move with its bookkeeping and the next
-expansion, the initial rollout, the answer's cost and violation) is one graph with no break, and the solve is the
-eager one.
+of a step, and each of these alone where some instances are corrected, the move with its bookkeeping, the next
+expansion and the next Newton step with its first trial point, the initial rollout, the answer's cost and
+violation) is one graph with no break, and the solve is the eager one.
 ``-m slow``: a later batch size captures none of them again; kernels captured for one problem are captured again for
 another, and a later trial's kernel is one graph; the solve compiled by inductor against eager.
 """
@@ -41,7 +41,7 @@ def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
     assert_one_graph_per_kernel(dynamo_capture, {
         verdicts.expanded, newton.direction_alone, merit.merit_at, globalization.corrected_step, rollout,
         globalization.first_tried, globalization.direction_and_first_trial, globalization.chosen_step,
-        verdicts.advanced, verdicts.advanced_expanded, answer.cost_and_violation})
+        verdicts.advanced, verdicts.advanced_ahead, answer.cost_and_violation})
     assert bool((solution.status == tt.Status.CONVERGED).all())
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
 
@@ -70,7 +70,7 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     assert_one_graph_per_kernel(dynamo_capture, {
         verdicts.expanded, model.last_multipliers, newton.direction_alone, merit.merit_at,
         globalization.corrected_choice, globalization.direction_and_first_trial, verdicts.advanced,
-        verdicts.advanced_expanded, rollout, answer.cost_and_violation})
+        verdicts.advanced_ahead, rollout, answer.cost_and_violation})
 
 
 @pytest.mark.slow  # two batch sizes captured, a minute; the default run keeps the test above

@@ -51,14 +51,14 @@ from ...core.solution import History, Solution
 from ...core.status import Status
 from ...kkt.merit import solution_measures
 from ...riccati.range_space import formed, select_gains
-from .continuation import barrier_multipliers, final_weight, first_weight, next_weight, rows_at, weights_for
+from .continuation import barrier_multipliers, final_weight, first_weight, rows_at, weights_for
 from .globalization import direction_and_first_trial, first_trial_ahead, globalized_step
 from .initial_state import InitialState
 from .merit import MeritMemory
-from .model import Iterate, last_multipliers, with_weight
+from .model import Iterate, last_multipliers
 from .newton import compiled_direction, empty_multipliers, instances, regularized_direction
 from .options import EILQROptions
-from .verdicts import advanced, advanced_expanded, expanded
+from .verdicts import advanced, advanced_ahead, advanced_expanded, expanded, reweighted
 
 logger = logging.getLogger("torchtraj")
 
@@ -105,10 +105,14 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
     rows = []
     memory = MeritMemory.empty(B, opts.nonmonotone_memory, x0)
     expanded_k, advanced_k = kernel(expanded, opts.compile), kernel(advanced, opts.compile)
-    direction_k, onward_k = compiled_direction(opts.compile), kernel(advanced_expanded, opts.compile)
+    direction_k = compiled_direction(opts.compile)
     both_k = kernel(direction_and_first_trial, True) if first_trial_ahead(opts) else None
+    # from a step to the next iteration's tests: with them its first attempt where compiled kernels make it
+    ahead_k = kernel(advanced_ahead, True) if both_k is not None else None
+    onward_k = kernel(advanced_expanded, opts.compile) if ahead_k is None else None
     untested = None  # the instances whose last iterate the iterations left untested (test_last_iterate off)
     tests = None  # the iterate's expansion and tests, made with the move that reached it
+    made = None  # the first attempt's step and first trial, made with the move (ahead_k) from the floor
     for step in range(opts.iterations + 1):
         if step == opts.iterations and not opts.test_last_iterate:
             z, zN = kernel(last_multipliers, opts.compile)(cons, params, it, weights)
@@ -119,20 +123,21 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
             tests = expanded_k(problem, cons, params, it, x0, initial, weights, opts.record, status, final, tol,
                                unresolved, opts)
         model, status, advance, l1, defects, equality = tests
-        it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
-        if bool(advance.any()):
-            weights = weights_for(torch.where(advance, next_weight(weights.weight, final, opts), weights.weight),
-                                  opts)
-            model = with_weight(model, weights)
-            memory = memory.forget(advance)  # the barrier's new weight changes J: the past merits do not compare
+        if made is None:  # else the kernel that made the tests applied them
+            it = dataclasses.replace(it, z=model.z, zN=model.zN)  # the safeguarded multipliers
+            if bool(advance.any()):  # the barrier's new weight changes J: the past merits do not compare
+                it, weights, model, memory = reweighted(model, it, weights, memory, advance, final, opts)
         running = status == Status.RUNNING
         if step == opts.iterations or not bool(running.any()):
             break
-        ahead = {}  # the first attempt's step and its first trial point, made in one kernel
+        # the first attempt's step and its first trial point, made in one kernel (`fresh`: made before the attempts)
+        ahead = {} if made is None else {"d": made[0], "trial": made[1], "fresh": True}
 
         def attempt(e, rows=None):  # `rows`: the instances of a correction alone
             if rows is not None:
                 return direction_k(instances(model, rows), instances(it, rows), x0[rows], e[rows], opts.terminal_rows)
+            if ahead.pop("fresh", False):  # the first attempt, from the floor, made with the move
+                return ahead["d"]
             if both_k is None or ahead:  # the attempts after the first: their step alone
                 return direction_k(model, it, x0, e, opts.terminal_rows)
             ahead["d"], ahead["trial"] = both_k(model, it, x0, e, problem, cons, params, initial, gamma, l1, weights,
@@ -144,7 +149,13 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         d, ls, merit0, gamma, memory = globalized_step(problem, cons, params, model, it, x0, initial, d, eps, gamma,
                                                        l1, factored, opts, weights, memory,
                                                        ahead["trial"] if ahead.get("d") is d else None)
-        if step + 1 < opts.iterations or opts.test_last_iterate:  # the next iteration's tests with the move
+        weight, made = weights.weight, None  # the weight of this iteration's row (ahead_k sets the next one's)
+        if ahead_k is not None and (step + 1 < opts.iterations or opts.test_last_iterate):
+            # the next iteration's tests, weight and first attempt with the move
+            it, take, unresolved, floor, last, iterations, step_size, tests, weights, memory, made = ahead_k(
+                problem, cons, params, x0, initial, weights, opts.record, final, tol, it, d, ls.alpha, ls.found,
+                factored, running, eps, floor, last, status, iterations, gamma, memory, opts)
+        elif step + 1 < opts.iterations or opts.test_last_iterate:  # the next iteration's tests with the move
             it, take, unresolved, floor, last, iterations, step_size, tests = onward_k(
                 problem, cons, params, x0, initial, weights, opts.record, final, tol, it, d, ls.alpha, ls.found,
                 factored, running, eps, floor, last, status, iterations, opts)
@@ -156,7 +167,7 @@ def solve_eilqr(problem: Problem, batch: Batch, options: Optional[EILQROptions] 
         rows.append(dict(cost=model.J, max_violation=model.primal, step_size=step_size, regularization=eps,
                          defects=defects, equality=equality, merit=merit0, gamma=gamma, kkt_error=model.error,
                          stationarity=model.dual, complementarity=model.complementarity,
-                         barrier_weight=weights.weight))
+                         barrier_weight=weight))
         if opts.verbose:
             logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  gamma %.1e  running %d", method, step,
                         model.J.min().item(), model.J.max().item(), model.error.max().item(),

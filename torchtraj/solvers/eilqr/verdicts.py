@@ -19,14 +19,17 @@ docstring); a floor past ``regularization_max`` stops the instance ``MAX_REGULAR
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from torch import Tensor
 
-from ...core.masks import where_rows
+from ...core.masks import RowPicker, where_rows
 from ...core.status import Status
-from .continuation import stage_done
+from .continuation import next_weight, stage_done, weights_for
+from .globalization import direction_and_first_trial
 from .merit import model_infeasibility
-from .model import Iterate, Model, expand
+from .model import Iterate, Model, expand, with_weight
 from .newton import Direction
 
 #: A full Newton step of at most this many rounding errors of the iterate (``ε (1 + max(|X|∞, |U|∞))``) ends the
@@ -119,6 +122,43 @@ def advanced_expanded(problem, cons, params, x0: Tensor, rows, weights, record, 
         it, d, alpha, found, factored, running, eps, floor, last, status, iterations, opts)
     return (moved, take, unresolved, floor, last, iterations, size,
             expanded(problem, cons, params, moved, x0, rows, weights, record, status, final, tol, unresolved, opts))
+
+
+def reweighted(model: Model, it: Iterate, weights, memory, advance: Tensor, final: float, opts) -> tuple:
+    """What the tests of an expanded iterate ask of the next iteration: ``(iterate, weights, model, memory)``, the
+    iterate with the model's safeguarded multipliers, and where a stage ended (``advance (B,)``) the barrier's next
+    weight, the model with it (:func:`~torchtraj.solvers.eilqr.model.with_weight`) and the merit memory emptied (its
+    merits were of another weight); the other instances keep their own."""
+    it = dataclasses.replace(it, z=model.z, zN=model.zN)
+    weights = weights_for(torch.where(advance, next_weight(weights.weight, final, opts), weights.weight), opts)
+    new, pick = with_weight(model, weights), RowPicker(advance)
+    model = dataclasses.replace(model, **{name: pick(getattr(new, name), getattr(model, name)) for name in _WEIGHED})
+    return it, weights, model, memory.forget(advance)
+
+
+def advanced_ahead(problem, cons, params, x0: Tensor, rows, weights, record, final: float, tol: float, it: Iterate,
+                   d: Direction, alpha: Tensor, found: Tensor, factored: Tensor, running: Tensor, eps: Tensor,
+                   floor: Tensor, last: Tensor, status: Tensor, iterations: Tensor, gamma: Tensor, memory,
+                   opts) -> tuple:
+    """:func:`advanced_expanded`, :func:`reweighted` and the next iteration's first attempt, the Newton step from
+    ``floor`` and its first trial point
+    (:func:`~torchtraj.solvers.eilqr.globalization.direction_and_first_trial`, with the merit's weight ``gamma`` and
+    ``memory`` of this iteration's line search), in one call: a compiled solve's one kernel from one iteration's step
+    to the next one's first trial. An instance the tests stop has a step made that is never taken. Returns
+    ``(iterate, take, unresolved, floor, last, iterations, step size, (model, status, *tests), weights, memory,
+    (direction, first trial))``."""
+    moved, take, unresolved, floor, last, iterations, size, tests = advanced_expanded(
+        problem, cons, params, x0, rows, weights, record, final, tol, it, d, alpha, found, factored, running, eps,
+        floor, last, status, iterations, opts)
+    model, status, advance, l1 = tests[:4]
+    moved, weights, model, memory = reweighted(model, moved, weights, memory, advance, final, opts)
+    ahead = direction_and_first_trial(model, moved, x0, floor, problem, cons, params, rows, gamma, l1, weights,
+                                      memory, status == int(Status.RUNNING), opts)
+    return (moved, take, unresolved, floor, last, iterations, size, (model, *tests[1:]), weights, memory, ahead)
+
+
+#: the fields of a :class:`~torchtraj.solvers.eilqr.model.Model` that the barrier's weight sets
+_WEIGHED = ("J", "lz", "lNx", "Lzz", "LNxx", "zw", "zwN", "sigma", "sigmaN", "complementarity", "error", "barrier_gap")
 
 
 def _largest(X: Tensor, U: Tensor) -> Tensor:
