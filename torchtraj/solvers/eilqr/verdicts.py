@@ -2,10 +2,12 @@ r"""An eILQR iteration's per-instance decisions (:func:`~torchtraj.solvers.eilqr
 tensors alone: the tests of the iterate after its expansion, and the move with the bookkeeping after the line search.
 
 Each is joined to a kernel (:func:`expanded`: the expansion and its tests; :func:`advanced`: the move and the
-regularisation's schedule; :func:`advanced_expanded`: both, from one iteration's step to the next one's tests), so
-that a compiled solve (``EILQROptions.compile``) makes them part of one kernel call instead of some sixty eager
-calls each between kernels; an eager solve runs the same functions. Every decision is a
-mask on the batch: an instance's verdicts read its own values alone.
+regularisation's schedule; :func:`advanced_expanded`: both, from one iteration's step to the next one's tests;
+:func:`advanced_ahead`: with them the barrier's next weight (:func:`reweighted`) and the next iteration's Newton step
+and first trial point, a compiled solve's one kernel from one step to the next), so that a compiled solve
+(``EILQROptions.compile``) makes them part of one kernel call instead of some sixty eager calls each between kernels;
+an eager solve runs the same functions but the last. Every decision is a mask on the batch: an instance's verdicts
+read its own values alone.
 
 **After the expansion** (:func:`examined`): an instance with a non-finite model stops ``NON_FINITE``; at the
 barrier's last weight one whose KKT error is below the tolerance (or whose last full step the dtype could not resolve)
