@@ -29,7 +29,8 @@ def reference() -> dict:
 @pytest.fixture
 def dynamo_capture(monkeypatch):
     """``torch.compile`` as Dynamo's capture alone (its ``"eager"`` backend: the graphs run as captured, in seconds,
-    no inductor), with no compiled kernel or graph left from an earlier test. Yields Dynamo's counters, cleared."""
+    no inductor; the kernels' guard filter kept), with no compiled kernel or graph left from an earlier test. Yields
+    Dynamo's counters, cleared."""
     import torch
     from torch._dynamo.utils import counters
 
@@ -37,8 +38,10 @@ def dynamo_capture(monkeypatch):
 
     original = torch.compile
 
-    def captured(fn, **kwargs):
-        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False))
+    def captured(fn, **kwargs):  # the kernels' guard filter kept (compiled.kept_guards)
+        options = kwargs.get("options") or {}
+        kept = {"guard_filter_fn": options["guard_filter_fn"]} if "guard_filter_fn" in options else None
+        return original(fn, backend="eager", dynamic=kwargs.get("dynamic", False), options=kept)
 
     monkeypatch.setattr(torch, "compile", captured)
     monkeypatch.setattr(compiled, "_KERNELS", {})

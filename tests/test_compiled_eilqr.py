@@ -92,3 +92,41 @@ def test_a_later_batch_size_captures_no_kernel_again(dynamo_capture):
 def test_compiled_eilqr_matches_eager():
     x0 = tt.problems.sample_x0("pendulum", 2, seed=2)
     assert_compiled_matches_eager(pendulum(), x0, "eilqr", tt.EILQROptions(), tol=1e-7, costate_rtol=1e-7)
+
+
+#: a constant of this module that a test problem's cost reads (a user's module global)
+SCALE = 1.0
+
+
+def test_library_globals_are_not_guarded_but_a_user_modules_constant_is(dynamo_capture, monkeypatch):
+    """The kernels keep no guards on torch's and torchtraj's globals (``compiled.kept_guards``: their checks are a
+    share of a call at B = 1), but a constant of another module that a problem's cost reads stays guarded: changed,
+    the kernels compile again and the solve is the eager one of the new value."""
+    import sys
+
+    from torch._dynamo.eval_frame import _debug_get_cache_entry_list
+
+    base = pendulum().replace(horizon=10, terminal_eq=None)  # a short horizon: its goal as a cost alone
+    problem = base.replace(stage_cost=lambda x, u, p: base.stage_cost(x, u, p) + SCALE * (u ** 2).sum())
+    x0 = tt.problems.sample_x0("pendulum", 2, seed=2)
+    options = tt.EILQROptions(compile=True)
+    first = tt.solve(problem, x0, "eilqr", options=options)
+    guards = "".join(str(entry.guard_manager) for fn in compiled._KERNELS
+                     for entry in _debug_get_cache_entry_list(fn.__code__))
+    assert "G['__import_torchtraj_dot_" not in guards and "G['__import_torch_dot_" not in guards
+    assert f"G['__import_{__name__.replace('.', '_dot_')}']" in guards  # SCALE's module
+    monkeypatch.setattr(sys.modules[__name__], "SCALE", 3.0)
+    second = tt.solve(problem, x0, "eilqr", options=options)
+    assert_close_solutions(second, tt.solve(problem, x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
+    assert bool((second.status == tt.Status.CONVERGED).all())
+    assert (second.U - first.U).abs().max() > 1e-2  # the new weight moved the answer
+
+
+def test_a_guard_source_is_a_library_global_by_its_module():
+    assert compiled.library_global("G['__import_torchtraj_dot_core_dot_batching'].rollout.__code__")
+    assert compiled.library_global("G['__import_torch_dot_nn_dot_functional'].relu")
+    assert compiled.library_global("list(dict.keys(G['__builtins_dict___6']))")
+    assert compiled.library_global("G['Iterate']")  # a global of the kernel's own module
+    assert not compiled.library_global("G['__import___main__'].GAIN")
+    assert not compiled.library_global("G['__import_math'].pi")
+    assert not compiled.library_global("L['cons'].problem.dynamics.__code__")

@@ -46,6 +46,14 @@ the mapped functions by pullbacks outside ``vmap`` (:mod:`torchtraj.core.derivat
 operations (``slice_backward``, ``cat``) have the same effect. A user's function that concatenates per-instance
 vectors with ``torch.cat`` specialises the kernels that evaluate it to B again (one compilation per batch size).
 
+Dynamo guards each kernel's specialisation on everything its trace read, and at B = 1 checking the guards is a
+share of a call's time, and about a third of a large kernel's guards are on module globals (the functions it calls
+and their code). The kernels keep none on the globals of torch's and torchtraj's modules, of ``dataclasses`` and
+the builtins (:func:`kept_guards`): a library's module-level values do not change while a process runs (a test that
+patches one inside a kernel resets Dynamo first). Guards on everything else stay: the arguments' tensors, the
+options' values, the problem's functions and their closures, and the globals of any other module (a constant in
+the user's module that a problem's function reads, whose change compiles the kernel again).
+
 Each kernel keeps up to :data:`RECOMPILE_LIMIT` specialisations (problems × horizons × dtypes, and batch sizes where
 the kernel specialises them) before falling back to eager: the first compiled kernel raises
 ``torch._dynamo.config.recompile_limit`` to it (a process-wide setting). A C++ compiler is needed on CPU (inductor's
@@ -109,8 +117,9 @@ def _compile(fn: Callable) -> Callable:
     # lowered
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
-    compiled = torch.compile(fn, dynamic=False, options=OPTIONS)
-    single = torch.compile(fn, dynamic=False, options=SINGLE_OPTIONS)  # a backend of its own: its own graphs
+    # new dicts: torch.compile pops the guard filter from the one it is given
+    compiled = torch.compile(fn, dynamic=False, options={**OPTIONS, "guard_filter_fn": kept_guards})
+    single = torch.compile(fn, dynamic=False, options={**SINGLE_OPTIONS, "guard_filter_fn": kept_guards})
 
     def batch_dynamic(*args, **kwargs):
         if 0 < _BATCH.get() < DYNAMIC_FROM:  # told a single instance: nothing to mark (mark_batch)
@@ -119,6 +128,28 @@ def _compile(fn: Callable) -> Callable:
         return compiled(*args, **kwargs)
 
     return batch_dynamic
+
+
+#: How Dynamo names the sources of library globals: the modules of torchtraj and torch, ``dataclasses`` and the
+#: builtins (a global of the kernel's own module, a torchtraj module, is ``G['name']``, with no import).
+_LIBRARY_GLOBALS = ("G['__import_torchtraj_dot_", "G['__import_torchtraj']", "G['__import_torch_dot_",
+                    "G['__import_torch']", "G['__import_dataclasses']", "G['__builtins_dict___")
+
+
+def kept_guards(entries) -> list:
+    """Dynamo's ``guard_filter_fn`` for every kernel: keep each guard but those on library globals (module docstring,
+    :func:`library_global`)."""
+    return [not (entry.is_global and library_global(entry.name)) for entry in entries]
+
+
+def library_global(source: str) -> bool:
+    """Whether a guard's ``source`` (Dynamo's name of the value it checks) is a global of torch, torchtraj,
+    ``dataclasses``, the builtins or the kernel's own module, and not one of another module (the user's)."""
+    start = source.find("G['")
+    if start < 0:
+        return False
+    name = source[start:]
+    return name.startswith(_LIBRARY_GLOBALS) or not name.startswith("G['__import_")
 
 
 @contextlib.contextmanager
