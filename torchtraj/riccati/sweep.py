@@ -137,19 +137,20 @@ def _factorize_stages_traced(W: Tensor, Hs: Tensor, QN: Tensor, rho: Tensor, hel
     more than the arithmetic."""
     N, Bsz, nx, n = W.shape
     eye_x = torch.eye(nx, dtype=W.dtype, device=W.device).expand(Bsz, nx, nx)
-    rho, Ws, WTs, Hss, (outer, held_diag, free_rows) = _stage_inputs(W, Hs, rho, held)
+    rho, Ws, WTs, Hss, _ = _stage_inputs(W, Hs, rho, None)
+    terms = None if held is None else _held_terms(held)  # made once: the loop reads their stages, the end all
+    held_stages = None if terms is None else tuple(_stages(term) for term in terms)
     P2 = QN + QN
     Ps, Hs_stages = [None] * (N + 1), [None] * N
     Ps[N] = P2
     for t in range(N - 1, -1, -1):
         H = addmatmul(Hss[t], WTs[t], matmul(P2, Ws[t]))
-        K = _stage_gains(H, nx, rho, None if held is None else (outer[t], held_diag[t], free_rows[t]))[0]
+        K = _stage_gains(H, nx, rho, None if terms is None else tuple(term[t] for term in held_stages))[0]
         E = torch.cat([eye_x, K], -2)
         X = matmul(_mT(E), matmul(H, E))
         P2 = X + _mT(X)
         Ps[t], Hs_stages[t] = P2, H
-    K, Quu, Qux, L, ok = _stage_gains(torch.stack(Hs_stages, 1), nx, rho.unsqueeze(1),
-                                      None if held is None else _held_terms(held))
+    K, Quu, Qux, L, ok = _stage_gains(torch.stack(Hs_stages, 1), nx, rho.unsqueeze(1), terms)
     return _time_major(Ps) * 0.5, K, Quu, Qux, L, (ok.transpose(0, 1) if K.shape[-2] == 1 else ok.all(1))
 
 
