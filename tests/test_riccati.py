@@ -323,3 +323,23 @@ def test_declared_bounds_give_the_solution_of_the_same_rows_back_propagated(regu
     twice = dataclasses.replace(rows, mask=both)
     counted = dependent_rows(factorize(dataclasses.replace(twice, bounds=bounds), rho))
     assert counted.tolist() == dependent_rows(factorize(twice, rho)).tolist() == [0, 1, 0, 0, 0]
+
+
+@pytest.mark.parametrize("nu", [1, 2])
+def test_the_traced_sweep_is_the_eager_sweep_with_and_without_held_controls(nu):
+    """The sweep traced by torch.compile or autograd (its gains made again from the stack of ``H`` after the loop)
+    gives the eager sweep's ``P``, ``K``, ``Q_uu``, ``Q_ux`` and tests exactly."""
+    from torchtraj.riccati.sweep import _factorize_stages_traced, factorize_stages
+
+    torch.manual_seed(nu)
+    N, B, nx = 6, 3, 2
+    W = torch.randn(N, B, nx, nx + nu, dtype=torch.float64)
+    A = torch.randn(N, B, nx + nu, nx + nu, dtype=torch.float64)
+    Hs = A @ A.transpose(-1, -2) + torch.eye(nx + nu, dtype=torch.float64)
+    QN = torch.eye(nx, dtype=torch.float64).expand(B, nx, nx).clone()
+    rho = torch.full((B,), 0.1, dtype=torch.float64)
+    for held in (None, (torch.rand(B, N, nu) > 0.6).double()):
+        eager, traced = factorize_stages(W, Hs, QN, rho, held), _factorize_stages_traced(W, Hs, QN, rho, held)
+        for a, b in zip(eager[:4], traced[:4]):
+            assert torch.equal(a, b)
+        assert torch.equal(eager[5], traced[5])
