@@ -30,7 +30,7 @@ def pendulum():
 
 def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(monkeypatch, dynamo_capture):
     corrections = []
-    correct = ipm_solver.second_order_correction
+    correct = soc.second_order_correction  # of the rows that need one (soc.correction_of_rows)
 
     def counted(*args):
         corrections.append(int(args[12].sum()))  # the instances that need one
@@ -44,7 +44,7 @@ def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(mon
         return factorize_step(*args)
 
     monkeypatch.setattr(soc, "factorize_step", eager_factorization)
-    monkeypatch.setattr(ipm_solver, "second_order_correction", counted)
+    monkeypatch.setattr(soc, "second_order_correction", counted)
     x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
     solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
     frames, kernels = dynamo_capture["frames"]["total"], len(compiled._KERNELS)
@@ -54,6 +54,32 @@ def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(mon
     assert not eager_factorizations, "the corrections' steps should be made in the compiled kernels"
     assert kernels >= 5 and frames == kernels, (frames, kernels)
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-9)
+
+
+def test_compiled_solves_take_the_instances_that_need_more_work_alone(monkeypatch, dynamo_capture):
+    """Compiled as eager, the inertia correction's later attempts and the second-order corrections run on the rows
+    of the instances that need them (a single one taken twice), laid out as the batch's: no kernel is traced again
+    for them, and the answers are eager's."""
+    sizes = {"attempt": [], "correction": []}
+    attempt, correct = ipm_solver.direction_of_rows, soc.second_order_correction
+
+    def counted_attempt(*args):
+        sizes["attempt"].append(args[6].numel())  # the instances attempted again
+        return attempt(*args)
+
+    def counted_correction(*args):
+        sizes["correction"].append(args[12].shape[0])  # the rows of the call
+        return correct(*args)
+
+    monkeypatch.setattr(ipm_solver, "direction_of_rows", counted_attempt)
+    monkeypatch.setattr(soc, "second_order_correction", counted_correction)
+    x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
+    solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
+    assert sizes["attempt"] and max(sizes["attempt"]) < 4, sizes
+    assert sizes["correction"] and min(sizes["correction"]) < 4, sizes
+    frames, kernels = dynamo_capture["frames"]["total"], len(compiled._KERNELS)
+    assert frames == kernels, (frames, kernels)
+    assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
 
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores

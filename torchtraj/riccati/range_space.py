@@ -116,8 +116,8 @@ class TerminalGains:
     def index_copy(self, dim: int, index: Tensor, source: "TerminalGains") -> "TerminalGains":
         """These gains with the instances ``index`` replaced by ``source``'s (``dim`` 0, the batch; as
         :meth:`torch.Tensor.index_copy`)."""
-        return TerminalGains(*(part.index_copy(dim, index, row) for part, row in zip(self.parts(), source.parts())),
-                             tol=self.tol)
+        return TerminalGains(*(part.clone().index_copy_(dim, index, row)  # in a copy of the same layout
+                               for part, row in zip(self.parts(), source.parts())), tol=self.tol)
 
     def of(self, K: Tensor) -> "TerminalGains":
         """Formed gains ``K`` in this form: no terminal part (``kh = Π = 0``, ``−Σ = I``), so that

@@ -10,6 +10,7 @@ the full batch's history repeats a finished instance's last values (step size 0)
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, fields
 
 import torch
@@ -43,11 +44,40 @@ def gather_rows(value, index: Tensor):
     return rows_of(value, index, shared=("knots",), dropped=("factor",))
 
 
+def gather_laid_out(value, index: Tensor):
+    """:func:`gather_rows` for compiled kernels: each tensor's rows laid out as the tensor itself
+    (:func:`laid_out_as`). A compiled kernel is specialised to its inputs' strides, and with a dynamic batch to the
+    equalities between their offsets: the rows of a view (the model's fields are views of the expansion's rows)
+    gathered plainly would compile each kernel again for their own layout."""
+    if isinstance(value, Tensor):
+        return laid_out_as(value[index], value)
+    if isinstance(value, tuple):
+        return tuple(gather_laid_out(v, index) for v in value)
+    if not dataclasses.is_dataclass(value):
+        return value  # None, and the values that hold no tensor
+    kept = {"knots": lambda v: v, "factor": lambda v: None}  # per stage, shared; a factorisation is not taken apart
+    return type(value)(**{f.name: kept.get(f.name, lambda v: gather_laid_out(v, index))(getattr(value, f.name))
+                          for f in fields(value) if f.init})
+
+
+def laid_out_as(value: Tensor, like: Tensor) -> Tensor:
+    """``value``, of ``like``'s shape but for its batch size, with the strides and storage offset of ``like`` (a
+    copy where they differ; ``value`` itself where ``like`` repeats an element, which no copy can be laid out as)."""
+    if value.stride() == like.stride() and value.storage_offset() == like.storage_offset():
+        return value
+    if any(st == 0 and n > 1 for n, st in zip(like.shape, like.stride())):
+        return value
+    extent = like.storage_offset() + 1 + sum((n - 1) * st for n, st in zip(value.shape, like.stride()) if n > 0)
+    return like.new_empty(extent).as_strided(value.shape, like.stride(), like.storage_offset()).copy_(value)
+
+
 def write_rows(value, index: Tensor, rows):
     """The batch-first dataclass ``value`` with its rows ``index`` replaced by ``rows`` (a new object; a field that
     is no tensor, as a :class:`~torchtraj.solvers.ipm.newton.Direction`'s factor, becomes ``None``)."""
     def one(x, y):
-        return x.index_copy(0, index, y) if isinstance(x, (Tensor, TerminalGains)) else None
+        if isinstance(x, Tensor):  # in place into a copy, which keeps the layout (index_copy's own result is
+            return x.clone().index_copy_(0, index, y)  # contiguous, and a compiled kernel would specialise to it)
+        return x.index_copy(0, index, y) if isinstance(x, TerminalGains) else None
 
     return type(value)(**{f.name: one(getattr(value, f.name), getattr(rows, f.name)) for f in fields(value)})
 

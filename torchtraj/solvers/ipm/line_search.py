@@ -30,15 +30,16 @@ import torch
 from torch import Tensor
 
 from ...core.batching import param_rows
+from ...core.compiled import DYNAMIC_FROM
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
 from ...core.one_pass import problem_values
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...globalization.line_search import Accepted, backtrack
-from .compaction import gather_rows, pick
+from .compaction import gather_laid_out, gather_rows, pick
 from .iterate import Iterate, Model
-from .kernels import compiled_kernels, eager_kernels, kernel_of
+from .kernels import compiled_kernels, eager_kernels, kernel_of, uses_graphs
 from .newton import Direction
 from .options import IPOptions
 
@@ -216,11 +217,17 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
                 trial, opts, it.X.device)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                           theta_min, alphas, opts)
             last = previous[0]
-        else:
-            accept, unfiltered, blocked, theta_c, parts = trial(
-                problem, cons, param_rows(params, rows), gather_rows(it, rows), gather_rows(d, rows),
-                gather_rows(model, rows), *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
-                theta_max[rows], theta_min[rows], alphas, opts)
+        else:  # compiled: laid out as the batch's rows, at least DYNAMIC_FROM of them (newton.direction_of_rows)
+            index = rows if eager or rows.numel() >= DYNAMIC_FROM else rows.repeat(DYNAMIC_FROM)
+            take = gather_rows if eager else gather_laid_out
+            alphas = alphas if alphas.dim() == 1 or index is rows else alphas[:1].expand(len(index), -1).contiguous()
+            accept, unfiltered, blocked, theta_c, parts = kernel_of(trial, opts, it.X.device)(
+                problem, cons, param_rows(params, index), *(take(v, index) for v in (it, d, model, mu, phi, slope, filt,
+                                                                                    theta_max, theta_min)),
+                alphas, opts)
+            if index is not rows:
+                accept, unfiltered, blocked, theta_c = (v[:1] for v in (accept, unfiltered, blocked, theta_c))
+                parts = tuple(v[:1] for v in parts)
             last = previous[0][rows]
         if not first:
             first.append((accept[:, 0], theta_c[:, 0], parts, blocked[:, 0]))
@@ -228,12 +235,12 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
         previous[0] = blocked[:, -1] if rows is None else previous[0].index_copy(0, rows, blocked[:, -1])
         return accept, (unfiltered, before)
 
-    eager = eager_kernels(opts, it.X.device)  # compiled or graphed kernels keep the batch's shape
+    eager = eager_kernels(opts, it.X.device)
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
     steps = backtrack(candidates, max(1, opts.line_search_parallel), acceptable, pending, start,
-                      sync_first=True, by_rows=eager)
+                      sync_first=True, by_rows=not uses_graphs(opts, it.X.device))  # graphs keep the batch's shape
     found, alpha, (unfiltered, blocked) = steps.found, steps.alpha, steps.values
     shortened = found & ~tiny & (alpha < a_max)
     corrected = None

@@ -31,12 +31,12 @@ import torch
 from torch import Tensor
 
 from ...core.batching import param_rows
-from ...core.compiled import kernel
+from ...core.compiled import DYNAMIC_FROM, kernel
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...riccati import LQR
-from .compaction import gather_rows, pick, write_rows
+from .compaction import gather_laid_out, gather_rows, laid_out_as, pick, write_rows
 from .iterate import Iterate, Model
 from .kernels import compiled_kernels
 from .line_search import advance, fraction_to_boundary, trial
@@ -57,16 +57,6 @@ class Correction:
 
 def _scaled(alpha: Tensor, value: Tensor) -> Tensor:
     return alpha.reshape(-1, *[1] * (value.dim() - 1)) * value
-
-
-def _laid_out_as(value: Tensor, like: Tensor) -> Tensor:
-    """``value`` with the strides and storage offset of ``like``: a compiled kernel is specialised to its inputs'
-    strides, and with a dynamic batch to the equalities between their offsets."""
-    if value.stride() == like.stride() and value.storage_offset() == like.storage_offset():
-        return value
-    extent = like.storage_offset() + 1 + sum((n - 1) * st for n, st in zip(like.shape, like.stride()) if n > 0)
-    out = like.new_empty(extent).as_strided(like.shape, like.stride(), like.storage_offset())
-    return out.copy_(value)
 
 
 def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
@@ -96,7 +86,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         defects, h, hN, gs, gsN = c_soc
         values = dict(f=defects + it.X[:, 1:], h=h, hN=hN, g=(gs - it.s) * knots, gN=gsN - it.sN)
         if compiled:  # laid out as the step's own (views of the expansion's rows): the same compiled kernels
-            values = {name: _laid_out_as(value, getattr(model, name)) for name, value in values.items()}
+            values = {name: laid_out_as(value, getattr(model, name)) for name, value in values.items()}
         corrected = dataclasses.replace(model, **values)
         step = kernel(newton_direction, True)(corrected, it, mu, x0, delta, opts.sweep, opts.terminal_rows) \
             if compiled else direction(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, None,
@@ -125,20 +115,24 @@ def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate,
                        mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor,
                        need: Tensor, a_max: Tensor, first: tuple, lqr: LQR, delta: Tensor, x0: Tensor,
                        opts: IPOptions) -> Correction:
-    """:func:`second_order_correction` of the instances ``need (B,)`` on their rows alone (eager solves), gathered
-    with their parameters; the others' ``found`` is false. Their system is factorised again for them (the
-    step's factorisation is of the whole batch): in a large batch a few instances need a correction, and a
-    factorisation or a solve of all would be made for them. Each instance's arithmetic is the same."""
+    """:func:`second_order_correction` of the instances ``need (B,)`` on their rows alone (eager solves, and compiled
+    kernels without CUDA graphs: ``lqr`` None), gathered with their parameters; the others' ``found`` is false.
+    Eager, their system is factorised again for them (the step's factorisation is of the whole batch): in a large
+    batch a few instances need a correction, and a factorisation or a solve of all would be made for them. Each
+    instance's arithmetic is the same."""
     rows = need.nonzero().squeeze(-1)
+    compiled = lqr is None  # compiled kernels, which form the system themselves: their rows laid out as the batch's,
+    take = gather_laid_out if compiled else gather_rows  # and a single instance taken twice (newton.direction_of_rows)
+    if compiled and rows.numel() < DYNAMIC_FROM <= need.shape[0]:  # (a batch of one has kernels of its own)
+        rows = rows.repeat(DYNAMIC_FROM)
     if rows.numel() == need.shape[0]:
         return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                        theta_min, need, a_max, first, lqr, delta, x0, opts)
     sub = second_order_correction(
-        problem, cons, param_rows(params, rows), gather_rows(it, rows),
-        gather_rows(d, rows), gather_rows(model, rows),
-        *(v[rows] for v in (mu, phi, slope)), gather_rows(filt, rows),
-        *(v[rows] for v in (theta_max, theta_min, need, a_max)), tuple(t[rows] for t in first), lqr.rows(rows),
-        delta[rows], x0[rows], opts)
+        problem, cons, param_rows(params, rows), take(it, rows), take(d, rows), take(model, rows),
+        *(take(v, rows) for v in (mu, phi, slope)), take(filt, rows),
+        *(take(v, rows) for v in (theta_max, theta_min, need, a_max)), take(first, rows),
+        None if compiled else lqr.rows(rows), take(delta, rows), take(x0, rows), opts)
     return Correction(found=torch.zeros_like(need).index_copy(0, rows, sub.found),
                       alpha=torch.zeros_like(mu).index_copy(0, rows, sub.alpha),
                       unfiltered=torch.zeros_like(need).index_copy(0, rows, sub.unfiltered),

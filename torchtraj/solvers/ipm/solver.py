@@ -77,7 +77,7 @@ from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import compiled_kernels, eager_kernels, kernel_of, uses_graphs
 from .line_search import line_search
-from .newton import batch_sweep, direction, newton_direction, newton_lqr, regularized_direction
+from .newton import batch_sweep, direction, direction_of_rows, newton_direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
 from .scaling import scaled_problem, unscale
@@ -292,9 +292,12 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         lqr, rhs = (None, None) if fused else newton_lqr(model, it, target_mu, x0, nx)
 
         def attempt(delta, rows=None):  # Mehrotra runs eager, keeping the factorisation for its corrector (kernels:
-            # no kwargs); `rows`: the instances of a correction alone (eager only, regularized_direction's by_rows)
+            # no kwargs); `rows`: the instances of a correction alone (regularized_direction's by_rows; not with
+            # CUDA graphs, which replay the batch's shapes)
             if fused:
-                return newton_k(model, it, target_mu, x0, delta, opts.sweep, opts.terminal_rows)
+                return newton_k(model, it, target_mu, x0, delta, opts.sweep, opts.terminal_rows) if rows is None \
+                    else direction_of_rows(newton_k, model, it, target_mu, x0, delta, rows, opts.sweep,
+                                           opts.terminal_rows)
             system = (lqr, rhs, delta, model, it, target_mu) if rows is None else (
                 lqr.rows(rows), gather_rows(rhs, rows), delta[rows], gather_rows(model, rows), gather_rows(it, rows),
                 target_mu[rows])
@@ -303,16 +306,16 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             # eager, the factorisation is kept for the second-order corrections (they solve the same system)
             return direction_k(*system, None, None, eager, opts.sweep, opts.terminal_rows)
 
-        d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager)
+        d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager or fused)
         factored = running & d.ok
         lost = torch.zeros_like(running)
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
             mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
         else:
-            def correct(need, a_max, phi, slope, first):  # W&B §2.3, on this iteration's system (eager: the rows of
-                # the instances that need it alone)
-                return (correction_of_rows if eager else second_order_correction)(
+            def correct(need, a_max, phi, slope, first):  # W&B §2.3, on this iteration's system (the rows of the
+                # instances that need it alone, but with CUDA graphs)
+                return (correction_of_rows if eager or fused else second_order_correction)(
                     problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min, need, a_max,
                     first, lqr, delta, x0, opts)
 
