@@ -94,6 +94,15 @@ SINGLE_OPTIONS = {**OPTIONS, "memory_planning": True}
 
 _KERNELS: dict = {}
 
+
+def batched_options(options: dict) -> Callable:
+    """Decorate a kernel with Inductor options for its batched graphs, added to :data:`OPTIONS` (a single
+    instance's graphs keep :data:`SINGLE_OPTIONS`): a setting measured to pay for that kernel alone."""
+    def mark(fn: Callable) -> Callable:
+        fn.batched_options = options
+        return fn
+    return mark
+
 #: The batch size of the solve running in this context (:func:`batch_of`; 0: not told).
 _BATCH: contextvars.ContextVar = contextvars.ContextVar("torchtraj_batch", default=0)
 
@@ -118,7 +127,8 @@ def _compile(fn: Callable) -> Callable:
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
     # new dicts: torch.compile pops the guard filter from the one it is given
-    compiled = torch.compile(fn, dynamic=False, options={**OPTIONS, "guard_filter_fn": kept_guards})
+    compiled = torch.compile(fn, dynamic=False, options={**OPTIONS, **getattr(fn, "batched_options", {}),
+                                                         "guard_filter_fn": kept_guards})
     single = torch.compile(fn, dynamic=False, options={**SINGLE_OPTIONS, "guard_filter_fn": kept_guards})
 
     def batch_dynamic(*args, **kwargs):

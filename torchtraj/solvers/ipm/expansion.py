@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import map_stage, map_state
+from ...core.compiled import batched_options
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
 from ...core.derivatives import (
@@ -181,6 +182,9 @@ def _linear_quadratic_values(problem: Problem, cons: Constraints, params, it: It
     return Expansion(Lz=Lz, Lzz=m.Lzz, LNx=LNx, LNxx=m.LNxx, f=f, fz=m.fz, rows=rows)
 
 
+# its loops run over the batch with the stages' few rows innermost, where Inductor's masked vectors of two or three
+# elements cost more than scalar code: 20 ms a call against 31 ms at B = 1024 (docs/benchmarks.md)
+@batched_options({"cpp.enable_loop_tail_vec": False})
 def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions,
            base: Optional[Base] = None) -> Model:
     """Everything the iteration needs at ``it``: one pass of ``torch.func`` over the batch, or, given the

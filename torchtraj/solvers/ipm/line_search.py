@@ -211,7 +211,7 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     first = []  # the first round's rejected full steps, for the second-order correction
     previous = [torch.zeros_like(pending)]  # was the last candidate of the previous round blocked by the filter
 
-    def acceptable(alphas, rows=None):  # `rows`: a later round's instances still looking, alone (eager)
+    def acceptable(alphas, rows=None):  # `rows`: a later round's instances still looking, alone (not with graphs)
         if rows is None:
             accept, unfiltered, blocked, theta_c, parts = ready.pop() if ready else kernel_of(
                 trial, opts, it.X.device)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
