@@ -54,6 +54,10 @@ patches one inside a kernel resets Dynamo first). Guards on everything else stay
 options' values, the problem's functions and their closures, and the globals of any other module (a constant in
 the user's module that a problem's function reads, whose change compiles the kernel again).
 
+Every kernel is compiled with Inductor's C++ wrapper (:data:`OPTIONS`); a kernel may add options of its own for its
+batched graphs (:func:`batched_options`: the interior point's expansion, whose loops over the batch are faster without
+masked vectors of a stage's two or three rows).
+
 Each kernel keeps up to :data:`RECOMPILE_LIMIT` specialisations (problems × horizons × dtypes, and batch sizes where
 the kernel specialises them) before falling back to eager: the first compiled kernel raises
 ``torch._dynamo.config.recompile_limit`` to it (a process-wide setting). A C++ compiler is needed on CPU (inductor's
