@@ -54,19 +54,23 @@ def param_rows(params: Params, index: Tensor) -> dict:
     return {k: v[:1].expand(index.shape[0], *v.shape[1:]) if shared_param(v) else v[index] for k, v in params.items()}
 
 
-def rows_of(value, index: Tensor, shared: tuple = (), dropped: tuple = ()):
+def rows_of(value, index: Tensor, shared: tuple = (), dropped: tuple = (), take: Optional[Callable] = None):
     """The instances ``index (R,)`` of a batch-first value: a tensor (or another object indexed as one, as the
     range-space gains), a tuple of such values, or a dataclass of them, field by field; ``None`` stays ``None``.
     The fields named in ``shared`` hold per-stage values that the batch shares and are kept whole; those named in
-    ``dropped`` (a factorisation, which is not taken apart) become ``None``."""
+    ``dropped`` (a factorisation, which is not taken apart) become ``None``. ``take(tensor, index)``, given, takes
+    each tensor's rows instead of indexing it."""
     if value is None:
         return None
     if isinstance(value, tuple):
-        return tuple(rows_of(v, index, shared, dropped) for v in value)
+        return tuple(rows_of(v, index, shared, dropped, take) for v in value)
+    if take is not None and isinstance(value, Tensor):
+        return take(value, index)
     if hasattr(value, "__getitem__"):
         return value[index]
     return type(value)(**{f.name: getattr(value, f.name) if f.name in shared
-                          else None if f.name in dropped else rows_of(getattr(value, f.name), index, shared, dropped)
+                          else None if f.name in dropped
+                          else rows_of(getattr(value, f.name), index, shared, dropped, take)
                           for f in dataclasses.fields(value)})
 
 

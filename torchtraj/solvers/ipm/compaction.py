@@ -10,13 +10,13 @@ the full batch's history repeats a finished instance's last values (step size 0)
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
 
 from ...core.batching import rows_of
+from ...core.compiled import DYNAMIC_FROM
 from ...core.masks import RowPicker
 from ...core.solution import History
 from ...riccati.range_space import TerminalGains, select_gains
@@ -49,15 +49,14 @@ def gather_laid_out(value, index: Tensor):
     (:func:`laid_out_as`). A compiled kernel is specialised to its inputs' strides, and with a dynamic batch to the
     equalities between their offsets: the rows of a view (the model's fields are views of the expansion's rows)
     gathered plainly would compile each kernel again for their own layout."""
-    if isinstance(value, Tensor):
-        return laid_out_as(value[index], value)
-    if isinstance(value, tuple):
-        return tuple(gather_laid_out(v, index) for v in value)
-    if not dataclasses.is_dataclass(value):
-        return value  # None, and the values that hold no tensor
-    kept = {"knots": lambda v: v, "factor": lambda v: None}  # per stage, shared; a factorisation is not taken apart
-    return type(value)(**{f.name: kept.get(f.name, lambda v: gather_laid_out(v, index))(getattr(value, f.name))
-                          for f in fields(value) if f.init})
+    return rows_of(value, index, shared=("knots",), dropped=("factor",), take=lambda v, i: laid_out_as(v[i], v))
+
+
+def kernel_rows(rows: Tensor) -> Tensor:
+    """The rows ``rows (R,)`` that a compiled kernel takes for them: at least :data:`DYNAMIC_FROM`, the instances
+    repeated where fewer (a batch of one has kernels of its own, and a batch's kernels serve every larger count); the
+    first ``R`` are ``rows`` themselves."""
+    return rows if rows.numel() >= DYNAMIC_FROM else rows.repeat(-(-DYNAMIC_FROM // rows.numel()))
 
 
 def laid_out_as(value: Tensor, like: Tensor) -> Tensor:

@@ -29,15 +29,14 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from ...core.batching import param_rows
-from ...core.compiled import DYNAMIC_FROM
+from ...core.batching import param_rows, rows_of
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
 from ...core.one_pass import problem_values
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...globalization.line_search import Accepted, backtrack
-from .compaction import gather_laid_out, gather_rows, pick
+from .compaction import gather_laid_out, gather_rows, kernel_rows, pick
 from .iterate import Iterate, Model
 from .kernels import compiled_kernels, eager_kernels, kernel_of, uses_graphs
 from .newton import Direction
@@ -217,17 +216,18 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
                 trial, opts, it.X.device)(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                           theta_min, alphas, opts)
             last = previous[0]
-        else:  # compiled: laid out as the batch's rows, at least DYNAMIC_FROM of them (newton.direction_of_rows)
-            index = rows if eager or rows.numel() >= DYNAMIC_FROM else rows.repeat(DYNAMIC_FROM)
-            take = gather_rows if eager else gather_laid_out
-            alphas = alphas if alphas.dim() == 1 or index is rows else alphas[:1].expand(len(index), -1).contiguous()
-            accept, unfiltered, blocked, theta_c, parts = kernel_of(trial, opts, it.X.device)(
+        else:  # the rows alone; compiled, laid out as the batch's and as many as a kernel takes (direction_of_rows)
+            index, take = (rows, gather_rows) if eager else (kernel_rows(rows), gather_laid_out)
+            R = rows.numel()
+            if alphas.dim() == 2 and index is not rows:  # the step sizes of the rows repeated as the rows are
+                alphas = alphas.repeat(index.numel() // R, 1)
+            out = kernel_of(trial, opts, it.X.device)(
                 problem, cons, param_rows(params, index), *(take(v, index) for v in (it, d, model, mu, phi, slope, filt,
                                                                                     theta_max, theta_min)),
                 alphas, opts)
-            if index is not rows:
-                accept, unfiltered, blocked, theta_c = (v[:1] for v in (accept, unfiltered, blocked, theta_c))
-                parts = tuple(v[:1] for v in parts)
+            if index is not rows:  # the first R, each row once
+                out = rows_of(out, torch.arange(R, device=rows.device))
+            accept, unfiltered, blocked, theta_c, parts = out
             last = previous[0][rows]
         if not first:
             first.append((accept[:, 0], theta_c[:, 0], parts, blocked[:, 0]))

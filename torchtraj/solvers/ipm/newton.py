@@ -36,14 +36,13 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from ...core.compiled import DYNAMIC_FROM
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
 from ...globalization.regularization import corrected_attempts
 from ...kkt import newton as kkt_newton
 from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize, sweep_for_batch
 from ...riccati.range_space import TerminalGains, gains_of
-from .compaction import gather_laid_out, pick, write_rows
+from .compaction import gather_laid_out, kernel_rows, pick, write_rows
 from .iterate import Iterate, Model
 from .options import IPOptions
 
@@ -165,10 +164,10 @@ def direction_of_rows(newton_k: Callable[..., Direction], model: Model, it: Iter
                       delta: Tensor, rows: Tensor, sweep: str, terminal_rows: str) -> Direction:
     """The Newton step of a compiled solve (``newton_k``, the kernel of :func:`newton_direction`) of the instances
     ``rows (R,)`` alone: an inertia correction's later attempt, whose other instances have their step. Their rows
-    are gathered laid out as the batch's (:func:`~torchtraj.solvers.ipm.compaction.gather_laid_out`), and at least
-    :data:`~torchtraj.core.compiled.DYNAMIC_FROM` of them (a single instance taken twice, its step kept once), so
-    that the kernels compiled for the batch serve every count; each instance's arithmetic is the same."""
-    index = rows if rows.numel() >= DYNAMIC_FROM else rows.repeat(DYNAMIC_FROM)
+    are gathered laid out as the batch's (:func:`~torchtraj.solvers.ipm.compaction.gather_laid_out`), as many as a
+    kernel takes (:func:`~torchtraj.solvers.ipm.compaction.kernel_rows`: a single instance taken twice, its step kept
+    once), so that the kernels compiled for the batch serve every count; each instance's arithmetic is the same."""
+    index = kernel_rows(rows)
     d = newton_k(*(gather_laid_out(v, index) for v in (model, it, mu, x0, delta)), sweep, terminal_rows)
     return d if index is rows else gather_laid_out(d, torch.arange(rows.numel(), device=rows.device))
 

@@ -36,7 +36,7 @@ from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from ...riccati import LQR
-from .compaction import gather_laid_out, gather_rows, laid_out_as, pick, write_rows
+from .compaction import gather_laid_out, gather_rows, kernel_rows, laid_out_as, pick, write_rows
 from .iterate import Iterate, Model
 from .kernels import compiled_kernels
 from .line_search import advance, fraction_to_boundary, trial
@@ -122,9 +122,9 @@ def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate,
     instance's arithmetic is the same."""
     rows = need.nonzero().squeeze(-1)
     compiled = lqr is None  # compiled kernels, which form the system themselves: their rows laid out as the batch's,
-    take = gather_laid_out if compiled else gather_rows  # and a single instance taken twice (newton.direction_of_rows)
-    if compiled and rows.numel() < DYNAMIC_FROM <= need.shape[0]:  # (a batch of one has kernels of its own)
-        rows = rows.repeat(DYNAMIC_FROM)
+    take = gather_laid_out if compiled else gather_rows  # as many as a kernel takes (newton.direction_of_rows)
+    if compiled and need.shape[0] >= DYNAMIC_FROM:  # (a batch of one has kernels of its own; a repeated row is
+        rows = kernel_rows(rows)  # written back twice, the same values)
     if rows.numel() == need.shape[0]:
         return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                        theta_min, need, a_max, first, lqr, delta, x0, opts)
