@@ -108,7 +108,8 @@ def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
 @pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the two tests above
 def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_capture):
     """With a dynamic batch dimension the compiled kernels iterate the running instances alone
-    (``IPOptions.compact_below``), down to two of them, with the eager answers."""
+    (``IPOptions.compact_below``), down to two of them, with the eager answers; the rows they keep are laid out as
+    the batch's, so that no kernel is traced again for them."""
     sizes = []
     mark = compiled.mark_batch
 
@@ -121,6 +122,8 @@ def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_cap
     solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
     batches = {s for s in sizes if s is not None}
     assert max(batches) == 8 and 2 <= min(batches) < 8, batches  # never one: B = 1 has graphs of its own
+    frames, kernels = dynamo_capture["frames"]["total"], len(compiled._KERNELS)
+    assert frames == kernels, (frames, kernels)
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
 
 

@@ -70,7 +70,7 @@ from ...core.status import Status
 from ...globalization.filter import Filter
 from ...riccati.range_space import formed, select_gains
 from .barrier import average_complementarity, mehrotra_step, monotone_update
-from .compaction import Final, full_history, gather_rows, history_row, pick
+from .compaction import Final, full_history, gather_laid_out, gather_rows, history_row, pick
 from .crossover_driver import cross_over
 from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error, last_values, with_values
 from .initialization import least_squares_multipliers
@@ -269,15 +269,15 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             records.append((index, history_row(model, torch.zeros_like(mu), floor, mu, error), False))
             keep = running.nonzero().squeeze(-1)
             index = keep if index is None else index[keep]
-            it, model, filt, base = gather_rows(it, keep), gather_rows(model, keep), gather_rows(filt, keep), \
+            # compiled: the model's rows laid out as every expansion's, as the kernels take them
+            model = (gather_laid_out if opts.compile else gather_rows)(model, keep)
+            it, filt, base = gather_rows(it, keep), gather_rows(filt, keep), \
                 None if base is None else gather_rows(base, keep)
             wd = gather_rows(wd, keep)
             mu, status, last, floor, iterations, K, theta_max, theta_min, x0, error, running, ceiling, budget, \
                 tiny_steps = (v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0,
                                                 error, running, ceiling, budget, tiny_steps))
             params = param_rows(params, keep)
-            if opts.compile:  # laid out as every expansion is: a gathered model would need graphs of its own
-                model = expand_k(problem, cons, params, it, opts, base)
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
         else:
