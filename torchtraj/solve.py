@@ -24,6 +24,7 @@ from . import solvers
 from .core import compiled
 from .core.batch import Batch
 from .core.constraints import Constraints, check_duals, map_duals
+from .core.derivatives import differentiates_in_inference_mode
 from .core.graphs import graphs_used
 from .core.problem import Problem
 from .core.solution import Solution, without_inference_tensors
@@ -142,7 +143,14 @@ def _without_autograd(run, kept: bool) -> Solution:
     replay, and compiled kernels, whose guards tell inference tensors from normal ones (a kernel would be captured
     again for each kind). Nor under a dispatch mode (``torchtraj.bench.ops.OperatorCounter``, a trace), which sees
     other calls in inference mode (composite operators whole, an ``unbind`` replayed by TorchScript as its
-    ``select``s): a count of calls is the same solve's, whichever mode it runs in."""
+    ``select``s): a count of calls is the same solve's, whichever mode it runs in.
+
+    Where this PyTorch's ``torch.func`` returns zero derivatives in inference mode
+    (:func:`~torchtraj.core.derivatives.differentiates_in_inference_mode`), the iterations run under
+    ``torch.no_grad`` instead, outside the caller's inference mode too (its inference tensors can be read there)."""
+    if not differentiates_in_inference_mode():
+        with torch.inference_mode(False), torch.no_grad():
+            return run()
     if kept or torch.is_inference_mode_enabled() or _IN_DISPATCH_MODE():
         return run()
     with torch.inference_mode():

@@ -103,8 +103,10 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
     """:func:`residuals`' ``(stationarity, feasibility, complementarity, dual_sign)`` from the detached
     multipliers ``given`` of ``c``'s blocks, ``rows`` the inequality rows that apply (no host read here, so that
     it can be recorded). The Lagrangian's gradient is ``torch.func.grad``'s inside a transform (a trace's
-    functionalisation, where ``requires_grad_`` is refused) and under ``torch.inference_mode`` (where autograd
-    records nothing, whatever ``enable_grad`` says), else autograd's on tensors that require it (faster eager): the
+    functionalisation, where ``requires_grad_`` is refused), under ``torch.inference_mode`` (where autograd
+    records nothing, whatever ``enable_grad`` says) and of inference tensors (made in the caller's inference mode,
+    which a solve leaves where ``torch.func`` would return zeros in it: autograd cannot save them), else autograd's
+    on tensors that require it (faster eager): the
     same operators, the same residuals to the last bit (``tests/test_certificate.py``)."""
     B, nx = X.shape[0], problem.nx
     stage, terminal = stack_blocks(c, given, 0.0, X)
@@ -119,7 +121,8 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
                + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
         return out.sum(), (g, values.eq, values.ineq, values.eqN, values.ineqN)
 
-    if under_transform() or torch.is_inference_mode_enabled():
+    inference_tensors = any(t.is_inference() for t in (X, U, *params.values()))
+    if under_transform() or torch.is_inference_mode_enabled() or inference_tensors:
         (gx, gu), values = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
     else:
         with torch.enable_grad():
