@@ -501,7 +501,7 @@ def test_corrections_on_the_pending_instances_alone_change_no_answer(monkeypatch
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("case", ["general", "declared", "bounds"])
+@pytest.mark.parametrize("case", ["general", "declared", "bounds", "terminal"])
 def test_cuda_graphs_replay_the_eager_solve(case):
     """``IPOptions(cuda_graphs=True)`` on a GPU: every kernel captured, and the same statuses, iterations and
     solutions as the eager solve to rounding (the Cholesky factors by formulas instead of LAPACK-like calls), and
@@ -510,15 +510,16 @@ def test_cuda_graphs_replay_the_eager_solve(case):
     inequality rows (its torch.func expansion captured), declared linear-quadratic (its products; the crossover's
     candidates and refinement hold the state row, which takes the Riccati core's SVD: eager), and with control
     bounds alone (the crossover's start rounds on the whole batch, refinement's Newton step and the adjoint solve
-    graphed too)."""
+    graphed too), and with its terminal row (the range-space method, whose pseudo-inverses are Jacobi rotations on
+    a GPU: LAPACK-like solvers read their status on the host)."""
     from torchtraj.core.graphs import _GRAPHED, graphed
     from torchtraj.differentiation import implicit
     from torchtraj.solvers.ipm import crossover
     from torchtraj.solvers.ipm.newton import direction
 
-    changes = dict(general={}, declared=dict(linear_quadratic=True),
-                   bounds=dict(linear_quadratic=True, state_ineq=None))[case]
-    problem = oscillator(terminal_eq=None, **changes).to(device="cuda")
+    changes = dict(general=dict(terminal_eq=None), declared=dict(linear_quadratic=True, terminal_eq=None),
+                   bounds=dict(linear_quadratic=True, state_ineq=None, terminal_eq=None), terminal={})[case]
+    problem = oscillator(**changes).to(device="cuda")
     x0s = torch.tensor([[0.5, 0.0], [0.8, -0.3], [0.3, 0.2]], dtype=F64, device="cuda")
     out, captured = {}, []
     for graphs in (False, True, True):

@@ -44,6 +44,9 @@ the gains once, at the end (:func:`formed`).
 The factorisation's cost is the unconstrained sweep's plus two matrix products a stage (the chains of ``Π`` and
 ``δx^h``; with the parallel sweep, associative scans) and a constant number of calls for all stages at once; each
 solve is one unconstrained solve plus a constant number.
+
+On a GPU the pseudo-inverses (of ``C_N`` and of the ``Σ_k``) are Jacobi rotations' (:func:`by_rotations`): the
+same thresholds, no host read, so that a CUDA graph captures the whole factorisation. On a CPU they are LAPACK's.
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ from torch import Tensor
 
 from ..core.compiled import addmatmul, matmul
 from ..core.masks import where_rows
+from . import jacobi
 from .factor import RiccatiFactor
 from .linalg import _cholesky_solve, _mT, _sym
 from .lqr import LQR, LQRSolution, LQRVectors
@@ -262,11 +266,21 @@ def _forward_chain(Phi: Tensor, drive: Tensor, parallel: bool) -> Tensor:
     return torch.stack(out, 1)
 
 
+def by_rotations(M: Tensor) -> bool:
+    """Whether the pseudo-inverses of ``M`` are Jacobi rotations' (:mod:`~torchtraj.riccati.jacobi`): on a GPU,
+    where LAPACK-style solvers read their status on the host, which a CUDA graph cannot capture."""
+    return M.is_cuda
+
+
 def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
     """The pseudo-inverse of the symmetric positive semidefinite ``M (..., m, m)``: its eigenvalues above ``tol``
     times the largest inverted, the others dropped. Each matrix is divided by its largest entry first
-    (``pinv(c M) = pinv(M) / c``), so that the eigensolver's own scaling cannot overflow."""
+    (``pinv(c M) = pinv(M) / c``), so that the eigensolver's own scaling cannot overflow. On a GPU, by Jacobi
+    rotations (:func:`~torchtraj.riccati.jacobi.pinv`: for this positive semidefinite ``M`` the singular values are
+    the eigenvalues)."""
     scale = M.abs().flatten(-2).amax(-1).clamp_min(torch.finfo(M.dtype).tiny).unsqueeze(-1).unsqueeze(-1)
+    if by_rotations(M):
+        return jacobi.pinv(M / scale, tol) / scale
     w, V = torch.linalg.eigh(M / scale)
     keep = w > (tol * w.amax(-1, keepdim=True)).clamp_min(torch.finfo(w.dtype).tiny)
     inverse_w = torch.where(keep, w.reciprocal(), torch.zeros_like(w))
@@ -336,7 +350,8 @@ def penalised(lqr: LQR, tol: float) -> tuple:
     H = torch.cat([lqr.Q.flatten(1), lqr.R.flatten(1), lqr.S.flatten(1), lqr.QN.flatten(1)], -1)
     rho = (PENALTY * H.abs().amax(-1).clamp_min(1.0)).reshape(-1, 1, 1)
     finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
-    pinv = torch.linalg.pinv(torch.where(finite, C, 0.0), rtol=tol)
+    rows = torch.where(finite, C, 0.0)
+    pinv = jacobi.pinv(rows, tol) if by_rotations(rows) else torch.linalg.pinv(rows, rtol=tol)
     projector = pinv @ C.nan_to_num()
     return (dataclasses.replace(lqr, C=None, D=None, mask=None, CN=None, maskN=None, QN=lqr.QN + rho * projector),
             rho * _mT(pinv))
