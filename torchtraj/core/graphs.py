@@ -21,11 +21,19 @@ The wrapped function must not synchronise with the host (no ``.item()``, ``bool(
 and must launch the same kernels whatever the values: the solvers' kernels decide per instance by masks, and the
 loops with host decisions (line-search rounds, regularisation attempts, iterations) stay in Python around them.
 Answers are those of the eager kernels to rounding (the same kernels run). Each wrapper keeps
-:data:`GRAPHS_KEPT` graphs, the most recently used, each with its own memory pool.
+:data:`GRAPHS_KEPT` graphs, the most recently used, each with its own memory pool. Code that must take another
+path while it is captured (a LAPACK-like call that reads its status on the host) asks :func:`capturing`.
+
+**Checked on a CPU.** :func:`emulated` makes a solve on the CPU take the graphed path: each wrapped call runs once
+as if captured (:func:`capturing` true), under a dispatch mode that refuses the operators that read device memory
+on the host or a solver's status (:data:`HOST_READS`), and falls back to eager with the same warning as a failed
+capture. So the contract above is tested without a GPU (``tests/test_graphs_on_cpu.py``); what a CPU cannot show
+(a copy from host memory into a graph) still needs one.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import warnings
 from collections import OrderedDict
@@ -33,9 +41,60 @@ from typing import Callable
 
 import torch
 from torch import Tensor
+from torch.utils._python_dispatch import TorchDispatchMode
 
 #: Graphs kept per wrapped function (least recently used dropped first).
 GRAPHS_KEPT = 8
+
+#: operators that read a tensor on the host (a value, a count, a solver's status): a CUDA graph cannot hold them
+HOST_READS = frozenset({
+    "aten._local_scalar_dense", "aten.is_nonzero", "aten.item", "aten.equal", "aten.nonzero", "aten.masked_select",
+    "aten._unique2", "aten.unique_consecutive", "aten.unique_dim", "aten._linalg_check_errors", "aten._linalg_eigh",
+    "aten._linalg_svd", "aten.linalg_eig", "aten.lift_fresh",
+})
+
+_EMULATED = False  # graphed calls on the CPU run as if captured (:func:`emulated`)
+_CAPTURING = False  # an emulated capture is running
+
+
+def capturing() -> bool:
+    """Whether a CUDA graph is being captured now (or, on the CPU, emulated: :func:`emulated`)."""
+    return _CAPTURING or (torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
+
+
+@contextlib.contextmanager
+def emulated():
+    """Solves inside take the graphed path on the CPU, each graphed call checked as a capture (module docstring)."""
+    global _EMULATED
+    before, _EMULATED = _EMULATED, True
+    try:
+        yield
+    finally:
+        _EMULATED = before
+
+
+class _HostReadsRefused(TorchDispatchMode):
+    """Raises ``RuntimeError`` at an operator of :data:`HOST_READS`, at indexing by a boolean mask (its count is
+    read) and at an operator asked to check its errors."""
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        name = func.name().split(".")[0].replace("::", ".")
+        masked = name in ("aten.index", "aten.index_put", "aten.index_put_") and any(  # a mask's count
+            isinstance(i, Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ()) or ())
+        if name in HOST_READS or masked or kwargs.get("check_errors", False):
+            raise RuntimeError(f"{func.name()} reads device memory on the host, which a CUDA graph cannot capture")
+        return func(*args, **kwargs)
+
+
+def _emulated_capture(fn: Callable, args: tuple):
+    global _CAPTURING
+    before, _CAPTURING = _CAPTURING, True
+    try:
+        with _HostReadsRefused():
+            return fn(*args)
+    finally:
+        _CAPTURING = before
 
 
 def _flatten(value, tensors: list, key: list):
@@ -132,11 +191,20 @@ class Graphed:
     def __call__(self, *args):
         tensors, key = [], []
         template = _flatten(args, tensors, key)
-        if not any(t.is_cuda for t in tensors) or torch.cuda.is_current_stream_capturing():
+        on_gpu = any(t.is_cuda for t in tensors)
+        if (not on_gpu and not _EMULATED) or capturing():
             return self.fn(*args)
         key = tuple(key)
         if key in self.eager:
             return self.fn(*args)
+        if not on_gpu:  # emulated on the CPU: checked as a capture at every call, not replayed
+            try:
+                return _emulated_capture(self.fn, args)
+            except RuntimeError as exc:
+                warnings.warn(f"torchtraj: {getattr(self.fn, '__qualname__', self.fn)} runs without a CUDA graph "
+                              f"({exc})", RuntimeWarning, stacklevel=2)
+                self.eager.add(key)
+                return self.fn(*args)
         captured = self.graphs.get(key)
         if captured is None:
             try:
@@ -178,7 +246,7 @@ def graphs_used(options, device: torch.device) -> bool:
     """Whether a solve's kernels are replayed from CUDA graphs: ``options.cuda_graphs`` asked for, not
     ``options.compile``, on a CUDA ``device`` (elsewhere no argument is flattened)."""
     return getattr(options, "cuda_graphs", False) and not getattr(options, "compile", False) \
-        and device.type == "cuda"
+        and (device.type == "cuda" or _EMULATED)
 
 
 _GRAPHED: dict = {}

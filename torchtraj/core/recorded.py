@@ -69,6 +69,7 @@ import torch.utils._pytree as pytree
 from torch.func import functionalize
 
 from .graph_passes import hoisted, output_values, simplify
+from .graphs import capturing
 from .scripted import Scripted, scripted
 
 #: Records kept per function (input signatures: batch sizes, horizons, problems, dtypes, devices).
@@ -301,8 +302,7 @@ def _foreign_constants(graph: torch.fx.GraphModule, kept: list) -> bool:
 def _must_run_eager(leaves: list) -> bool:
     if under_transform():
         return True
-    if any(isinstance(leaf, torch.Tensor) and leaf.is_cuda for leaf in leaves) \
-            and torch.cuda.is_current_stream_capturing():
+    if capturing():
         return True
     return torch.is_grad_enabled() and any(isinstance(leaf, torch.Tensor) and leaf.requires_grad for leaf in leaves)
 

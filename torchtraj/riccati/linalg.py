@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ..core.compiled import matmul as _mm
+from ..core.graphs import capturing
 
 
 def _mT(a: Tensor) -> Tensor:
@@ -38,7 +39,7 @@ def _elementwise(n: int) -> bool:
     CUDA graph is captured (MAGMA's batched routines, behind some of the LAPACK-like calls, cannot be)."""
     if n > _SMALL:
         return False
-    return torch.compiler.is_compiling() or (torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
+    return torch.compiler.is_compiling() or capturing()
 
 
 def _cholesky(H: Tensor):

@@ -59,6 +59,7 @@ import torch
 from torch import Tensor
 
 from ..core.compiled import addmatmul, matmul
+from ..core.graphs import capturing
 from ..core.masks import where_rows
 from . import jacobi
 from .factor import RiccatiFactor
@@ -269,7 +270,7 @@ def _forward_chain(Phi: Tensor, drive: Tensor, parallel: bool) -> Tensor:
 def by_rotations(M: Tensor) -> bool:
     """Whether the pseudo-inverses of ``M`` are Jacobi rotations' (:mod:`~torchtraj.riccati.jacobi`): on a GPU,
     where LAPACK-style solvers read their status on the host, which a CUDA graph cannot capture."""
-    return M.is_cuda
+    return M.is_cuda or capturing()
 
 
 def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
@@ -320,7 +321,7 @@ def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     m = negative.shape[-1]
     eye = torch.eye(m, dtype=negative.dtype, device=negative.device)
     M = torch.where(finite.unsqueeze(-1).unsqueeze(-1), M, eye)
-    if torch.compiler.is_compiling() or (M.is_cuda and torch.cuda.is_current_stream_capturing()):
+    if torch.compiler.is_compiling() or capturing():
         return _eigen_inverse(M, tol), finite
     L, info = torch.linalg.cholesky_ex(M)
     pivots = L.diagonal(dim1=-2, dim2=-1).square().prod(-1)

@@ -38,6 +38,7 @@ from torch import Tensor
 
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
+from ...core.graphs import capturing
 from ...globalization.regularization import corrected_attempts
 from ...kkt import newton as kkt_newton
 from ...riccati import LQR, LQRVectors, RiccatiFactor, all_finite, factorize, sweep_for_batch
@@ -176,7 +177,7 @@ def _none_factorised(factor: RiccatiFactor) -> bool:
     """Whether no instance's system is positive definite, read where a host read costs nothing: eager and on a
     CPU (a traced kernel or a captured graph cannot read it, and on an accelerator it would wait for the device)."""
     ok = factor.ok
-    return ok.device.type == "cpu" and not torch.compiler.is_compiling() and not bool(ok.any())
+    return ok.device.type == "cpu" and not torch.compiler.is_compiling() and not capturing() and not bool(ok.any())
 
 
 def _failed(it: Iterate, factor: RiccatiFactor, keep_factor: bool) -> Direction:
