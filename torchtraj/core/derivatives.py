@@ -39,6 +39,7 @@ from typing import Callable, Iterator, Mapping
 import torch
 from torch import Tensor
 from torch.func import jacrev, jvp, vjp
+from torch.utils._python_dispatch import _disable_current_modes
 
 from .batching import map_stage, map_state
 from .compiled import matvec
@@ -51,12 +52,13 @@ def differentiates_in_inference_mode() -> bool:
     """Whether ``torch.func``'s transforms differentiate under ``torch.inference_mode`` in this PyTorch. Releases
     before the fix of pytorch/pytorch#177318 (2.11 among them) run them with autograd's dispatch keys excluded and
     return zero derivatives, silently; ``tt.solve`` then runs a method's iterations under ``torch.no_grad`` instead
-    (``torchtraj/solve.py``). Probed once, on the CPU, in both modes the package uses (reverse and forward)."""
-    x = torch.ones((), dtype=torch.float64)
-    with torch.inference_mode():
+    (``torchtraj/solve.py``). Probed once, on the CPU, in both modes the package uses (reverse and forward), with
+    the caller's dispatch modes set aside (an operator counter, a trace: the probe is no part of a solve)."""
+    with _disable_current_modes(), torch.inference_mode():
+        x = torch.ones((), dtype=torch.float64)
         reverse = vjp(torch.square, x)[1](x)[0]
         forward = jvp(torch.square, (x,), (x,))[1]
-    return bool(reverse == 2.0) and bool(forward == 2.0)
+        return bool(reverse == 2.0) and bool(forward == 2.0)
 
 
 def _on_z(fn: Callable, nx: int) -> Callable:
