@@ -16,7 +16,8 @@ F64 = torch.float64
 
 
 @pytest.mark.parametrize("read", [lambda x: x * float(x.sum()), lambda x: torch.linalg.eigh(x @ x.mT)[0],
-                                  lambda x: x[x > 0], lambda x: torch.linalg.cholesky(x @ x.mT + torch.eye(3))])
+                                  lambda x: x[x > 0], lambda x: torch.linalg.cholesky(x @ x.mT + torch.eye(3))],
+                         ids=["item", "eigh", "mask", "cholesky-checked"])
 def test_an_emulated_capture_refuses_a_host_read_and_runs_the_kernel_eager(read):
     x = torch.randn(3, 3)
     with graphs.emulated(), pytest.warns(RuntimeWarning, match="runs without a CUDA graph"):

@@ -24,7 +24,7 @@ Answers are those of the eager kernels to rounding (the same kernels run). Each 
 :data:`GRAPHS_KEPT` graphs, the most recently used, each with its own memory pool. Code that must take another
 path while it is captured (a LAPACK-like call that reads its status on the host) asks :func:`capturing`.
 
-**Checked on a CPU.** :func:`emulated` makes a solve on the CPU take the graphed path: each wrapped call runs once
+**Checked on a CPU.** :func:`emulated` makes a solve on the CPU take the graphed path: each wrapped call runs
 as if captured (:func:`capturing` true), under a dispatch mode that refuses the operators that read device memory
 on the host or a solver's status (:data:`HOST_READS`), and falls back to eager with the same warning as a failed
 capture. So the contract above is tested without a GPU (``tests/test_graphs_on_cpu.py``); what a CPU cannot show
@@ -80,14 +80,20 @@ class _HostReadsRefused(TorchDispatchMode):
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         name = func.name().split(".")[0].replace("::", ".")
-        masked = name in ("aten.index", "aten.index_put", "aten.index_put_") and any(  # a mask's count
-            isinstance(i, Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ()) or ())
-        if name in HOST_READS or masked or kwargs.get("check_errors", False):
+        if name in HOST_READS or _by_mask(name, args) or kwargs.get("check_errors", False):
             raise RuntimeError(f"{func.name()} reads device memory on the host, which a CUDA graph cannot capture")
         return func(*args, **kwargs)
 
 
+def _by_mask(name: str, args: tuple) -> bool:
+    """Whether an operator indexes by a boolean mask (whose count of true entries it reads)."""
+    if name not in ("aten.index", "aten.index_put", "aten.index_put_") or len(args) < 2 or args[1] is None:
+        return False
+    return any(isinstance(index, Tensor) and index.dtype == torch.bool for index in args[1])
+
+
 def _emulated_capture(fn: Callable, args: tuple):
+    """``fn(*args)`` as if captured: :func:`capturing` true, host reads refused."""
     global _CAPTURING
     before, _CAPTURING = _CAPTURING, True
     try:

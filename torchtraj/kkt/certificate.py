@@ -106,8 +106,8 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
     functionalisation, where ``requires_grad_`` is refused), under ``torch.inference_mode`` (where autograd
     records nothing, whatever ``enable_grad`` says) and of inference tensors (made in the caller's inference mode,
     which a solve leaves where ``torch.func`` would return zeros in it: autograd cannot save them), else autograd's
-    on tensors that require it (faster eager): the
-    same operators, the same residuals to the last bit (``tests/test_certificate.py``)."""
+    on tensors that require it (faster eager): the same operators, the same residuals to the last bit
+    (``tests/test_certificate.py``)."""
     B, nx = X.shape[0], problem.nx
     stage, terminal = stack_blocks(c, given, 0.0, X)
     z, nu = stage[..., :c.mi], stage[..., c.mi:c.mi + c.me]
