@@ -50,7 +50,7 @@ GRAPHS_KEPT = 8
 HOST_READS = frozenset({
     "aten._local_scalar_dense", "aten.is_nonzero", "aten.item", "aten.equal", "aten.nonzero", "aten.masked_select",
     "aten._unique2", "aten.unique_consecutive", "aten.unique_dim", "aten._linalg_check_errors", "aten._linalg_eigh",
-    "aten._linalg_svd", "aten.linalg_eig", "aten.lift_fresh",
+    "aten._linalg_svd", "aten.linalg_eig",
 })
 
 _EMULATED = False  # graphed calls on the CPU run as if captured (:func:`emulated`)
