@@ -207,19 +207,13 @@ class Graphed:
             try:
                 return _emulated_capture(self.fn, args)
             except RuntimeError as exc:
-                warnings.warn(f"torchtraj: {getattr(self.fn, '__qualname__', self.fn)} runs without a CUDA graph "
-                              f"({exc})", RuntimeWarning, stacklevel=2)
-                self.eager.add(key)
-                return self.fn(*args)
+                return self._eager_from_now(key, exc, args)
         captured = self.graphs.get(key)
         if captured is None:
             try:
                 captured = self._capture(template, tensors)
             except RuntimeError as exc:  # an operation that cannot be captured: this kernel stays eager
-                warnings.warn(f"torchtraj: {getattr(self.fn, '__qualname__', self.fn)} runs without a CUDA graph "
-                              f"({exc})", RuntimeWarning, stacklevel=2)
-                self.eager.add(key)
-                return self.fn(*args)
+                return self._eager_from_now(key, exc, args)
             self.graphs[key] = captured
             while len(self.graphs) > GRAPHS_KEPT:
                 self.graphs.popitem(last=False)
@@ -229,6 +223,13 @@ class Graphed:
                 static.copy_(value)
         captured.graph.replay()
         return _rebuild(captured.template, [t.clone() for t in captured.outputs])
+
+    def _eager_from_now(self, key: tuple, exc: RuntimeError, args: tuple):
+        """``fn(*args)`` eager, and eager at every later call with ``key``: its capture failed with ``exc``."""
+        warnings.warn(f"torchtraj: {getattr(self.fn, '__qualname__', self.fn)} runs without a CUDA graph ({exc})",
+                      RuntimeWarning, stacklevel=3)
+        self.eager.add(key)
+        return self.fn(*args)
 
     def _capture(self, template, tensors: list) -> _Captured:
         inputs = [t.clone() for t in tensors]
