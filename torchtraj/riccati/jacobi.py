@@ -48,7 +48,7 @@ def pinv(A: Tensor, rtol: float) -> Tensor:
     W, V = torch.stack(columns, -1), torch.stack(v, -1)
     squares = W.square().sum(-2)  # σ_j²
     largest = squares.amax(-1, keepdim=True)
-    keep = (squares > (rtol * rtol) * largest) & (squares > 0)
+    keep = squares > (rtol * rtol) * largest  # never a zero column: the right side is at least zero
     weights = torch.where(keep, squares.reciprocal(), torch.zeros_like(squares))
     return (V * weights.unsqueeze(-2)) @ W.mT
 
