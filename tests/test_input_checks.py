@@ -211,8 +211,12 @@ def test_mpc_checks_its_method_at_construction():
 
 
 def test_compile_on_a_method_without_compiled_kernels_warns_and_runs_eager(monkeypatch):
-    # every shipped method has compiled kernels: HM-iLQR stands for a registered method without them
+    # every shipped method has compiled kernels: HM-iLQR stands for a registered method without them, which must
+    # then get options that ask for none (no kernel is compiled)
+    from torchtraj.core import compiled as kernels
+
     monkeypatch.setattr(type(solvers.get("hm-ilqr")), "compiles", False)
+    monkeypatch.setattr(kernels, "_KERNELS", {})
     prob = make(u_lower=-torch.ones(1, dtype=F64), u_upper=torch.ones(1, dtype=F64))
     with pytest.warns(UserWarning, match="method 'hm-ilqr' has no compiled kernels: compile=True runs it eager"):
         compiled = tt.solve(prob, method="hm-ilqr", options=tt.HMILQROptions(compile=True, iterations=3))
@@ -224,6 +228,7 @@ def test_compile_on_a_method_without_compiled_kernels_warns_and_runs_eager(monke
         warnings.simplefilter("error")  # said once, at construction
         mpc(prob.x0)
         tt.solve(prob, method="ipm", options=tt.IPOptions(iterations=2))  # compile off: nothing to say
+    assert mpc.options.compile is False and not kernels._KERNELS
 
 
 def test_verbose_leaves_the_logger_as_it_found_it():

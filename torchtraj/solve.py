@@ -98,6 +98,7 @@ def solve(
     _check_declarations(solver, problem, batch)
     if eager_despite_compile(solver, opts):
         warnings.warn(f"method {solver.name!r} has no compiled kernels: compile=True runs it eager", stacklevel=2)
+        opts = solver.with_kernels(opts, compile=False)
     with _verbose_logging(getattr(opts, "verbose", False)), compiled.batch_of(batch.B):
         return _solve(solver, problem, batch, opts, gradients)
 
@@ -211,7 +212,8 @@ def _check_declarations(solver: Solver, problem: Problem, batch: Batch) -> None:
 
 def eager_despite_compile(solver: Solver, opts) -> bool:
     """Whether ``opts`` ask for compiled kernels (:meth:`Solver.kernel_options`) that the method does not have
-    (:attr:`Solver.compiles`): the field is accepted, for the control-step interface, and the method runs eager."""
+    (:attr:`Solver.compiles`): the field is accepted, for the control-step interface, and the method runs eager (the
+    solve passes it options with ``compile=False``)."""
     return not solver.compiles and bool(solver.kernel_setting(opts, "compile"))
 
 

@@ -137,10 +137,10 @@ class MPC(torch.nn.Module):
             raise ValueError(f"iterations must be a positive int or None, got {iterations!r}")
         self.problem, self.solver, self.method = problem, solver, solver.name
         self.options = solver.step_options(options, iterations, compile)
-        self._eager_despite_compile = eager_despite_compile(solver, self.options)
-        if self._eager_despite_compile:
+        if eager_despite_compile(solver, self.options):  # said once, here: the steps' options ask for no kernels
             warnings.warn(f"MPC: method {solver.name!r} has no compiled kernels: compile=True runs it eager",
                           UserWarning, stacklevel=2)
+            self.options = solver.with_kernels(self.options, compile=False)
         self.observation_to_state = observation_to_state
         self.observation_to_params = observation_to_params
         self._template = problem
@@ -252,8 +252,6 @@ class MPC(torch.nn.Module):
         with warnings.catch_warnings():
             if self._ignores_constraints:  # said once, at construction
                 warnings.filterwarnings("ignore", message=".*ignores the constraints")
-            if self._eager_despite_compile:  # the same
-                warnings.filterwarnings("ignore", message=".*has no compiled kernels")
             sol = solve(p, x, self.solver, options=self.options, **self.solver.warm_start(U0, duals, X0))
         self.solve_seconds = time.perf_counter() - start
         failed = torch.isin(sol.status, self._failures) | ~torch.isfinite(sol.U).flatten(1).all(-1)
