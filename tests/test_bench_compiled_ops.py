@@ -34,6 +34,37 @@ def test_library_calls_count_the_calls_made_outside_other_calls():
     assert (library.calls, library.kernels) == (5, 0)
 
 
+def test_the_count_from_raw_events_is_the_profilers_event_trees(dynamo_capture):
+    """``count_events`` reads the profiler's raw intervals; the ATen calls with no ATen ancestor in the profiler's
+    own event tree (``profile.events()``, seconds to build a solve's) and its compiled-region events are the same
+    numbers, for an eager solve and for calls of a compiled function among eager ones."""
+    from torch.profiler import ProfilerActivity, profile
+
+    def by_tree(prof):
+        calls = kernels = 0
+        for event in prof.events():
+            if event.name.startswith(compiled_ops.KERNEL_EVENT):
+                kernels += 1
+            elif event.name.startswith("aten::"):
+                parent = event.cpu_parent
+                while parent is not None and not parent.name.startswith("aten::"):
+                    parent = parent.cpu_parent
+                calls += parent is None
+        return calls, kernels
+
+    compiled = torch.compile(lambda x: (x.sin() * 2).sum())  # Dynamo's capture alone (the fixture)
+    x = torch.randn(4)
+    compiled(x)  # captured before the count
+    problem = with_horizon(problems.get("double_integrator"), 6)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        tt.solve(problem, method="eilqr", options=tt.EILQROptions(iterations=3))
+        for _ in range(3):
+            compiled(x) + 1
+    calls, kernels = compiled_ops.count_events(prof.profiler.kineto_results.events())
+    assert (calls, kernels) == by_tree(prof)
+    assert calls > 100 and kernels == 3
+
+
 def test_library_calls_count_each_call_of_a_compiled_function(dynamo_capture):
     def f(x):
         return (x.sin() * 2).sum()

@@ -42,6 +42,8 @@ from .runs import skip_reason, state_guess, with_compile
 
 #: Where Dynamo's call of a compiled function shows in the profiler.
 KERNEL_EVENT = "Torch-Compiled Region"
+#: The utility calls that the profiler's event list leaves out (``torch.autograd.profiler_util._filter_name``).
+UNLISTED = frozenset({"aten::is_leaf", "aten::output_nr", "aten::_version"})
 #: Why a method without compiled kernels (:attr:`~torchtraj.solvers.base.Solver.compiles`) has no row.
 NO_KERNELS = "no compiled kernels: its compile option runs eager"
 
@@ -61,20 +63,40 @@ class LibraryCalls:
 
     def __exit__(self, *exc) -> None:
         self._profile.__exit__(*exc)
-        for event in self._profile.events():
-            if event.name.startswith(KERNEL_EVENT):
-                self.kernels += 1
-            elif event.name.startswith("aten::") and not _inside_aten(event):
-                self.calls += 1
+        calls, kernels = count_events(self._profile.profiler.kineto_results.events())
+        self.calls += calls
+        self.kernels += kernels
 
 
-def _inside_aten(event) -> bool:
-    parent = event.cpu_parent
-    while parent is not None:
-        if parent.name.startswith("aten::"):
-            return True
-        parent = parent.cpu_parent
-    return False
+def count_events(events) -> tuple:
+    """``(calls, kernels)`` of the profiler's raw events (``kineto_results.events()``): the ATen calls on the CPU
+    that no other ATen call on their thread encloses, and the calls of compiled functions. An event encloses
+    another as the profiler's event tree nests them (``EventList``: sorted by start, the later end first; a later
+    event outside an open one closes it), read from the raw intervals because building that tree takes the profiler
+    seconds a solve (minutes and gigabytes for a long eager one)."""
+    kernels = 0
+    by_thread: dict = {}
+    for event in events:
+        name = event.name()
+        if (event.device_type() != torch.autograd.DeviceType.CPU or event.is_async() or name in UNLISTED
+                or event.start_thread_id() != event.end_thread_id() or event.is_hidden_event()):
+            continue
+        if name.startswith(KERNEL_EVENT):
+            kernels += 1
+        elif name.startswith("aten::"):
+            start = event.start_ns()
+            by_thread.setdefault(event.start_thread_id(), []).append((start, -(start + event.duration_ns())))
+    calls = 0
+    for intervals in by_thread.values():
+        intervals.sort()
+        open_ends: list = []  # ends of the enclosing ATen calls, innermost last
+        for start, negated_end in intervals:
+            end = -negated_end
+            while open_ends and (start >= open_ends[-1] or end > open_ends[-1]):
+                open_ends.pop()
+            calls += not open_ends
+            open_ends.append(end)
+    return calls, kernels
 
 
 @dataclass
