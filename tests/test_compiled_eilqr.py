@@ -1,13 +1,14 @@
 """eILQR's compiled kernels (``EILQROptions(compile=True)``, torchtraj.core.compiled).
 
-Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve (the expansion with
+Default run: Dynamo's capture alone (its ``"eager"`` backend, no inductor): each kernel of a solve (the expansion with
 its tests, the Newton step with the merit's weight, the step's bound and the first trial point, and each of these
 alone where the inertia correction attempts a step again, the second-order correction with its merit and the choice
 of a step, and each of these alone where some instances are corrected, the move with its bookkeeping, the next
 expansion and the next Newton step with its first trial point, the initial rollout, the answer's cost and
-violation) is one graph with no break, and the solve is the eager one.
+violation) is one graph with no break, and the solve is the eager one; which guard sources count as library globals.
 ``-m slow``: a later batch size captures none of them again; kernels captured for one problem are captured again for
-another, and a later trial's kernel is one graph; the solve compiled by inductor against eager.
+another, and a later trial's kernel is one graph; the control steps' untested last iterate; no guards on library
+globals but on a user's module constant; the solve compiled by inductor against eager.
 """
 
 import dataclasses
@@ -61,6 +62,7 @@ def test_the_kernels_compile_again_for_another_problem_and_a_later_trial_is_one_
     assert not dict(dynamo_capture["graph_break"]), dict(dynamo_capture["graph_break"])
 
 
+@pytest.mark.slow  # Dynamo traces for a minute; the default run keeps the interior point's control steps
 def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_capture):
     """The control steps' options (``EILQR.step_defaults``: the last iterate untested) compiled: the barrier
     multipliers of that iterate are one more kernel, one graph with no break, and each step applies the eager
@@ -98,6 +100,7 @@ def test_compiled_eilqr_matches_eager():
 SCALE = 1.0
 
 
+@pytest.mark.slow  # two captures, a minute and more; the default run keeps the guard filter's unit tests
 def test_library_globals_are_not_guarded_but_a_user_modules_constant_is(dynamo_capture, monkeypatch):
     """The kernels keep no guards on torch's and torchtraj's globals (``compiled.kept_guards``: their checks are a
     share of a call at B = 1), but a constant of another module that a problem's cost reads stays guarded: changed,

@@ -1,9 +1,11 @@
 """The interior point's compiled kernels (``IPOptions(compile=True)``, torchtraj.core.compiled).
 
-Default run: Dynamo's capture alone (its ``"eager"`` backend, seconds): each kernel of a solve is one graph (a graph
+Default run: Dynamo's capture alone (its ``"eager"`` backend, no inductor): each kernel of a solve is one graph (a graph
 break splits a kernel into pieces, each with its own call overhead) traced once (the second-order corrections reuse
 the kernels of the iteration's step and line search instead of specialisations of their own), and the solve is the
-eager one. ``-m slow``: the same solve compiled by inductor, against eager.
+eager one; the instances that need more work run alone with no kernel traced again; a control step's last iterate.
+``-m slow``: a later batch size captures no kernel again; finished instances left behind; the same solve compiled by
+inductor, against eager.
 """
 
 import pytest
@@ -89,6 +91,7 @@ def test_compiled_interior_point_matches_eager():
     assert_compiled_matches_eager(pendulum(), x0, "ipm", tt.IPOptions(), tol=1e-7)
 
 
+@pytest.mark.slow  # most of a minute; the default run keeps the test above (its rows of fewer instances traced once)
 def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
     """The batch dimension is dynamic in every kernel of the interior point: a batch of 3 after one of 2 captures no
     graph (the constraint rows and the expansion's derivatives are written so that ``vmap`` reads no concrete batch
@@ -105,7 +108,7 @@ def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
 
 
-@pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the two tests above
+@pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the first two tests
 def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_capture):
     """With a dynamic batch dimension the compiled kernels iterate the running instances alone
     (``IPOptions.compact_below``), down to two of them, with the eager answers; the rows they keep are laid out as
