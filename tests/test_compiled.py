@@ -244,3 +244,23 @@ def test_one_compilation_serves_every_batch_size():
         graphs[B] = counters["stats"]["unique_graphs"] - before
         assert_same_solution(eager, compiled)
     assert graphs[2] > 0 and graphs[3] == 0, graphs
+
+
+def test_a_long_horizon_is_rolled_out_by_one_kernel_in_pieces(dynamo_capture, monkeypatch):
+    """Past ``ROLLOUT_STAGES`` stages the compiled rollout takes the controls in consecutive pieces (here 4, 4 and 2
+    of 10): two specialisations of one kernel, the full piece and the last, and the eager rollout's states to the
+    bit (Dynamo's capture runs the same operations); within the bound it is one call of the kernel."""
+    from torchtraj.core import batching, compiled
+
+    monkeypatch.setattr(compiled, "ROLLOUT_STAGES", 4)
+    problem = small_pendulum(horizon=10)
+    x0 = tt.problems.sample_x0("pendulum", 3, seed=1)
+    U = torch.linspace(-1, 1, 30, dtype=torch.float64).reshape(3, 10, 1)
+    params = {name: torch.as_tensor(v).expand(3, *torch.as_tensor(v).shape) for name, v in problem.params.items()}
+    eager = batching.rollout(problem.dynamics, x0, U, params)
+    X = compiled.rollout_kernel(True)(problem.dynamics, x0, U, params)
+    assert torch.equal(X, eager)
+    assert dynamo_capture["stats"]["unique_graphs"] == 2 and not dynamo_capture["graph_break"]
+    short = compiled.rollout_kernel(True)(problem.dynamics, x0, U[:, :4].contiguous(), params)
+    assert torch.equal(short, eager[:, :5]) and dynamo_capture["stats"]["unique_graphs"] == 2
+    assert compiled.rollout_kernel(False) is batching.rollout

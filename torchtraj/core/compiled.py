@@ -74,6 +74,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from . import batching
 from .constraints import Constraints
 from .problem import Problem
 
@@ -83,6 +84,12 @@ FUSED_CONTRACTION = 8
 #: The smallest batch a kernel's dynamic batch dimension serves: Dynamo specialises sizes 0 and 1 whatever the mark,
 #: so a batch of one has graphs of its own (and a compiled solve does not compact its batch below this).
 DYNAMIC_FROM = 2
+
+#: The most stages a compiled rollout unrolls: a longer horizon is rolled out by the same kernel in
+#: pieces of this many stages, so that its generated code stops growing with the horizon (the pendulum's rollout at
+#: N = 100 was 1.2 MB of C++, the largest of the interior point's kernels; at N = 400 its compilation ran for half an
+#: hour).
+ROLLOUT_STAGES = 50
 
 #: Specialisations kept per kernel (Dynamo's default of 8 is reached by three MPC tasks in one process).
 RECOMPILE_LIMIT = 64
@@ -123,6 +130,28 @@ def kernel(fn: Callable, enabled: bool) -> Callable:
     if compiled is None:
         compiled = _KERNELS[fn] = _compile(fn)
     return compiled
+
+
+def rollout_kernel(enabled: bool) -> Callable:
+    """:func:`~torchtraj.core.batching.rollout` as a kernel (``enabled``), which unrolls at most
+    :data:`ROLLOUT_STAGES` stages: a longer horizon's controls go through it in consecutive pieces, each from the last
+    state of the one before (the same steps in the same order; at most two specialisations, the full piece and the
+    last one); or the eager function itself."""
+    step = kernel(batching.rollout, enabled)
+    if not enabled:
+        return step
+
+    def in_pieces(dynamics: Callable, x0: Tensor, U: Tensor, params, record=False) -> Tensor:
+        N = U.shape[-2]
+        if N <= ROLLOUT_STAGES:
+            return step(dynamics, x0, U, params, record)
+        states, x = [x0.unsqueeze(-2)], x0
+        for start in range(0, N, ROLLOUT_STAGES):
+            X = step(dynamics, x, U[..., start:start + ROLLOUT_STAGES, :].contiguous(), params, record)
+            states.append(X[..., 1:, :])
+            x = X[..., -1, :].contiguous()  # laid out as x0, so the pieces share a specialisation
+        return torch.cat(states, -2)
+    return in_pieces
 
 
 def _compile(fn: Callable) -> Callable:

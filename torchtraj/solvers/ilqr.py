@@ -15,8 +15,7 @@ import torch
 from torch import Tensor
 
 from ..core.batch import Batch
-from ..core.batching import rollout
-from ..core.compiled import kernel
+from ..core.compiled import kernel, rollout_kernel
 from ..core.constraints import Constraints
 from ..core.problem import Problem
 from ..core.solution import History, Solution
@@ -50,7 +49,7 @@ def solve_ilqr(problem: Problem, batch: Batch, options: Optional[ILQROptions] = 
     B = x0.shape[0]
     constraints = Constraints.of(problem)
     objective = CostObjective(problem)
-    X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
+    X = rollout_kernel(opts.compile)(problem.dynamics, x0, U0, params)
     U = U0
     J = kernel(total_cost, opts.compile)(problem, X, U, params)
     status = start_status(x0, X, J, opts)

@@ -44,8 +44,7 @@ from typing import Optional
 from torch import Tensor
 
 from ...core.batch import Batch
-from ...core.batching import rollout
-from ...core.compiled import kernel
+from ...core.compiled import rollout_kernel
 from ...core.problem import Problem
 from ...core.solution import Solution
 from .infeasible import solve_infeasible
@@ -65,7 +64,7 @@ def solve_altro(problem: Problem, batch: Batch, options: Optional[ALTROOptions] 
         X0 = problem.X_init.expand(batch.B, *problem.X_init.shape)
     if X0 is not None:
         return solve_infeasible(problem, x0, U0, X0, params, opts, method, duals)
-    X = kernel(rollout, opts.ilqr.compile)(problem.dynamics, x0, U0, params, opts.ilqr.record)
+    X = rollout_kernel(opts.ilqr.compile)(problem.dynamics, x0, U0, params, opts.ilqr.record)
     return run_altro(problem, x0, X, U0, params, opts, method, duals)
 
 

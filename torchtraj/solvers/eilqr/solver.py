@@ -43,8 +43,7 @@ from typing import Optional
 import torch
 
 from ...core.batch import Batch
-from ...core.batching import rollout
-from ...core.compiled import kernel
+from ...core.compiled import kernel, rollout_kernel
 from ...core.constraints import Constraints, multiplier_blocks
 from ...core.problem import Problem
 from ...core.solution import History, Solution
@@ -189,7 +188,7 @@ def start_states(problem: Problem, batch: Batch, opts: EILQROptions) -> torch.Te
     guess = state_guess(problem, batch, opts)
     if guess is not None:
         return guess
-    return kernel(rollout, opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
+    return rollout_kernel(opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
 
 
 def state_guess(problem: Problem, batch: Batch, opts: EILQROptions) -> Optional[torch.Tensor]:

@@ -61,7 +61,7 @@ import torch
 
 from ...core.batch import Batch
 from ...core.batching import param_rows, rollout
-from ...core.compiled import DYNAMIC_FROM, kernel
+from ...core.compiled import DYNAMIC_FROM, rollout_kernel
 from ...core.constraints import Constraints, multiplier_blocks
 from ...core.masks import where_rows
 from ...core.problem import Problem
@@ -133,7 +133,7 @@ def start_states(problem: Problem, batch: Batch, opts: IPOptions) -> torch.Tenso
     """The states ``(B, N+1, nx)`` a solve starts from: :func:`state_guess`, else the rollout of ``U0``."""
     X0 = state_guess(problem, batch)
     if X0 is None:
-        X0 = kernel(rollout, opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
+        X0 = rollout_kernel(opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
     return X0
 
 
@@ -147,7 +147,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     opts = batch_sweep(opts, cons, B, N, nx, problem.nu, x0.device)
     tol = opts.tolerance_for(x0.dtype)
     if X0 is None:
-        X = kernel(rollout, opts.compile)(problem.dynamics, x0, U0, params)
+        X = rollout_kernel(opts.compile)(problem.dynamics, x0, U0, params)
     else:
         X = torch.cat([x0.unsqueeze(1), X0[:, 1:]], 1)
     it = initial_iterate(cons, params, X, U0, opts)
