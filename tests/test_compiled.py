@@ -254,13 +254,17 @@ def test_a_long_horizon_is_rolled_out_by_one_kernel_in_pieces(dynamo_capture, mo
 
     monkeypatch.setattr(compiled, "ROLLOUT_STAGES", 4)
     problem = small_pendulum(horizon=10)
-    x0 = tt.problems.sample_x0("pendulum", 3, seed=1)
-    U = torch.linspace(-1, 1, 30, dtype=torch.float64).reshape(3, 10, 1)
-    params = {name: torch.as_tensor(v).expand(3, *torch.as_tensor(v).shape) for name, v in problem.params.items()}
-    eager = batching.rollout(problem.dynamics, x0, U, params)
-    X = compiled.rollout_kernel(True)(problem.dynamics, x0, U, params)
-    assert torch.equal(X, eager)
-    assert dynamo_capture["stats"]["unique_graphs"] == 2 and not dynamo_capture["graph_break"]
-    short = compiled.rollout_kernel(True)(problem.dynamics, x0, U[:, :4].contiguous(), params)
+    for B in (3, 1):  # a single instance's views of its states pass .contiguous() unchanged: they are copied
+        torch._dynamo.reset()
+        dynamo_capture.clear()
+        x0 = tt.problems.sample_x0("pendulum", B, seed=1)
+        U = torch.linspace(-1, 1, 10 * B, dtype=torch.float64).reshape(B, 10, 1)
+        params = {name: torch.as_tensor(v).expand(B, *torch.as_tensor(v).shape) for name, v in problem.params.items()}
+        eager = batching.rollout(problem.dynamics, x0, U, params)
+        X = compiled.rollout_kernel(True)(problem.dynamics, x0, U, params)
+        assert torch.equal(X, eager)
+        assert dynamo_capture["stats"]["unique_graphs"] == 2 and not dynamo_capture["graph_break"], B
+    short = compiled.rollout_kernel(True)(problem.dynamics, x0, U[:, :4].clone(memory_format=torch.contiguous_format),
+                                          params)
     assert torch.equal(short, eager[:, :5]) and dynamo_capture["stats"]["unique_graphs"] == 2
     assert compiled.rollout_kernel(False) is batching.rollout

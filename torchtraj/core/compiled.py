@@ -145,11 +145,16 @@ def rollout_kernel(enabled: bool) -> Callable:
         N = U.shape[-2]
         if N <= ROLLOUT_STAGES:
             return step(dynamics, x0, U, params, record)
-        states, x = [x0.unsqueeze(-2)], x0
+        # every piece's start and controls copied to the same fresh layout (a view keeps its parent's strides, even
+        # where .contiguous() accepts it), so that the pieces share one specialisation
+        def fresh(t: Tensor) -> Tensor:
+            return t.clone(memory_format=torch.contiguous_format)
+
+        states, x = [x0.unsqueeze(-2)], fresh(x0)
         for start in range(0, N, ROLLOUT_STAGES):
-            X = step(dynamics, x, U[..., start:start + ROLLOUT_STAGES, :].contiguous(), params, record)
+            X = step(dynamics, x, fresh(U[..., start:start + ROLLOUT_STAGES, :]), params, record)
             states.append(X[..., 1:, :])
-            x = X[..., -1, :].contiguous()  # laid out as x0, so the pieces share a specialisation
+            x = fresh(X[..., -1, :])
         return torch.cat(states, -2)
     return in_pieces
 
