@@ -232,3 +232,38 @@ def test_ilqr_with_the_parallel_sweep_gives_the_sequential_solution():
     assert (a.status == tt.Status.CONVERGED).all() and torch.equal(a.iterations, b.iterations)
     for name in ("X", "U", "K", "costate", "cost"):
         assert (getattr(a, name) - getattr(b, name)).abs().max() < 1e-8, name
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_the_elementwise_solve_pivots_as_lapack_does(monkeypatch, n):
+    """Traced or captured, the scan's small solves are Gaussian elimination with partial pivoting written out
+    elementwise: LAPACK's answers to round-off, also where the leading entry is zero and elimination without a row
+    exchange would divide by it."""
+    from torchtraj.riccati import linalg
+
+    g = torch.Generator().manual_seed(n)
+    M = torch.randn(5, n, n, generator=g, dtype=torch.float64)
+    M[0, 0, 0] = 0.0  # needs a row exchange (n > 1)
+    R = torch.randn(5, n, 3, generator=g, dtype=torch.float64)
+    expected = torch.linalg.solve(M, R) if n > 1 else R / M
+    monkeypatch.setattr(linalg, "_elementwise", lambda size: True)
+    solved = linalg._solve(M, R)
+    finite = torch.isfinite(expected).flatten(1).all(-1)
+    assert relative(solved[finite], expected[finite]) < 1e-12
+
+
+def test_the_traced_parallel_sweep_is_the_eager_one_to_round_off():
+    """Under ``torch.compile`` (Dynamo's capture alone) the scan's products are broadcast sums and its solves
+    elementwise (no library call inside a kernel); the factor and the step are the eager ones to round-off, with and
+    without held controls."""
+    lqr, rhs = random_lqr(B=3, N=9, nx=3, nu=2, seed=4)
+    for lqr_, rhs_ in ((lqr, rhs), with_bounds(lqr, rhs, seed=5)):
+        def run(lqr_=lqr_, rhs_=rhs_):
+            factor = factorize_parallel(lqr_)
+            return factor.P, factor.K, factor.solve(rhs_, multipliers=True).dx
+
+        torch._dynamo.reset()
+        traced = torch.compile(run, backend="eager", fullgraph=False)()
+        for a, b in zip(traced, run()):
+            assert relative(a, b) < 1e-10
+    torch._dynamo.reset()

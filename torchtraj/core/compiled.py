@@ -284,12 +284,14 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
     return a @ b
 
 
-def addmatmul(c: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    """``c + a @ b`` for batches of matrices ``(B, m, k)``, ``(B, k, n)``: one fused library call eager
-    (``torch.baddbmm``), a broadcast product and sum when traced with a short contraction, as :func:`matmul`."""
+def addmatmul(c: Tensor, a: Tensor, b: Tensor, alpha: float = 1.0) -> Tensor:
+    """``c + alpha · a @ b`` for batches of matrices ``(B, m, k)``, ``(B, k, n)``: one fused library call eager
+    (``torch.baddbmm``), a broadcast product and sum when traced with a short contraction, as :func:`matmul` (a
+    ``baddbmm`` left in a compiled kernel is a library call of its own, with its checks of the operands)."""
     if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
-        return c + (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
-    return torch.baddbmm(c, a, b)
+        product = (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+        return c + product if alpha == 1.0 else c + alpha * product
+    return torch.baddbmm(c, a, b) if alpha == 1.0 else torch.baddbmm(c, a, b, alpha=alpha)
 
 
 def matvec(a: Tensor, v: Tensor) -> Tensor:

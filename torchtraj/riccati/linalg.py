@@ -108,6 +108,30 @@ def _factored_solve(H: Tensor, L: Tensor, info: Tensor, b: Tensor) -> Tensor:
     return torch.linalg.solve_ex(torch.where((info == 0).unsqueeze(-1).unsqueeze(-1), H, eye), b)[0]
 
 
+def _solve(M: Tensor, R: Tensor) -> Tensor:
+    """``M⁻¹ R`` for ``M (..., n, n)`` and ``R (..., n, m)``: ``torch.linalg.solve_ex`` eager (an instance whose
+    ``M`` is singular gets what LAPACK leaves, never an error), or, for the smallest sizes while traced or captured
+    (:func:`_elementwise`), Gaussian elimination with partial pivoting written out elementwise (a pivot row is the
+    one of largest magnitude in its column, the rows exchanged by selections)."""
+    n = M.shape[-1]
+    if not _elementwise(n):
+        return torch.linalg.solve_ex(M, R)[0]
+    rows = list(torch.cat([M, R], -1).unbind(-2))
+    for k in range(n):
+        for i in range(k + 1, n):
+            larger = (rows[i][..., k].abs() > rows[k][..., k].abs()).unsqueeze(-1)
+            rows[k], rows[i] = torch.where(larger, rows[i], rows[k]), torch.where(larger, rows[k], rows[i])
+        for i in range(k + 1, n):
+            rows[i] = rows[i] - rows[i][..., k:k + 1] / rows[k][..., k:k + 1] * rows[k]
+    x = [None] * n
+    for i in range(n - 1, -1, -1):
+        v = rows[i][..., n:]
+        for j in range(i + 1, n):
+            v = v - rows[i][..., j:j + 1] * x[j]
+        x[i] = v / rows[i][..., i:i + 1]
+    return torch.stack(x, -2)
+
+
 def _mm_stacked(a: Tensor, b: Tensor) -> Tensor:
     """``a @ b`` for the blocks stacked over ``(δx, δu)``: as :func:`torchtraj.core.compiled.matmul`, but written
     as a broadcast sum when traced whatever the contraction ``nx + nu``, so that the congruence

@@ -64,10 +64,11 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from ..core.compiled import addmatmul as _addmm
 from ..core.compiled import matmul as _mm
 from .bounds import _bound_multipliers, _held_controls, _held_values
 from .factor import RiccatiFactor
-from .linalg import _batch_first, _cholesky, _cholesky_solve, _factored_solve, _mT, _sym
+from .linalg import _batch_first, _cholesky, _cholesky_solve, _factored_solve, _mT, _solve, _sym
 from .lqr import LQR, LQRSolution, LQRVectors
 from .parallel_scan import affine_scan, associative_scan
 from .sanitize import _sanitize_stacked, all_finite
@@ -157,24 +158,24 @@ class ParallelRiccatiFactor(RiccatiFactor):
         held = _held_values(self.fixed, lqr, rhs)
         if held is not None:  # the held controls' values moved into the stage's vectors
             H, held, free = tm["H"], _time_major(held), tm["free"]
-            Pc_held = torch.baddbmm(Pc, _mm(P_next, Bu), held)
-            q_held = torch.baddbmm(q, _mT(H[..., nx:, :nx]), held)
-            r_held = torch.baddbmm(r, H[..., nx:, nx:], held)
+            Pc_held = _addmm(Pc, _mm(P_next, Bu), held)
+            q_held = _addmm(q, _mT(H[..., nx:, :nx]), held)
+            r_held = _addmm(r, H[..., nx:, nx:], held)
         else:
             Pc_held, q_held, r_held = Pc, q, r
-        g = torch.baddbmm(torch.baddbmm(q_held, _mT(K), r_held), _mT(Phi), Pc_held)
+        g = _addmm(_addmm(q_held, _mT(K), r_held), _mT(Phi), Pc_held)
         p = torch.cat([affine_scan(_mT(Phi), g, qN, reverse=True), qN])
-        Qu = torch.baddbmm(r, _mT(Bu), Pc + p[B:])
+        Qu = _addmm(r, _mT(Bu), Pc + p[B:])
         if held is not None:
-            k = held - _cholesky_solve(torch.baddbmm(Qu, Quu, held) * free, tm["chol"])
+            k = held - _cholesky_solve(_addmm(Qu, Quu, held) * free, tm["chol"])
         else:
             k = -_cholesky_solve(Qu, tm["chol"])
         Quuk = _mm(Quu, k)
         dV1 = (k * Qu).unflatten(0, (-1, B)).sum((0, 2, 3))
         dV2 = 0.5 * (k * Quuk).unflatten(0, (-1, B)).sum((0, 2, 3))
         x0 = rhs.x0.unsqueeze(-1)
-        dx = torch.cat([x0, affine_scan(Phi, torch.baddbmm(c, Bu, k), x0)])
-        du = torch.baddbmm(k, K, dx[:-B])
+        dx = torch.cat([x0, affine_scan(Phi, _addmm(c, Bu, k), x0)])
+        du = _addmm(k, K, dx[:-B])
         out = LQRSolution(dx=_batch_first(dx, B), du=_batch_first(du, B), k=_batch_first(k, B),
                           p=_batch_first(p, B), dV1=dV1, dV2=dV2)
         if multipliers:
@@ -192,7 +193,7 @@ class ParallelRiccatiFactor(RiccatiFactor):
             tm[name] = tm[name].unflatten(0, (-1, B)).index_copy(1, index, getattr(other, name).transpose(0, 1)
                                                                   ).flatten(0, 1)
         W = tm["W"]
-        tm["Phi"] = torch.baddbmm(W[..., :nx], W[..., nx:], tm["K"])
+        tm["Phi"] = _addmm(W[..., :nx], W[..., nx:], tm["K"])
         return dataclasses.replace(
             self, K=_batch_first(tm["K"], B), P=_batch_first(tm["P"], B), Quu=_batch_first(tm["Quu"], B),
             Qux=self.Qux.index_copy(0, index, other.Qux), chol=_batch_first(tm["chol"], B),
@@ -219,7 +220,7 @@ class ParallelRiccatiFactor(RiccatiFactor):
             return a.unflatten(0, (-1, B)).index_select(1, index).flatten(0, 1)
 
         W, H, P = rows(tm["W"]), rows(tm["H"]), rows(tm["P"])
-        Hq = torch.baddbmm(H, _mT(W), _mm(P[b:], W))
+        Hq = _addmm(H, _mT(W), _mm(P[b:], W))
         Hu, Qux = _sym(Hq[..., nx:, nx:]), Hq[..., nx:, :nx]
         if tm["free"] is not None:
             free = rows(tm["free"])
@@ -240,11 +241,11 @@ class ParallelRiccatiFactor(RiccatiFactor):
         if self.fixed is not None:
             out.nu = _bound_multipliers(lqr, self.fixed, self.Quu, self.Qux, out.dx, out.du, _batch_first(Qu, B))
         if self.exact:
-            out.costate = _batch_first(torch.baddbmm(p, tm["P"], dx), B)
+            out.costate = _batch_first(_addmm(p, tm["P"], dx), B)
             return
         W, H = tm["W"], tm["H"]
-        last = torch.baddbmm(rhs.qN.unsqueeze(-1), lqr.QN, dx[-B:])
-        g = torch.baddbmm(torch.baddbmm(_time_major(rhs.q), H[..., :nx, :nx], dx[:-B]), H[..., :nx, nx:], du)
+        last = _addmm(rhs.qN.unsqueeze(-1), lqr.QN, dx[-B:])
+        g = _addmm(_addmm(_time_major(rhs.q), H[..., :nx, :nx], dx[:-B]), H[..., :nx, nx:], du)
         lam = torch.cat([affine_scan(_mT(W[..., :nx]), g, last, reverse=True), last])
         out.costate = _batch_first(lam, B)
 
@@ -270,9 +271,9 @@ def _stage_elements(W: Tensor, H: Tensor, rho: Optional[Tensor], held: Optional[
     L, info = _cholesky(R)
     Y = _cholesky_solve(torch.cat([S, _mT(Bu)], -1), L)  # R̃⁻¹ [S̃, B̃ᵀ]
     YS = Y[..., :nx]
-    A = torch.baddbmm(W[..., :nx], Bu, YS, alpha=-1.0)
+    A = _addmm(W[..., :nx], Bu, YS, alpha=-1.0)
     C = _mm(Bu, Y[..., nx:])
-    J = torch.baddbmm(H[..., :nx, :nx], _mT(S), YS, alpha=-1.0)
+    J = _addmm(H[..., :nx, :nx], _mT(S), YS, alpha=-1.0)
     return torch.stack([A, C, J], 1), info
 
 
@@ -282,11 +283,11 @@ def _join(eye: Tensor, earlier: tuple, later: tuple) -> tuple:
     A2, C2, J2 = later[0].unbind(1)
     nx = A1.shape[-1]
     # (I + C1 J2)⁻¹ [A1, C1] in one solve; (I + J2 C1)⁻¹ = (I + C1 J2)⁻ᵀ gives J's factor from the same one
-    T = torch.linalg.solve_ex(torch.baddbmm(eye, C1, J2), torch.cat([A1, C1], -1))[0]
+    T = _solve(_addmm(eye, C1, J2), torch.cat([A1, C1], -1))
     TA = T[..., :nx]
     A12 = _mm(A2, TA)
-    C12 = torch.baddbmm(C2, _mm(A2, T[..., nx:]), _mT(A2))
-    J12 = torch.baddbmm(J1, _mT(TA), _mm(J2, A1))
+    C12 = _addmm(C2, _mm(A2, T[..., nx:]), _mT(A2))
+    J12 = _addmm(J1, _mT(TA), _mm(J2, A1))
     return (torch.stack([A12, C12, J12], 1),)
 
 
@@ -314,7 +315,7 @@ def factorize_parallel(lqr: LQR, regularization: Optional[Tensor] = None,
     (scanned,) = associative_scan((torch.cat([elements, terminal]),), partial(_join, eye), B, reverse=True)
     P = _sym(scanned[:, 2])
     # every stage's Q-function from P_{k+1} in one batched congruence, the sequential sweep's H + Wᵀ P W
-    Hq = torch.baddbmm(H, _mT(W), _mm(P[B:], W))
+    Hq = _addmm(H, _mT(W), _mm(P[B:], W))
     Quu, Qux = _sym(Hq[..., nx:, nx:]), Hq[..., nx:, :nx]
     Hu = Quu if rho is None else Quu + rho
     if held is not None:  # the held controls out of the free ones' system (bounds._held_gain)
@@ -327,7 +328,7 @@ def factorize_parallel(lqr: LQR, regularization: Optional[Tensor] = None,
     built = (info_R == 0).reshape(N, B).all(0)
     ok = finite & built & (info == 0).reshape(N, B).all(0) & all_finite([P.reshape(N + 1, B, -1).transpose(0, 1)])
     tm = {"K": K, "P": P, "Quu": Quu, "chol": L, "W": W, "H": H, "free": free,
-          "Phi": torch.baddbmm(W[..., :nx], W[..., nx:], K)}
+          "Phi": _addmm(W[..., :nx], W[..., nx:], K)}
     return ParallelRiccatiFactor(
         lqr=lqr, K=_batch_first(K, B), P=_batch_first(P, B), ok=ok, Quu=_batch_first(Quu, B),
         Qux=_batch_first(Qux, B), chol=_batch_first(L, B), free=None, stage=None, terminal=None,
