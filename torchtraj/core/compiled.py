@@ -145,18 +145,19 @@ def rollout_kernel(enabled: bool) -> Callable:
         N = U.shape[-2]
         if N <= ROLLOUT_STAGES:
             return step(dynamics, x0, U, params, record)
-        # every piece's start and controls copied to the same fresh layout (a view keeps its parent's strides, even
-        # where .contiguous() accepts it), so that the pieces share one specialisation
-        def fresh(t: Tensor) -> Tensor:
-            return t.clone(memory_format=torch.contiguous_format)
-
-        states, x = [x0.unsqueeze(-2)], fresh(x0)
+        states, x = [x0.unsqueeze(-2)], _fresh(x0)
         for start in range(0, N, ROLLOUT_STAGES):
-            X = step(dynamics, x, fresh(U[..., start:start + ROLLOUT_STAGES, :]), params, record)
+            X = step(dynamics, x, _fresh(U[..., start:start + ROLLOUT_STAGES, :]), params, record)
             states.append(X[..., 1:, :])
-            x = fresh(X[..., -1, :])
+            x = _fresh(X[..., -1, :])
         return torch.cat(states, -2)
     return in_pieces
+
+
+def _fresh(t: Tensor) -> Tensor:
+    """A copy of ``t`` in the standard contiguous layout: the rollout's pieces share one specialisation, where a view
+    keeps its parent's strides (even where ``.contiguous()`` accepts it, as a single instance's views)."""
+    return t.clone(memory_format=torch.contiguous_format)
 
 
 def _compile(fn: Callable) -> Callable:
@@ -291,7 +292,7 @@ def addmatmul(c: Tensor, a: Tensor, b: Tensor, alpha: float = 1.0) -> Tensor:
     if torch.compiler.is_compiling() and a.shape[-1] <= FUSED_CONTRACTION:
         product = (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
         return c + product if alpha == 1.0 else c + alpha * product
-    return torch.baddbmm(c, a, b) if alpha == 1.0 else torch.baddbmm(c, a, b, alpha=alpha)
+    return torch.baddbmm(c, a, b, alpha=alpha)
 
 
 def matvec(a: Tensor, v: Tensor) -> Tensor:
