@@ -116,7 +116,7 @@ class Constraints:
                     if entry in both:
                         self.ineq_share[start + row] = 0.5
         if ignored:
-            self.me = self.mi = self.meN = self.miN = 0
+            self.me = self.mi = self.meN = self.miN = self.applied_ineq_rows = 0
         self._bound_selection = self._bound_selection_of_rows()
 
     @staticmethod

@@ -245,11 +245,22 @@ def lagrangian_hessian(
 
     ``stage_lagrangian(x, u, w, p) -> ()`` and ``terminal_lagrangian(x, w, p) -> ()`` take per-stage
     multiplier vectors ``w`` (``stage_weights (B, N, mw)``, ``terminal_weights (B, mwN)``), e.g.
-    ``w = (λ_{k+1}, ν_k, μ_k)``. Returns ``(H (B, N, nz, nz), H_N (B, nx, nx))``.
+    ``w = (λ_{k+1}, ν_k, μ_k)``. Returns ``(H (B, N, nz, nz), H_N (B, nx, nx))``. Traced by ``torch.compile``, the
+    Hessians of pullbacks of the mapped Lagrangians (as :func:`stage_hessian`'s), equal to rounding.
     """
     nx = X.shape[-1]
     Z = _stage_points(X, U)
     nz = Z.shape[-1]
+    if torch.compiler.is_compiling():  # pullbacks outside vmap: jacrev inside it would specialise the batch size
+        def mapped_stage(Z_):
+            return map_state(lambda zw, p: stage_lagrangian(zw[:nx], zw[nx:nz], zw[nz:], p),
+                             torch.cat([Z_, stage_weights], -1), params)
+
+        def mapped_terminal(X_):
+            return map_state(lambda xw, p: terminal_lagrangian(xw[:nx], xw[nx:], p),
+                             torch.cat([X_, terminal_weights], -1), params)
+
+        return _pullback_hessian(mapped_stage, Z)[2], _pullback_hessian(mapped_terminal, X[:, -1])[2]
 
     def stage(zw, p):
         z, w = zw[:nz], zw[nz:]

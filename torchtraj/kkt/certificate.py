@@ -94,7 +94,7 @@ def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params,
     X, U = X.detach(), U.detach()
     given = {} if c.ignored else {k: v.detach() for k, v in multipliers.items() if k in _blocks(c)}
     x0 = None if x0 is None else x0.detach()
-    rows = int((c.ineq_knot_mask[:, :c.mi] > 0).sum()) + c.miN  # the inequality rows that apply somewhere
+    rows = c.applied_ineq_rows + c.miN  # the inequality rows that apply somewhere (no host read: kernels call it)
     return KKTResiduals(*_RECORDED_RESIDUALS.option(record)(problem, c, X, U, given, params, x0, rows))
 
 
@@ -106,7 +106,8 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
     functionalisation, where ``requires_grad_`` is refused), under ``torch.inference_mode`` (where autograd
     records nothing, whatever ``enable_grad`` says) and of inference tensors (made in the caller's inference mode,
     which a solve leaves where ``torch.func`` would return zeros in it: autograd cannot save them), else autograd's
-    on tensors that require it (faster eager): the same operators, the same residuals to the last bit
+    on tensors that require it (faster eager); a compiled kernel's trace takes ``torch.func`` (Dynamo reads no
+    ``is_inference``): the same operators, the same residuals to the last bit
     (``tests/test_certificate.py``)."""
     B, nx = X.shape[0], problem.nx
     stage, terminal = stack_blocks(c, given, 0.0, X)
@@ -121,8 +122,8 @@ def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: di
                + (zN * values.ineqN).sum(1) + (nuN * values.eqN).sum(1))
         return out.sum(), (g, values.eq, values.ineq, values.eqN, values.ineqN)
 
-    inference_tensors = any(t.is_inference() for t in (X, U, *params.values()))
-    if under_transform() or torch.is_inference_mode_enabled() or inference_tensors:
+    if torch.compiler.is_compiling() or under_transform() or torch.is_inference_mode_enabled() or any(
+            t.is_inference() for t in (X, U, *params.values())):
         (gx, gu), values = grad(lagrangian, argnums=(0, 1), has_aux=True)(X, U)
     else:
         with torch.enable_grad():
