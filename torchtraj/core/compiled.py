@@ -114,6 +114,14 @@ def batched_options(options: dict) -> Callable:
         return fn
     return mark
 
+def single_options(options: dict) -> Callable:
+    """Decorate a kernel with Inductor options for the graphs of a single instance, over :data:`SINGLE_OPTIONS`: a
+    setting that such a kernel needs (its batched graphs keep theirs)."""
+    def mark(fn: Callable) -> Callable:
+        fn.single_options = options
+        return fn
+    return mark
+
 #: The batch size of the solve running in this context (:func:`batch_of`; 0: not told).
 _BATCH: contextvars.ContextVar = contextvars.ContextVar("torchtraj_batch", default=0)
 
@@ -168,7 +176,8 @@ def _compile(fn: Callable) -> Callable:
     # new dicts: torch.compile pops the guard filter from the one it is given
     compiled = torch.compile(fn, dynamic=False, options={**OPTIONS, **getattr(fn, "batched_options", {}),
                                                          "guard_filter_fn": kept_guards})
-    single = torch.compile(fn, dynamic=False, options={**SINGLE_OPTIONS, "guard_filter_fn": kept_guards})
+    single = torch.compile(fn, dynamic=False, options={**SINGLE_OPTIONS, **getattr(fn, "single_options", {}),
+                                                       "guard_filter_fn": kept_guards})
 
     def batch_dynamic(*args, **kwargs):
         if 0 < _BATCH.get() < DYNAMIC_FROM:  # told a single instance: nothing to mark (mark_batch)
