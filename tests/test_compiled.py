@@ -1,11 +1,13 @@
 """``compile=True`` (torchtraj.core.compiled): the same solver logic on torch.compile'd kernels gives the eager answers.
 
-Default run: the MPC policy's warm-started ALTRO steps on a short horizon, and a float32 ALTRO solve with a failing
-instance. ``-m slow``: ALTRO to convergence with its projection. Each first call compiles its kernels (about a minute
-on two cores), so the problems are short. The batch dimension is compiled dynamic: a second batch size compiles
-nothing new for iLQR (``test_one_compilation_serves_every_batch_size``, inductor) nor for ALTRO (Dynamo's capture
-alone, the ``dynamo_capture`` fixture: seconds), compiled iterations run on the running instances' rows, and
-``mark_batch`` marks the batch's tensors alone.
+Default run: Dynamo's capture of ALTRO's kernels at two batch sizes, the options each kind of graph gets, the batch
+marks and a long rollout's pieces. ``-m slow``: inductor's kernels against eager (ALTRO to convergence with its
+projection, the MPC policy's warm-started ALTRO steps, a float32 ALTRO solve with a failing instance, iLQR at two
+batch sizes). Each first call compiles its kernels (about a minute on two cores), so the problems are short. The
+batch dimension is compiled dynamic: a second batch size compiles nothing new for iLQR
+(``test_one_compilation_serves_every_batch_size``, inductor) nor for ALTRO (Dynamo's capture alone, the
+``dynamo_capture`` fixture: seconds; ALTRO's projection with ``-m slow``), compiled iterations run on the running
+instances' rows, and ``mark_batch`` marks the batch's tensors alone.
 """
 
 import contextlib
@@ -150,6 +152,29 @@ def test_a_single_instance_calls_kernels_compiled_with_pooled_buffers(monkeypatc
     assert compiled.SINGLE_OPTIONS["memory_planning"] and not compiled.OPTIONS.get("memory_planning", False)
 
 
+def test_a_kernels_own_options_add_to_its_single_or_batched_graphs(monkeypatch):
+    """``single_options`` and ``batched_options`` add a kernel's own Inductor settings to one kind of graph each:
+    ALTRO's projection and its Newton steps on the KKT conditions compile a single instance without memory planning
+    (which recursed past Python's limit on their buffers), their batched graphs with the batched options."""
+    from torchtraj.core import compiled
+    from torchtraj.solvers.altro import polish, projection
+
+    seen = {}
+
+    def recorded(fn, dynamic, options):
+        seen.setdefault(fn, []).append({k: v for k, v in options.items() if k != "guard_filter_fn"})
+        return fn
+
+    monkeypatch.setattr(torch, "compile", recorded)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    for fn in (projection._linearised_step, projection._least_squares_multipliers, polish.newton_kkt_step):
+        compiled.kernel(fn, True)
+        assert seen[fn] == [compiled.OPTIONS, {**compiled.SINGLE_OPTIONS, "memory_planning": False}], fn.__name__
+    plain = compiled.kernel(polish.kkt_error, True)
+    assert plain is not polish.kkt_error
+    assert seen[polish.kkt_error] == [compiled.OPTIONS, compiled.SINGLE_OPTIONS]
+
+
 def test_one_capture_of_each_altro_kernel_serves_every_batch_size(dynamo_capture):
     """ALTRO's kernels (the AL objective and violation, the iLQR iteration, the multiplier update) take the batch as
     a symbol: a batch of 3 after one of 2 captures no graph, and none breaks (Dynamo's capture alone), with the eager
@@ -166,6 +191,40 @@ def test_one_capture_of_each_altro_kernel_serves_every_batch_size(dynamo_capture
         assert_same_solution(solution, tt.solve(problem, x0, "altro", options=opts))
     assert not dynamo_capture["graph_break"], dict(dynamo_capture["graph_break"])
     assert graphs[2] >= 5 and graphs[3] == 0, graphs
+
+
+@pytest.mark.slow  # Dynamo traces the projection's kernels for most of a minute
+def test_one_capture_of_each_altro_projection_kernel_serves_every_batch_size(dynamo_capture, monkeypatch):
+    """The kernels of ALTRO's projection (its feasibility steps, multiplier solves, Newton steps on the KKT
+    conditions and their KKT errors) take the batch as a symbol too: a batch of 3 after one of 2 captures no graph,
+    and none breaks (Dynamo's capture alone; the AL stage eager, so that only the projection is captured), with the
+    eager answers."""
+    from torchtraj.solvers.altro import projection, stages
+
+    called, kernel, project = set(), projection.kernel, projection.project
+
+    def counted(fn, enabled):
+        if enabled:
+            called.add(fn.__name__)
+        return kernel(fn, enabled)
+
+    monkeypatch.setattr(projection, "kernel", counted)
+    problem = small_pendulum(8)
+    opts = tt.ALTROOptions(iterations_outer=3)
+    graphs = {}
+    for B in (2, 3):
+        x0 = tt.problems.sample_x0("pendulum", B, seed=B)
+        eager = tt.solve(problem, x0, "altro", options=opts)
+        before = dynamo_capture["stats"]["unique_graphs"]
+        with monkeypatch.context() as patch:
+            patch.setattr(stages, "project", lambda *args, **kwargs: project(*args, **{**kwargs, "compile": True}))
+            solution = tt.solve(problem, x0, "altro", options=opts)
+        graphs[B] = dynamo_capture["stats"]["unique_graphs"] - before
+        assert bool((eager.status == tt.Status.CONVERGED).all()), "the projection should end every solve"
+        assert_same_solution(solution, eager)
+    assert {"_linearised_step", "_least_squares_multipliers", "newton_kkt_step", "kkt_error"} <= called, called
+    assert not dynamo_capture["graph_break"], dict(dynamo_capture["graph_break"])
+    assert graphs[2] >= 4 and graphs[3] == 0, graphs
 
 
 @pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the test above
@@ -224,9 +283,12 @@ def test_concat_joins_per_instance_rows_as_cat_does_and_keeps_the_batch_dynamic(
 
 
 def test_applied_inequality_rows_are_the_knot_masks_ones():
+    """The count the KKT residuals read without a host read: the ones of the knot mask, and none where the
+    constraints are ignored (the unconstrained problem's KKT conditions)."""
     for name in tt.problems.names():
         constraints = Constraints(tt.problems.get(name))
         assert constraints.applied_ineq_rows == int(constraints.ineq_knot_mask.sum()), name
+        assert Constraints(tt.problems.get(name), ignored=True).applied_ineq_rows == 0, name
 
 
 @pytest.mark.slow  # compiling the iLQR kernels takes about a minute on two cores

@@ -37,6 +37,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import map_stage
+from ...core.compiled import kernel, single_options
 from ...core.derivatives import quadratize_cost, stage_jacobian
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
@@ -139,22 +140,25 @@ def _held_lqr(al: AugmentedLagrangian, params, X, U, stage_active, terminal_acti
 
 
 def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, mask: Tensor,
-            opts: ProjectionOptions) -> Projected:
-    """Project the instances in ``mask (B,)`` of ``(X, U)``; the others are returned unchanged."""
+            opts: ProjectionOptions, compile: bool = False) -> Projected:
+    """Project the instances in ``mask (B,)`` of ``(X, U)``; the others are returned unchanged. ``compile``: the
+    feasibility steps, the multiplier solves, the Newton steps on the KKT conditions and their KKT errors run as
+    compiled kernels (:func:`~torchtraj.core.compiled.kernel`)."""
     B = U.shape[0]
     reg = X.new_full((B,), opts.regularization)
     eps = torch.finfo(X.dtype).eps
     rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
     tolerance = resolution_floor(X, U).clamp_min(opts.tolerance)
-    X, U = _feasibility_steps(al, params, x0, X, U, mask, opts, reg, rank_tol, tolerance)
+    X, U = _feasibility_steps(al, params, x0, X, U, mask, opts, reg, rank_tol, tolerance, compile=compile)
     stage_active, terminal_active = _active_rows(al, X, U, params, opts)
     _, _, _, _, v = _residuals(al, al.problem.dynamics, params, x0, X, U, stage_active, terminal_active)
-    held = multipliers(al, params, X, U, opts, stage_active, terminal_active)
+    held = multipliers(al, params, X, U, opts, stage_active, terminal_active, compile)
     point = KKTPoint(X, U, held.costate, held.stage, held.terminal, held.K)
     # the feasible point made stationary as well, with the rows held whose multipliers have the right sign; where it
     # moved, its violation is that of every row and the dynamics (the held set may have changed on the way)
     point, moved, violation = _polished(al, params, x0, point, mask & (v <= tolerance),
-                                        (held.stage_active, held.terminal_active), opts, reg, rank_tol, tolerance)
+                                        (held.stage_active, held.terminal_active), opts, reg, rank_tol, tolerance,
+                                        compile)
     v = torch.where(moved, violation, v)
     converged = mask & (v <= tolerance)
     return Projected(X=point.X, U=point.U, violation=v, converged=converged, costate=point.costate,
@@ -163,52 +167,83 @@ def project(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, m
 
 def _feasibility_steps(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, mask: Tensor,
                        opts: ProjectionOptions, reg: Tensor, rank_tol: float, tolerance: Tensor,
-                       held: Optional[tuple] = None):
+                       held: Optional[tuple] = None, compile: bool = False):
     """Algorithms 2-3 on the instances in ``mask (B,)``: ``(X, U)`` with ``v ≤ tolerance (B,)`` where the steps
     reach it. The rows held are ALTRO's (:func:`_active_rows`, at each linearisation), or ``held = (stage (B, N, m),
-    terminal (B, mN))``."""
-    problem = al.problem
-    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
-    nz = nx + U.shape[-1]
+    terminal (B, mN))``. ``compile``: each step one compiled kernel (:func:`_linearised_step`), which factorises
+    again at the linearisation point, since a kernel hands on no factorisation; the same factor, bit for bit."""
     alphas = opts.line_search_decrease ** torch.arange(opts.line_search_steps, dtype=X.dtype, device=X.device)
+    residuals_k, step_k = kernel(_residuals, compile), kernel(_linearised_step, compile)
     for _ in range(opts.iterations):
         stage_active, terminal_active = _active_rows(al, X, U, params, opts) if held is None else held
-        defect, init, c, cN, v = _residuals(al, problem.dynamics, params, x0, X, U, stage_active, terminal_active)
+        defect, init, c, cN, v = residuals_k(al, al.problem.dynamics, params, x0, X, U, stage_active, terminal_active)
         pending = mask & (v > tolerance)
         if not bool(pending.any()):
             break
-        lqr, _, _ = _held_lqr(al, params, X, U, stage_active, terminal_active)
-        factor = factorize(lqr, reg, rank_tolerance=rank_tol)
-        stepping = pending & factor.ok
+        rows, point = (stage_active, terminal_active), (X, U, defect, init, c, cN, v)
+        if compile:
+            stepping, linearised = pending, (X, U)
+        else:
+            factor = _factorised(al, params, X, U, *rows, reg, rank_tol)
+            stepping = pending & factor.ok
         for _ in range(opts.inner_iterations):
             if not bool(stepping.any()):
                 break
-            # the least-H-norm step onto the linearised rows: no gradient, the violations as offsets
-            step = factor.solve(newton_rhs(X.new_zeros(B, N, nz), X.new_zeros(B, nx), defect, init, c, cN))
-
-            def decrease(alphas, X=X, U=U, v=v, step=step, stage_active=stage_active,
-                         terminal_active=terminal_active):
-                """Algorithm 3's test, ``v(α) < v``, at every step size at once, and the candidates' values."""
-                a = alphas.reshape(1, -1, 1, 1)
-                Xc, Uc = X.unsqueeze(1) + a * step.dx.unsqueeze(1), U.unsqueeze(1) + a * step.du.unsqueeze(1)
-                dc, ic, cc, cNc, vc = _residuals(al, problem.dynamics, params, x0, Xc, Uc, stage_active,
-                                                 terminal_active)
-                return torch.isfinite(vc) & (vc < v.unsqueeze(1)), (Xc, Uc, dc, ic, cc, cNc, vc)
-
-            # the largest step that reduces v, all step sizes in one round; the instances not stepping keep theirs
-            start = Accepted(found=~stepping, alpha=torch.zeros_like(v), values=(X, U, defect, init, c, cN, v))
-            accepted = backtrack(alphas, alphas.numel(), decrease, stepping, start)
-            take = stepping & accepted.found
-            X, U, defect, init, c, cN, v_new = accepted.values
+            if compile:
+                take, point = step_k(al, params, x0, *linearised, reg, rank_tol, rows, point, stepping, alphas)
+            else:
+                take, point = _step(al, params, x0, factor, rows, point, stepping, alphas)
+            v_new = point[-1]
             rate = torch.log(v_new) / torch.log(v)
             v = v_new
             # reuse the factorisation only while convergence stays fast (Algorithm 2, line 8)
             stepping = take & (v > tolerance) & (rate > opts.convergence_rate)
+        X, U = point[:2]
     return X, U
 
 
+def _factorised(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, stage_active: Tensor, terminal_active: Tensor,
+                reg: Tensor, rank_tol: float):
+    """The held-rows system at ``(X, U)`` with the cost Hessian, factorised: the ``S`` of Algorithm 2."""
+    lqr, _, _ = _held_lqr(al, params, X, U, stage_active, terminal_active)
+    return factorize(lqr, reg, rank_tolerance=rank_tol)
+
+
+def _step(al: AugmentedLagrangian, params, x0: Tensor, factor, rows: tuple, point: tuple, stepping: Tensor,
+          alphas: Tensor):
+    """One step of Algorithm 2's inner loop for the ``stepping (B,)`` instances: the least-``H``-norm step onto the
+    linearised rows (no gradient, the violations ``point[2:6]`` as offsets), then Algorithm 3, the largest ``α``
+    with ``v(α) < v``, all step sizes in one round. ``point = (X, U, defect, init, c, cN, v)``; returns ``(take
+    (B,), point)``, the other instances' point unchanged."""
+    X, U, defect, init, c, cN, v = point
+    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    step = factor.solve(newton_rhs(X.new_zeros(B, N, nx + U.shape[-1]), X.new_zeros(B, nx), defect, init, c, cN))
+
+    def decrease(alphas):
+        """Algorithm 3's test, ``v(α) < v``, at every step size at once, and the candidates' values."""
+        a = alphas.reshape(1, -1, 1, 1)
+        Xc, Uc = X.unsqueeze(1) + a * step.dx.unsqueeze(1), U.unsqueeze(1) + a * step.du.unsqueeze(1)
+        dc, ic, cc, cNc, vc = _residuals(al, al.problem.dynamics, params, x0, Xc, Uc, *rows)
+        return torch.isfinite(vc) & (vc < v.unsqueeze(1)), (Xc, Uc, dc, ic, cc, cNc, vc)
+
+    start = Accepted(found=~stepping, alpha=torch.zeros_like(v), values=point)
+    accepted = backtrack(alphas, alphas.numel(), decrease, stepping, start)
+    return stepping & accepted.found, accepted.values
+
+
+# the kernels holding a factorisation with back-propagated rows (hundreds of buffers, its stages unrolled): Inductor's
+# memory planning, a single instance's option, raised a RecursionError on one of them
+@single_options({"memory_planning": False})
+def _linearised_step(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, reg: Tensor,
+                     rank_tol: float, rows: tuple, point: tuple, stepping: Tensor, alphas: Tensor):
+    """:func:`_step` with the factorisation at the linearisation point ``(X, U)`` formed here (a compiled solve's
+    kernel), for the instances of ``stepping`` whose system factorised."""
+    factor = _factorised(al, params, X, U, *rows, reg, rank_tol)
+    return _step(al, params, x0, factor, rows, point, stepping & factor.ok, alphas)
+
+
 def _polished(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint, mask: Tensor, held: tuple,
-              opts: ProjectionOptions, reg: Tensor, rank_tol: float, tolerance: Tensor):
+              opts: ProjectionOptions, reg: Tensor, rank_tol: float, tolerance: Tensor, compile: bool = False):
     """At most ``polish_iterations`` Newton steps on the KKT conditions of the ``held`` rows
     (:mod:`torchtraj.solvers.altro.polish`) for the feasible instances in ``mask (B,)``: ``(point, moved (B,),
     violation (B,))``, ``violation`` the largest of every row and the dynamics at ``point`` where it ``moved``.
@@ -218,22 +253,23 @@ def _polished(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint, mask
     Otherwise the step is followed by the feasibility steps back onto the rows (a second-order correction: a Newton
     step from afar leaves violations of the size of its square) and kept where the KKT error goes down and the
     violation stays within ``max(tolerance, its value before)``. The other instances are returned unchanged."""
-    error, violation = kkt_error(al, params, x0, point)
+    step_k, error_k = kernel(newton_kkt_step, compile), kernel(kkt_error, compile)
+    error, violation = error_k(al, params, x0, point)
     eps = torch.finfo(point.X.dtype).eps
     moving = mask.clone()
     moved_at_all = torch.zeros_like(mask)
     for _ in range(opts.polish_iterations):
         if not bool(moving.any()):
             break
-        moved, size, ok = newton_kkt_step(al, params, x0, point, held[0], held[1], reg, rank_tol)
+        moved, size, ok = step_k(al, params, x0, point, held[0], held[1], reg, rank_tol)
         following, changed = _updated_rows(al, params, moved, held, tolerance)
         changed = moving & ok & changed
         held = tuple(where_rows(changed, new, old) for new, old in zip(following, held))
         stepping = moving & ok & ~changed
         Xr, Ur = _feasibility_steps(al, params, x0, moved.X, moved.U, stepping, opts, reg, rank_tol, tolerance,
-                                    held)
+                                    held, compile)
         moved = dataclasses.replace(moved, X=Xr, U=Ur)
-        moved_error, moved_violation = kkt_error(al, params, x0, moved)
+        moved_error, moved_violation = error_k(al, params, x0, moved)
         take = stepping & (moved_error < error) & (moved_violation <= torch.maximum(tolerance, violation))
         point = moved.where(take, point)
         error = torch.where(take, moved_error, error)
@@ -274,30 +310,41 @@ class HeldMultipliers:
 
 
 def multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, opts: ProjectionOptions,
-                stage_active: Optional[Tensor] = None, terminal_active: Optional[Tensor] = None) -> HeldMultipliers:
+                stage_active: Optional[Tensor] = None, terminal_active: Optional[Tensor] = None,
+                compile: bool = False) -> HeldMultipliers:
     """The least-squares multipliers of the held rows at ``(X, U)``, the rows held by ALTRO's rule (or
-    ``stage_active``, ``terminal_active``), the others zero, and the gains of the held-rows system."""
-    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    ``stage_active``, ``terminal_active``), the others zero, and the gains of the held-rows system; ``compile``:
+    each solve a compiled kernel."""
+    B = U.shape[0]
     reg = X.new_full((B,), opts.regularization)
     eps = torch.finfo(X.dtype).eps
     rank_tol = eps ** 0.5 if opts.rank_tolerance is None else opts.rank_tolerance
     if stage_active is None:
         stage_active, terminal_active = _active_rows(al, X, U, params, opts)
-    duals, factor = None, None
+    solve = kernel(_least_squares_multipliers, compile)
     for _ in range(opts.multiplier_passes):
-        lqr, lz, lNx = _held_lqr(al, params, X, U, stage_active, terminal_active)
-        # stationarity ∇ℓ + Dᵀν = 0 at the projected point: the cost gradient and no offsets
-        rhs = newton_rhs(lz, lNx, X.new_zeros(B, N, nx), X.new_zeros(B, nx), torch.zeros_like(stage_active),
-                         torch.zeros_like(terminal_active))
-        solved = newton_step(lqr, rhs, reg, rank_tol)
-        factor, duals = solved.factor, solved.step
+        costate, nu, nuN, K = solve(al, params, X, U, stage_active, terminal_active, reg, rank_tol)
         # Dependent active rows (a car parked in a corner of its box) leave the multipliers non-unique
         # and the least-squares ones may be negative; such rows are released and the others take over.
-        wrong = al.is_ineq & (duals.nu * stage_active < 0)
-        wrongN = al.is_ineqN & (duals.nuN * terminal_active < 0)
+        wrong = al.is_ineq & (nu * stage_active < 0)
+        wrongN = al.is_ineqN & (nuN * terminal_active < 0)
         if not bool(wrong.any() | wrongN.any()):
             break
         stage_active = stage_active * (~wrong).to(X.dtype)
         terminal_active = terminal_active * (~wrongN).to(X.dtype)
-    return HeldMultipliers(duals.costate, duals.nu * stage_active, duals.nuN * terminal_active, factor.K,
-                           stage_active, terminal_active)
+    return HeldMultipliers(costate, nu * stage_active, nuN * terminal_active, K, stage_active, terminal_active)
+
+
+# the kernels holding a factorisation with back-propagated rows (hundreds of buffers, its stages unrolled): Inductor's
+# memory planning, a single instance's option, raised a RecursionError on one of them
+@single_options({"memory_planning": False})
+def _least_squares_multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, stage_active: Tensor,
+                               terminal_active: Tensor, reg: Tensor, rank_tol: float):
+    """One solve of :func:`multipliers`: ``(costate, nu, nuN, K)`` of the held-rows system at ``(X, U)`` with the
+    cost gradient, stationarity ``∇ℓ + Dᵀν = 0`` at the projected point (no offsets)."""
+    B, N, nx = U.shape[0], U.shape[1], X.shape[-1]
+    lqr, lz, lNx = _held_lqr(al, params, X, U, stage_active, terminal_active)
+    rhs = newton_rhs(lz, lNx, X.new_zeros(B, N, nx), X.new_zeros(B, nx), torch.zeros_like(stage_active),
+                     torch.zeros_like(terminal_active))
+    solved = newton_step(lqr, rhs, reg, rank_tol)
+    return solved.step.costate, solved.step.nu, solved.step.nuN, solved.factor.K

@@ -178,15 +178,16 @@ def _refined(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, 
     rounding = _largest_penalty(al.duals) * resolution_floor(X, U) / 10.0
     rounded = done & (rounding > ESTIMATE_ROUNDING)
     missed = torch.zeros_like(done)
+    error_k = kernel(kkt_error, opts.ilqr.compile)
     if opts.multiplier_refinement and bool(done.any()):
-        error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, stage, terminal, None))
+        error, _ = error_k(al, params, x0, KKTPoint(X, U, None, stage, terminal, None))
         missed = done & (error > Tolerances.for_dtype(X.dtype).stationarity)
     if not bool((rounded | missed).any()):
         return stage, terminal
-    held = multipliers(al, params, X, U, opts.projection_options)
+    held = multipliers(al, params, X, U, opts.projection_options, compile=opts.ilqr.compile)
     take = rounded
     if bool(missed.any()):
-        held_error, _ = kkt_error(al, params, x0, KKTPoint(X, U, None, held.stage, held.terminal, None))
+        held_error, _ = error_k(al, params, x0, KKTPoint(X, U, None, held.stage, held.terminal, None))
         take = take | (missed & (held_error < error))
     return (torch.where(take.reshape(-1, 1, 1), held.stage, stage),
             torch.where(take.reshape(-1, 1), held.terminal, terminal))
@@ -203,7 +204,8 @@ def finish(coarse: ALStage, x0: Tensor, params, opts: ALTROOptions, method: str)
     problem, al, X, U, status, al_done = coarse.problem, coarse.al, coarse.X, coarse.U, coarse.status, coarse.al_done
     constraints = al.constraints
     if opts.projection:
-        result = project(al, params, x0, X, U, al_done | coarse.stalled, opts.projection_options)
+        result = project(al, params, x0, X, U, al_done | coarse.stalled, opts.projection_options,
+                         compile=opts.ilqr.compile)
         X, U = result.X, result.U
         status = torch.where(result.converged, int(Status.CONVERGED), status)
         status = torch.where((al_done | coarse.stalled) & ~result.converged, int(Status.MAX_ITERATIONS), status)
