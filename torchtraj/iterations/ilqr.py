@@ -101,8 +101,9 @@ class ILQROptions:
     #: Divergence limits on the cost and on |x| (``max_cost_value``, ``max_state_value``).
     max_cost: float = 1e8
     max_state: float = 1e8
-    #: ``torch.compile`` the per-iteration kernels (rollouts, objective, expansion, Riccati); the first solve of
-    #: each problem and shape compiles them (:mod:`torchtraj.core.compiled`).
+    #: ``torch.compile`` the per-iteration kernels (rollouts, objective, expansion, Riccati; in ALTRO the
+    #: projection's steps too); the first solve of each problem and shape compiles them
+    #: (:mod:`torchtraj.core.compiled`).
     compile: bool = False
     #: Replay the expansion and the rollouts' stages from their operator graphs recorded once per batch size
     #: (:mod:`torchtraj.core.recorded`): the same numbers with fewer, cheaper calls, after a trace of a fraction of
