@@ -109,18 +109,26 @@ _KERNELS: dict = {}
 def batched_options(options: dict) -> Callable:
     """Decorate a kernel with Inductor options for its batched graphs, added to :data:`OPTIONS` (a single
     instance's graphs keep :data:`SINGLE_OPTIONS`): a setting measured to pay for that kernel alone."""
-    def mark(fn: Callable) -> Callable:
-        fn.batched_options = options
-        return fn
-    return mark
+    return _marking("batched_options", options)
+
 
 def single_options(options: dict) -> Callable:
     """Decorate a kernel with Inductor options for the graphs of a single instance, over :data:`SINGLE_OPTIONS`: a
     setting that such a kernel needs (its batched graphs keep theirs)."""
+    return _marking("single_options", options)
+
+
+def _marking(attribute: str, options: dict) -> Callable:
     def mark(fn: Callable) -> Callable:
-        fn.single_options = options
+        setattr(fn, attribute, options)
         return fn
     return mark
+
+
+#: For the kernels that hold a factorisation with back-propagated rows, its stages unrolled (hundreds of buffers):
+#: Inductor's memory planning, a single instance's option, raised a RecursionError on one of ALTRO's projection kernels.
+unplanned_single = single_options({"memory_planning": False})
+
 
 #: The batch size of the solve running in this context (:func:`batch_of`; 0: not told).
 _BATCH: contextvars.ContextVar = contextvars.ContextVar("torchtraj_batch", default=0)

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ...core.compiled import single_options
+from ...core.compiled import unplanned_single
 from ...core.constraints import multiplier_blocks
 from ...core.derivatives import problem_lagrangian_hessian, quadratize_cost, stage_jacobian
 from ...core.masks import where_rows
@@ -82,8 +82,7 @@ def kkt_error(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint):
     return torch.nan_to_num(error, nan=infinite), torch.nan_to_num(r.feasibility, nan=infinite)
 
 
-# as the projection's kernels: no memory planning (:mod:`torchtraj.solvers.altro.projection`)
-@single_options({"memory_planning": False})
+@unplanned_single
 def newton_kkt_step(al: AugmentedLagrangian, params, x0: Tensor, point: KKTPoint, stage_active: Tensor,
                     terminal_active: Tensor, regularization: Tensor, rank_tolerance: float):
     """``(the point after one Newton step, |δw|∞ (B,), ok (B,))``: the step of the module docstring from

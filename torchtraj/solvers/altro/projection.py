@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ...core.batching import map_stage
-from ...core.compiled import kernel, single_options
+from ...core.compiled import kernel, unplanned_single
 from ...core.derivatives import quadratize_cost, stage_jacobian
 from ...core.masks import where_rows
 from ...globalization.line_search import Accepted, backtrack
@@ -181,8 +181,8 @@ def _feasibility_steps(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U
         if not bool(pending.any()):
             break
         rows, point = (stage_active, terminal_active), (X, U, defect, init, c, cN, v)
-        if compile:
-            stepping, linearised = pending, (X, U)
+        if compile:  # the kernel factorises at (X, U), which stay the linearisation point until the loop ends
+            stepping = pending
         else:
             factor = _factorised(al, params, X, U, *rows, reg, rank_tol)
             stepping = pending & factor.ok
@@ -190,7 +190,7 @@ def _feasibility_steps(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U
             if not bool(stepping.any()):
                 break
             if compile:
-                take, point = step_k(al, params, x0, *linearised, reg, rank_tol, rows, point, stepping, alphas)
+                take, point = step_k(al, params, x0, X, U, reg, rank_tol, rows, point, stepping, alphas)
             else:
                 take, point = _step(al, params, x0, factor, rows, point, stepping, alphas)
             v_new = point[-1]
@@ -231,9 +231,7 @@ def _step(al: AugmentedLagrangian, params, x0: Tensor, factor, rows: tuple, poin
     return stepping & accepted.found, accepted.values
 
 
-# the kernels holding a factorisation with back-propagated rows (hundreds of buffers, its stages unrolled): Inductor's
-# memory planning, a single instance's option, raised a RecursionError on one of them
-@single_options({"memory_planning": False})
+@unplanned_single
 def _linearised_step(al: AugmentedLagrangian, params, x0: Tensor, X: Tensor, U: Tensor, reg: Tensor,
                      rank_tol: float, rows: tuple, point: tuple, stepping: Tensor, alphas: Tensor):
     """:func:`_step` with the factorisation at the linearisation point ``(X, U)`` formed here (a compiled solve's
@@ -335,9 +333,7 @@ def multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, opts: Pro
     return HeldMultipliers(costate, nu * stage_active, nuN * terminal_active, K, stage_active, terminal_active)
 
 
-# the kernels holding a factorisation with back-propagated rows (hundreds of buffers, its stages unrolled): Inductor's
-# memory planning, a single instance's option, raised a RecursionError on one of them
-@single_options({"memory_planning": False})
+@unplanned_single
 def _least_squares_multipliers(al: AugmentedLagrangian, params, X: Tensor, U: Tensor, stage_active: Tensor,
                                terminal_active: Tensor, reg: Tensor, rank_tol: float):
     """One solve of :func:`multipliers`: ``(costate, nu, nuN, K)`` of the held-rows system at ``(X, U)`` with the
