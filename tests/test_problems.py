@@ -74,6 +74,12 @@ def test_names():
         problems.spec("car_4obs")
 
 
+def test_a_problem_given_where_its_name_is_expected_is_told_so():
+    # a Problem is unhashable, so the lookup itself raised "unhashable type: 'dict'" before
+    with pytest.raises(TypeError, match="pass that name"):
+        problems.sample_x0(problems.get("pendulum"), 4, 0)
+
+
 @pytest.mark.parametrize("name", ALL)
 def test_reference_satisfies_our_dynamics(reference, name):
     P = problems.get(name)

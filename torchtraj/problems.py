@@ -202,6 +202,9 @@ def names() -> list[str]:
 
 def spec(name: str) -> ProblemSpec:
     """The numbers of problem ``name``."""
+    if not isinstance(name, str):
+        raise TypeError(f"a problem's name is expected (one of {names()}), got {type(name).__name__}; "
+                        "for a problem from problems.get(name), pass that name")
     if name not in _SPECS:
         raise ValueError(f"unknown problem {name!r}; known problems are {names()}")
     return _SPECS[name]
