@@ -277,6 +277,12 @@ def by_rotations(M: Tensor) -> bool:
     return M.is_cuda or capturing() or torch.compiler.is_compiling()
 
 
+def rows_pseudo_inverse(rows: Tensor, tol: float) -> Tensor:
+    """The pseudo-inverse of the finite rows ``(..., m, n)`` at the relative ``tol`` of their largest singular value:
+    by rotations or LAPACK's (:func:`by_rotations`)."""
+    return jacobi.pinv(rows, tol) if by_rotations(rows) else torch.linalg.pinv(rows, rtol=tol)
+
+
 def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
     """The pseudo-inverse of the symmetric positive semidefinite ``M (..., m, m)``: its eigenvalues above ``tol``
     times the largest inverted, the others dropped. Each matrix is divided by its largest entry first
@@ -357,7 +363,7 @@ def penalised(lqr: LQR, tol: float) -> tuple:
     rho = (PENALTY * H.abs().amax(-1).clamp_min(1.0)).reshape(-1, 1, 1)
     finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
     rows = torch.where(finite, C, 0.0)
-    pinv = jacobi.pinv(rows, tol) if by_rotations(rows) else torch.linalg.pinv(rows, rtol=tol)
+    pinv = rows_pseudo_inverse(rows, tol)
     projector = pinv @ C.nan_to_num()
     return (dataclasses.replace(lqr, C=None, D=None, mask=None, CN=None, maskN=None, QN=lqr.QN + rho * projector),
             rho * _mT(pinv))
