@@ -1,6 +1,6 @@
 """Pseudo-inverses by one-sided Jacobi rotations (``torchtraj/riccati/jacobi.py``), which the range-space method
-uses on a GPU and in compiled kernels: against LAPACK's, and the range-space factorisation and an interior-point solve with them forced on
-the CPU against the same with LAPACK's."""
+uses on a GPU and in compiled kernels: against LAPACK's, and the range-space factorisation and an interior-point
+solve with them forced on the CPU against the same with LAPACK's."""
 
 import pytest
 import test_riccati_range_space as range_space_tests
