@@ -45,10 +45,8 @@ The factorisation's cost is the unconstrained sweep's plus two matrix products a
 ``δx^h``; with the parallel sweep, associative scans) and a constant number of calls for all stages at once; each
 solve is one unconstrained solve plus a constant number.
 
-On a GPU, and wherever ``torch.compile`` traces them, the pseudo-inverses (of ``C_N`` and of the ``Σ_k``) are Jacobi
-rotations' (:func:`by_rotations`): the same thresholds, no host read, so that a CUDA graph captures the whole
-factorisation, and elementwise operations that a compiled kernel fuses into its loops. Eager on a CPU they are
-LAPACK's.
+On a GPU the pseudo-inverses (of ``C_N`` and of the ``Σ_k``) are Jacobi rotations' (:func:`by_rotations`): the
+same thresholds, no host read, so that a CUDA graph captures the whole factorisation. On a CPU they are LAPACK's.
 """
 
 from __future__ import annotations
@@ -271,16 +269,8 @@ def _forward_chain(Phi: Tensor, drive: Tensor, parallel: bool) -> Tensor:
 
 def by_rotations(M: Tensor) -> bool:
     """Whether the pseudo-inverses of ``M`` are Jacobi rotations' (:mod:`~torchtraj.riccati.jacobi`): on a GPU,
-    where LAPACK-style solvers read their status on the host, which a CUDA graph cannot capture; and in a traced
-    kernel, where Inductor calls LAPACK through the library once a matrix, with its status checks (at B = 1 the
-    interior point's compiled Newton step spent a quarter of its time in them; at B = 1024 one call a matrix)."""
-    return M.is_cuda or capturing() or torch.compiler.is_compiling()
-
-
-def rows_pseudo_inverse(rows: Tensor, tol: float) -> Tensor:
-    """The pseudo-inverse of the finite rows ``(..., m, n)`` at the relative ``tol`` of their largest singular value:
-    by rotations or LAPACK's (:func:`by_rotations`)."""
-    return jacobi.pinv(rows, tol) if by_rotations(rows) else torch.linalg.pinv(rows, rtol=tol)
+    where LAPACK-style solvers read their status on the host, which a CUDA graph cannot capture."""
+    return M.is_cuda or capturing()
 
 
 def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
@@ -324,9 +314,8 @@ def _pseudo_inverse(negative: Tensor, tol: float) -> tuple:
     are factorised, and those whose factor proves ``λ_min > tol λ_max`` are inverted with it: with the pivots
     ``p_i = L_ii²`` and the largest diagonal entry ``d``, ``λ_max ≤ m d`` and ``λ_min ≥ Π p_i / λ_max^{m−1}``, so
     ``Π p_i > tol (m d)^m`` suffices. The others (gathered, one read of their count by the host) take the
-    eigen-decomposition; while a CUDA graph is captured or torch.compile traces, every matrix is inverted by
-    rotations (:func:`by_rotations`). A matrix the eigensolver does not converge on counts as not finite
-    (:func:`_isolated_eigen_inverse`)."""
+    eigen-decomposition; while a CUDA graph is captured or torch.compile traces, every matrix does. A matrix the
+    eigensolver does not converge on counts as not finite (:func:`_isolated_eigen_inverse`)."""
     M = _sym(negative)  # finiteness after symmetrising: entries near the largest float overflow in the sum
     finite = torch.isfinite(M).flatten(-2).all(-1)
     m = negative.shape[-1]
@@ -363,7 +352,7 @@ def penalised(lqr: LQR, tol: float) -> tuple:
     rho = (PENALTY * H.abs().amax(-1).clamp_min(1.0)).reshape(-1, 1, 1)
     finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
     rows = torch.where(finite, C, 0.0)
-    pinv = rows_pseudo_inverse(rows, tol)
+    pinv = jacobi.pinv(rows, tol) if by_rotations(rows) else torch.linalg.pinv(rows, rtol=tol)
     projector = pinv @ C.nan_to_num()
     return (dataclasses.replace(lqr, C=None, D=None, mask=None, CN=None, maskN=None, QN=lqr.QN + rho * projector),
             rho * _mT(pinv))
