@@ -352,7 +352,8 @@ def penalised(lqr: LQR, tol: float) -> tuple:
     rho = (PENALTY * H.abs().amax(-1).clamp_min(1.0)).reshape(-1, 1, 1)
     finite = torch.isfinite(C).flatten(1).all(-1).reshape(-1, 1, 1)
     rows = torch.where(finite, C, 0.0)
-    pinv = jacobi.pinv(rows, tol) if by_rotations(rows) else torch.linalg.pinv(rows, rtol=tol)
+    traced = torch.compiler.is_compiling()  # Inductor calls LAPACK's SVD once a matrix; rotations fuse in its loops
+    pinv = jacobi.pinv(rows, tol) if by_rotations(rows) or traced else torch.linalg.pinv(rows, rtol=tol)
     projector = pinv @ C.nan_to_num()
     return (dataclasses.replace(lqr, C=None, D=None, mask=None, CN=None, maskN=None, QN=lqr.QN + rho * projector),
             rho * _mT(pinv))
