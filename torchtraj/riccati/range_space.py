@@ -46,7 +46,9 @@ The factorisation's cost is the unconstrained sweep's plus two matrix products a
 solve is one unconstrained solve plus a constant number.
 
 On a GPU the pseudo-inverses (of ``C_N`` and of the ``Σ_k``) are Jacobi rotations' (:func:`by_rotations`): the
-same thresholds, no host read, so that a CUDA graph captures the whole factorisation. On a CPU they are LAPACK's.
+same thresholds, no host read, so that a CUDA graph captures the whole factorisation. On a CPU they are LAPACK's,
+but for ``C_N``'s in a kernel that ``torch.compile`` traces: there the rotations are loops of the kernel, where
+Inductor would call LAPACK's SVD once a matrix.
 """
 
 from __future__ import annotations
