@@ -8,6 +8,8 @@ eager one; the instances that need more work run alone with no kernel traced aga
 inductor, against eager.
 """
 
+import dataclasses
+
 import pytest
 from same_solutions import (
     assert_close_solutions,
@@ -83,6 +85,48 @@ def test_compiled_solves_take_the_instances_that_need_more_work_alone(monkeypatc
     assert frames == kernels, (frames, kernels)
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
 
+
+
+def test_a_compiled_correction_round_takes_the_instances_still_correcting_alone(monkeypatch):
+    """With compiled kernels each round of the second-order corrections factorises, solves and evaluates the rows
+    of the instances still correcting alone (the first round all of them), and each correction is the one made on
+    all its rows every round. The kernels run as plain functions here (``torch.compile`` the identity), on the
+    corrections of three or more instances that an eager solve of 32 made."""
+    import torch
+
+    calls = []
+    correct = soc.second_order_correction
+
+    def kept(*args):
+        calls.append(args)
+        return correct(*args)
+
+    monkeypatch.setattr(soc, "second_order_correction", kept)
+    tt.solve(pendulum(), tt.problems.sample_x0("pendulum", 32, seed=1), "ipm")
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    rows, one_round, each_row = [], soc._corrected_trial, soc._round_rows
+
+    def counted(*round_args):
+        rows.append(round_args[3].X.shape[0])
+        return one_round(*round_args)
+
+    monkeypatch.setattr(soc, "_corrected_trial", counted)
+    shrunk = 0
+    for args in (list(args) for args in calls if int(args[12].sum()) >= 3):
+        assert bool(args[12].all())  # eager, the rows of the instances that need one
+        args[15], args[-1] = None, dataclasses.replace(args[-1], compile=True)  # no system: the kernels make it
+        monkeypatch.setattr(soc, "_round_rows", each_row)
+        rows.clear()
+        alone = correct(*args)
+        shrunk += rows[-1] < rows[0]
+        monkeypatch.setattr(soc, "_round_rows", lambda active: None)  # every round on every row
+        whole = correct(*args)
+        assert torch.equal(alone.found, whole.found) and torch.equal(alone.unfiltered, whole.unfiltered)
+        torch.testing.assert_close(alone.alpha, whole.alpha, atol=0, rtol=0)
+        for name in ("X", "U", "s", "z", "lam"):
+            torch.testing.assert_close(getattr(alone.it, name), getattr(whole.it, name), atol=1e-14, rtol=0)
+    assert shrunk, "a correction should end for some of its instances before the others"
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores
 @needs_compiler

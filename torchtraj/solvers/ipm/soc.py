@@ -67,7 +67,7 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     trial points (``(B, l, ...)`` each, the full step first) and the system ``lqr`` regularised by ``δ_w`` (``None``
     with compiled kernels, whose Newton step forms it from the model:
     :func:`~torchtraj.solvers.ipm.newton.newton_direction`)."""
-    knots, nx = model.knots, it.X.shape[-1]
+    knots = model.knots
     tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
     current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
     c_soc = tuple(_scaled(a_max, c) + t[:, 0] for c, t in zip(current, first))
@@ -88,27 +88,81 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         if compiled:  # laid out as the step's own (views of the expansion's rows): the same compiled kernels
             values = {name: laid_out_as(value, getattr(model, name)) for name, value in values.items()}
         corrected = dataclasses.replace(model, **values)
-        step = kernel(newton_direction, True)(corrected, it, mu, x0, delta, opts.sweep, opts.terminal_rows) \
-            if compiled else direction(lqr, newton_rhs(corrected, it, mu, x0, nx), delta, corrected, it, mu, None,
-                                       factor, False, opts.sweep, opts.terminal_rows)
-        a_soc, a_dual_soc = kernel(fraction_to_boundary, compiled)(it, step, tau)
-        # compiled: the one trial point as many times as a line-search round has candidates, laid out as a round's
-        # step sizes (line_search.line_search, globalization.line_search.backtrack): the round's kernel
-        alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
-            :, :max(1, opts.line_search_parallel)].contiguous() if compiled else a_soc.unsqueeze(1)
-        accept, no_entry, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu,
-                                                                      phi, slope, filt, theta_max, theta_min, alphas,
-                                                                      opts)
-        new = active & accept[:, 0] & step.ok
+        rows = _round_rows(active) if compiled else None
+        if rows is None:
+            step, a_soc, a_dual_soc, accept, no_entry, theta_c, *parts = _corrected_trial(
+                problem, cons, params, it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau, lqr,
+                factor, delta, x0, opts)
+            ok = step.ok
+            new = active & accept & ok
+            best = pick(new, step, best)
+        else:  # the instances still correcting alone, their results written back (the others' are not read)
+            step, a_soc, a_dual_soc, accept, no_entry, theta_c, *parts = _corrected_trial_of_rows(
+                problem, cons, params, it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau, delta,
+                x0, opts, rows)
+            new = accept & step.ok
+            best = write_rows(best, rows, pick(new, step, gather_rows(best, rows)))
+            new, ok, a_soc, a_dual_soc, no_entry, theta_c, *parts = (_scattered(v, rows, need.shape[0]) for v in (
+                new, step.ok, a_soc, a_dual_soc, no_entry, theta_c, *parts))
         found = found | new
         alpha, a_dual = torch.where(new, a_soc, alpha), torch.where(new, a_dual_soc, a_dual)
-        unfiltered = torch.where(new, no_entry[:, 0], unfiltered)
-        best = pick(new, step, best)
-        active = active & ~new & step.ok & (theta_c[:, 0] <= opts.soc_decrease * theta_old)
-        theta_old = theta_c[:, 0]
-        c_soc = tuple(_scaled(a_soc, c) + t[:, 0] for c, t in zip(c_soc, parts))
+        unfiltered = torch.where(new, no_entry, unfiltered)
+        active = active & ~new & ok & (theta_c <= opts.soc_decrease * theta_old)
+        theta_old = theta_c
+        c_soc = tuple(_scaled(a_soc, c) + t for c, t in zip(c_soc, parts))
     return Correction(found=found, alpha=alpha, unfiltered=unfiltered,
                       it=kernel(advance, compiled)(it, best, alpha, a_dual, mu, knots, opts))
+
+
+def _corrected_trial(problem: Problem, cons: Constraints, params, it: Iterate, corrected: Model, model: Model,
+                     mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor,
+                     tau: Tensor, lqr: Optional[LQR], factor, delta: Tensor, x0: Tensor, opts: IPOptions) -> tuple:
+    """One correction of the instances given: the step of the ``corrected`` model's residuals, its largest step to
+    the boundary and the trial point there. Returns ``(step, α^soc, α_dual, accept, unfiltered, θ, *residuals)``,
+    ``(B,)`` each but the step and the residuals ``(B, ...)``. With compiled kernels the step's own kernel
+    factorises the system again; eager, ``factor`` (of ``lqr``) solves it."""
+    compiled = compiled_kernels(opts, it.X.device)
+    step = kernel(newton_direction, True)(corrected, it, mu, x0, delta, opts.sweep, opts.terminal_rows) \
+        if compiled else direction(lqr, newton_rhs(corrected, it, mu, x0, it.X.shape[-1]), delta, corrected, it, mu,
+                                   None, factor, False, opts.sweep, opts.terminal_rows)
+    a_soc, a_dual_soc = kernel(fraction_to_boundary, compiled)(it, step, tau)
+    # compiled: the one trial point as many times as a line-search round has candidates, laid out as a round's
+    # step sizes (line_search.line_search, globalization.line_search.backtrack): the round's kernel
+    alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
+        :, :max(1, opts.line_search_parallel)].contiguous() if compiled else a_soc.unsqueeze(1)
+    accept, no_entry, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu, phi,
+                                                                  slope, filt, theta_max, theta_min, alphas, opts)
+    return step, a_soc, a_dual_soc, accept[:, 0], no_entry[:, 0], theta_c[:, 0], *(t[:, 0] for t in parts)
+
+
+def _round_rows(active: Tensor) -> Optional[Tensor]:
+    """The rows ``(R,)`` of the instances still correcting, with compiled kernels on a batch (a batch of one has
+    kernels of its own); ``None`` where every instance is (one read of their count by the host)."""
+    if active.shape[0] < DYNAMIC_FROM:
+        return None
+    rows = active.nonzero().squeeze(-1)
+    return None if rows.numel() == active.shape[0] else rows
+
+
+def _corrected_trial_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, corrected: Model,
+                             model: Model, mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
+                             theta_min: Tensor, tau: Tensor, delta: Tensor, x0: Tensor, opts: IPOptions,
+                             rows: Tensor) -> tuple:
+    """:func:`_corrected_trial` of the instances ``rows (R,)`` alone, with compiled kernels: their rows gathered laid
+    out as the batch's, as many as a kernel takes (:func:`~torchtraj.solvers.ipm.compaction.kernel_rows`), and the
+    first ``R`` of the results. The rows of a correction stay together until the last of them ends (at most
+    ``second_order_corrections`` rounds), and about half of them end before it: they are no longer factorised,
+    solved and evaluated. An instance's arithmetic is the same as in the whole batch."""
+    index = kernel_rows(rows)
+    out = _corrected_trial(problem, cons, param_rows(params, index), *(gather_laid_out(v, index) for v in (
+        it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau)), None, None,
+        *(gather_laid_out(v, index) for v in (delta, x0)), opts)
+    return out if index is rows else gather_laid_out(out, torch.arange(rows.numel(), device=rows.device))
+
+
+def _scattered(value: Tensor, rows: Tensor, batch: int) -> Tensor:
+    """``value (R, ...)`` of the instances ``rows (R,)`` in a zero tensor of ``batch`` instances."""
+    return value.new_zeros((batch,) + value.shape[1:]).index_copy(0, rows, value)
 
 
 def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
