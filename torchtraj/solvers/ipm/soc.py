@@ -18,7 +18,7 @@ step is taken instead of any shorter step of the original direction. The Armijo 
 own ``α^{soc}`` times the original slope (W&B use ``α_max``); the corrections reuse the step's factorisation where
 the step kept it (eager solves), else the system is factorised again: once for all corrections eager, in each
 correction's step with compiled kernels (``IPOptions.compile``), which run the corrections in the kernels of the
-iteration's own step, boundary and trial point.
+iteration's own step, boundary and trial point, each round on the instances still correcting alone.
 """
 
 from __future__ import annotations
@@ -150,9 +150,9 @@ def _corrected_trial_of_rows(problem: Problem, cons: Constraints, params, it: It
                              rows: Tensor) -> tuple:
     """:func:`_corrected_trial` of the instances ``rows (R,)`` alone, with compiled kernels: their rows gathered laid
     out as the batch's, as many as a kernel takes (:func:`~torchtraj.solvers.ipm.compaction.kernel_rows`), and the
-    first ``R`` of the results. The rows of a correction stay together until the last of them ends (at most
-    ``second_order_corrections`` rounds), and about half of them end before it: they are no longer factorised,
-    solved and evaluated. An instance's arithmetic is the same as in the whole batch."""
+    first ``R`` of the results. A correction's instances end after different numbers of rounds (about half of a
+    round's rows had ended on the pendulum at B = 64 and 256), and those that ended are no longer factorised, solved
+    and evaluated. An instance's arithmetic is the same as in the whole batch."""
     index = kernel_rows(rows)
     out = _corrected_trial(problem, cons, param_rows(params, index), *(gather_laid_out(v, index) for v in (
         it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau)), None, None,
