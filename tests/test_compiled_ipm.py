@@ -32,28 +32,27 @@ def pendulum():
     return tt.problems.get("pendulum").replace(horizon=30)
 
 
+def spied(monkeypatch, module, name: str) -> list:
+    """``module.name`` replaced by a function that calls it and keeps the arguments of each call in the list
+    returned."""
+    calls, original = [], getattr(module, name)
+
+    def spy(*args):
+        calls.append(args)
+        return original(*args)
+
+    monkeypatch.setattr(module, name, spy)
+    return calls
+
+
 def test_each_compiled_kernel_of_the_interior_point_is_one_graph_traced_once(monkeypatch, dynamo_capture):
-    corrections = []
-    correct = soc.second_order_correction  # of the rows that need one (soc.correction_of_rows)
-
-    def counted(*args):
-        corrections.append(int(args[12].sum()))  # the instances that need one
-        return correct(*args)
-
-    eager_factorizations = []
-    factorize_step = soc.factorize_step
-
-    def eager_factorization(*args):
-        eager_factorizations.append(args)
-        return factorize_step(*args)
-
-    monkeypatch.setattr(soc, "factorize_step", eager_factorization)
-    monkeypatch.setattr(soc, "second_order_correction", counted)
+    eager_factorizations = spied(monkeypatch, soc, "factorize_step")
+    corrections = spied(monkeypatch, soc, "second_order_correction")  # of the rows that need one
     x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
     solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
     frames, kernels = dynamo_capture["frames"]["total"], len(compiled._KERNELS)
     breaks = dict(dynamo_capture["graph_break"])
-    assert sum(corrections) > 0, "the solve should take second-order corrections"
+    assert sum(int(args[12].sum()) for args in corrections) > 0, "the solve should take corrections"
     assert not breaks, breaks
     assert not eager_factorizations, "the corrections' steps should be made in the compiled kernels"
     assert kernels >= 5 and frames == kernels, (frames, kernels)
@@ -64,27 +63,17 @@ def test_compiled_solves_take_the_instances_that_need_more_work_alone(monkeypatc
     """Compiled as eager, the inertia correction's later attempts and the second-order corrections run on the rows
     of the instances that need them (a single one taken twice), laid out as the batch's: no kernel is traced again
     for them, and the answers are eager's."""
-    sizes = {"attempt": [], "correction": []}
-    attempt, correct = ipm_solver.direction_of_rows, soc.second_order_correction
-
-    def counted_attempt(*args):
-        sizes["attempt"].append(args[6].numel())  # the instances attempted again
-        return attempt(*args)
-
-    def counted_correction(*args):
-        sizes["correction"].append(args[12].shape[0])  # the rows of the call
-        return correct(*args)
-
-    monkeypatch.setattr(ipm_solver, "direction_of_rows", counted_attempt)
-    monkeypatch.setattr(soc, "second_order_correction", counted_correction)
+    attempts = spied(monkeypatch, ipm_solver, "direction_of_rows")
+    corrections = spied(monkeypatch, soc, "second_order_correction")
     x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
     solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
+    sizes = {"attempt": [args[6].numel() for args in attempts],  # the instances attempted again
+             "correction": [args[12].shape[0] for args in corrections]}  # the rows of the call
     assert sizes["attempt"] and max(sizes["attempt"]) < 4, sizes
     assert sizes["correction"] and min(sizes["correction"]) < 4, sizes
     frames, kernels = dynamo_capture["frames"]["total"], len(compiled._KERNELS)
     assert frames == kernels, (frames, kernels)
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
-
 
 
 def test_a_compiled_correction_round_takes_the_instances_still_correcting_alone(monkeypatch):
@@ -94,31 +83,20 @@ def test_a_compiled_correction_round_takes_the_instances_still_correcting_alone(
     corrections of three or more instances that an eager solve of 32 made."""
     import torch
 
-    calls = []
     correct = soc.second_order_correction
-
-    def kept(*args):
-        calls.append(args)
-        return correct(*args)
-
-    monkeypatch.setattr(soc, "second_order_correction", kept)
+    calls = spied(monkeypatch, soc, "second_order_correction")
     tt.solve(pendulum(), tt.problems.sample_x0("pendulum", 32, seed=1), "ipm")
     monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
     monkeypatch.setattr(compiled, "_KERNELS", {})
-    rows, one_round, each_row = [], soc._corrected_trial, soc._round_rows
-
-    def counted(*round_args):
-        rows.append(round_args[3].X.shape[0])
-        return one_round(*round_args)
-
-    monkeypatch.setattr(soc, "_corrected_trial", counted)
+    rounds, each_row = spied(monkeypatch, soc, "_corrected_trial"), soc._round_rows
     shrunk = 0
     for args in (list(args) for args in calls if int(args[12].sum()) >= 3):
         assert bool(args[12].all())  # eager, the rows of the instances that need one
         args[15], args[-1] = None, dataclasses.replace(args[-1], compile=True)  # no system: the kernels make it
         monkeypatch.setattr(soc, "_round_rows", each_row)
-        rows.clear()
+        rounds.clear()
         alone = correct(*args)
+        rows = [round_args[3].X.shape[0] for round_args in rounds]  # the instances of each round
         shrunk += rows[-1] < rows[0]
         monkeypatch.setattr(soc, "_round_rows", lambda active: None)  # every round on every row
         whole = correct(*args)
@@ -127,6 +105,7 @@ def test_a_compiled_correction_round_takes_the_instances_still_correcting_alone(
         for name in ("X", "U", "s", "z", "lam"):
             torch.testing.assert_close(getattr(alone.it, name), getattr(whole.it, name), atol=1e-14, rtol=0)
     assert shrunk, "a correction should end for some of its instances before the others"
+
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores
 @needs_compiler
