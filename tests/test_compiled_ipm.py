@@ -11,6 +11,7 @@ inductor, against eager.
 import dataclasses
 
 import pytest
+import torch
 from same_solutions import (
     assert_close_solutions,
     assert_compiled_matches_eager,
@@ -81,8 +82,6 @@ def test_a_compiled_correction_round_takes_the_instances_still_correcting_alone(
     of the instances still correcting alone (the first round all of them), and each correction is the one made on
     all its rows every round. The kernels run as plain functions here (``torch.compile`` the identity), on the
     corrections of three or more instances that an eager solve of 32 made."""
-    import torch
-
     correct = soc.second_order_correction
     calls = spied(monkeypatch, soc, "second_order_correction")
     tt.solve(pendulum(), tt.problems.sample_x0("pendulum", 32, seed=1), "ipm")
