@@ -28,6 +28,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..core.compiled import matmul
+
 #: cyclic sweeps over the column pairs where there are more than two columns (two need one rotation)
 SWEEPS = 8
 
@@ -51,7 +53,7 @@ def pinv(A: Tensor, rtol: float) -> Tensor:
     largest = squares.amax(-1, keepdim=True)
     keep = squares > (rtol * rtol) * largest  # never a zero column: the right side is at least zero
     weights = torch.where(keep, squares.reciprocal(), torch.zeros_like(squares))
-    return (V * weights.unsqueeze(-2)) @ W.mT
+    return matmul(V * weights.unsqueeze(-2), W.mT)
 
 
 def _rotated(a_p: Tensor, a_q: Tensor, v_p: Tensor, v_q: Tensor) -> tuple:

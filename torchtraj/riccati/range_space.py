@@ -287,7 +287,7 @@ def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
     w, V = torch.linalg.eigh(M / scale)
     keep = w > (tol * w.amax(-1, keepdim=True)).clamp_min(torch.finfo(w.dtype).tiny)
     inverse_w = torch.where(keep, w.reciprocal(), torch.zeros_like(w))
-    return (V * inverse_w.unsqueeze(-2)) @ _mT(V) / scale
+    return matmul(V * inverse_w.unsqueeze(-2), _mT(V)) / scale
 
 
 def _isolated_eigen_inverse(M: Tensor, tol: float) -> tuple:
@@ -356,7 +356,7 @@ def penalised(lqr: LQR, tol: float) -> tuple:
     rows = torch.where(finite, C, 0.0)
     traced = torch.compiler.is_compiling()  # Inductor calls LAPACK's SVD once a matrix; rotations fuse in its loops
     pinv = jacobi.pinv(rows, tol) if by_rotations(rows) or traced else torch.linalg.pinv(rows, rtol=tol)
-    projector = pinv @ C.nan_to_num()
+    projector = matmul(pinv, C.nan_to_num())
     return (dataclasses.replace(lqr, C=None, D=None, mask=None, CN=None, maskN=None, QN=lqr.QN + rho * projector),
             rho * _mT(pinv))
 
@@ -369,15 +369,15 @@ def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, to
     lqr = dataclasses.replace(inner.lqr, CN=lqr.CN, maskN=lqr.maskN)
     A, Bu = lqr.A, lqr.B
     parallel = isinstance(inner, ParallelRiccatiFactor)
-    Phi = A + Bu @ inner.K
+    Phi = A + matmul(Bu, inner.K)
     Pi = _reverse_chain(_mT(Phi), _mT(C), parallel)
-    kh = -_cholesky_solve(_mT(Bu) @ Pi[:, 1:], _stage_matrices(inner.chol))
-    drive = Bu @ kh
+    kh = -_cholesky_solve(matmul(_mT(Bu), Pi[:, 1:]), _stage_matrices(inner.chol))
+    drive = matmul(Bu, kh)
     dxh = _forward_chain(Phi, drive, parallel)
-    duh = kh + inner.K @ dxh[:, :-1]
-    lamh = Pi + inner.P @ dxh
+    duh = kh + matmul(inner.K, dxh[:, :-1])
+    lamh = Pi + matmul(inner.P, dxh)
     # −Σ_k = −Σ_{j ≥ k} T_j for the gains, all stages at once; −Σ_0 for the multipliers
-    T = (_mT(Pi[:, 1:]) @ drive).neg()
+    T = matmul(_mT(Pi[:, 1:]), drive).neg()
     sums = T.flip(1).cumsum(1).flip(1)
     inverse, finite = _pseudo_inverse(sums[:, 0], tol)
     ok = inner.ok & finite & all_finite([kh, dxh])

@@ -36,6 +36,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
+from ...core.compiled import matmul as _mm
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
 from ...core.graphs import capturing
@@ -59,8 +60,8 @@ def newton_lqr(model: Model, it: Iterate, mu: Tensor, x0: Tensor, nx: int, targe
     (:func:`newton_rhs`)."""
     sigma = it.z / it.s  # rows off at a knot: z = 0
     sigmaN = it.zN / it.sN
-    H = model.Lzz + model.Gz.transpose(-1, -2) @ (sigma.unsqueeze(-1) * model.Gz)
-    HN = model.LNxx + model.GN.transpose(-1, -2) @ (sigmaN.unsqueeze(-1) * model.GN)
+    H = model.Lzz + _mm(model.Gz.transpose(-1, -2), sigma.unsqueeze(-1) * model.Gz)
+    HN = model.LNxx + _mm(model.GN.transpose(-1, -2), sigmaN.unsqueeze(-1) * model.GN)
     me, meN = model.h.shape[-1], model.hN.shape[-1]
     # the equality rows alone are held: the inequalities are in the barrier-augmented Hessian
     lqr = kkt_newton.held_lqr(model.fz, H, HN, rows=model.Hz if me else None, rowsN=model.HN if meN else None)
