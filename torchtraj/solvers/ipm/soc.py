@@ -150,9 +150,8 @@ def _corrected_trial_of_rows(problem: Problem, cons: Constraints, params, it: It
                              rows: Tensor) -> tuple:
     """:func:`_corrected_trial` of the instances ``rows (R,)`` alone, with compiled kernels: their rows gathered laid
     out as the batch's, as many as a kernel takes (:func:`~torchtraj.solvers.ipm.compaction.kernel_rows`), and the
-    first ``R`` of the results. A correction's instances end after different numbers of rounds (about half of a
-    round's rows had ended on the pendulum at B = 64 and 256), and those that ended are no longer factorised, solved
-    and evaluated. An instance's arithmetic is the same as in the whole batch."""
+    first ``R`` of the results. A correction's instances end after different numbers of rounds, and those that ended
+    are no longer factorised, solved and evaluated. An instance's arithmetic is the same as in the whole batch."""
     index = kernel_rows(rows)
     out = _corrected_trial(problem, cons, param_rows(params, index), *(gather_laid_out(v, index) for v in (
         it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau)), None, None,
