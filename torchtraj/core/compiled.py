@@ -54,7 +54,9 @@ patches one inside a kernel resets Dynamo first). Guards on everything else stay
 options' values, the problem's functions and their closures, and the globals of any other module (a constant in
 the user's module that a problem's function reads, whose change compiles the kernel again).
 
-Every kernel is compiled with Inductor's C++ wrapper (:data:`OPTIONS`); a kernel may add options of its own for its
+Every kernel is compiled with Inductor's C++ wrapper and a graph pass that fuses the products of short contractions
+that the library's code (:func:`matmul`) does not reach, those of the user's functions, into the kernel's loops
+(:data:`OPTIONS`, :mod:`~torchtraj.core.short_products`); a kernel may add options of its own for its
 batched graphs (:func:`batched_options`: the interior point's expansion, whose loops over the batch are faster without
 masked vectors of a stage's two or three rows).
 
@@ -77,8 +79,10 @@ from torch import Tensor
 from . import batching
 from .constraints import Constraints
 from .problem import Problem
+from .short_products import ShortProducts
 
-#: Contractions up to this length are written as broadcast products and sums when traced (:func:`matmul`).
+#: Contractions up to this length are written as broadcast products and sums when traced (:func:`matmul`, and the
+#: user's products by :mod:`~torchtraj.core.short_products`).
 FUSED_CONTRACTION = 8
 
 #: The smallest batch a kernel's dynamic batch dimension serves: Dynamo specialises sizes 0 and 1 whatever the mark,
@@ -94,8 +98,9 @@ ROLLOUT_STAGES = 50
 #: Specialisations kept per kernel (Dynamo's default of 8 is reached by three MPC tasks in one process).
 RECOMPILE_LIMIT = 64
 
-#: Inductor's options for every kernel: a C++ wrapper around its loops (no Python between them).
-OPTIONS = {"cpp_wrapper": True}
+#: Inductor's options for every kernel: a C++ wrapper around its loops (no Python between them), and the user's
+#: short products fused into them (:mod:`~torchtraj.core.short_products`).
+OPTIONS = {"cpp_wrapper": True, "post_grad_custom_pre_pass": ShortProducts(FUSED_CONTRACTION)}
 
 #: And for the graphs of a single instance (:func:`batch_of` below :data:`DYNAMIC_FROM`, sizes all static): the
 #: buffers of a call pooled in one allocation. A B = 1 kernel's hundreds of tiny buffers are most of its time
