@@ -49,6 +49,16 @@ def test_a_dataclass_is_gathered_field_by_field_with_its_shared_and_dropped_fiel
     assert rows.knots is value.knots and rows.factor is None
 
 
+def test_a_tensor_held_twice_is_gathered_once():
+    shared, own = _view_of_a_buffer(5), torch.arange(5.0)
+    model, corrected = _Pair(a=shared, b=own), _Pair(a=shared, b=own + 1.0)  # a corrected model's shared fields
+    index = torch.tensor([3, 0, 3])
+    rows_model, rows_corrected, alone = gather_laid_out((model, corrected, shared), index)
+    assert rows_model.a is rows_corrected.a is alone
+    assert torch.equal(alone, shared[index]) and alone.stride() == shared.stride()
+    assert torch.equal(rows_model.b, own[index]) and torch.equal(rows_corrected.b, own[index] + 1.0)
+
+
 def test_a_tensor_that_repeats_an_element_is_gathered_plainly():
     shared = torch.randn(1, 3).expand(4, 3)
     rows = laid_out_as(shared[torch.tensor([0, 2])], shared)

@@ -48,8 +48,16 @@ def gather_laid_out(value, index: Tensor):
     """:func:`gather_rows` for compiled kernels: each tensor's rows laid out as the tensor itself
     (:func:`laid_out_as`). A compiled kernel is specialised to its inputs' strides, and with a dynamic batch to the
     equalities between their offsets: the rows of a view (the model's fields are views of the expansion's rows)
-    gathered plainly would compile each kernel again for their own layout."""
-    return rows_of(value, index, shared=("knots",), dropped=("factor",), take=lambda v, i: laid_out_as(v[i], v))
+    gathered plainly would compile each kernel again for their own layout. A tensor that ``value`` holds more than
+    once (a corrected model shares most fields with the model it corrects) is gathered once."""
+    taken = {}
+
+    def take(v: Tensor, i: Tensor) -> Tensor:
+        if id(v) not in taken:  # `value` holds every tensor while this call runs: no identity is reused
+            taken[id(v)] = laid_out_as(v[i], v)
+        return taken[id(v)]
+
+    return rows_of(value, index, shared=("knots",), dropped=("factor",), take=take)
 
 
 def kernel_rows(rows: Tensor) -> Tensor:

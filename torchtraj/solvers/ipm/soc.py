@@ -153,9 +153,9 @@ def _corrected_trial_of_rows(problem: Problem, cons: Constraints, params, it: It
     first ``R`` of the results. A correction's instances end after different numbers of rounds, and those that ended
     are no longer factorised, solved and evaluated. An instance's arithmetic is the same as in the whole batch."""
     index = kernel_rows(rows)
-    out = _corrected_trial(problem, cons, param_rows(params, index), *(gather_laid_out(v, index) for v in (
-        it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau)), None, None,
-        *(gather_laid_out(v, index) for v in (delta, x0)), opts)
+    *taken, delta, x0 = gather_laid_out((it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau,
+                                         delta, x0), index)  # the fields `corrected` shares with `model` once
+    out = _corrected_trial(problem, cons, param_rows(params, index), *taken, None, None, delta, x0, opts)
     return out if index is rows else gather_laid_out(out, torch.arange(rows.numel(), device=rows.device))
 
 
