@@ -63,13 +63,14 @@ class ShortProducts(CustomGraphPass):
 def _short_product(graph: torch.fx.Graph, node: torch.fx.Node, a: torch.fx.Node, b: torch.fx.Node) -> torch.fx.Node:
     """The nodes of ``a @ b`` as a broadcast product and a sum (plus ``node``'s added term, for ``addmm`` and
     ``baddbmm``), each with its fake value in ``meta["val"]`` as Inductor's lowering reads it."""
+    fake_mode = a.meta["val"].fake_mode
+
     def call(target, *args):
         made = graph.call_function(target, args)
         with fake_mode:
             made.meta["val"] = target(*(arg.meta["val"] if isinstance(arg, torch.fx.Node) else arg for arg in args))
         return made
 
-    fake_mode = a.meta["val"].fake_mode
     product = call(aten.mul.Tensor, call(aten.unsqueeze.default, a, -1), call(aten.unsqueeze.default, b, -3))
     value = call(aten.sum.dim_IntList, product, [-2])
     if node.target in (aten.addmm.default, aten.baddbmm.default):
