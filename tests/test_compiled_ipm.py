@@ -77,6 +77,20 @@ def test_compiled_solves_take_the_instances_that_need_more_work_alone(monkeypatc
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
 
 
+def test_a_compiled_first_round_of_the_full_step_alone(monkeypatch, dynamo_capture):
+    """The first round of the full step alone (``IPOptions.line_search_first``, the default of large compiled
+    batches), compiled: one graph each, but the trial points' kernel, traced for the two round sizes (the corrections
+    evaluate their one trial point as the first round does, the later rounds four); the answers are eager's."""
+    corrections = spied(monkeypatch, soc, "second_order_correction")
+    x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
+    solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True, line_search_first=1))
+    assert corrections, "the solve should take corrections"
+    assert not dict(dynamo_capture["graph_break"]), dict(dynamo_capture["graph_break"])
+    frames, kernels = dynamo_capture["frames"]["total"], len(compiled._KERNELS)
+    assert frames == kernels + 1, (frames, kernels)
+    assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-9)
+
+
 def test_a_compiled_correction_round_takes_the_instances_still_correcting_alone(monkeypatch):
     """With compiled kernels each round of the second-order corrections factorises, solves and evaluates the rows
     of the instances still correcting alone (the first round all of them), and each correction is the one made on
@@ -108,9 +122,10 @@ def test_a_compiled_correction_round_takes_the_instances_still_correcting_alone(
 
 @pytest.mark.slow  # compiling the kernels takes minutes on two cores
 @needs_compiler
-def test_compiled_interior_point_matches_eager():
+@pytest.mark.parametrize("first_round", [None, 1])  # 1: the full step alone, as in a large batch
+def test_compiled_interior_point_matches_eager(first_round):
     x0 = tt.problems.sample_x0("pendulum", 2, seed=0)
-    assert_compiled_matches_eager(pendulum(), x0, "ipm", tt.IPOptions(), tol=1e-7)
+    assert_compiled_matches_eager(pendulum(), x0, "ipm", tt.IPOptions(line_search_first=first_round), tol=1e-7)
 
 
 @pytest.mark.slow  # most of a minute; the default run keeps the test above (its rows of fewer instances traced once)

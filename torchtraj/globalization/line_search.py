@@ -18,7 +18,7 @@ compiled kernel keeps one graph, and how ALTRO's projection evaluates its ``Î± â
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
@@ -38,7 +38,7 @@ class Accepted:
 
 
 def backtrack(steps: Tensor, per_round: int, evaluate: Callable[..., tuple], pending: Tensor, start: Accepted,
-              sync_first: bool = False, by_rows: bool = False) -> Accepted:
+              sync_first: bool = False, by_rows: bool = False, first_round: Optional[int] = None) -> Accepted:
     """The first accepted of the step sizes ``steps`` (``(L,)``, shared by the batch, or ``(B, L)``) per instance.
 
     ``evaluate(alphas)`` takes a round's step sizes (``steps[..., j:j + per_round]``, ``(l,)`` or ``(B, l)``) and
@@ -49,16 +49,21 @@ def backtrack(steps: Tensor, per_round: int, evaluate: Callable[..., tuple], pen
     the first round that has one (the largest step there). ``by_rows``: a round after the first evaluates only the
     pending instances that found no step yet, ``evaluate(alphas, rows)`` on the rows ``rows (R,)`` of the batch
     (``alphas`` of those rows where per instance), returning ``(R, l)``-shaped results: in a large batch most
-    instances take the full step, and the others' further rounds would evaluate the whole batch again. The same
-    candidates are evaluated for the instances that read them. Returns the :class:`Accepted` steps."""
+    instances take the full step, and the others' further rounds would evaluate the whole batch again.
+    ``first_round``: the first round's count, where it differs from ``per_round`` (one candidate, the full step,
+    where evaluating the others for every instance costs more than a further round for the few that need it). The
+    same candidates are evaluated for the instances that read them, in the same order, whatever the rounds. Returns
+    the :class:`Accepted` steps."""
     L = steps.shape[-1]
     shared = steps.dim() == 1
     rows = torch.arange(pending.shape[0], device=steps.device)
     found, alpha, values = start.found, start.alpha, start.values
-    for first in range(0, L, per_round):
+    opening = min(L, first_round or per_round)
+    for first in [0, *range(opening, L, per_round)]:
         if (first > 0 or sync_first) and not bool((pending & ~found).any()):
             break
-        alphas = steps[..., first:first + per_round].contiguous()  # a kernel sees the strides of a fresh tensor
+        size = opening if first == 0 else per_round
+        alphas = steps[..., first:first + size].contiguous()  # a kernel sees the strides of a fresh tensor
         if by_rows and first > 0:
             looking = (pending & ~found).nonzero().squeeze(-1)
             if looking.shape[0] < pending.shape[0]:

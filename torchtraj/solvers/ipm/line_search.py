@@ -17,12 +17,14 @@ condition (W&B 2006 step A-7, whichever of the two tests accepted it: a step of 
 them adds no entry either, as in IPOPT). The step sizes are evaluated in rounds of
 ``line_search_parallel``, every instance and step size of a round in one batched evaluation (multiple shooting
 needs no rollout) by the shared driver :func:`~torchtraj.globalization.line_search.backtrack`; the full step is
-usually accepted in the first round. A step below round-off (IPOPT's tiny step) is taken whole, with no filter
+usually accepted in the first round, which in a large compiled batch evaluates it alone
+(``IPOptions.line_search_first``). A step below round-off (IPOPT's tiny step) is taken whole, with no filter
 entry.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -79,6 +81,26 @@ def fraction_to_boundary(it: Iterate, d: Direction, tau: Tensor) -> tuple:
     a_max = _max_step(torch.cat([it.s.flatten(1), it.sN], -1), torch.cat([d.ds.flatten(1), d.dsN], -1), tau)
     a_dual = _max_step(torch.cat([it.z.flatten(1), it.zN], -1), torch.cat([d.dz.flatten(1), d.dzN], -1), tau)
     return a_max, a_dual
+
+
+#: The batch size from which a compiled solve on a CPU evaluates the full step alone in its first round of step sizes
+#: (``IPOptions.line_search_first`` ``None``): there the trial points' evaluation is computation, not overhead, and
+#: the few instances that reject the full step cost a further round less than every instance's other candidates.
+FULL_STEP_ALONE_FROM = 128
+
+
+def batch_first_round(opts: IPOptions, B: int, device: torch.device) -> IPOptions:
+    """``opts`` with ``line_search_first`` decided once for the batch of ``B`` (the option's docstring), so that an
+    instance's rounds do not depend on how many others are still iterating."""
+    if opts.line_search_first is not None:
+        return opts
+    alone = compiled_kernels(opts, device) and device.type == "cpu" and B >= FULL_STEP_ALONE_FROM
+    return dataclasses.replace(opts, line_search_first=1 if alone else max(1, opts.line_search_parallel))
+
+
+def first_round(opts: IPOptions) -> int:
+    """How many step sizes the first round evaluates."""
+    return max(1, opts.line_search_first or opts.line_search_parallel)
 
 
 def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):
@@ -148,7 +170,7 @@ def measured_first_round(problem: Problem, cons: Constraints, params, it: Iterat
     ``(measures, first round)``, each the tuple its function returns."""
     measures = step_measures(model, it, d, mu, opts)
     _, _, phi, slope, _, candidates = measures
-    alphas = candidates[:, :max(1, opts.line_search_parallel)].contiguous()
+    alphas = candidates[:, :first_round(opts)].contiguous()
     return measures, trial(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min, alphas,
                            opts)
 
@@ -191,8 +213,8 @@ class Step:
 def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
                 filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor, opts: IPOptions,
                 correct: Optional[Callable] = None) -> Step:
-    """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation; a further
-    round only while a ``pending`` instance has found no acceptable step. ``correct(need, α_max, φ, ∇φ·Δ,
+    """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation (the first round
+    :func:`first_round`'s); a further round only while a ``pending`` instance has found no acceptable step. ``correct(need, α_max, φ, ∇φ·Δ,
     residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`) of the instances ``need (B,)``
     whose first trial point was rejected with ``θ`` not below the current one; where it finds a step, that step is
     taken instead of a shorter one (W&B 2006 §2.3)."""
@@ -200,9 +222,9 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     # every instance took a tiny step, and then unused: the answers are the same)
     ready = []  # the first round, evaluated with the measures
     if compiled_kernels(opts, it.X.device):
-        measures, first_round = kernel_of(measured_first_round, opts, it.X.device)(
+        measures, opening = kernel_of(measured_first_round, opts, it.X.device)(
             problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, opts)
-        ready.append(first_round)
+        ready.append(opening)
     else:
         measures = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
     a_max, a_dual, phi, slope, tiny, candidates = measures  # tiny: IPOPT's tiny step, whole, no filter entry
@@ -239,8 +261,9 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
 
     start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
-    steps = backtrack(candidates, max(1, opts.line_search_parallel), acceptable, pending, start,
-                      sync_first=True, by_rows=not uses_graphs(opts, it.X.device))  # graphs keep the batch's shape
+    steps = backtrack(candidates, max(1, opts.line_search_parallel), acceptable, pending, start, sync_first=True,
+                      by_rows=not uses_graphs(opts, it.X.device),  # graphs keep the batch's shape
+                      first_round=first_round(opts))
     found, alpha, (unfiltered, blocked) = steps.found, steps.alpha, steps.values
     shortened = found & ~tiny & (alpha < a_max)
     corrected = None

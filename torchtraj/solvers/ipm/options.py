@@ -67,6 +67,13 @@ class IPOptions:
     line_search_decrease: float = 0.5
     line_search_steps: int = 20
     line_search_parallel: int = 4
+    #: How many the first round evaluates: ``None`` decides once a solve, the full step alone in a compiled solve
+    #: (``compile``) on a CPU of at least ``line_search.FULL_STEP_ALONE_FROM`` instances, whose trial points'
+    #: evaluation is computation (the full step is usually taken, and the other candidates would be evaluated for
+    #: every instance for the few that need them), else ``line_search_parallel`` (eager, or in a small batch, a
+    #: further round costs about as much as a round of more candidates). The answer is the same either way: the same
+    #: candidates, tried in the same order.
+    line_search_first: Optional[int] = None
     #: Inertia correction ``δ_w``: first value, bounds and factors (``first_hessian_perturbation``,
     #: ``min/max_hessian_perturbation``, ``perturb_inc_fact_first``, ``perturb_inc_fact``, ``perturb_dec_fact``).
     regularization_first: float = 1e-4

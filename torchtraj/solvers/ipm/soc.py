@@ -39,7 +39,7 @@ from ...riccati import LQR
 from .compaction import gather_laid_out, gather_rows, kernel_rows, laid_out_as, pick, write_rows
 from .iterate import Iterate, Model
 from .kernels import compiled_kernels
-from .line_search import advance, fraction_to_boundary, trial
+from .line_search import advance, first_round, fraction_to_boundary, trial
 from .newton import Direction, direction, factorize_step, newton_direction, newton_rhs
 from .options import IPOptions
 
@@ -126,10 +126,10 @@ def _corrected_trial(problem: Problem, cons: Constraints, params, it: Iterate, c
         if compiled else direction(lqr, newton_rhs(corrected, it, mu, x0, it.X.shape[-1]), delta, corrected, it, mu,
                                    None, factor, False, opts.sweep, opts.terminal_rows)
     a_soc, a_dual_soc = kernel(fraction_to_boundary, compiled)(it, step, tau)
-    # compiled: the one trial point as many times as a line-search round has candidates, laid out as a round's
-    # step sizes (line_search.line_search, globalization.line_search.backtrack): the round's kernel
+    # compiled: the one trial point as many times as the first round has candidates, laid out as a round's step
+    # sizes (line_search.line_search, globalization.line_search.backtrack): a kernel of the line search's
     alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
-        :, :max(1, opts.line_search_parallel)].contiguous() if compiled else a_soc.unsqueeze(1)
+        :, :first_round(opts)].contiguous() if compiled else a_soc.unsqueeze(1)
     accept, no_entry, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu, phi,
                                                                   slope, filt, theta_max, theta_min, alphas, opts)
     return step, a_soc, a_dual_soc, accept[:, 0], no_entry[:, 0], theta_c[:, 0], *(t[:, 0] for t in parts)

@@ -76,7 +76,7 @@ from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error, last_
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import compiled_kernels, eager_kernels, kernel_of, uses_graphs
-from .line_search import line_search
+from .line_search import batch_first_round, line_search
 from .newton import batch_sweep, direction, direction_of_rows, newton_direction, newton_lqr, regularized_direction
 from .options import IPOptions
 from .restoration import restore
@@ -144,7 +144,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     x0, U0, X0, params = batch.x0, batch.U0, batch.X0, batch.params
     B, N, nx = x0.shape[0], problem.N, problem.nx
     cons = Constraints.of(problem)
-    opts = batch_sweep(opts, cons, B, N, nx, problem.nu, x0.device)
+    opts = batch_first_round(batch_sweep(opts, cons, B, N, nx, problem.nu, x0.device), B, x0.device)
     tol = opts.tolerance_for(x0.dtype)
     if X0 is None:
         X = rollout_kernel(opts.compile)(problem.dynamics, x0, U0, params)
