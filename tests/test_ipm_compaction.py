@@ -74,3 +74,25 @@ def test_rows_written_back_keep_the_batch_layout():
     want = batch.a.clone()
     want[index] = new.a
     assert torch.equal(written.a, want) and torch.equal(written.b, torch.tensor([0, 1, 20, 3, 4, 10.0]))
+
+
+def test_tensors_side_by_side_in_one_buffer_are_gathered_from_its_rows_once(monkeypatch):
+    """A kernel's outputs that share a buffer (each instance's row holding several of them, past an offset, as the
+    expansion's values and Jacobians are laid out): the buffer's rows are gathered once for all of them, and each
+    comes back with its values, strides and offset."""
+    buffer = torch.randn(6, 11, dtype=torch.float64)
+    first = buffer[:, 1:7].unflatten(1, (3, 2))  # (6, 3, 2), offset 1
+    second = buffer[:, 7:10]  # (6, 3), offset 7
+    alone = torch.arange(6.0)
+    index = torch.tensor([5, 0, 5, 2])
+    gathers = []
+    original = torch.Tensor.__getitem__
+    monkeypatch.setattr(torch.Tensor, "__getitem__", lambda t, i: gathers.append(t.shape) or original(t, i))
+    rows = gather_laid_out(_Pair(a=first, b=second), index)
+    monkeypatch.undo()
+    assert len(gathers) == 1  # the buffer's rows, once
+    for got, batch in ((rows.a, first), (rows.b, second)):
+        assert torch.equal(got, batch[index])
+        assert got.stride() == batch.stride() and got.storage_offset() == batch.storage_offset()
+    assert rows.a.untyped_storage().data_ptr() == rows.b.untyped_storage().data_ptr()
+    assert torch.equal(gather_laid_out(alone, index), alone[index])

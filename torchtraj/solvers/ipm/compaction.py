@@ -49,15 +49,34 @@ def gather_laid_out(value, index: Tensor):
     (:func:`laid_out_as`). A compiled kernel is specialised to its inputs' strides, and with a dynamic batch to the
     equalities between their offsets: the rows of a view (the model's fields are views of the expansion's rows)
     gathered plainly would compile each kernel again for their own layout. A tensor that ``value`` holds more than
-    once (a corrected model shares most fields with the model it corrects) is gathered once."""
-    taken = {}
+    once (a corrected model shares most fields with the model it corrects) is gathered once, and so is a buffer that
+    holds several tensors' rows (:func:`_buffer_rows`: a kernel's outputs side by side in one buffer)."""
+    taken, buffers = {}, {}
 
     def take(v: Tensor, i: Tensor) -> Tensor:
         if id(v) not in taken:  # `value` holds every tensor while this call runs: no identity is reused
-            taken[id(v)] = laid_out_as(v[i], v)
+            rows = _buffer_rows(v, i, buffers)
+            taken[id(v)] = laid_out_as(v[i], v) if rows is None else rows
         return taken[id(v)]
 
     return rows_of(value, index, shared=("knots",), dropped=("factor",), take=take)
+
+
+def _buffer_rows(v: Tensor, index: Tensor, buffers: dict) -> "Tensor | None":
+    """The rows ``index`` of ``v`` laid out as ``v``, taken from the rows of its whole buffer: the buffer seen as
+    ``(B, stride(0))``, gathered once for every tensor of ``buffers`` (keyed by buffer and row length) that lies in
+    it, and ``v``'s view of it again. ``None`` where ``v``'s rows do not each lie within a row of its buffer (an
+    instance's elements interleaved with another's, or a repeated element) or ``v`` is its buffer's rows."""
+    B, row = (v.shape[0], v.stride(0)) if v.dim() else (0, 0)
+    if B < 1 or row < 1 or v.numel() == 0 or any(st < 0 for st in v.stride()) or v.is_contiguous():
+        return None  # (a contiguous tensor is its buffer's rows: gathered plainly, laid out as itself)
+    extent = v.storage_offset() + sum((n - 1) * st for n, st in zip(v.shape[1:], v.stride()[1:]))
+    if extent >= row or v.untyped_storage().nbytes() < B * row * v.element_size():
+        return None
+    key = (v.untyped_storage().data_ptr(), row, v.dtype)
+    if key not in buffers:
+        buffers[key] = v.as_strided((B, row), (row, 1), 0)[index]
+    return buffers[key].as_strided((index.shape[0], *v.shape[1:]), v.stride(), v.storage_offset())
 
 
 def kernel_rows(rows: Tensor) -> Tensor:
