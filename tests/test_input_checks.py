@@ -187,7 +187,8 @@ def test_warm_started_duals_are_checked_by_name_and_shape():
 def test_the_default_method_respects_the_constraints():
     prob = make(u_lower=-0.5 * torch.ones(1, dtype=F64), u_upper=0.5 * torch.ones(1, dtype=F64))
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no "ignores the constraints"
+        warnings.simplefilter("error", UserWarning)  # no "ignores the constraints" (and not torch's deprecation
+        # warning that forward AD's first use in a process raises)
         sol = tt.solve(prob)
     assert sol.method == "ipm" and bool(sol.converged.all()) and float(sol.max_violation.max()) < 1e-6
     with pytest.warns(UserWarning, match="ignores the constraints"):
@@ -206,7 +207,7 @@ def test_mpc_checks_its_method_at_construction():
     with pytest.warns(UserWarning, match="MPC: method 'ilqr' ignores the constraints"):
         mpc = tt.MPC(prob, "ilqr", 2)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # said once, at construction
+        warnings.simplefilter("error", UserWarning)  # said once, at construction
         mpc(prob.x0)
 
 
@@ -225,7 +226,7 @@ def test_compile_on_a_method_without_compiled_kernels_warns_and_runs_eager(monke
     with pytest.warns(UserWarning, match="MPC: method 'hm-ilqr' has no compiled kernels"):
         mpc = tt.MPC(prob, "hm-ilqr", 2, compile=True)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # said once, at construction
+        warnings.simplefilter("error", UserWarning)  # said once, at construction
         mpc(prob.x0)
         tt.solve(prob, method="ipm", options=tt.IPOptions(iterations=2))  # compile off: nothing to say
     assert mpc.options.compile is False and not kernels._KERNELS
