@@ -214,10 +214,10 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
                 filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor, opts: IPOptions,
                 correct: Optional[Callable] = None) -> Step:
     """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation (the first round
-    :func:`first_round`'s); a further round only while a ``pending`` instance has found no acceptable step. ``correct(need, α_max, φ, ∇φ·Δ,
-    residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`) of the instances ``need (B,)``
-    whose first trial point was rejected with ``θ`` not below the current one; where it finds a step, that step is
-    taken instead of a shorter one (W&B 2006 §2.3)."""
+    :func:`first_round`'s); a further round only while a ``pending`` instance has found no acceptable step.
+    ``correct(need, α_max, φ, ∇φ·Δ, residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`)
+    of the instances ``need (B,)`` whose first trial point was rejected with ``θ`` not below the current one; where
+    it finds a step, that step is taken instead of a shorter one (W&B 2006 §2.3)."""
     # compiled kernels: the measures and the first round's trial points in one kernel call (evaluated even where
     # every instance took a tiny step, and then unused: the answers are the same)
     ready = []  # the first round, evaluated with the measures
