@@ -74,3 +74,8 @@ def test_the_full_step_alone_is_the_first_round_of_large_compiled_batches_on_a_c
     assert decided(4096, compile=True, line_search_parallel=2) == 1
     assert decided(4096, compile=True, line_search_first=3) == 3  # given: kept
     assert decided(1, line_search_parallel=6) == 6
+
+
+def test_a_first_round_of_no_candidate_is_refused():
+    with pytest.raises(ValueError, match="line_search_first must be None or >= 1, got 0"):
+        tt.IPOptions(line_search_first=0)

@@ -100,7 +100,7 @@ def batch_first_round(opts: IPOptions, B: int, device: torch.device) -> IPOption
 
 def first_round(opts: IPOptions) -> int:
     """How many step sizes the first round evaluates."""
-    return max(1, opts.line_search_first or opts.line_search_parallel)
+    return opts.line_search_first or max(1, opts.line_search_parallel)
 
 
 def step_measures(model: Model, it: Iterate, d: Direction, mu: Tensor, opts: IPOptions):

@@ -208,6 +208,8 @@ class IPOptions:
             raise ValueError(f"scaling must be 'gradient-based' or 'none', not {self.scaling!r}")
         if self.barrier_strategy not in ("monotone", "mehrotra"):
             raise ValueError(f"barrier_strategy must be 'monotone' or 'mehrotra', not {self.barrier_strategy!r}")
+        if self.line_search_first is not None and self.line_search_first < 1:
+            raise ValueError(f"line_search_first must be None or >= 1, got {self.line_search_first}")
         if self.crossover_rounds < 0 or self.crossover_start_rounds < 0:
             raise ValueError(f"crossover_rounds and crossover_start_rounds must be >= 0, got {self.crossover_rounds} "
                              f"and {self.crossover_start_rounds}")
