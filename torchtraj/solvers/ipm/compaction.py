@@ -66,7 +66,8 @@ def _buffer_rows(v: Tensor, index: Tensor, buffers: dict) -> "Tensor | None":
     """The rows ``index`` of ``v`` laid out as ``v``, taken from the rows of its whole buffer: the buffer seen as
     ``(B, stride(0))``, gathered once for every tensor of ``buffers`` (keyed by buffer and row length) that lies in
     it, and ``v``'s view of it again. ``None`` where ``v``'s rows do not each lie within a row of its buffer (an
-    instance's elements interleaved with another's, or a repeated element) or ``v`` is its buffer's rows."""
+    instance's elements interleaved with another's, as in a time-major buffer, or every instance one repeated row)
+    or ``v`` is its buffer's rows."""
     B, row = (v.shape[0], v.stride(0)) if v.dim() else (0, 0)
     if B < 1 or row < 1 or v.numel() == 0 or any(st < 0 for st in v.stride()) or v.is_contiguous():
         return None  # (a contiguous tensor is its buffer's rows: gathered plainly, laid out as itself)

@@ -90,12 +90,11 @@ FULL_STEP_ALONE_FROM = 128
 
 
 def batch_first_round(opts: IPOptions, B: int, device: torch.device) -> IPOptions:
-    """``opts`` with ``line_search_first`` decided once for the batch of ``B`` (the option's docstring), so that an
-    instance's rounds do not depend on how many others are still iterating."""
-    if opts.line_search_first is not None:
-        return opts
+    """``opts`` with ``line_search_first`` decided once for the batch of ``B`` (the option's docstring; left ``None``,
+    :func:`first_round` reads ``line_search_parallel``), so that an instance's rounds do not depend on how many others
+    are still iterating."""
     alone = compiled_kernels(opts, device) and device.type == "cpu" and B >= FULL_STEP_ALONE_FROM
-    return dataclasses.replace(opts, line_search_first=1 if alone else max(1, opts.line_search_parallel))
+    return dataclasses.replace(opts, line_search_first=1) if alone and opts.line_search_first is None else opts
 
 
 def first_round(opts: IPOptions) -> int:

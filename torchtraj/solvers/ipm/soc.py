@@ -127,7 +127,8 @@ def _corrected_trial(problem: Problem, cons: Constraints, params, it: Iterate, c
                                    None, factor, False, opts.sweep, opts.terminal_rows)
     a_soc, a_dual_soc = kernel(fraction_to_boundary, compiled)(it, step, tau)
     # compiled: the one trial point as many times as the first round has candidates, laid out as a round's step
-    # sizes (line_search.line_search, globalization.line_search.backtrack): a kernel of the line search's
+    # sizes (line_search.line_search, globalization.line_search.backtrack): the later rounds' specialisation of the
+    # trial kernel where their size is the first round's, else one of its own (one trial point, not four copies)
     alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
         :, :first_round(opts)].contiguous() if compiled else a_soc.unsqueeze(1)
     accept, no_entry, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu, phi,
