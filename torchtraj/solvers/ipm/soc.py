@@ -59,14 +59,15 @@ def _scaled(alpha: Tensor, value: Tensor) -> Tensor:
     return alpha.reshape(-1, *[1] * (value.dim() - 1)) * value
 
 
-def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
-                            mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
+def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Optional[Direction],
+                            model: Model, mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
                             theta_min: Tensor, need: Tensor, a_max: Tensor, first: tuple, lqr: Optional[LQR],
                             delta: Tensor, x0: Tensor, opts: IPOptions) -> Correction:
     """The corrections (module docstring) of the instances ``need (B,)``, from the residuals ``first`` of the rejected
     trial points (``(B, l, ...)`` each, the full step first) and the system ``lqr`` regularised by ``δ_w`` (``None``
     with compiled kernels, whose Newton step forms it from the model:
-    :func:`~torchtraj.solvers.ipm.newton.newton_direction`)."""
+    :func:`~torchtraj.solvers.ipm.newton.newton_direction`). Of the iteration's step ``d`` only its kept
+    factorisation is read (eager); ``None``: the system is factorised here."""
     knots = model.knots
     tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
     current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
@@ -75,9 +76,11 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     # compiled kernels (no factorisation kept): each correction's step, its boundary and its trial point in the
     # kernels of the iteration's own step and line search; eager: the step's factorisation, else one made here
     compiled = compiled_kernels(opts, it.X.device)
-    factor = None if compiled else d.factor if d.factor is not None else factorize_step(lqr, delta, opts)
+    kept = None if d is None else d.factor
+    factor = None if compiled else kept if kept is not None else factorize_step(lqr, delta, opts)
     found = torch.zeros_like(need)
-    alpha, unfiltered, best = torch.zeros_like(mu), torch.zeros_like(need), d
+    # the corrected step of each instance, from the first round's (where none is accepted it is not read)
+    alpha, unfiltered, best = torch.zeros_like(mu), torch.zeros_like(need), None
     a_dual = torch.zeros_like(mu)
     active = need
     for _ in range(opts.second_order_corrections):
@@ -95,13 +98,14 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
                 factor, delta, x0, opts)
             ok = step.ok
             new = active & accept & ok
-            best = pick(new, step, best)
+            best = step if best is None else pick(new, step, best)
         else:  # the instances still correcting alone, their results written back (the others' are not read)
             step, a_soc, a_dual_soc, accept, no_entry, theta_c, *parts = _corrected_trial_of_rows(
                 problem, cons, params, it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau, delta,
                 x0, opts, rows)
             new = accept & step.ok
-            best = write_rows(best, rows, pick(new, step, gather_rows(best, rows)))
+            best = _widened(step, rows, need.shape[0]) if best is None else \
+                write_rows(best, rows, pick(new, step, gather_rows(best, rows)))
             new, ok, a_soc, a_dual_soc, no_entry, theta_c, *parts = (_scattered(v, rows, need.shape[0]) for v in (
                 new, step.ok, a_soc, a_dual_soc, no_entry, theta_c, *parts))
         found = found | new
@@ -110,6 +114,8 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
         active = active & ~new & ok & (theta_c <= opts.soc_decrease * theta_old)
         theta_old = theta_c
         c_soc = tuple(_scaled(a_soc, c) + t for c, t in zip(c_soc, parts))
+    if best is None:  # no instance needed one
+        return Correction(found=found, alpha=alpha, unfiltered=unfiltered, it=it)
     return Correction(found=found, alpha=alpha, unfiltered=unfiltered,
                       it=kernel(advance, compiled)(it, best, alpha, a_dual, mu, knots, opts))
 
@@ -133,6 +139,7 @@ def _corrected_trial(problem: Problem, cons: Constraints, params, it: Iterate, c
         :, :first_round(opts)].contiguous() if compiled else a_soc.unsqueeze(1)
     accept, no_entry, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu, phi,
                                                                   slope, filt, theta_max, theta_min, alphas, opts)
+    step = dataclasses.replace(step, K=None)  # a corrected step's gains are not used: not gathered, picked, written
     return step, a_soc, a_dual_soc, accept[:, 0], no_entry[:, 0], theta_c[:, 0], *(t[:, 0] for t in parts)
 
 
@@ -165,6 +172,14 @@ def _scattered(value: Tensor, rows: Tensor, batch: int) -> Tensor:
     return value.new_zeros((batch,) + value.shape[1:]).index_copy(0, rows, value)
 
 
+def _widened(step: Direction, rows: Tensor, batch: int) -> Direction:
+    """``step`` of the instances ``rows (R,)`` as a step of ``batch`` instances, laid out as ``step`` (zero in the
+    others' rows, which are not read)."""
+    return dataclasses.replace(step, **{f.name: laid_out_as(_scattered(getattr(step, f.name), rows, batch),
+                                                            getattr(step, f.name))
+                                        for f in dataclasses.fields(step) if isinstance(getattr(step, f.name), Tensor)})
+
+
 def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
                        mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor,
                        need: Tensor, a_max: Tensor, first: tuple, lqr: LQR, delta: Tensor, x0: Tensor,
@@ -182,8 +197,8 @@ def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate,
     if rows.numel() == need.shape[0]:
         return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                        theta_min, need, a_max, first, lqr, delta, x0, opts)
-    sub = second_order_correction(
-        problem, cons, param_rows(params, rows), take(it, rows), take(d, rows), take(model, rows),
+    sub = second_order_correction(  # no step `d`: the corrections start from their own (eager: `d`'s
+        problem, cons, param_rows(params, rows), take(it, rows), None, take(model, rows),  # factorisation is the batch's)
         *(take(v, rows) for v in (mu, phi, slope)), take(filt, rows),
         *(take(v, rows) for v in (theta_max, theta_min, need, a_max)), take(first, rows),
         None if compiled else lqr.rows(rows), take(delta, rows), take(x0, rows), opts)
