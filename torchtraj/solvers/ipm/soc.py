@@ -197,8 +197,9 @@ def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate,
     if rows.numel() == need.shape[0]:
         return second_order_correction(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max,
                                        theta_min, need, a_max, first, lqr, delta, x0, opts)
-    sub = second_order_correction(  # no step `d`: the corrections start from their own (eager: `d`'s
-        problem, cons, param_rows(params, rows), take(it, rows), None, take(model, rows),  # factorisation is the batch's)
+    # no step `d`: the corrections start from their own (and eager, `d`'s factorisation is the whole batch's)
+    sub = second_order_correction(
+        problem, cons, param_rows(params, rows), take(it, rows), None, take(model, rows),
         *(take(v, rows) for v in (mu, phi, slope)), take(filt, rows),
         *(take(v, rows) for v in (theta_max, theta_min, need, a_max)), take(first, rows),
         None if compiled else lqr.rows(rows), take(delta, rows), take(x0, rows), opts)
