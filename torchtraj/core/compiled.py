@@ -33,7 +33,7 @@ changed between two calls symbolic too. ``maybe_mark_dynamic``, not ``mark_dynam
 specialises the batch size does so without an error, and compiles once per batch size as before. Dynamo specialises
 sizes 0 and 1, so B = 1 always has graphs of its own; ``tt.solve`` tells its kernels the batch size
 (:func:`batch_of`), and a solve of one instance marks nothing and runs each kernel's second compilation, whose
-buffers are pooled (:data:`SINGLE_OPTIONS`).
+buffers are on the stack (:data:`SINGLE_OPTIONS`, :func:`single_instance`).
 
 Every kernel of iLQR, ALTRO (its AL objective, violation and multiplier update) and the interior point is compiled
 once for every B ≥ 2 (``tests/test_compiled.py``, ``tests/test_compiled_ipm.py``). Two things in their code keep it
@@ -76,7 +76,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from . import batching
+from . import batching, stack_buffers
 from .constraints import Constraints
 from .problem import Problem
 from .short_products import ShortProducts
@@ -103,10 +103,10 @@ RECOMPILE_LIMIT = 64
 OPTIONS = {"cpp_wrapper": True, "post_grad_custom_pre_pass": ShortProducts(FUSED_CONTRACTION)}
 
 #: And for the graphs of a single instance (:func:`batch_of` below :data:`DYNAMIC_FROM`, sizes all static): the
-#: buffers of a call pooled in one allocation. A B = 1 kernel's hundreds of tiny buffers are most of its time
-#: (``malloc`` and tensor handles, not arithmetic); pooled, the compiled eILQR solves the pendulum about 6 % faster,
-#: the IPM as fast (``docs/benchmarks.md``). Batched graphs keep the default, not measured against it.
-SINGLE_OPTIONS = {**OPTIONS, "memory_planning": True}
+#: buffers of a call on the stack (:mod:`~torchtraj.core.stack_buffers`), or pooled in one allocation where the
+#: graph calls a library kernel. A B = 1 kernel's hundreds of tiny buffers are most of its time (``malloc`` and
+#: tensor handles, not arithmetic; the figures are in ``docs/benchmarks.md``). Batched graphs keep the default.
+SINGLE_OPTIONS = {**OPTIONS, "memory_planning": True, stack_buffers.OPTION: True}
 
 _KERNELS: dict = {}
 
@@ -189,8 +189,10 @@ def _compile(fn: Callable) -> Callable:
     # new dicts: torch.compile pops the guard filter from the one it is given
     compiled = torch.compile(fn, dynamic=False, options={**OPTIONS, **getattr(fn, "batched_options", {}),
                                                          "guard_filter_fn": kept_guards})
-    single = torch.compile(fn, dynamic=False, options={**SINGLE_OPTIONS, **getattr(fn, "single_options", {}),
-                                                       "guard_filter_fn": kept_guards})
+    single_options = {**SINGLE_OPTIONS, **getattr(fn, "single_options", {}), "guard_filter_fn": kept_guards}
+    if not stack_buffers.install():  # Inductor's own stack wrapper would return outputs it overwrites
+        single_options.pop(stack_buffers.OPTION)
+    single = torch.compile(fn, dynamic=False, options=single_options)
 
     def batch_dynamic(*args, **kwargs):
         if 0 < _BATCH.get() < DYNAMIC_FROM:  # told a single instance: nothing to mark (mark_batch)
@@ -233,6 +235,14 @@ def batch_of(size: int):
         yield
     finally:
         _BATCH.reset(token)
+
+
+def single_instance(t: Tensor) -> bool:
+    """Whether ``t`` is traced for a single instance's graph: by ``torch.compile``, with a batch dimension (dim 0) of
+    static size 1 (a batched graph holds a symbol there, or another size). Such a graph's buffers go on the stack
+    where it calls no library kernel (:data:`SINGLE_OPTIONS`, :mod:`~torchtraj.core.stack_buffers`), so its code
+    avoids those calls where an elementwise form exists."""
+    return torch.compiler.is_compiling() and type(t.shape[0]) is int and t.shape[0] == 1
 
 
 def mark_batch(*args) -> None:

@@ -47,8 +47,9 @@ solve is one unconstrained solve plus a constant number.
 
 On a GPU the pseudo-inverses (of ``C_N`` and of the ``Σ_k``) are Jacobi rotations' (:func:`by_rotations`): the
 same thresholds, no host read, so that a CUDA graph captures the whole factorisation. On a CPU they are LAPACK's,
-but for ``C_N``'s in a kernel that ``torch.compile`` traces: there the rotations are loops of the kernel, where
-Inductor would call LAPACK's SVD once a matrix.
+but for ``C_N``'s in a kernel that ``torch.compile`` traces, and for all in a single instance's kernel: there the
+rotations are loops of the kernel, where Inductor would call LAPACK once a matrix (and keep that kernel's buffers
+off the stack, :mod:`~torchtraj.core.stack_buffers`).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ..core.compiled import addmatmul, matmul
+from ..core.compiled import addmatmul, matmul, single_instance
 from ..core.graphs import capturing
 from ..core.masks import where_rows
 from . import jacobi
@@ -271,16 +272,17 @@ def _forward_chain(Phi: Tensor, drive: Tensor, parallel: bool) -> Tensor:
 
 def by_rotations(M: Tensor) -> bool:
     """Whether the pseudo-inverses of ``M`` are Jacobi rotations' (:mod:`~torchtraj.riccati.jacobi`): on a GPU,
-    where LAPACK-style solvers read their status on the host, which a CUDA graph cannot capture."""
-    return M.is_cuda or capturing()
+    where LAPACK-style solvers read their status on the host, which a CUDA graph cannot capture, and in a single
+    instance's compiled kernel (:func:`~torchtraj.core.compiled.single_instance`: a library call there)."""
+    return M.is_cuda or capturing() or single_instance(M)
 
 
 def _eigen_inverse(M: Tensor, tol: float) -> Tensor:
     """The pseudo-inverse of the symmetric positive semidefinite ``M (..., m, m)``: its eigenvalues above ``tol``
     times the largest inverted, the others dropped. Each matrix is divided by its largest entry first
-    (``pinv(c M) = pinv(M) / c``), so that the eigensolver's own scaling cannot overflow. On a GPU, by Jacobi
-    rotations (:func:`~torchtraj.riccati.jacobi.pinv`: for this positive semidefinite ``M`` the singular values are
-    the eigenvalues)."""
+    (``pinv(c M) = pinv(M) / c``), so that the eigensolver's own scaling cannot overflow. Where
+    :func:`by_rotations`, by Jacobi rotations (:func:`~torchtraj.riccati.jacobi.pinv`: for this positive
+    semidefinite ``M`` the singular values are the eigenvalues)."""
     scale = M.abs().flatten(-2).amax(-1).clamp_min(torch.finfo(M.dtype).tiny).unsqueeze(-1).unsqueeze(-1)
     if by_rotations(M):
         return jacobi.pinv(M / scale, tol) / scale
@@ -361,6 +363,18 @@ def penalised(lqr: LQR, tol: float) -> tuple:
             rho * _mT(pinv))
 
 
+def _suffix_sums(T: Tensor) -> Tensor:
+    """``Σ_{j ≥ k} T_j`` for every stage ``k`` of ``T (B, N, ...)``: a reversed cumulative sum, added in the same
+    order stage by stage in a single instance's compiled graph, where ``cumsum`` would be a library call
+    (:func:`~torchtraj.core.compiled.single_instance`)."""
+    if not single_instance(T):
+        return T.flip(1).cumsum(1).flip(1)
+    sums = [T[:, -1]]
+    for k in range(T.shape[1] - 2, -1, -1):
+        sums.append(sums[-1] + T[:, k])
+    return torch.stack(sums[::-1], 1)
+
+
 def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, tol: float) -> RangeSpaceFactor:
     """The range-space factorisation (module docstring) of ``lqr`` (terminal rows ``CN``, ``maskN`` only) from the
     factorisation ``inner`` (either sweep, shifted as ``lqr`` is to be) of its :func:`penalised` problem and that
@@ -378,7 +392,7 @@ def factorize_range_space(inner: RiccatiFactor, lqr: LQR, correction: Tensor, to
     lamh = Pi + matmul(inner.P, dxh)
     # −Σ_k = −Σ_{j ≥ k} T_j for the gains, all stages at once; −Σ_0 for the multipliers
     T = matmul(_mT(Pi[:, 1:]), drive).neg()
-    sums = T.flip(1).cumsum(1).flip(1)
+    sums = _suffix_sums(T)
     inverse, finite = _pseudo_inverse(sums[:, 0], tol)
     ok = inner.ok & finite & all_finite([kh, dxh])
     gains = TerminalGains(K=inner.K, kh=kh, Pi=Pi[:, :-1], sums=sums, tol=tol)
