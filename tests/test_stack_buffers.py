@@ -1,11 +1,13 @@
 """A single instance's compiled kernels keep their intermediate buffers on the stack (torchtraj.core.stack_buffers),
 return outputs of their own that the next call does not overwrite, and leave every other compilation as it was."""
 
+import re
 import shutil
 
 import pytest
 import torch
 
+import torchtraj as tt
 from torchtraj.core import compiled, stack_buffers
 
 pytest.importorskip("torch._inductor")
@@ -115,3 +117,41 @@ def test_without_the_chooser_single_instance_graphs_ask_for_no_stack(monkeypatch
     monkeypatch.setattr(stack_buffers, "_installed", [True])
     compiled._compile(stages)
     assert seen[3][stack_buffers.OPTION]
+
+
+def _outputs_on_the_stack(code: str) -> list:
+    """The outputs of the generated wrappers in ``code`` whose C++ variable is, or comes by reuses and views from, a
+    stack array: Inductor returns those over a thread-local buffer that its next call overwrites."""
+    found = []
+    for wrapper in code.split("inductor_entry_impl(")[1:]:
+        stack = set(re.findall(r"ArrayRefTensor<\w+> (buf\d+)\(", wrapper))
+        source = dict(re.findall(r"auto (buf\d+) = std::move\((buf\d+)\)", wrapper))
+        views = r"auto (buf\d+) = wrap_with_raii_handle_if_needed\(reinterpret_tensor_wrapper\((buf\d+),"
+        source.update(re.findall(views, wrapper))
+        for name in set(re.findall(r"ThreadLocalCachedOutputTensor<std::decay_t<decltype\((buf\d+)\)>>", wrapper)):
+            root = name
+            while root in source and root not in stack:
+                root = source[root]
+            if root in stack:
+                found.append(name)
+    return found
+
+
+@pytest.mark.slow  # compiling eILQR's and the interior point's single-instance kernels: minutes on two cores
+@pytest.mark.parametrize("method", ["eilqr", "ipm"])
+def test_compiled_single_instance_solves_repeat_and_match_eager(method, fresh_kernels):
+    """A compiled solve of one instance, twice: its kernels return no output over a stack array (their wrappers'
+    code), the second solve is the first to the last bit (an output overwritten by the next call of its kernel would
+    change the later iterations), and both are the eager solve's to rounding."""
+    from torch._inductor.utils import run_and_get_code
+
+    problem = tt.problems.get("pendulum")
+    options = {"eilqr": tt.EILQROptions, "ipm": tt.IPOptions}[method](compile=True)
+    first, sources = run_and_get_code(lambda: tt.solve(problem, method=method, options=options))
+    assert "ArrayRefTensor<double>" in "\n".join(sources)
+    assert _outputs_on_the_stack("\n".join(sources)) == []
+    second = tt.solve(problem, method=method, options=options)
+    assert torch.equal(first.U, second.U) and torch.equal(first.iterations, second.iterations)
+    eager = tt.solve(problem, method=method)
+    assert torch.equal(first.status, eager.status) and torch.equal(first.iterations, eager.iterations)
+    torch.testing.assert_close(first.U, eager.U, atol=1e-9, rtol=0)

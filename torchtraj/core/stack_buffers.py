@@ -56,7 +56,7 @@ def _chooser_class() -> type:
     from torch._inductor import config
     from torch._inductor.codegen.cpp_wrapper_cpu import CppWrapperCpu
     from torch._inductor.codegen.cpp_wrapper_cpu_array_ref import CppWrapperCpuArrayRef
-    from torch._inductor.codegen.wrapper import EfficientPeakEstimate
+    from torch._inductor.codegen.wrapper import EfficientPeakEstimate, ReuseLine
     from torch._inductor.virtualized import V
 
     class _StackWrapper(CppWrapperCpuArrayRef):
@@ -66,6 +66,11 @@ def _chooser_class() -> type:
         @staticmethod
         def create(is_subgraph, subgraph_name, parent_wrapper, partition_signatures=None):
             return _StackWrapper()
+
+        def __init__(self):
+            super().__init__()
+            self._on_stack = set()  # buffers that take over a stack array, under a view or not
+            self._heap = None  # the outputs and the buffers whose storage an output takes over (memory_plan_reuse)
 
         def _output_buffers(self) -> set:
             names = getattr(self, "_torchtraj_outputs", None)
@@ -80,13 +85,26 @@ def _chooser_class() -> type:
                 self._torchtraj_outputs = names
             return names
 
+        def memory_plan_reuse(self):
+            super().memory_plan_reuse()
+            # an output may take over the storage of a buffer that died before it (a reuse, or a kernel writing it in
+            # place of its input), through a chain of such reuses: the chain's first buffer stays on the heap
+            taken_from = {line.reused_as.get_name(): line.node.get_name() for line in self.lines
+                          if isinstance(line, ReuseLine)}
+            heap = set(self._output_buffers())
+            for name in list(heap):
+                while name in taken_from:
+                    name = taken_from[name]
+                    heap.add(name)
+            self._heap = heap
+
         def can_stack_allocate_buffer(self, buffer) -> bool:
-            return super().can_stack_allocate_buffer(buffer) and buffer.get_name() not in self._output_buffers()
+            heap = self._output_buffers() if self._heap is None else self._heap
+            return super().can_stack_allocate_buffer(buffer) and buffer.get_name() not in heap
 
         def make_buffer_reuse(self, old, new, delete_old: bool):
-            # an output never takes over a stack buffer: it is allocated on the heap instead
-            if new.get_name() in self._output_buffers() and old.get_name() in self.stack_allocated_buffers:
-                return self.make_buffer_allocation(new)
+            if old.get_name() in self.stack_allocated_buffers or old.get_name() in self._on_stack:
+                self._on_stack.add(new.get_name())
             return super().make_buffer_reuse(old, new, delete_old)
 
         def memory_plan(self):
@@ -99,7 +117,8 @@ def _chooser_class() -> type:
             return super().memory_plan()
 
         def generate_return(self, output_refs):
-            stacked = sorted(name for name in self._output_buffers() if name in self.stack_allocated_buffers)
+            stacked = sorted(name for name in self._output_buffers()
+                             if name in self.stack_allocated_buffers or name in self._on_stack)
             if stacked:  # it would alias a thread-local buffer that the next call overwrites
                 raise RuntimeError(f"torchtraj: a compiled kernel's outputs {stacked} are on the stack")
             return super().generate_return(output_refs)
