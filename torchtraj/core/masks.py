@@ -33,8 +33,9 @@ class RowPicker:
 
 
 def first_true(mask: Tensor) -> Tensor:
-    """Index of the first true entry of each row of ``mask (B, l)`` (``l − 1`` where none is): the count of
-    leading false entries. Not ``argmax``: compiled for float32 batches shorter than a vector register, inductor
-    (torch 2.13) reads the argmax of the loop's remainder uninitialised (``tests/test_compiled.py``)."""
-    leading = (~mask).to(torch.long).cumprod(-1).sum(-1)
-    return leading.clamp(max=mask.shape[-1] - 1)
+    """Index of the first true entry of each row of ``mask (B, l)`` (``l − 1`` where none is): the smallest index of
+    a true entry. Not ``argmax``: compiled for float32 batches shorter than a vector register, inductor (torch 2.13)
+    reads the argmax of the loop's remainder uninitialised (``tests/test_compiled.py``); nor a cumulative product of
+    the false entries, a library call in a compiled kernel (:mod:`~torchtraj.core.stack_buffers`)."""
+    last = mask.shape[-1] - 1
+    return torch.where(mask, torch.arange(mask.shape[-1], device=mask.device), last).amin(-1)

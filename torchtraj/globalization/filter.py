@@ -38,7 +38,7 @@ class Filter:
         when it accepts the trial point, before the filter is augmented with the point the step leaves."""
         size = self.entries.shape[1]
         added = self.slot > before.slot
-        newest = torch.nn.functional.one_hot((self.slot - 1) % size, size).to(torch.bool) & added.unsqueeze(-1)
+        newest = _slot_mask((self.slot - 1) % size, size) & added.unsqueeze(-1)
         clear = mask.unsqueeze(-1) & ~newest
         return Filter(torch.where(clear.unsqueeze(-1), float("inf"), self.entries), self.slot)
 
@@ -50,6 +50,12 @@ class Filter:
     def add(self, mask: Tensor, theta: Tensor, phi: Tensor) -> "Filter":
         """The entry ``(θ, φ)`` (``(B,)`` each) added where ``mask (B,)``, over the oldest one when the ring is full."""
         size = self.entries.shape[1]
-        slot = torch.nn.functional.one_hot(self.slot % size, size).to(torch.bool) & mask.unsqueeze(-1)
+        slot = _slot_mask(self.slot % size, size) & mask.unsqueeze(-1)
         entry = torch.stack([theta, phi], -1).unsqueeze(1)
         return Filter(torch.where(slot.unsqueeze(-1), entry, self.entries), self.slot + mask.long())
+
+
+def _slot_mask(slot: Tensor, size: int) -> Tensor:
+    """``(B, size)``: true at each instance's ``slot (B,)``. A comparison with the slots' indices, not ``one_hot``,
+    which checks its input's range with two reductions read by the host."""
+    return torch.arange(size, device=slot.device) == slot.unsqueeze(-1)
