@@ -111,10 +111,10 @@ def test_without_the_chooser_single_instance_graphs_ask_for_no_stack(monkeypatch
         return fn
 
     monkeypatch.setattr(torch, "compile", recorded)
-    monkeypatch.setattr(stack_buffers, "_installed", [False])
+    monkeypatch.setattr(stack_buffers, "install", lambda: False)
     compiled._compile(stages)
     assert stack_buffers.OPTION not in seen[1] and seen[1]["memory_planning"]
-    monkeypatch.setattr(stack_buffers, "_installed", [True])
+    monkeypatch.setattr(stack_buffers, "install", lambda: True)
     compiled._compile(stages)
     assert seen[3][stack_buffers.OPTION]
 

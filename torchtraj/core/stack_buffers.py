@@ -20,6 +20,7 @@ runs as before, with its buffers pooled where ``memory_planning`` asks for it.
 
 from __future__ import annotations
 
+import functools
 import logging
 
 logger = logging.getLogger("torchtraj")
@@ -27,14 +28,11 @@ logger = logging.getLogger("torchtraj")
 #: The Inductor option that asks for stack-allocated buffers (the compiled kernels' single-instance options).
 OPTION = "aot_inductor.allow_stack_allocation"
 
-_installed = []
 
-
+@functools.cache
 def install() -> bool:
     """Register :class:`_Chooser` as the CPU's C++ wrapper (once a process); whether stack allocation is available
     (``False`` on a torch whose Inductor lacks the classes it builds on: its kernels then run with heap buffers)."""
-    if _installed:
-        return _installed[0]
     try:
         chooser = _chooser_class()
         from torch._inductor.codegen import common
@@ -48,7 +46,6 @@ def install() -> bool:
     except (ImportError, AttributeError, KeyError) as error:  # another torch release's Inductor
         logger.debug("torchtraj: no stack-allocated kernel buffers (%s)", error)
         ok = False
-    _installed.append(ok)
     return ok
 
 
@@ -71,10 +68,10 @@ def _chooser_class() -> type:
             super().__init__()
             self._on_stack = set()  # buffers that take over a stack array, under a view or not
             self._heap = None  # the outputs and the buffers whose storage an output takes over (memory_plan_reuse)
+            self._outputs = None  # the outputs' buffers and those they view, once the graph's outputs are known
 
         def _output_buffers(self) -> set:
-            names = getattr(self, "_torchtraj_outputs", None)
-            if names is None:
+            if self._outputs is None:
                 names = set(V.graph.get_output_names())
                 for node in V.graph.graph_outputs:
                     unwrap = getattr(node, "unwrap_view", None)
@@ -82,8 +79,8 @@ def _chooser_class() -> type:
                         names.add((unwrap() if unwrap is not None else node).get_name())
                     except (AttributeError, NotImplementedError):
                         pass
-                self._torchtraj_outputs = names
-            return names
+                self._outputs = names
+            return self._outputs
 
         def memory_plan_reuse(self):
             super().memory_plan_reuse()

@@ -4,8 +4,8 @@ LAPACK-style solvers (``torch.linalg.eigh``, ``svd``, ``pinv``) check their stat
 on a GPU that is a copy to the host, which a CUDA graph cannot capture, and the batched eigensolver of cuSOLVER
 has failed outright on millions of tiny matrices. This module computes the same pseudo-inverse with the batch in
 every operation and no host read, for the range-space method's small matrices (a handful of terminal rows) when
-they are on a GPU, and for the terminal rows themselves in a compiled kernel
-(:mod:`~torchtraj.riccati.range_space`).
+they are on a GPU or in a single instance's compiled kernel, and for the terminal rows themselves in any compiled
+kernel (:mod:`~torchtraj.riccati.range_space`).
 
 **Hestenes' one-sided Jacobi method** (Golub & Van Loan, *Matrix Computations*, 4th ed., §8.6.3). The columns
 ``a_p`` of ``A (r, c)`` are rotated in pairs until they are orthogonal: with ``α = ‖a_p‖²``, ``β = ‖a_q‖²``,
