@@ -126,11 +126,11 @@ def test_the_solver_asks_for_a_reset_only_where_a_count_can_reach_its_trigger(mo
     trigger; only then does ``count_steps`` compute a reset. On car_3obs the filter blocks the steps of iterations
     28 to 32 and is reset at the 32nd: the reset is asked for there alone, and the iterates are the same as when
     every step may reset."""
-    from torchtraj.solvers.ipm import solver as ipm_solver
+    from torchtraj.solvers.ipm import conclusion
 
     problem = problems.get("car_3obs")
     options = tt.IPOptions(iterations=32)
-    calls, before, resets, count = [], [], [], ipm_solver.count_steps
+    calls, before, resets, count = [], [], [], conclusion.count_steps
 
     def always(*args):
         calls.append(args[-1])
@@ -139,9 +139,9 @@ def test_the_solver_asks_for_a_reset_only_where_a_count_can_reach_its_trigger(mo
         resets.append(int(wd.resets.sum()))
         return wd, filt
 
-    monkeypatch.setattr(ipm_solver, "count_steps", always)
+    monkeypatch.setattr(conclusion, "count_steps", always)
     every = tt.solve(problem, method="ipm", options=options)
-    monkeypatch.setattr(ipm_solver, "count_steps", count)
+    monkeypatch.setattr(conclusion, "count_steps", count)
     gated = tt.solve(problem, method="ipm", options=options)
     assert resets[-1] == 1 and resets[-2] == 0
     assert calls == [b >= options.filter_reset_trigger - 1 for b in before] and sum(calls) == 1

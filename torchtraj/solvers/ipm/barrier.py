@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from ...core.constraints import Constraints
+from ...core.status import Status
 from ...globalization.filter import Filter
 from ...riccati import LQR
 from .expansion import complementarity_of, complementarity_parts
@@ -40,10 +41,12 @@ from .options import IPOptions
 
 
 def monotone_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, running: Tensor, filt: Filter,
-                    tol: float, opts: IPOptions, forced: Optional[Tensor] = None) -> tuple:
+                    tol: float, opts: IPOptions, forced: Optional[Tensor] = None, settle: bool = True) -> tuple:
     """Monotone barrier update of ``mu (B,)``, repeated while the barrier problem is already solved, and once where
     ``forced (B,)`` (very small search directions); resets the filter of the instances it updates. Returns ``(μ,
-    filter)``."""
+    filter)``. ``settle``: the rounds end at the first that updates no instance (one host read a round); else all
+    four run (a compiled kernel's one graph), with the same answer: such a round leaves μ, and every later one, as
+    it was."""
     floor = tol / 10.0
     # what does not depend on μ, once for the four rounds
     others, parts = torch.maximum(model.dual_error, model.primal_error), complementarity_parts(cons, it, opts)
@@ -57,11 +60,25 @@ def monotone_update(cons: Constraints, model: Model, it: Iterate, mu: Tensor, ru
         smaller = torch.clamp(torch.minimum(opts.barrier_decrease * mu, mu ** opts.barrier_power), min=floor)
         mu = torch.where(update, smaller, mu)
         updated = updated | update
-        # a round that updates no instance leaves μ, and so every later round, as it was: one host read ends them
-        if round_ < 3 and not bool(update.any()):
+        if settle and round_ < 3 and not bool(update.any()):
             break
     # emptying a filter twice empties it once: one reset for the rounds
     return mu, filt.reset(updated)
+
+
+def barrier_step(cons: Constraints, model: Model, it: Iterate, mu: Tensor, status: Tensor, running: Tensor,
+                 tiny_steps: Tensor, filt: Filter, tol: float, opts: IPOptions, settle: bool = True) -> tuple:
+    """An iteration's monotone update (:func:`monotone_update`) with IPOPT's very small search directions (W&B
+    §3.9): where ``tiny_steps (B,)`` reached two, ``μ`` decreases even though the barrier problem is not solved, and
+    where it is at its floor already the instance stops, ``STALLED``; those counts restart. Returns ``(μ, filter,
+    status, running, tiny_steps, changed)``, ``changed (B,)`` where ``μ`` moved. ``settle``: as
+    :func:`monotone_update`'s (off in a compiled kernel: no host read)."""
+    forced = running & (tiny_steps >= 2)
+    stuck = forced & (mu <= tol / 10.0)
+    status = torch.where(stuck, int(Status.STALLED), status)
+    running = running & ~stuck
+    updated, filt = monotone_update(cons, model, it, mu, running, filt, tol, opts, forced & running, settle)
+    return updated, filt, status, running, torch.where(forced, 0, tiny_steps), updated != mu
 
 
 def average_complementarity(s: Tensor, sN: Tensor, z: Tensor, zN: Tensor, knots: Tensor) -> Tensor:

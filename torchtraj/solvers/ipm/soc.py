@@ -17,8 +17,10 @@ to the boundary ``α^{soc}`` is tried with the filter test of the line search; a
 step is taken instead of any shorter step of the original direction. The Armijo test of a corrected step uses its
 own ``α^{soc}`` times the original slope (W&B use ``α_max``); the corrections reuse the step's factorisation where
 the step kept it (eager solves), else the system is factorised again: once for all corrections eager, in each
-correction's step with compiled kernels (``IPOptions.compile``), which run the corrections in the kernels of the
-iteration's own step, boundary and trial point, each round on the instances still correcting alone.
+correction's step with compiled kernels (``IPOptions.compile``). A round is the corrected step (compiled: the
+kernel of the iteration's own step) and one function of the rest (:func:`correction_round`: compiled, one kernel):
+its boundary, its trial point, the iterate after it and the next round's right-hand sides. The rounds run on the
+instances that needed a correction (:func:`correction_of_rows` gathers them), those that stopped masked.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from ...riccati import LQR
 from .compaction import gather_laid_out, gather_rows, kernel_rows, laid_out_as, pick, write_rows
 from .iterate import Iterate, Model
 from .kernels import compiled_kernels
-from .line_search import advance, first_round, fraction_to_boundary, trial
+from .line_search import advance, fraction_to_boundary, trial
 from .newton import Direction, direction, factorize_step, newton_direction, newton_rhs
 from .options import IPOptions
 
@@ -59,6 +61,68 @@ def _scaled(alpha: Tensor, value: Tensor) -> Tensor:
     return alpha.reshape(-1, *[1] * (value.dim() - 1)) * value
 
 
+@dataclass
+class Rounds:
+    """The corrections between two rounds, per instance: the right-hand sides ``c_soc`` of the next one (the five
+    row blocks), the violation ``θ`` of the last trial point ``theta_old (B,)``, the instances still correcting
+    ``active (B,)``, the fraction to the boundary ``tau (B,)``, and what :class:`Correction` reports so far but its
+    iterate."""
+
+    c_soc: tuple
+    theta_old: Tensor
+    active: Tensor
+    tau: Tensor
+    found: Tensor
+    alpha: Tensor
+    unfiltered: Tensor
+
+
+def corrected_values(model: Model, it: Iterate, c_soc: tuple) -> dict:
+    """The model's residual fields whose barrier-problem rows are the right-hand sides ``c_soc``: the model of which
+    the Newton step is the corrected step."""
+    defects, h, hN, gs, gsN = c_soc
+    return dict(f=defects + it.X[:, 1:], h=h, hN=hN, g=(gs - it.s) * model.knots, gN=gsN - it.sN)
+
+
+def correction_start(model: Model, it: Iterate, need: Tensor, first: tuple, a_max: Tensor, mu: Tensor,
+                     opts: IPOptions) -> tuple:
+    """The first round's right-hand sides ``c^soc_0 = α_max c(w) + c(w + α_max Δw)`` of the instances ``need (B,)``,
+    from the residuals ``first`` of the rejected trial points (``(B, l, ...)`` each, the full step first). Returns
+    ``(Rounds, corrected values)`` (:func:`corrected_values`)."""
+    knots = model.knots
+    current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
+    c_soc = tuple(_scaled(a_max, c) + t[:, 0] for c, t in zip(current, first))
+    theta_old = torch.cat([t[:, 0].reshape(t.shape[0], -1).abs() for t in first], -1).sum(-1)
+    zero = torch.zeros_like(mu)
+    rounds = Rounds(c_soc=c_soc, theta_old=theta_old, active=need,
+                    tau=torch.clamp(1.0 - mu, min=opts.fraction_to_boundary), found=torch.zeros_like(need),
+                    alpha=zero, unfiltered=torch.zeros_like(need))
+    return rounds, corrected_values(model, it, c_soc)
+
+
+def correction_round(problem: Problem, cons: Constraints, params, it: Iterate, step: Direction, model: Model,
+                     mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor,
+                     rounds: Rounds, opts: IPOptions) -> tuple:
+    """One round of the corrections, from the corrected ``step``: its largest step to the boundary ``α^soc``, the
+    filter test of the trial point there, the iterate after it where accepted, and the next round's right-hand sides
+    ``c^soc_{p+1} = α^soc_p c^soc_p + c(w + α^soc_p Δw^soc_p)`` of the instances still correcting (stopped once
+    ``θ`` does not decrease by ``κ_soc``). Returns ``(Rounds, corrected values, accepted (B,), iterate)``, the iterate
+    after this round's step of every instance (read where accepted): with compiled kernels, one kernel call a round
+    besides the step's."""
+    a_soc, a_dual = fraction_to_boundary(it, step, rounds.tau)
+    accept, no_entry, _, theta_c, parts = trial(problem, cons, params, it, step, model, mu, phi, slope, filt,
+                                                theta_max, theta_min, a_soc.unsqueeze(1), opts)
+    new = rounds.active & accept[:, 0] & step.ok
+    moved = advance(it, step, a_soc, a_dual, mu, model.knots, opts)
+    c_soc = tuple(_scaled(a_soc, c) + t[:, 0] for c, t in zip(rounds.c_soc, parts))
+    theta = theta_c[:, 0]
+    next_rounds = Rounds(c_soc=c_soc, theta_old=theta,
+                         active=rounds.active & ~new & step.ok & (theta <= opts.soc_decrease * rounds.theta_old),
+                         tau=rounds.tau, found=rounds.found | new, alpha=torch.where(new, a_soc, rounds.alpha),
+                         unfiltered=torch.where(new, no_entry[:, 0], rounds.unfiltered))
+    return next_rounds, corrected_values(model, it, c_soc), new, moved
+
+
 def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Optional[Direction],
                             model: Model, mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
                             theta_min: Tensor, need: Tensor, a_max: Tensor, first: tuple, lqr: Optional[LQR],
@@ -67,80 +131,36 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     trial points (``(B, l, ...)`` each, the full step first) and the system ``lqr`` regularised by ``δ_w`` (``None``
     with compiled kernels, whose Newton step forms it from the model:
     :func:`~torchtraj.solvers.ipm.newton.newton_direction`). Of the iteration's step ``d`` only its kept
-    factorisation is read (eager); ``None``: the system is factorised here."""
-    knots = model.knots
-    tau = torch.clamp(1.0 - mu, min=opts.fraction_to_boundary)
-    current = (model.f - it.X[:, 1:], model.h, model.hN, (model.g + it.s) * knots, model.gN + it.sN)
-    c_soc = tuple(_scaled(a_max, c) + t[:, 0] for c, t in zip(current, first))
-    theta_old = torch.cat([t[:, 0].reshape(t.shape[0], -1).abs() for t in first], -1).sum(-1)
-    # compiled kernels (no factorisation kept): each correction's step, its boundary and its trial point in the
-    # kernels of the iteration's own step and line search; eager: the step's factorisation, else one made here
+    factorisation is read (eager); ``None``: the system is factorised here. Each round runs on every instance of the
+    call, those that stopped masked (:func:`correction_of_rows` gathers the instances that need one)."""
     compiled = compiled_kernels(opts, it.X.device)
     kept = None if d is None else d.factor
     factor = None if compiled else kept if kept is not None else factorize_step(lqr, delta, opts)
-    found = torch.zeros_like(need)
-    # the corrected step of each instance, from the first round's (where none is accepted it is not read)
-    alpha, unfiltered, best = torch.zeros_like(mu), torch.zeros_like(need), None
-    a_dual = torch.zeros_like(mu)
-    active = need
+    rounds, values = kernel(correction_start, compiled)(model, it, need, first, a_max, mu, opts)
+    best = it  # the iterate after each instance's accepted step (where none is accepted it is not read)
     for _ in range(opts.second_order_corrections):
-        if not bool(active.any()):
+        if not bool(rounds.active.any()):
             break
-        defects, h, hN, gs, gsN = c_soc
-        values = dict(f=defects + it.X[:, 1:], h=h, hN=hN, g=(gs - it.s) * knots, gN=gsN - it.sN)
-        if compiled:  # laid out as the step's own (views of the expansion's rows): the same compiled kernels
-            values = {name: laid_out_as(value, getattr(model, name)) for name, value in values.items()}
-        corrected = dataclasses.replace(model, **values)
-        rows = _round_rows(active) if compiled else None
-        if rows is None:
-            step, a_soc, a_dual_soc, accept, no_entry, theta_c, *parts = _corrected_trial(
-                problem, cons, params, it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau, lqr,
-                factor, delta, x0, opts)
-            ok = step.ok
-            new = active & accept & ok
-            best = step if best is None else pick(new, step, best)
-        else:  # the instances still correcting alone, their results written back (the others' are not read)
-            step, a_soc, a_dual_soc, accept, no_entry, theta_c, *parts = _corrected_trial_of_rows(
-                problem, cons, params, it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau, delta,
-                x0, opts, rows)
-            new = accept & step.ok
-            best = _widened(step, rows, need.shape[0]) if best is None else \
-                write_rows(best, rows, pick(new, step, gather_rows(best, rows)))
-            new, ok, a_soc, a_dual_soc, no_entry, theta_c, *parts = (_scattered(v, rows, need.shape[0]) for v in (
-                new, step.ok, a_soc, a_dual_soc, no_entry, theta_c, *parts))
-        found = found | new
-        alpha, a_dual = torch.where(new, a_soc, alpha), torch.where(new, a_dual_soc, a_dual)
-        unfiltered = torch.where(new, no_entry, unfiltered)
-        active = active & ~new & ok & (theta_c <= opts.soc_decrease * theta_old)
-        theta_old = theta_c
-        c_soc = tuple(_scaled(a_soc, c) + t for c, t in zip(c_soc, parts))
-    if best is None:  # no instance needed one
-        return Correction(found=found, alpha=alpha, unfiltered=unfiltered, it=it)
-    return Correction(found=found, alpha=alpha, unfiltered=unfiltered,
-                      it=kernel(advance, compiled)(it, best, alpha, a_dual, mu, knots, opts))
-
-
-def _corrected_trial(problem: Problem, cons: Constraints, params, it: Iterate, corrected: Model, model: Model,
-                     mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor,
-                     tau: Tensor, lqr: Optional[LQR], factor, delta: Tensor, x0: Tensor, opts: IPOptions) -> tuple:
-    """One correction of the instances given: the step of the ``corrected`` model's residuals, its largest step to
-    the boundary and the trial point there. Returns ``(step, α^soc, α_dual, accept, unfiltered, θ, *residuals)``,
-    ``(B,)`` each but the step and the residuals ``(B, ...)``. With compiled kernels the step's own kernel
-    factorises the system again; eager, ``factor`` (of ``lqr``) solves it."""
-    compiled = compiled_kernels(opts, it.X.device)
-    step = kernel(newton_direction, True)(corrected, it, mu, x0, delta, opts.sweep, opts.terminal_rows) \
-        if compiled else direction(lqr, newton_rhs(corrected, it, mu, x0, it.X.shape[-1]), delta, corrected, it, mu,
-                                   None, factor, False, opts.sweep, opts.terminal_rows)
-    a_soc, a_dual_soc = kernel(fraction_to_boundary, compiled)(it, step, tau)
-    # compiled: the one trial point as many times as the first round has candidates, laid out as a round's step
-    # sizes (line_search.line_search, globalization.line_search.backtrack): the later rounds' specialisation of the
-    # trial kernel where their size is the first round's, else one of its own (one trial point, not four copies)
-    alphas = a_soc.unsqueeze(1).expand(-1, opts.line_search_steps).contiguous()[
-        :, :first_round(opts)].contiguous() if compiled else a_soc.unsqueeze(1)
-    accept, no_entry, _, theta_c, parts = kernel(trial, compiled)(problem, cons, params, it, step, model, mu, phi,
-                                                                  slope, filt, theta_max, theta_min, alphas, opts)
-    step = dataclasses.replace(step, K=None)  # a corrected step's gains are not used: not gathered, picked, written
-    return step, a_soc, a_dual_soc, accept[:, 0], no_entry[:, 0], theta_c[:, 0], *(t[:, 0] for t in parts)
+        if compiled:  # the step's kernel forms the system; the residuals laid out as the model's own (views of the
+            # expansion's rows): the same specialisation as the iteration's step
+            corrected = dataclasses.replace(model, **{name: laid_out_as(value, getattr(model, name))
+                                                      for name, value in values.items()})
+            rows = _round_rows(rounds.active)
+            if rows is not None:  # the instances still correcting alone, their results written back
+                rounds, values, best = _round_of_rows(problem, cons, params, it, corrected, model, mu, phi, slope,
+                                                      filt, theta_max, theta_min, rounds, best, delta, x0, opts, rows)
+                continue
+            step = kernel(newton_direction, True)(corrected, it, mu, x0, delta, opts.sweep, opts.terminal_rows)
+        else:
+            corrected = dataclasses.replace(model, **values)
+            step = direction(lqr, newton_rhs(corrected, it, mu, x0, it.X.shape[-1]), delta, corrected, it, mu, None,
+                             factor, False, opts.sweep, opts.terminal_rows)
+        starting = best is it
+        rounds, values, new, moved = kernel(correction_round, compiled)(
+            problem, cons, params, it, dataclasses.replace(step, K=None), model, mu, phi, slope, filt, theta_max,
+            theta_min, rounds, opts)
+        best = moved if starting else pick(new, moved, best)  # an instance accepts in one round at most
+    return Correction(found=rounds.found, alpha=rounds.alpha, unfiltered=rounds.unfiltered, it=best)
 
 
 def _round_rows(active: Tensor) -> Optional[Tensor]:
@@ -152,32 +172,39 @@ def _round_rows(active: Tensor) -> Optional[Tensor]:
     return None if rows.numel() == active.shape[0] else rows
 
 
-def _corrected_trial_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, corrected: Model,
-                             model: Model, mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
-                             theta_min: Tensor, tau: Tensor, delta: Tensor, x0: Tensor, opts: IPOptions,
-                             rows: Tensor) -> tuple:
-    """:func:`_corrected_trial` of the instances ``rows (R,)`` alone, with compiled kernels: their rows gathered laid
-    out as the batch's, as many as a kernel takes (:func:`~torchtraj.solvers.ipm.compaction.kernel_rows`), and the
-    first ``R`` of the results. A correction's instances end after different numbers of rounds, and those that ended
-    are no longer factorised, solved and evaluated. An instance's arithmetic is the same as in the whole batch."""
+def _round_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, corrected: Model, model: Model,
+                   mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor,
+                   rounds: Rounds, best: Iterate, delta: Tensor, x0: Tensor, opts: IPOptions, rows: Tensor) -> tuple:
+    """A compiled round of the instances ``rows (R,)`` alone: their rows gathered laid out as the batch's, as many
+    as a kernel takes (:func:`~torchtraj.solvers.ipm.compaction.kernel_rows`), and the first ``R`` of the results
+    written back. A correction's instances end after different numbers of rounds, and those that ended are no longer
+    factorised, solved and evaluated; an instance's arithmetic is the same as in the whole call. Returns ``(Rounds,
+    corrected values, best iterate)`` of every instance."""
     index = kernel_rows(rows)
-    *taken, delta, x0 = gather_laid_out((it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, tau,
-                                         delta, x0), index)  # the fields `corrected` shares with `model` once
-    out = _corrected_trial(problem, cons, param_rows(params, index), *taken, None, None, delta, x0, opts)
-    return out if index is rows else gather_laid_out(out, torch.arange(rows.numel(), device=rows.device))
+    it_r, corrected_r, model_r, *taken = gather_laid_out(
+        (it, corrected, model, mu, phi, slope, filt, theta_max, theta_min, delta, x0), index)
+    mu_r, phi_r, slope_r, filt_r, theta_max_r, theta_min_r, delta_r, x0_r = taken
+    step = kernel(newton_direction, True)(corrected_r, it_r, mu_r, x0_r, delta_r, opts.sweep, opts.terminal_rows)
+    part, values, new, moved = kernel(correction_round, True)(
+        problem, cons, param_rows(params, index), it_r, dataclasses.replace(step, K=None), model_r, mu_r, phi_r,
+        slope_r, filt_r, theta_max_r, theta_min_r, gather_laid_out(rounds, index), opts)
+    kept = pick(new, moved, gather_rows(best, index))
+    full_values = {name: getattr(model, name) for name in values}  # rows of ended instances are not read
+    return (_written(rounds, rows, part), _written(full_values, rows, values),
+            write_rows(best, rows, gather_rows(kept, torch.arange(rows.numel(), device=rows.device))))
 
 
-def _scattered(value: Tensor, rows: Tensor, batch: int) -> Tensor:
-    """``value (R, ...)`` of the instances ``rows (R,)`` in a zero tensor of ``batch`` instances."""
-    return value.new_zeros((batch,) + value.shape[1:]).index_copy(0, rows, value)
-
-
-def _widened(step: Direction, rows: Tensor, batch: int) -> Direction:
-    """``step`` of the instances ``rows (R,)`` as a step of ``batch`` instances, laid out as ``step`` (zero in the
-    others' rows, which are not read)."""
-    return dataclasses.replace(step, **{f.name: laid_out_as(_scattered(getattr(step, f.name), rows, batch),
-                                                            getattr(step, f.name))
-                                        for f in dataclasses.fields(step) if isinstance(getattr(step, f.name), Tensor)})
+def _written(full, rows: Tensor, part):
+    """``full`` (a tensor, or a tuple, dict or dataclass of tensors) with its rows ``rows (R,)`` replaced by the
+    first ``R`` rows of ``part``."""
+    if isinstance(full, Tensor):
+        return full.index_copy(0, rows, part[:rows.numel()])
+    if isinstance(full, tuple):
+        return tuple(_written(f, rows, p) for f, p in zip(full, part))
+    if isinstance(full, dict):
+        return {name: _written(value, rows, part[name]) for name, value in full.items()}
+    return type(full)(**{f.name: _written(getattr(full, f.name), rows, getattr(part, f.name))
+                         for f in dataclasses.fields(full)})
 
 
 def correction_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,

@@ -16,8 +16,9 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 5. the filter line search with the fraction-to-boundary rule and second-order corrections
    (:mod:`~torchtraj.solvers.ipm.line_search`, :mod:`~torchtraj.solvers.ipm.soc`, :mod:`torchtraj.globalization`),
    or the watchdog's full steps (:mod:`~torchtraj.solvers.ipm.watchdog`), or Mehrotra's corrector taken whole;
-   then the iteration's one read back to the host (besides the running count): whether an instance enters
-   restoration or took a tiny step, and whether a watchdog runs or may start at the next iteration;
+   then the step taken and the iteration's one read back to the host (besides the running count): whether an
+   instance enters restoration or took a tiny step, and whether a watchdog runs or may start at the next iteration
+   (:mod:`~torchtraj.solvers.ipm.conclusion`);
 6. where no step was found, the feasibility restoration phase of those instances, gathered
    (:mod:`~torchtraj.solvers.ipm.restoration`, W&B §3.3): back with a point the filter accepts, or
    ``LOCALLY_INFEASIBLE``;
@@ -69,10 +70,11 @@ from ...core.solution import Solution
 from ...core.status import Status
 from ...globalization.filter import Filter
 from ...riccati.range_space import formed, select_gains
-from .barrier import average_complementarity, mehrotra_step, monotone_update
+from .barrier import average_complementarity, barrier_step, mehrotra_step
 from .compaction import Final, full_history, gather_laid_out, gather_rows, history_row, pick
+from .conclusion import conclude, settle, take_step, tiny_counts
 from .crossover_driver import cross_over
-from .expansion import Base, expand, flat_abs, initial_iterate, kkt_error, last_values, with_values
+from .expansion import Base, expand, initial_iterate, kkt_error, last_values, with_values
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
 from .kernels import compiled_kernels, eager_kernels, kernel_of, uses_graphs
@@ -83,7 +85,7 @@ from .restoration import restore
 from .scaling import scaled_problem, unscale
 from .soc import correction_of_rows, second_order_correction
 from .warm_start import warm_start_hooks
-from .watchdog import Watchdog, count_steps, merge_steps, watched_step
+from .watchdog import Watchdog, merge_steps, watched_step
 
 logger = logging.getLogger("torchtraj")
 
@@ -159,6 +161,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     fused = compiled_kernels(opts, x0.device) and opts.barrier_strategy != "mehrotra"
     newton_k = kernel_of(newton_direction, opts, x0.device) if fused else None
     direction_k = None if fused else kernel_of(direction, opts, x0.device)
+    barrier_k = kernel_of(barrier_step, opts, x0.device) if fused else barrier_step
+    conclude_k = kernel_of(conclude, opts, x0.device) if fused else None
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
         else hooks.barrier.clone()
     budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
@@ -281,13 +285,10 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
         else:
-            updated, forced = mu, running & (tiny_steps >= 2)  # W&B §3.9: μ decreased, or at its floor, stop
-            stuck = forced & (mu <= tol / 10.0)
-            status = torch.where(stuck, int(Status.STALLED), status)
-            running = running & ~stuck
-            mu, filt = monotone_update(cons, model, it, mu, running, filt, tol, opts, forced & running)
-            tiny_steps = torch.where(forced, 0, tiny_steps)
-            wd = wd.stop(mu != updated)  # its reference φ^W belongs to the old μ
+            # W&B §3.9: where steps were at round-off, μ decreased, or at its floor, stop (compiled: one kernel)
+            mu, filt, status, running, tiny_steps, changed = barrier_k(cons, model, it, mu, status, running,
+                                                                       tiny_steps, filt, tol, opts, not fused)
+            wd = wd.stop(changed)  # its reference φ^W belongs to the old μ
             target_mu = mu
         lqr, rhs = (None, None) if fused else newton_lqr(model, it, target_mu, x0, nx)
 
@@ -335,31 +336,25 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                                                    theta_min, wd, watching, last, opts)
                 ls = merge_steps(watching, watch, ls)
                 last = torch.where(returned, wd.last, last)
-            wd, ls.filter = count_steps(wd, factored & ls.found, ls, watching if watched else torch.zeros_like(
-                factored), filt, opts, may_reset)
-        take = factored & ls.found
-        tiny = ls.tiny
-        it = pick(take, ls.it, it)
-        filt = pick(take, ls.filter, filt)
+        # the step taken, and the iteration's one synchronisation with the host (conclusion.Taken.flags); compiled,
+        # one kernel call with the counts that follow it (and a filter reset's test whether or not one may come: the
+        # same answer, and one graph)
+        counted = None if mehrotra else watching if watched else torch.zeros_like(factored)
+        if fused:
+            # (δ_w is the floor itself where the first attempt was factorised: a copy, for one specialisation)
+            taken, tiny_steps, settled = conclude_k(wd, ls, d, it, filt, delta.clone() if delta is floor else delta,
+                                                    last, factored, counted, model.primal_error, tol, opts, True,
+                                                    restoring, tiny_steps, floor, running, lost, status, iterations)
+        else:
+            taken, settled = take_step(wd, ls, d, it, filt, delta, last, factored, counted, model.primal_error,
+                                       tol, opts, may_reset, restoring), None
+        wd, it, filt, last, take, missed, entering = (taken.wd, taken.it, taken.filter, taken.last, taken.take,
+                                                      taken.missed, taken.entering)
         K = select_gains(take, d.K, K)  # formed for the solution (range-space rows: once, at the end)
-        last = torch.where(take & (delta > 0), delta, last)
-        missed = factored & ~ls.found
-        # W&B 2006 §3.3: the instances whose line search failed, unless already feasible to the tolerance of the
-        # convergence test, ‖c‖_∞ (steps at round-off: those keep the larger-δ_w path)
-        entering = missed & (model.primal_error > tol) if restoring else None
-        # the iteration's one synchronisation with the host: restoration entries, tiny steps, and for the next
-        # iteration whether a watchdog runs (its return) or may start, and whether a filter reset may come (a
-        # count one short of its trigger; the restoration and the barrier update only stop watchdogs and leave the
-        # counts of blocked steps, so these stay supersets)
-        never = torch.zeros((), dtype=torch.bool, device=x0.device)
-        enter_any, tiny_any, may_return, may_watch, may_reset = torch.stack([
-            never if entering is None else entering.any(), never if tiny is None else tiny.any(),
-            wd.running().any(), (wd.running() | (wd.shortened >= opts.watchdog_trigger)).any(),
-            (wd.blocked >= opts.filter_reset_trigger - 1).any()]).tolist()
-        if tiny_any:
-            small = tiny & (flat_abs(d.dlam, d.dnu, d.dnuN, d.dy, d.dyN).amax(-1) < opts.tiny_step_dual)
-            tiny_steps = torch.where(take, torch.where(small, tiny_steps + 1, 0), tiny_steps)
-        elif tiny is not None:
+        enter_any, tiny_any, may_return, may_watch, may_reset = taken.flags.tolist()
+        if not fused and tiny_any:
+            tiny_steps = tiny_counts(take, ls.tiny, d, tiny_steps, opts)
+        elif not fused and ls.tiny is not None:
             tiny_steps = torch.where(take, 0, tiny_steps)
         if enter_any:
             back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, entering, budget - iterations,
@@ -370,13 +365,10 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             floor = torch.where(back.returned, 0.0, floor)
             wd = wd.stop(entering)
             missed = missed & ~entering  # back, or ended with the restoration's status: no larger δ_w
-            budgeted = True
-        floor = torch.where(missed, torch.clamp(opts.regularization_increase * torch.maximum(floor, delta),
-                                                min=opts.regularization_first), torch.where(take, 0.0, floor))
-        blown = running & (~d.ok | (floor > opts.regularization_max)) & ~lost
-        status = torch.where(blown, int(Status.MAX_REGULARIZATION), status)
-        iterations = iterations + running.long()
-        records.append((index, history_row(model, torch.where(take, ls.alpha, 0.0), delta, mu, error), True))
+            budgeted, settled = True, None
+        floor, status, iterations = settle(take, missed, delta, floor, running, d.ok, lost, status, iterations, opts) \
+            if settled is None else settled
+        records.append((index, history_row(model, taken.step_size, delta, mu, error), True))
         if opts.verbose:
             logger.info("%s %4d  cost %.10g..%.10g  kkt %.2e  mu %.1e  running %d", method, step,
                         model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),

@@ -64,10 +64,15 @@ class Watchdog:
 
     @classmethod
     def start(cls, it: Iterate) -> "Watchdog":
-        count = torch.zeros(it.X.shape[0], dtype=torch.long, device=it.X.device)
-        zero = it.X.new_zeros(it.X.shape[0])
-        return cls(shortened=count, trials=count, it=it, phi=zero, slope=zero, theta=zero, alpha=zero, last=zero,
-                   blocked=count, resets=count)
+        # a tensor for each field: a compiled kernel's graph is specialised to which of its inputs are one tensor
+        def count():
+            return torch.zeros(it.X.shape[0], dtype=torch.long, device=it.X.device)
+
+        def zero():
+            return it.X.new_zeros(it.X.shape[0])
+
+        return cls(shortened=count(), trials=count(), it=it, phi=zero(), slope=zero(), theta=zero(), alpha=zero(),
+                   last=zero(), blocked=count(), resets=count())
 
     def running(self) -> Tensor:
         return self.trials > 0
