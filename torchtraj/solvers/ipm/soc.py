@@ -20,7 +20,8 @@ the step kept it (eager solves), else the system is factorised again: once for a
 correction's step with compiled kernels (``IPOptions.compile``). A round is the corrected step (compiled: the
 kernel of the iteration's own step) and one function of the rest (:func:`correction_round`: compiled, one kernel):
 its boundary, its trial point, the iterate after it and the next round's right-hand sides. The rounds run on the
-instances that needed a correction (:func:`correction_of_rows` gathers them), those that stopped masked.
+instances that needed a correction (:func:`correction_of_rows` gathers them): eager, those that stopped masked;
+compiled on a batch, a later round on the instances still correcting alone.
 """
 
 from __future__ import annotations
@@ -131,8 +132,9 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     trial points (``(B, l, ...)`` each, the full step first) and the system ``lqr`` regularised by ``δ_w`` (``None``
     with compiled kernels, whose Newton step forms it from the model:
     :func:`~torchtraj.solvers.ipm.newton.newton_direction`). Of the iteration's step ``d`` only its kept
-    factorisation is read (eager); ``None``: the system is factorised here. Each round runs on every instance of the
-    call, those that stopped masked (:func:`correction_of_rows` gathers the instances that need one)."""
+    factorisation is read (eager); ``None``: the system is factorised here. Eager, each round runs on every instance
+    of the call, those that stopped masked; compiled on a batch, a round after some stopped runs on the others alone
+    (:func:`_round_of_rows`)."""
     compiled = compiled_kernels(opts, it.X.device)
     kept = None if d is None else d.factor
     factor = None if compiled else kept if kept is not None else factorize_step(lqr, delta, opts)
@@ -190,8 +192,7 @@ def _round_of_rows(problem: Problem, cons: Constraints, params, it: Iterate, cor
         slope_r, filt_r, theta_max_r, theta_min_r, gather_laid_out(rounds, index), opts)
     kept = pick(new, moved, gather_rows(best, index))
     full_values = {name: getattr(model, name) for name in values}  # rows of ended instances are not read
-    return (_written(rounds, rows, part), _written(full_values, rows, values),
-            write_rows(best, rows, gather_rows(kept, torch.arange(rows.numel(), device=rows.device))))
+    return _written(rounds, rows, part), _written(full_values, rows, values), _written(best, rows, kept)
 
 
 def _written(full, rows: Tensor, part):

@@ -352,10 +352,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                                                       taken.missed, taken.entering)
         K = select_gains(take, d.K, K)  # formed for the solution (range-space rows: once, at the end)
         enter_any, tiny_any, may_return, may_watch, may_reset = taken.flags.tolist()
-        if not fused and tiny_any:
-            tiny_steps = tiny_counts(take, ls.tiny, d, tiny_steps, opts)
-        elif not fused and ls.tiny is not None:
-            tiny_steps = torch.where(take, 0, tiny_steps)
+        if not fused and ls.tiny is not None:  # (compiled: counted in the kernel)
+            tiny_steps = tiny_counts(take, ls.tiny, d, tiny_steps, opts) if tiny_any \
+                else torch.where(take, 0, tiny_steps)
         if enter_any:
             back = restore(problem, cons, params, x0, it, model, mu, filt, theta_max, entering, budget - iterations,
                            tol, opts, run)
