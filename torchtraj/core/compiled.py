@@ -27,13 +27,16 @@ an MPC policy, a training loop.
 The batch dimension is compiled dynamic: before each call, dim 0 of the arguments' tensors that carry the batch is
 marked with ``torch._dynamo.maybe_mark_dynamic`` (:func:`mark_batch`); every other size (horizon, state, control and
 constraint sizes, the line search's step sizes) stays static, as the Riccati sweeps and rollouts unroll Python loops
-over the horizon and choose their contractions by size (:func:`matmul`). ``torch.compile(dynamic=None)`` (automatic
-dynamic) was the alternative: it compiles again at the second batch size seen, and would make any other size that
-changed between two calls symbolic too. ``maybe_mark_dynamic``, not ``mark_dynamic``: a kernel whose traced code
-specialises the batch size does so without an error, and compiles once per batch size as before. Dynamo specialises
-sizes 0 and 1, so B = 1 always has graphs of its own; ``tt.solve`` tells its kernels the batch size
-(:func:`batch_of`), and a solve of one instance marks nothing and runs each kernel's second compilation, whose
-buffers are on the stack (:data:`SINGLE_OPTIONS`, :func:`single_instance`).
+over the horizon and choose their contractions by size (:func:`matmul`). Dynamo's automatic dynamic shapes are
+off while a kernel compiles (:data:`STATIC_SIZES`, what ``torch.compile(dynamic=False)`` sets): they would compile
+again at the second batch size seen, and make any other size that changed between two calls symbolic too.
+``maybe_mark_dynamic``, not ``mark_dynamic``: a kernel whose traced code specialises the batch size does so without
+an error, and compiles once per batch size as before. Dynamo specialises sizes 0 and 1, so B = 1 always has graphs of
+its own; ``tt.solve`` tells its kernels the batch size (:func:`batch_of`), and a solve of one instance marks nothing
+and runs each kernel's second compilation, whose buffers are on the stack (:data:`SINGLE_OPTIONS`,
+:func:`single_instance`). The setting is made once a solve, by :func:`batch_of`, rather than around each call as
+``dynamic=False`` makes it (two of Dynamo's settings changed and restored: about a tenth of a small kernel's call);
+a kernel called outside a solve makes it around its call.
 
 Every kernel of iLQR, ALTRO (its AL objective, violation and multiplier update) and the interior point is compiled
 once for every B ≥ 2 (``tests/test_compiled.py``, ``tests/test_compiled_ipm.py``). Two things in their code keep it
@@ -70,6 +73,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 import types
 from typing import Callable
 
@@ -107,6 +111,12 @@ OPTIONS = {"cpp_wrapper": True, "post_grad_custom_pre_pass": ShortProducts(FUSED
 #: graph calls a library kernel. A B = 1 kernel's hundreds of tiny buffers are most of its time (``malloc`` and
 #: tensor handles, not arithmetic; the figures are in ``docs/benchmarks.md``). Batched graphs keep the default.
 SINGLE_OPTIONS = {**OPTIONS, "memory_planning": True, stack_buffers.OPTION: True}
+
+#: Dynamo's settings for a kernel's compilation (module docstring): sizes static but for those marked dynamic, and no
+#: automatic dynamic shapes; a context manager, entered once a solve (:func:`batch_of`). Dynamo's settings are
+#: context-local, so the setting holds for the solve's thread alone.
+STATIC_SIZES = functools.partial(torch._dynamo.config.patch, automatic_dynamic_shapes=False,
+                                 assume_static_by_default=True)
 
 _KERNELS: dict = {}
 
@@ -187,15 +197,21 @@ def _compile(fn: Callable) -> Callable:
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
     # new dicts: torch.compile pops the guard filter from the one it is given
-    compiled = torch.compile(fn, dynamic=False, options={**OPTIONS, **getattr(fn, "batched_options", {}),
-                                                         "guard_filter_fn": kept_guards})
+    # dynamic=None: the static sizes are set once a solve (STATIC_SIZES), or around a call outside one
+    compiled = torch.compile(fn, dynamic=None, options={**OPTIONS, **getattr(fn, "batched_options", {}),
+                                                        "guard_filter_fn": kept_guards})
     single_options = {**SINGLE_OPTIONS, **getattr(fn, "single_options", {}), "guard_filter_fn": kept_guards}
     if not stack_buffers.install():  # Inductor's own stack wrapper would return outputs it overwrites
         single_options.pop(stack_buffers.OPTION)
-    single = torch.compile(fn, dynamic=False, options=single_options)
+    single = torch.compile(fn, dynamic=None, options=single_options)
 
     def batch_dynamic(*args, **kwargs):
-        if 0 < _BATCH.get() < DYNAMIC_FROM:  # told a single instance: nothing to mark (mark_batch)
+        batch = _BATCH.get()
+        if batch == 0:  # not told (outside tt.solve): the static sizes around this call
+            with STATIC_SIZES():
+                mark_batch(args, kwargs)
+                return compiled(*args, **kwargs)
+        if batch < DYNAMIC_FROM:  # told a single instance: nothing to mark (mark_batch)
             return single(*args, **kwargs)
         mark_batch(args, kwargs)
         return compiled(*args, **kwargs)
@@ -229,10 +245,11 @@ def library_global(source: str) -> bool:
 def batch_of(size: int):
     """Tell the kernels called inside that the solve's batch has ``size`` instances: below :data:`DYNAMIC_FROM`
     (a single instance, whose graphs Dynamo specialises anyway) :func:`mark_batch` marks nothing without walking
-    the arguments, about a third of a small kernel's call."""
+    the arguments, about a third of a small kernel's call. Dynamo's sizes are static inside (:data:`STATIC_SIZES`)."""
     token = _BATCH.set(size)
     try:
-        yield
+        with STATIC_SIZES():
+            yield
     finally:
         _BATCH.reset(token)
 
