@@ -25,6 +25,7 @@ from torchtraj.core import compiled
 from torchtraj.core.batching import rollout
 from torchtraj.solvers.ipm import barrier, conclusion, expansion, line_search, newton, soc
 from torchtraj.solvers.ipm import solver as ipm_solver
+from torchtraj.solvers.ipm.iterate import Iterate
 
 pytest.importorskip("torch._inductor")
 
@@ -91,6 +92,59 @@ def test_a_compiled_first_round_of_the_full_step_alone(monkeypatch, dynamo_captu
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-9)
 
 
+@pytest.mark.parametrize("corrections", [None, 0])
+def test_a_line_search_settled_by_its_first_round_takes_the_kernels_step(monkeypatch, corrections):
+    """With compiled kernels the first round's kernel also makes the step where that round settles the search
+    (line_search.settled_step): every pending instance accepts a candidate or takes a tiny step, and none needs a
+    correction. With the kernels as plain functions (``torch.compile`` the identity), each search of a solve made
+    again without it (the backtracking and its end, as where the round does not settle the search): where the
+    round settles it, the same step to the bit, and the solve takes eager's iterations to the same answers. With
+    corrections, some searches are settled so and others not; without them, rejected full steps are settled by
+    shorter ones of the first round."""
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    settled, settle, search = [], line_search.settled_step, ipm_solver.line_search
+
+    def spy(*args):
+        out = settle(*args)
+        settled.append(bool(out[0]))
+        return out
+
+    def unsettled(*args):
+        return torch.tensor(False), settle(*args)[1]
+
+    compared = []
+
+    def both(*args):
+        fast = search(*args)
+        if settled[-1]:
+            with monkeypatch.context() as patch:
+                patch.setattr(line_search, "settled_step", unsettled)
+                slow = search(*args)
+            for name in ("alpha", "found", "shortened", "blocked", "tiny"):
+                assert torch.equal(getattr(fast, name), getattr(slow, name)), name
+            assert torch.equal(fast.filter.entries, slow.filter.entries)
+            assert torch.equal(fast.filter.slot, slow.filter.slot)
+            for name, value in vars(fast.it).items():
+                assert torch.equal(value, getattr(slow.it, name)), name
+            compared.append((bool(fast.shortened.any()), bool(fast.filter.slot.sum() > args[7].slot.sum())))
+        return fast
+
+    monkeypatch.setattr(line_search, "settled_step", spy)
+    monkeypatch.setattr(ipm_solver, "line_search", both)
+    x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
+    options = tt.IPOptions() if corrections is None else tt.IPOptions(second_order_corrections=corrections)
+    kernels = tt.solve(pendulum(), x0, "ipm", options=dataclasses.replace(options, compile=True))
+    assert any(entered for _, entered in compared), compared
+    if corrections is None:  # the iterations that take a correction are not settled by the first round
+        assert any(settled) and not all(settled), settled
+    else:
+        assert any(short for short, _ in compared), compared
+    eager = tt.solve(pendulum(), x0, "ipm", options=options)
+    assert torch.equal(kernels.iterations, eager.iterations)
+    assert_close_solutions(kernels, eager, tol=1e-10)
+
+
 def test_compiled_correction_rounds_take_the_instances_still_correcting_alone(monkeypatch):
     """With compiled kernels each round of the second-order corrections is the step's kernel, which forms the system
     again, and one kernel of the rest (soc.correction_round), on the rows of the instances still correcting alone
@@ -154,7 +208,7 @@ def test_compiled_solves_leave_finished_instances_behind(monkeypatch, dynamo_cap
     mark = compiled.mark_batch
 
     def seen(*args):
-        sizes.append(int(args[0][0].X.shape[0]) if args[0] and hasattr(args[0][0], "X") else None)
+        sizes.append(next((int(arg.X.shape[0]) for arg in args[0] if isinstance(arg, Iterate)), None))
         return mark(*args)
 
     monkeypatch.setattr(compiled, "mark_batch", seen)
@@ -173,5 +227,5 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
-        expansion.expand, expansion.last_values, line_search.measured_first_round, line_search.advance,
+        expansion.expand, expansion.last_values, line_search.measured_first_round,
         newton.newton_direction, barrier.barrier_step, conclusion.conclude, rollout})

@@ -18,8 +18,9 @@ them adds no entry either, as in IPOPT). The step sizes are evaluated in rounds 
 ``line_search_parallel``, every instance and step size of a round in one batched evaluation (multiple shooting
 needs no rollout) by the shared driver :func:`~torchtraj.globalization.line_search.backtrack`; the full step is
 usually accepted in the first round, which in a large compiled batch evaluates it alone
-(``IPOptions.line_search_first``). A step below round-off (IPOPT's tiny step) is taken whole, with no filter
-entry.
+(``IPOptions.line_search_first``). With compiled kernels the kernel of that round also makes the step that the
+search is where the round settles it (:func:`settled_step`: every instance found a step, none needs a correction),
+and the host reads that alone. A step below round-off (IPOPT's tiny step) is taken whole, with no filter entry.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from torch import Tensor
 from ...core.batching import param_rows, rows_of
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
+from ...core.masks import first_true
 from ...core.one_pass import problem_values
 from ...core.problem import Problem
 from ...globalization.filter import Filter
@@ -163,15 +165,46 @@ def trial(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction
 
 
 def measured_first_round(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
-                         mu: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, opts: IPOptions) -> tuple:
-    """:func:`step_measures` and the :func:`trial` of the first round of step sizes (the first
-    ``line_search_parallel`` candidates) in one function: a compiled solve's one kernel call for both. Returns
-    ``(measures, first round)``, each the tuple its function returns."""
+                         mu: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor,
+                         corrects: bool, opts: IPOptions) -> tuple:
+    """:func:`step_measures`, the :func:`trial` of the first round of step sizes (the first ``line_search_parallel``
+    candidates) and the :class:`Step` where that round settles the line search (:func:`settled_step`) in one
+    function: a compiled solve's one kernel call for all three, where it was three kernel calls and some fifty eager
+    ones (the backtracking's bookkeeping, the filter's entry, the step). Returns ``(measures, first round, settled,
+    step)``, the first two the tuples their functions return."""
     measures = step_measures(model, it, d, mu, opts)
     _, _, phi, slope, _, candidates = measures
     alphas = candidates[:, :first_round(opts)].contiguous()
-    return measures, trial(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min, alphas,
-                           opts)
+    opening = trial(problem, cons, params, it, d, model, mu, phi, slope, filt, theta_max, theta_min, alphas, opts)
+    return (measures, opening, *settled_step(it, d, model, mu, filt, measures, alphas, opening, pending, corrects,
+                                             opts))
+
+
+def settled_step(it: Iterate, d: Direction, model: Model, mu: Tensor, filt: Filter, measures: tuple, alphas: Tensor,
+                 opening: tuple, pending: Tensor, corrects: bool, opts: IPOptions) -> tuple:
+    """The outcome of :func:`line_search` where its first round of step sizes ``alphas (B, l)``, with the trial
+    points ``opening`` (:func:`trial`), settles it: every ``pending`` instance takes a tiny step or accepts one of
+    the round's candidates, and none needs a second-order correction (``corrects``: the search makes them). The
+    same values as the search's :func:`~torchtraj.globalization.line_search.backtrack` and its end. Returns
+    ``(settled, step)``: a 0-dim boolean, whether the round settles the search for every instance, and the
+    :class:`Step` that it is then."""
+    a_max, a_dual, phi, _, tiny, _ = measures
+    accept, unfiltered, blocked, theta_c, _ = opening
+    idx = first_true(accept)
+    rows = torch.arange(accept.shape[0], device=accept.device)
+    new = accept.any(1) & ~tiny  # backtrack's start: the tiny steps found, taken whole with no filter entry
+    found = tiny | new
+    alpha = torch.where(new, alphas[rows, idx], torch.where(tiny, a_max, 0.0))
+    unfiltered = torch.where(new, unfiltered[rows, idx], tiny)
+    before = torch.cat([torch.zeros_like(blocked[:, :1]), blocked[:, :-1]], 1)  # each candidate's predecessor
+    blocked = new & before[rows, idx]
+    open_rows = pending & ~found
+    if corrects:  # line_search's `need`: the full step rejected with θ not below the current one
+        open_rows = open_rows | (pending & ~tiny & ~accept[:, 0] & (theta_c[:, 0] >= model.theta))
+    filt = filt.add(found & ~unfiltered, (1.0 - opts.filter_theta) * model.theta, phi - opts.filter_phi * model.theta)
+    step = Step(advance(it, d, alpha, a_dual, mu, model.knots, opts), alpha, found, filt,
+                shortened=found & ~tiny & (alpha < a_max), blocked=found & blocked, tiny=pending & tiny)
+    return ~open_rows.any(), step
 
 
 def advance(it: Iterate, d: Direction, alpha: Tensor, a_dual: Tensor, mu: Tensor, knots: Tensor,
@@ -217,12 +250,14 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
     ``correct(need, α_max, φ, ∇φ·Δ, residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`)
     of the instances ``need (B,)`` whose first trial point was rejected with ``θ`` not below the current one; where
     it finds a step, that step is taken instead of a shorter one (W&B 2006 §2.3)."""
-    # compiled kernels: the measures and the first round's trial points in one kernel call (evaluated even where
-    # every instance took a tiny step, and then unused: the answers are the same)
+    # compiled kernels: the measures, the first round's trial points and the step where that round settles the
+    # search, in one kernel call (evaluated even where every instance took a tiny step: the answers are the same)
     ready = []  # the first round, evaluated with the measures
     if compiled_kernels(opts, it.X.device):
-        measures, opening = kernel_of(measured_first_round, opts, it.X.device)(
-            problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, opts)
+        measures, opening, settled, step = kernel_of(measured_first_round, opts, it.X.device)(
+            problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, correct is not None, opts)
+        if bool(settled):
+            return step
         ready.append(opening)
     else:
         measures = kernel_of(step_measures, opts, it.X.device)(model, it, d, mu, opts)
