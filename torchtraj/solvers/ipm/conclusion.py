@@ -7,9 +7,10 @@ a positive definite system (the next iteration's first attempt, W&B Algorithm IC
 ``missed``: it enters the feasibility restoration phase (§3.3) where it is not already feasible to the tolerance,
 else its next attempt starts from a larger ``δ_w`` (past ``regularization_max``: ``MAX_REGULARIZATION``). Steps at
 round-off whose multiplier step is small too count towards the very small search directions of §3.9
-(:mod:`~torchtraj.solvers.ipm.barrier`). The iteration's one read back to the host is the five flags of
-:class:`Taken` (restoration entries, tiny steps, and whether a watchdog runs, may start, or a filter reset may come at
-the next iteration).
+(:mod:`~torchtraj.solvers.ipm.barrier`). The iteration's one read back to the host is the six flags of
+:class:`Taken` (restoration entries, tiny steps, whether a watchdog runs, may start, or a filter reset may come at
+the next iteration, and whether every instance took its step: then the step's feedback gains are every instance's,
+with no selection).
 
 With compiled kernels all of it is one kernel call, :func:`conclude` (the flags' read and the restoration phase
 follow it, and where a restoration ran, :func:`settle` again on what it returned); eager, the same functions run in
@@ -40,8 +41,8 @@ class Taken:
     """An iteration's step, per instance: the watchdog's counts after it, the iterate, filter and last ``δ_w`` where
     ``take (B,)``; ``missed (B,)``, the factorised instances whose search found no step, ``entering
     (B,)`` those of them that enter the restoration phase (none without one), the step size ``step_size (B,)`` (0
-    where none was taken), and ``flags (5,)``, the one read by the host: restoration entries, tiny steps, a watchdog
-    running, one that may start, a filter reset that may come."""
+    where none was taken), and ``flags (6,)``, the one read by the host: restoration entries, tiny steps, a watchdog
+    running, one that may start, a filter reset that may come, every instance taking its step."""
 
     wd: Watchdog
     it: Iterate
@@ -77,7 +78,7 @@ def take_step(wd: Watchdog, ls: Step, d: Direction, it: Iterate, filt: Filter, d
     running = wd.running()
     flags = torch.stack([entering.any(), tiny.any(), running.any(),
                          (running | (wd.shortened >= opts.watchdog_trigger)).any(),
-                         (wd.blocked >= opts.filter_reset_trigger - 1).any()])
+                         (wd.blocked >= opts.filter_reset_trigger - 1).any(), take.all()])
     return Taken(wd=wd, it=pick(take, ls.it, it), filter=pick(take, stepped, filt),
                  last=torch.where(take & (delta > 0), delta, last), take=take, missed=missed, entering=entering,
                  step_size=torch.where(take, ls.alpha, 0.0), flags=flags)

@@ -163,6 +163,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     direction_k = None if fused else kernel_of(direction, opts, x0.device)
     barrier_k = kernel_of(barrier_step, opts, x0.device) if fused else barrier_step
     conclude_k = kernel_of(conclude, opts, x0.device) if fused else None
+    estimate_k = kernel_of(least_squares_multipliers, opts, x0.device) if fused and opts.least_squares_multipliers \
+        else least_squares_multipliers
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
         else hooks.barrier.clone()
     budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
@@ -233,7 +235,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         # instances it did not end (its first candidate holds no row and reads no multiplier)
         estimating = step == 0 and opts.least_squares_multipliers and (hooks.start is None or estimated is not None)
         if estimating and not starting:
-            it = least_squares_multipliers(cons, model, it, estimated_rows(status == Status.RUNNING), opts)
+            it = estimate_k(cons, model, it, estimated_rows(status == Status.RUNNING), opts)
             model = expand_k(problem, cons, params, it, opts, base)
         if theta_max is None:
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
@@ -256,7 +258,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             iterations = iterations + taken.abs()  # each round solves a Newton system, as an iteration
             running = status == Status.RUNNING
         if estimating and starting and bool(running.any()):
-            it = least_squares_multipliers(cons, model, it, estimated_rows(running), opts)
+            it = estimate_k(cons, model, it, estimated_rows(running), opts)
             model = with_values(running, expand_k(problem, cons, params, it, opts, base), model)
             estimated_error, status = tested(params, model, it, status, running)
             error = torch.where(running, estimated_error, error)
@@ -350,8 +352,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                                        tol, opts, may_reset, restoring), None
         wd, it, filt, last, take, missed, entering = (taken.wd, taken.it, taken.filter, taken.last, taken.take,
                                                       taken.missed, taken.entering)
-        K = select_gains(take, d.K, K)  # formed for the solution (range-space rows: once, at the end)
-        enter_any, tiny_any, may_return, may_watch, may_reset = taken.flags.tolist()
+        enter_any, tiny_any, may_return, may_watch, may_reset, every = taken.flags.tolist()
+        K = d.K if every else select_gains(take, d.K, K)  # formed for the solution (range-space rows: at the end)
         if not fused and ls.tiny is not None:  # (compiled: counted in the kernel)
             tiny_steps = tiny_counts(take, ls.tiny, d, tiny_steps, opts) if tiny_any \
                 else torch.where(take, 0, tiny_steps)
