@@ -23,7 +23,7 @@ from same_solutions import (
 import torchtraj as tt
 from torchtraj.core import compiled
 from torchtraj.core.batching import rollout
-from torchtraj.solvers.ipm import barrier, conclusion, expansion, line_search, newton, soc
+from torchtraj.solvers.ipm import barrier, conclusion, expansion, line_search, newton, opening, soc
 from torchtraj.solvers.ipm import solver as ipm_solver
 from torchtraj.solvers.ipm.iterate import Iterate
 
@@ -92,46 +92,54 @@ def test_a_compiled_first_round_of_the_full_step_alone(monkeypatch, dynamo_captu
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-9)
 
 
+def _same(a, b, rtol: float = 0.0) -> bool:
+    """Whether two results (dataclasses, tuples, tensors) hold the same tensors: to the bit, or floating ones within
+    ``rtol`` of each other (relative to the larger of 1 and their entries)."""
+    if dataclasses.is_dataclass(a):
+        return type(a) is type(b) and all(_same(getattr(a, f.name), getattr(b, f.name), rtol)
+                                          for f in dataclasses.fields(a))
+    if isinstance(a, (tuple, list)):
+        return len(a) == len(b) and all(_same(x, y, rtol) for x, y in zip(a, b))
+    if not isinstance(a, torch.Tensor):
+        return a == b
+    if rtol == 0.0 or not a.is_floating_point():
+        return torch.equal(a, b)
+    near = (a - b).abs() <= rtol * torch.maximum(a.abs(), b.abs()).clamp_min(1)
+    return a.shape == b.shape and bool(((a == b) | near).all())  # (equal: the filters' infinite entries too)
+
+
 @pytest.mark.parametrize("corrections", [None, 0])
-def test_a_line_search_settled_by_its_first_round_takes_the_kernels_step(monkeypatch, corrections):
-    """With compiled kernels the first round's kernel also makes the step where that round settles the search
-    (line_search.settled_step): every pending instance accepts a candidate or takes a tiny step, and none needs a
-    correction. With the kernels as plain functions (``torch.compile`` the identity), each search of a solve made
-    again without it (the backtracking and its end, as where the round does not settle the search): where the
-    round settles it, the same step to the bit, and the solve takes eager's iterations to the same answers. With
-    corrections, some searches are settled so and others not; without them, rejected full steps are settled by
-    shorter ones of the first round."""
+def test_a_line_search_settled_by_its_first_round_ends_in_its_kernel(monkeypatch, corrections):
+    """With compiled kernels the first round's kernel also makes the step and the iteration's end where that round
+    settles the search (conclusion.first_round_concluded, line_search.settled_step): every pending instance accepts
+    a candidate or takes a tiny step, and none needs a correction. With the kernels as plain functions
+    (``torch.compile`` the identity), each such search made again by the backtracking from the same first round,
+    and the iteration ended by ``conclude``, as where the round does not settle the search: the same step and end to
+    the bit; and the solve takes eager's iterations to the same answers. With corrections, some searches are
+    settled so and others not; without them, rejected full steps are settled by shorter ones of the first round."""
     monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
     monkeypatch.setattr(compiled, "_KERNELS", {})
-    settled, settle, search = [], line_search.settled_step, ipm_solver.line_search
+    settled, compared, kernel = [], [], ipm_solver.first_round_concluded
 
-    def spy(*args):
-        out = settle(*args)
-        settled.append(bool(out[0]))
-        return out
-
-    def unsettled(*args):
-        return torch.tensor(False), settle(*args)[1]
-
-    compared = []
+    def refuse(*args):
+        raise AssertionError("a settled search needs no correction")
 
     def both(*args):
-        fast = search(*args)
-        if settled[-1]:
-            with monkeypatch.context() as patch:
-                patch.setattr(line_search, "settled_step", unsettled)
-                slow = search(*args)
-            for name in ("alpha", "found", "shortened", "blocked", "tiny"):
-                assert torch.equal(getattr(fast, name), getattr(slow, name)), name
-            assert torch.equal(fast.filter.entries, slow.filter.entries)
-            assert torch.equal(fast.filter.slot, slow.filter.slot)
-            for name, value in vars(fast.it).items():
-                assert torch.equal(value, getattr(slow.it, name)), name
-            compared.append((bool(fast.shortened.any()), bool(fast.filter.slot.sum() > args[7].slot.sum())))
-        return fast
+        first, done, step, concluded = kernel(*args)
+        settled.append(bool(done))
+        if done:
+            problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, corrects, opts, wd, delta, \
+                last, tol, restoring, tiny_steps, floor, running, lost, status, iterations = args
+            again = line_search.line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
+                                            factored, opts, refuse if corrects else None, first)
+            assert _same(step, again)
+            assert _same(concluded, conclusion.conclude(
+                wd, again, d, it, filt, delta, last, factored, torch.zeros_like(factored), model.primal_error, tol,
+                opts, True, restoring, tiny_steps, floor, running, lost, status, iterations))
+            compared.append((bool(step.shortened.any()), bool(step.filter.slot.sum() > filt.slot.sum())))
+        return first, done, step, concluded
 
-    monkeypatch.setattr(line_search, "settled_step", spy)
-    monkeypatch.setattr(ipm_solver, "line_search", both)
+    monkeypatch.setattr(ipm_solver, "first_round_concluded", both)
     x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
     options = tt.IPOptions() if corrections is None else tt.IPOptions(second_order_corrections=corrections)
     kernels = tt.solve(pendulum(), x0, "ipm", options=dataclasses.replace(options, compile=True))
@@ -143,6 +151,34 @@ def test_a_line_search_settled_by_its_first_round_takes_the_kernels_step(monkeyp
     eager = tt.solve(pendulum(), x0, "ipm", options=options)
     assert torch.equal(kernels.iterations, eager.iterations)
     assert_close_solutions(kernels, eager, tol=1e-10)
+
+
+def test_the_iterations_start_traced_is_its_eager_expansion_tests_and_barrier_update(monkeypatch):
+    """The start of an iteration with compiled kernels, one kernel (opening.opened: the expansion, the tests that end
+    an instance, the barrier update), traced by Dynamo on the arguments of a solve's third iteration: the values of
+    the functions it calls in turn, eager, to rounding (a traced ``status == Status.RUNNING`` was a Python ``False``,
+    which made every instance stop)."""
+    trace = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    calls, start = [], ipm_solver.opened
+
+    def spy(*args):
+        calls.append(args)
+        return start(*args)
+
+    monkeypatch.setattr(ipm_solver, "opened", spy)
+    tt.solve(pendulum(), tt.problems.sample_x0("pendulum", 2, seed=0), "ipm", options=tt.IPOptions(compile=True))
+    problem, cons, params, it, opts, base, status, iterations, budget, budgeted, tol, mu, tiny_steps, filt = calls[3]
+    model = expansion.expand(problem, cons, params, it, opts, base)
+    running = status == tt.Status.RUNNING
+    error, status = opening.tested(model, it, status, running, tol)
+    status = opening.checked(it, status, running, iterations, budget, budgeted, opts)
+    eager = model, error, status, barrier.barrier_step(cons, model, it, mu, status, status == tt.Status.RUNNING,
+                                                       tiny_steps, filt, tol, opts, False)
+    assert bool((status == tt.Status.RUNNING).all())
+    traced = trace(opening.opened, backend="eager", dynamic=False)(*calls[3])
+    assert _same(traced, eager, rtol=1e-12)  # traced, the short products are sums of products (compiled.matmul)
 
 
 def test_compiled_correction_rounds_take_the_instances_still_correcting_alone(monkeypatch):
@@ -186,17 +222,19 @@ def test_compiled_interior_point_matches_eager(first_round):
 def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
     """The batch dimension is dynamic in every kernel of the interior point: a batch of 3 after one of 2 captures no
     graph (the constraint rows and the expansion's derivatives are written so that ``vmap`` reads no concrete batch
-    size, :func:`torchtraj.core.batching.concat` and :mod:`torchtraj.core.one_pass`), with the eager answers."""
-    graphs = {}
+    size, :func:`torchtraj.core.batching.concat` and :mod:`torchtraj.core.one_pass`), with the eager answers; but
+    for the first graph of a kernel that the batch of 2 did not call (the barrier update alone, where the batch of 3
+    leaves finished instances behind)."""
+    graphs, first = {}, {}
     for B in (2, 3):
         x0 = tt.problems.sample_x0("pendulum", B, seed=B)
-        before = dynamo_capture["stats"]["unique_graphs"]
+        before, known = dynamo_capture["stats"]["unique_graphs"], set(compiled._KERNELS)
         solution = tt.solve(pendulum(), x0, "ipm", options=tt.IPOptions(compile=True))
-        graphs[B] = dynamo_capture["stats"]["unique_graphs"] - before
+        graphs[B], first[B] = dynamo_capture["stats"]["unique_graphs"] - before, set(compiled._KERNELS) - known
         # traced, the expansion's derivatives are pullbacks of the mapped functions, not jacrev inside vmap: the
         # same derivatives, rounded otherwise (the states agree to 2e-9 where the tolerance is 1e-8)
         assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
-    assert graphs[2] >= 5 and graphs[3] == 0, graphs
+    assert graphs[2] >= 5 and graphs[3] == len(first[3]), (graphs, first)
 
 
 @pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the first two tests
@@ -227,5 +265,4 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
-        expansion.expand, expansion.last_values, line_search.measured_first_round,
-        newton.newton_direction, barrier.barrier_step, conclusion.conclude, rollout})
+        opening.opened, expansion.last_values, conclusion.first_round_concluded, newton.newton_direction, rollout})

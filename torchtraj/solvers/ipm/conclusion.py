@@ -25,12 +25,14 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from ...core.constraints import Constraints
+from ...core.problem import Problem
 from ...core.status import Status
 from ...globalization.filter import Filter
 from .compaction import pick
 from .expansion import flat_abs
-from .iterate import Iterate
-from .line_search import Step
+from .iterate import Iterate, Model
+from .line_search import Step, measured_first_round
 from .newton import Direction
 from .options import IPOptions
 from .watchdog import Watchdog, count_steps
@@ -114,3 +116,21 @@ def conclude(wd: Watchdog, ls: Step, d: Direction, it: Iterate, filt: Filter, de
                       restoring)
     return taken, tiny_counts(taken.take, ls.tiny, d, tiny_steps, opts), settle(
         taken.take, taken.missed, delta, floor, running, d.ok, lost, status, iterations, opts)
+
+
+def first_round_concluded(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model,
+                          mu: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, factored: Tensor,
+                          corrects: bool, opts: IPOptions, wd: Watchdog, delta: Tensor, last: Tensor, tol: float,
+                          restoring: bool, tiny_steps: Tensor, floor: Tensor, running: Tensor, lost: Tensor,
+                          status: Tensor, iterations: Tensor) -> tuple:
+    """The line search's first round of step sizes for the instances ``factored (B,)``
+    (:func:`~torchtraj.solvers.ipm.line_search.measured_first_round`, no watchdog watching) and :func:`conclude` of
+    the step where that round settles the search, in one function: a compiled solve's one kernel call for the
+    search and the iteration's end where the round settles it (most iterations). Returns ``((measures, first
+    round), settled, step, conclude's result)``: ``settled`` a 0-dim boolean; where it is false, the search goes on
+    from the first two (:func:`~torchtraj.solvers.ipm.line_search.line_search`'s ``first``)."""
+    measures, opening, settled, step = measured_first_round(problem, cons, params, it, d, model, mu, filt, theta_max,
+                                                            theta_min, factored, corrects, opts)
+    return (measures, opening), settled, step, conclude(
+        wd, step, d, it, filt, delta, last, factored, torch.zeros_like(factored), model.primal_error, tol, opts, True,
+        restoring, tiny_steps, floor, running, lost, status, iterations)

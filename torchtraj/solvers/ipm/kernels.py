@@ -34,3 +34,16 @@ def kernel_of(fn, opts: IPOptions, device: torch.device):
     if uses_graphs(opts, device):
         return graphed(fn)
     return kernel(fn, opts.compile)
+
+
+def kernel_on_call(fn, opts: IPOptions, device: torch.device):
+    """:func:`kernel_of` made at the first call: a kernel that a solve may not call (the barrier update where the
+    iteration's start makes it, the expansion alone, the iteration's end where the line search's kernel makes it) is
+    neither compiled nor counted among the kernels."""
+    made = []
+
+    def call(*args):
+        if not made:
+            made.append(kernel_of(fn, opts, device))
+        return made[0](*args)
+    return call

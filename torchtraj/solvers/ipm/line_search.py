@@ -244,16 +244,21 @@ class Step:
 
 def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Direction, model: Model, mu: Tensor,
                 filt: Filter, theta_max: Tensor, theta_min: Tensor, pending: Tensor, opts: IPOptions,
-                correct: Optional[Callable] = None) -> Step:
+                correct: Optional[Callable] = None, first: Optional[tuple] = None) -> Step:
     """Backtracking over ``α_max β^j``, ``line_search_parallel`` step sizes per batched evaluation (the first round
     :func:`first_round`'s); a further round only while a ``pending`` instance has found no acceptable step.
     ``correct(need, α_max, φ, ∇φ·Δ, residuals)``: the second-order correction (:mod:`~torchtraj.solvers.ipm.soc`)
     of the instances ``need (B,)`` whose first trial point was rejected with ``θ`` not below the current one; where
-    it finds a step, that step is taken instead of a shorter one (W&B 2006 §2.3)."""
+    it finds a step, that step is taken instead of a shorter one (W&B 2006 §2.3). ``first``: the measures and the
+    first round's trial points of a compiled solve where its kernel has made them already, and the round did not
+    settle the search (:func:`~torchtraj.solvers.ipm.conclusion.first_round_concluded`)."""
     # compiled kernels: the measures, the first round's trial points and the step where that round settles the
     # search, in one kernel call (evaluated even where every instance took a tiny step: the answers are the same)
     ready = []  # the first round, evaluated with the measures
-    if compiled_kernels(opts, it.X.device):
+    if first is not None:
+        measures, opening = first
+        ready.append(opening)
+    elif compiled_kernels(opts, it.X.device):
         measures, opening, settled, step = kernel_of(measured_first_round, opts, it.X.device)(
             problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, correct is not None, opts)
         if bool(settled):

@@ -72,14 +72,15 @@ from ...globalization.filter import Filter
 from ...riccati.range_space import formed, select_gains
 from .barrier import average_complementarity, barrier_step, mehrotra_step
 from .compaction import Final, full_history, gather_laid_out, gather_rows, history_row, pick
-from .conclusion import conclude, settle, take_step, tiny_counts
+from .conclusion import conclude, first_round_concluded, settle, take_step, tiny_counts
 from .crossover_driver import cross_over
-from .expansion import Base, expand, initial_iterate, kkt_error, last_values, with_values
+from .expansion import Base, expand, initial_iterate, last_values, with_values
 from .initialization import least_squares_multipliers
 from .iterate import Hooks
-from .kernels import compiled_kernels, eager_kernels, kernel_of, uses_graphs
+from .kernels import compiled_kernels, eager_kernels, kernel_of, kernel_on_call, uses_graphs
 from .line_search import batch_first_round, line_search
 from .newton import batch_sweep, direction, direction_of_rows, newton_direction, newton_lqr, regularized_direction
+from .opening import checked, opened, tested
 from .options import IPOptions
 from .restoration import restore
 from .scaling import scaled_problem, unscale
@@ -155,15 +156,16 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     it = initial_iterate(cons, params, X, U0, opts)
     if hooks.start is not None:
         it = hooks.start(it)
-    expand_k = kernel_of(expand, opts, x0.device)
+    expand_k = kernel_on_call(expand, opts, x0.device)
     eager = eager_kernels(opts, x0.device)
     # compiled kernels: the Newton step's kernel forms its system (Mehrotra's steps run eager, on a kept factor)
     fused = compiled_kernels(opts, x0.device) and opts.barrier_strategy != "mehrotra"
     newton_k = kernel_of(newton_direction, opts, x0.device) if fused else None
     direction_k = None if fused else kernel_of(direction, opts, x0.device)
-    barrier_k = kernel_of(barrier_step, opts, x0.device) if fused else barrier_step
-    conclude_k = kernel_of(conclude, opts, x0.device) if fused else None
-    estimate_k = kernel_of(least_squares_multipliers, opts, x0.device) if fused and opts.least_squares_multipliers \
+    barrier_k = kernel_on_call(barrier_step, opts, x0.device) if fused else barrier_step
+    conclude_k = kernel_on_call(conclude, opts, x0.device) if fused else None
+    first_round_k = kernel_on_call(first_round_concluded, opts, x0.device) if fused else None
+    estimate_k = kernel_on_call(least_squares_multipliers, opts, x0.device) if fused \
         else least_squares_multipliers
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
         else hooks.barrier.clone()
@@ -199,11 +201,15 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     may_return = may_watch = False  # a watchdog runs / may start (known at the last iteration's synchronisation)
     may_reset = opts.filter_reset_trigger <= 1  # a filter reset may come at this step (the same synchronisation)
 
-    def tested(params, model, it, status, running):  # the KKT error, and the running instances that end here
-        error = kkt_error(model)
-        status = torch.where(running & ~model.finite, int(Status.NON_FINITE), status)
-        done = error <= tol if hooks.leave is None else (error <= tol) | hooks.leave(params, it, model)
-        return error, torch.where(running & model.finite & done, int(Status.CONVERGED), status)
+    # compiled, with no test of the caller's nor crossover: the expansion, the tests and the barrier update one kernel
+    opened_k = kernel_of(opened, opts, x0.device) if fused and hooks.leave is None and not crossing else None
+
+    def expanded(params, it, base, status, iterations, budgeted, mu, tiny_steps, filt):  # (model, the rest or None)
+        if opened_k is None:
+            return expand_k(problem, cons, params, it, opts, base), None
+        model, *rest = opened_k(problem, cons, params, it, opts, base, status, iterations, budget, budgeted, tol, mu,
+                                tiny_steps, filt)
+        return model, rest
 
     # the instances whose multipliers take the least-squares estimate (a warm start's cold ones: Hooks.estimate)
     estimated = hooks.estimate if hooks.start is not None and hooks.estimate is not None and bool(
@@ -228,7 +234,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             if not bool((running & ~stop).any()):  # every instance stopped or ended: these values are the answer's
                 measures = (J, violation)
                 break
-        model = expand_k(problem, cons, params, it, opts, base)
+        budget_spent = budgeted and step < opts.iterations  # a budget (Hooks), or iterations a restoration took
+        model, head = expanded(params, it, base, status, iterations, budget_spent, mu, tiny_steps, filt)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
             base = Base(it.X, it.U, model)
         # W&B §3.6, then re-expanded; where the crossover starts from the unconstrained optimum, after it, for the
@@ -236,17 +243,16 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         estimating = step == 0 and opts.least_squares_multipliers and (hooks.start is None or estimated is not None)
         if estimating and not starting:
             it = estimate_k(cons, model, it, estimated_rows(status == Status.RUNNING), opts)
-            model = expand_k(problem, cons, params, it, opts, base)
+            model, head = expanded(params, it, base, status, iterations, budget_spent, mu, tiny_steps, filt)
         if theta_max is None:
             theta_0 = torch.clamp(torch.nan_to_num(model.theta, nan=1.0, posinf=1.0), min=1.0)
             theta_max, theta_min = opts.theta_max_factor * theta_0, opts.theta_min_factor * theta_0
         running = status == Status.RUNNING
-        error, status = tested(params, model, it, status, running)
-        if budgeted and step < opts.iterations:  # a budget (Hooks), or iterations a restoration phase took
-            status = torch.where(running & (iterations >= budget) & (status == Status.RUNNING),
-                                 int(Status.MAX_ITERATIONS), status)
-        diverged = running & (it.X.abs().flatten(1).amax(-1) > opts.max_state)
-        status = torch.where(diverged & (status == Status.RUNNING), int(Status.DIVERGED), status)
+        if head is None:
+            error, status = tested(model, it, status, running, tol, params, hooks.leave)
+            status = checked(it, status, running, iterations, budget, budget_spent, opts)
+        else:
+            error, status, head = head
         running = status == Status.RUNNING
         start = starting and step == 0
         rounds = opts.crossover_start_rounds if start else opts.crossover_rounds
@@ -260,7 +266,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         if estimating and starting and bool(running.any()):
             it = estimate_k(cons, model, it, estimated_rows(running), opts)
             model = with_values(running, expand_k(problem, cons, params, it, opts, base), model)
-            estimated_error, status = tested(params, model, it, status, running)
+            estimated_error, status = tested(model, it, status, running, tol, params, hooks.leave)
             error = torch.where(running, estimated_error, error)
             running = status == Status.RUNNING
         count = int(running.sum())
@@ -284,12 +290,13 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 tiny_steps = (v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0,
                                                 error, running, ceiling, budget, tiny_steps))
             params = param_rows(params, keep)
+            head = None  # the barrier update again, on the rows that stay
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
         else:
             # W&B §3.9: where steps were at round-off, μ decreased, or at its floor, stop (compiled: one kernel)
-            mu, filt, status, running, tiny_steps, changed = barrier_k(cons, model, it, mu, status, running,
-                                                                       tiny_steps, filt, tol, opts, not fused)
+            mu, filt, status, running, tiny_steps, changed = head if head is not None else barrier_k(
+                cons, model, it, mu, status, running, tiny_steps, filt, tol, opts, not fused)
             wd = wd.stop(changed)  # its reference φ^W belongs to the old μ
             target_mu = mu
         lqr, rhs = (None, None) if fused else newton_lqr(model, it, target_mu, x0, nx)
@@ -312,6 +319,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager or fused)
         factored = running & d.ok
         lost = torch.zeros_like(running)
+        concluded = None  # compiled: the iteration's end, made by the kernel of its line search's first round
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
             mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
@@ -330,9 +338,18 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             # a superset of the instances watched now, known at the last synchronisation (watched_step on an empty
             # mask changes nothing)
             watched = watching is not None and may_watch
-            ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
-                             factored & ~watching if watched else factored, opts,
-                             correct if opts.second_order_corrections > 0 else None)
+            pending, corrects = factored & ~watching if watched else factored, opts.second_order_corrections > 0
+            first = None
+            if fused and not watched:  # where that round settles the search (δ_w is the floor itself where the first
+                # attempt was factorised: a copy, for one specialisation)
+                first, settled_round, ls, concluded = first_round_k(
+                    problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, corrects, opts, wd,
+                    delta.clone() if delta is floor else delta, last, tol, restoring, tiny_steps, floor, running, lost,
+                    status, iterations)
+                first, concluded = (None, concluded) if bool(settled_round) else (first, None)
+            if concluded is None:
+                ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, opts,
+                                 correct if corrects else None, first)
             if watched:
                 watch, wd, returned = watched_step(problem, cons, params, it, d, model, mu, filt, theta_max,
                                                    theta_min, wd, watching, last, opts)
@@ -342,8 +359,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         # one kernel call with the counts that follow it (and a filter reset's test whether or not one may come: the
         # same answer, and one graph)
         counted = None if mehrotra else watching if watched else torch.zeros_like(factored)
-        if fused:
-            # (δ_w is the floor itself where the first attempt was factorised: a copy, for one specialisation)
+        if concluded is not None:
+            taken, tiny_steps, settled = concluded
+        elif fused:
             taken, tiny_steps, settled = conclude_k(wd, ls, d, it, filt, delta.clone() if delta is floor else delta,
                                                     last, factored, counted, model.primal_error, tol, opts, True,
                                                     restoring, tiny_steps, floor, running, lost, status, iterations)
