@@ -13,8 +13,9 @@ the next iteration, and whether every instance took its step: then the step's fe
 with no selection).
 
 With compiled kernels all of it is one kernel call, :func:`conclude` (the flags' read and the restoration phase
-follow it, and where a restoration ran, :func:`settle` again on what it returned); eager, the same functions run in
-turn, the tiny steps' counts only where a step was tiny.
+follow it, and where a restoration ran, :func:`settle` again on what it returned), or, where the line search's first
+round of step sizes settles the search, part of that round's kernel call (:func:`first_round_concluded`); eager, the
+same functions run in turn, the tiny steps' counts only where a step was tiny.
 """
 
 from __future__ import annotations

@@ -24,6 +24,9 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
    ``LOCALLY_INFEASIBLE``;
 7. finished instances leave the batch being iterated (:mod:`~torchtraj.solvers.ipm.compaction`).
 
+Compiled, steps 1 and 3 are one kernel call (:mod:`~torchtraj.solvers.ipm.opening`), and the kernel of the line
+search's first round ends the iteration where it settles the search (:mod:`~torchtraj.solvers.ipm.conclusion`).
+
 Where the iterations run out, the last iterate is expanded and tested as every other; with
 ``IPOptions.test_last_iterate`` off (the control steps), its values alone are evaluated: its cost and violation,
 and ``MAX_ITERATIONS`` for the instances still running. With ``IPOptions.stop_feasible_after`` (a control step's
