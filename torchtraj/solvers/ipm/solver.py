@@ -396,5 +396,6 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                         model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),
                         running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    out = Final.of(it, (model.J, model.violation) if measures is None else measures, status, iterations, formed(K))
+    gains = (kernel_of(formed, opts, x0.device) if fused else formed)(K)
+    out = Final.of(it, (model.J, model.violation) if measures is None else measures, status, iterations, gains)
     return (out if final is None else final.write(index, out)), cons, records
