@@ -23,6 +23,7 @@ from same_solutions import (
 import torchtraj as tt
 from torchtraj.core import compiled
 from torchtraj.core.batching import rollout
+from torchtraj.riccati import range_space
 from torchtraj.solvers.ipm import barrier, conclusion, expansion, line_search, newton, opening, soc
 from torchtraj.solvers.ipm import solver as ipm_solver
 from torchtraj.solvers.ipm.iterate import Iterate
@@ -265,4 +266,5 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     short = pendulum().replace(horizon=10)  # the capture unrolls the stages: a short horizon
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
-        opening.opened, expansion.last_values, conclusion.first_round_concluded, newton.newton_direction, rollout})
+        opening.opened, expansion.last_values, conclusion.first_round_concluded, newton.newton_direction,
+        range_space.formed, rollout})

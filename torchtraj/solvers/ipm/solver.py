@@ -168,8 +168,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     barrier_k = kernel_on_call(barrier_step, opts, x0.device) if fused else barrier_step
     conclude_k = kernel_on_call(conclude, opts, x0.device) if fused else None
     first_round_k = kernel_on_call(first_round_concluded, opts, x0.device) if fused else None
-    estimate_k = kernel_on_call(least_squares_multipliers, opts, x0.device) if fused \
-        else least_squares_multipliers
+    estimate_k = kernel_on_call(least_squares_multipliers, opts, x0.device) if fused else least_squares_multipliers
     mu = torch.full((B,), opts.barrier_initial, dtype=x0.dtype, device=x0.device) if hooks.barrier is None \
         else hooks.barrier.clone()
     budget = torch.full((B,), opts.iterations, dtype=torch.long, device=x0.device) if hooks.budget is None \
@@ -396,6 +395,6 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                         model.J.min().item(), model.J.max().item(), error.max().item(), mu.max().item(),
                         running.sum().item())
     status = torch.where(status == Status.RUNNING, int(Status.MAX_ITERATIONS), status)
-    gains = (kernel_of(formed, opts, x0.device) if fused else formed)(K)
-    out = Final.of(it, (model.J, model.violation) if measures is None else measures, status, iterations, gains)
+    out = Final.of(it, (model.J, model.violation) if measures is None else measures, status, iterations,
+                   (kernel_of(formed, opts, x0.device) if fused else formed)(K))
     return (out if final is None else final.write(index, out)), cons, records
