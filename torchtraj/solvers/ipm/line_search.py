@@ -35,7 +35,6 @@ from torch import Tensor
 from ...core.batching import param_rows, rows_of
 from ...core.compiled import matvec as _mv
 from ...core.constraints import Constraints
-from ...core.masks import first_true
 from ...core.one_pass import problem_values
 from ...core.problem import Problem
 from ...globalization.filter import Filter
@@ -180,24 +179,26 @@ def measured_first_round(problem: Problem, cons: Constraints, params, it: Iterat
                                              opts))
 
 
+def _start(measures: tuple) -> Accepted:
+    """The backtracking's start (:func:`~torchtraj.globalization.line_search.backtrack`) from the :func:`step_measures`:
+    the tiny steps found, taken whole with no filter entry (``(unfiltered, blocked)`` the values it keeps)."""
+    a_max, _, _, _, tiny, _ = measures
+    return Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
+
+
 def settled_step(it: Iterate, d: Direction, model: Model, mu: Tensor, filt: Filter, measures: tuple, alphas: Tensor,
                  opening: tuple, pending: Tensor, corrects: bool, opts: IPOptions) -> tuple:
     """The outcome of :func:`line_search` where its first round of step sizes ``alphas (B, l)``, with the trial
     points ``opening`` (:func:`trial`), settles it: every ``pending`` instance takes a tiny step or accepts one of
     the round's candidates, and none needs a second-order correction (``corrects``: the search makes them). The
-    same values as the search's :func:`~torchtraj.globalization.line_search.backtrack` and its end. Returns
-    ``(settled, step)``: a 0-dim boolean, whether the round settles the search for every instance, and the
-    :class:`Step` that it is then."""
+    same values as the search's :func:`~torchtraj.globalization.line_search.backtrack` (its first round alone,
+    which reads nothing back) and its end. Returns ``(settled, step)``: a 0-dim boolean, whether the round settles
+    the search for every instance, and the :class:`Step` that it is then."""
     a_max, a_dual, phi, _, tiny, _ = measures
     accept, unfiltered, blocked, theta_c, _ = opening
-    idx = first_true(accept)
-    rows = torch.arange(accept.shape[0], device=accept.device)
-    new = accept.any(1) & ~tiny  # backtrack's start: the tiny steps found, taken whole with no filter entry
-    found = tiny | new
-    alpha = torch.where(new, alphas[rows, idx], torch.where(tiny, a_max, 0.0))
-    unfiltered = torch.where(new, unfiltered[rows, idx], tiny)
     before = torch.cat([torch.zeros_like(blocked[:, :1]), blocked[:, :-1]], 1)  # each candidate's predecessor
-    blocked = new & before[rows, idx]
+    steps = backtrack(alphas, alphas.shape[1], lambda _: (accept, (unfiltered, before)), pending, _start(measures))
+    found, alpha, (unfiltered, blocked) = steps.found, steps.alpha, steps.values
     open_rows = pending & ~found
     if corrects:  # line_search's `need`: the full step rejected with θ not below the current one
         open_rows = open_rows | (pending & ~tiny & ~accept[:, 0] & (theta_c[:, 0] >= model.theta))
@@ -298,9 +299,9 @@ def line_search(problem: Problem, cons: Constraints, params, it: Iterate, d: Dir
 
     eager = eager_kernels(opts, it.X.device)
 
-    start = Accepted(found=tiny, alpha=torch.where(tiny, a_max, 0.0), values=(tiny, torch.zeros_like(tiny)))
     # asked before the first round too: where every pending instance took a tiny step, no candidate is evaluated
-    steps = backtrack(candidates, max(1, opts.line_search_parallel), acceptable, pending, start, sync_first=True,
+    steps = backtrack(candidates, max(1, opts.line_search_parallel), acceptable, pending, _start(measures),
+                      sync_first=True,
                       by_rows=not uses_graphs(opts, it.X.device),  # graphs keep the batch's shape
                       first_round=first_round(opts))
     found, alpha, (unfiltered, blocked) = steps.found, steps.alpha, steps.values

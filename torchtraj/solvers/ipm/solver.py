@@ -322,6 +322,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         factored = running & d.ok
         lost = torch.zeros_like(running)
         concluded = None  # compiled: the iteration's end, made by the kernel of its line search's first round
+        # (compiled, δ_w is the floor itself where the first attempt was factorised: a copy, for one specialisation)
+        delta_k = delta.clone() if fused and delta is floor else delta
         if mehrotra:  # no line search: the corrector's largest steps to the boundary
             mu, d, ls = mehrotra_step(model, it, d, lqr, delta, x0, tol / 10.0, ceiling, filt, factored, opts)
             factored = factored & d.ok
@@ -342,12 +344,10 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             watched = watching is not None and may_watch
             pending, corrects = factored & ~watching if watched else factored, opts.second_order_corrections > 0
             first = None
-            if fused and not watched:  # where that round settles the search (δ_w is the floor itself where the first
-                # attempt was factorised: a copy, for one specialisation)
+            if fused and not watched:  # where that round settles the search
                 first, settled_round, ls, concluded = first_round_k(
                     problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, corrects, opts, wd,
-                    delta.clone() if delta is floor else delta, last, tol, restoring, tiny_steps, floor, running, lost,
-                    status, iterations)
+                    delta_k, last, tol, restoring, tiny_steps, floor, running, lost, status, iterations)
                 first, concluded = (None, concluded) if bool(settled_round) else (first, None)
             if concluded is None:
                 ls = line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, opts,
@@ -364,9 +364,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         if concluded is not None:
             taken, tiny_steps, settled = concluded
         elif fused:
-            taken, tiny_steps, settled = conclude_k(wd, ls, d, it, filt, delta.clone() if delta is floor else delta,
-                                                    last, factored, counted, model.primal_error, tol, opts, True,
-                                                    restoring, tiny_steps, floor, running, lost, status, iterations)
+            taken, tiny_steps, settled = conclude_k(wd, ls, d, it, filt, delta_k, last, factored, counted,
+                                                    model.primal_error, tol, opts, True, restoring, tiny_steps, floor,
+                                                    running, lost, status, iterations)
         else:
             taken, settled = take_step(wd, ls, d, it, filt, delta, last, factored, counted, model.primal_error,
                                        tol, opts, may_reset, restoring), None
