@@ -22,9 +22,9 @@ from same_solutions import (
 
 import torchtraj as tt
 from torchtraj.core import compiled
-from torchtraj.core.batching import rollout
+from torchtraj.core.batching import rollout, rows_of
 from torchtraj.riccati import range_space
-from torchtraj.solvers.ipm import barrier, conclusion, expansion, line_search, newton, opening, soc
+from torchtraj.solvers.ipm import barrier, conclusion, expansion, line_search, newton, opening, soc, whole_iteration
 from torchtraj.solvers.ipm import solver as ipm_solver
 from torchtraj.solvers.ipm.iterate import Iterate
 
@@ -94,19 +94,26 @@ def test_a_compiled_first_round_of_the_full_step_alone(monkeypatch, dynamo_captu
 
 
 def _same(a, b, rtol: float = 0.0) -> bool:
-    """Whether two results (dataclasses, tuples, tensors) hold the same tensors: to the bit, or floating ones within
-    ``rtol`` of each other (relative to the larger of 1 and their entries)."""
+    """Whether two results (dataclasses, tuples, dicts, tensors) hold the same tensors: to the bit (NaN where both
+    are), or floating ones within ``rtol`` of each other (relative to the larger of 1 and their entries)."""
     if dataclasses.is_dataclass(a):
         return type(a) is type(b) and all(_same(getattr(a, f.name), getattr(b, f.name), rtol)
                                           for f in dataclasses.fields(a))
     if isinstance(a, (tuple, list)):
         return len(a) == len(b) and all(_same(x, y, rtol) for x, y in zip(a, b))
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k], rtol) for k in a)
     if not isinstance(a, torch.Tensor):
         return a == b
-    if rtol == 0.0 or not a.is_floating_point():
+    if not a.is_floating_point():
         return torch.equal(a, b)
-    near = (a - b).abs() <= rtol * torch.maximum(a.abs(), b.abs()).clamp_min(1)
-    return a.shape == b.shape and bool(((a == b) | near).all())  # (equal: the filters' infinite entries too)
+    if a.shape != b.shape:
+        return False
+    # NaN where both are (the steps of instances that have stopped are not read)
+    near = (a == b) | (a.isnan() & b.isnan())  # (equal: the filters' infinite entries too)
+    if rtol > 0.0:
+        near = near | ((a - b).abs() <= rtol * torch.maximum(a.abs(), b.abs()).clamp_min(1))
+    return bool(near.all())
 
 
 @pytest.mark.parametrize("corrections", [None, 0])
@@ -115,9 +122,10 @@ def test_a_line_search_settled_by_its_first_round_ends_in_its_kernel(monkeypatch
     settles the search (conclusion.first_round_concluded, line_search.settled_step): every pending instance accepts
     a candidate or takes a tiny step, and none needs a correction. With the kernels as plain functions
     (``torch.compile`` the identity), each such search made again by the backtracking from the same first round,
-    and the iteration ended by ``conclude``, as where the round does not settle the search: the same step and end to
-    the bit; and the solve takes eager's iterations to the same answers. With corrections, some searches are
-    settled so and others not; without them, rejected full steps are settled by shorter ones of the first round."""
+    and the iteration ended by ``conclude``, as where the round does not settle the search: the same step of the
+    pending instances and the same end to the bit (also in the rounds of whole iterations); and the solve takes
+    eager's iterations to the same answers. With corrections, some searches are settled so and others not; without
+    them, rejected full steps are settled by shorter ones of the first round."""
     monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
     monkeypatch.setattr(compiled, "_KERNELS", {})
     settled, compared, kernel = [], [], ipm_solver.first_round_concluded
@@ -133,7 +141,8 @@ def test_a_line_search_settled_by_its_first_round_ends_in_its_kernel(monkeypatch
                 last, tol, restoring, tiny_steps, floor, running, lost, status, iterations = args
             again = line_search.line_search(problem, cons, params, it, d, model, mu, filt, theta_max, theta_min,
                                             factored, opts, refuse if corrects else None, first)
-            assert _same(step, again)
+            pending = factored.nonzero().squeeze(-1)  # (the others' step is not taken: conclude reads `take`)
+            assert _same(rows_of(step, pending), rows_of(again, pending))
             assert _same(concluded, conclusion.conclude(
                 wd, again, d, it, filt, delta, last, factored, torch.zeros_like(factored), model.primal_error, tol,
                 opts, True, restoring, tiny_steps, floor, running, lost, status, iterations))
@@ -141,6 +150,7 @@ def test_a_line_search_settled_by_its_first_round_ends_in_its_kernel(monkeypatch
         return first, done, step, concluded
 
     monkeypatch.setattr(ipm_solver, "first_round_concluded", both)
+    monkeypatch.setattr(whole_iteration, "first_round_concluded", both)  # (the round of an iteration in one call)
     x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
     options = tt.IPOptions() if corrections is None else tt.IPOptions(second_order_corrections=corrections)
     kernels = tt.solve(pendulum(), x0, "ipm", options=dataclasses.replace(options, compile=True))
@@ -150,6 +160,39 @@ def test_a_line_search_settled_by_its_first_round_ends_in_its_kernel(monkeypatch
     else:
         assert any(short for short, _ in compared), compared
     eager = tt.solve(pendulum(), x0, "ipm", options=options)
+    assert torch.equal(kernels.iterations, eager.iterations)
+    assert_close_solutions(kernels, eager, tol=1e-10)
+
+
+def test_an_iteration_whose_host_reads_change_nothing_is_one_kernel_call(monkeypatch):
+    """With compiled kernels an iteration is one kernel call (whole_iteration.whole_iteration: the start, the Newton
+    step of the first attempt, the line search's first round and the end) where no watchdog runs or may start. With
+    the kernels as plain functions (``torch.compile`` the identity): most iterations are such calls, some of them go
+    on from a part (an unsettled first round: the search goes on from it), and the solve is to the bit the solve
+    whose iterations make the three calls in turn; its iterations are eager's."""
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    x0 = tt.problems.sample_x0("pendulum", 4, seed=0)
+    options = tt.IPOptions(compile=True)
+    calls, settled, whole = [], [], ipm_solver.whole_iteration
+
+    def spy(*args):
+        calls.append(args)
+        out = whole(*args)
+        settled.append(bool(out[1][2]))
+        return out
+
+    monkeypatch.setattr(ipm_solver, "whole_iteration", spy)
+    kernels = tt.solve(pendulum(), x0, "ipm", options=options)
+    made = ipm_solver.kernel_on_call
+    monkeypatch.setattr(ipm_solver, "kernel_on_call", lambda fn, *args: None if fn is spy else made(fn, *args))
+    calls_before = len(calls)
+    in_turn = tt.solve(pendulum(), x0, "ipm", options=options)
+    assert len(calls) == calls_before, "the iterations should make their calls in turn"
+    assert 2 * calls_before > int(kernels.iterations.max()), (calls_before, kernels.iterations)
+    assert any(settled) and not all(settled), settled
+    assert _same(kernels, in_turn)
+    eager = tt.solve(pendulum(), x0, "ipm")
     assert torch.equal(kernels.iterations, eager.iterations)
     assert_close_solutions(kernels, eager, tol=1e-10)
 
@@ -169,6 +212,7 @@ def test_the_iterations_start_traced_is_its_eager_expansion_tests_and_barrier_up
         return start(*args)
 
     monkeypatch.setattr(ipm_solver, "opened", spy)
+    monkeypatch.setattr(whole_iteration, "opened", spy)  # (the start of an iteration in one call)
     tt.solve(pendulum(), tt.problems.sample_x0("pendulum", 2, seed=0), "ipm", options=tt.IPOptions(compile=True))
     problem, cons, params, it, opts, base, status, iterations, budget, budgeted, tol, mu, tiny_steps, filt = calls[3]
     model = expansion.expand(problem, cons, params, it, opts, base)
@@ -267,4 +311,4 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
         opening.opened, expansion.last_values, conclusion.first_round_concluded, newton.newton_direction,
-        range_space.formed, rollout})
+        range_space.formed, rollout, whole_iteration.whole_iteration})

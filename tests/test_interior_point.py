@@ -478,12 +478,12 @@ def test_corrections_on_the_pending_instances_alone_change_no_answer(monkeypatch
     regularized, corrected = interior_point.regularized_direction, interior_point.correction_of_rows
     gathered = {"attempts": [], "corrections": []}
 
-    def counted_attempts(attempt, *args, by_rows=False):
+    def counted_attempts(attempt, *args, by_rows=False, first=None):
         def counting(delta, rows=None):
             if rows is not None:
                 gathered["attempts"].append(rows.numel())
             return attempt(delta) if rows is None else attempt(delta, rows)
-        return regularized(counting, *args, by_rows=by_rows)
+        return regularized(counting, *args, by_rows=by_rows, first=first)
 
     def counted_corrections(*args):
         gathered["corrections"].append(int(args[12].sum()))  # need
@@ -494,7 +494,8 @@ def test_corrections_on_the_pending_instances_alone_change_no_answer(monkeypatch
     by_rows = tt.solve(problem, x0, method="ipm", options=options)
     for counts in gathered.values():  # made, and never for the whole batch
         assert counts and min(counts) > 0 and max(counts) < x0.shape[0], gathered
-    monkeypatch.setattr(interior_point, "regularized_direction", lambda *args, by_rows=False: regularized(*args))
+    monkeypatch.setattr(interior_point, "regularized_direction",
+                        lambda *args, by_rows=False, first=None: regularized(*args, first=first))
     monkeypatch.setattr(interior_point, "correction_of_rows", interior_point.second_order_correction)
     whole = tt.solve(problem, x0, method="ipm", options=options)
     assert_same_solutions(by_rows, whole)

@@ -24,7 +24,7 @@ from kkt import kkt_residuals
 import torchtraj as tt
 from torchtraj.core.batch import Batch
 from torchtraj.core.batching import rollout
-from torchtraj.solvers.ipm.solver import state_guess
+from torchtraj.solvers.ipm.start import state_guess
 
 F64 = torch.float64
 DATA = json.loads((pathlib.Path(__file__).parent / "data" / "ipm_restoration_reference.json").read_text())

@@ -51,7 +51,7 @@ def inertia_correction(delta: Tensor, last: Tensor, first: float, minimum: float
 
 
 def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: Tensor, opts, pick: Callable,
-                       attempts: int, write: Optional[Callable] = None) -> tuple:
+                       attempts: int, write: Optional[Callable] = None, first=None) -> tuple:
     """IPOPT's inertia correction for a batch: the step of every ``running (B,)`` instance with the smallest
     ``δ_w`` from ``floor (B,)`` up whose reduced Hessians are positive definite.
 
@@ -63,10 +63,11 @@ def corrected_attempts(attempt: Callable, floor: Tensor, last: Tensor, running: 
     first on the pending instances' rows alone: ``attempt(δ_w, rows)`` factorises and solves the instances ``rows
     (R,)`` and ``write`` puts their step into ``step`` (one read of their count by the host each; the whole batch
     where every instance is pending). In a large batch a few instances need a correction, and the others'
-    factorisations would be made again to be thrown away; each instance's arithmetic is the same.
-    Returns ``(step, δ_w (B,))``."""
+    factorisations would be made again to be thrown away; each instance's arithmetic is the same. ``first``: the
+    first attempt's step where the caller has made it already (at ``floor``). Returns ``(step, δ_w (B,))``: where
+    the first attempt holds for every running instance, ``first`` and ``floor`` themselves."""
     delta = floor
-    step = attempt(delta)
+    step = attempt(delta) if first is None else first
     pending = running & ~step.ok
     for _ in range(attempts):
         if not bool(pending.any()):

@@ -192,12 +192,13 @@ def _failed(it: Iterate, factor: RiccatiFactor, keep_factor: bool) -> Direction:
 
 
 def regularized_direction(attempt: Callable[..., Direction], floor: Tensor, last: Tensor, running: Tensor,
-                          opts: IPOptions, by_rows: bool = False) -> tuple:
+                          opts: IPOptions, by_rows: bool = False, first: Optional[Direction] = None) -> tuple:
     """The step of every ``running (B,)`` instance with the smallest ``δ_w`` (from ``floor (B,)``) whose system is
     positive definite, by IPOPT's inertia correction
     (:func:`~torchtraj.globalization.regularization.corrected_attempts`; ``last (B,)``: the last nonzero ``δ_w`` that
     was); ``attempt(δ_w)`` factorises and solves the batch. ``by_rows``: the attempts after the first take the
     pending instances alone, ``attempt(δ_w, rows)`` (``corrected_attempts``' ``write``, here :func:`write_rows`).
-    Returns ``(direction, δ_w (B,))``."""
+    ``first``: the step of the first attempt, made already (a compiled iteration's one kernel call). Returns
+    ``(direction, δ_w (B,))``."""
     return corrected_attempts(attempt, floor, last, running, opts, pick, opts.regularization_attempts,
-                              write_rows if by_rows else None)
+                              write_rows if by_rows else None, first)

@@ -64,10 +64,9 @@ from typing import Optional
 import torch
 
 from ...core.batch import Batch
-from ...core.batching import param_rows, rollout
+from ...core.batching import param_rows
 from ...core.compiled import DYNAMIC_FROM, rollout_kernel
 from ...core.constraints import Constraints, multiplier_blocks
-from ...core.masks import where_rows
 from ...core.problem import Problem
 from ...core.solution import Solution
 from ...core.status import Status
@@ -88,8 +87,10 @@ from .options import IPOptions
 from .restoration import restore
 from .scaling import scaled_problem, unscale
 from .soc import correction_of_rows, second_order_correction
+from .start import start_states
 from .warm_start import warm_start_hooks
 from .watchdog import Watchdog, merge_steps, watched_step
+from .whole_iteration import whole_iteration
 
 logger = logging.getLogger("torchtraj")
 
@@ -101,7 +102,7 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
     batched to B. Without ``X0`` the states start at the problem's own guess ``Problem.X_init`` where it has one
     and the controls are the problem's own (as IPOPT's reference does: car_escape's waypoints; from the rollout of
     its controls, which drives through the walls, IPOPT itself ends ``Infeasible_Problem_Detected`` after 487
-    iterations), else at the rollout of ``U0`` (:func:`state_guess`)."""
+    iterations), else at the rollout of ``U0`` (:func:`~torchtraj.solvers.ipm.start.state_guess`)."""
     opts = options or IPOptions()
     X0 = start_states(problem, batch, opts)  # given, for the objective's scaling
     problem, batch, scale = scaled_problem(problem, dataclasses.replace(batch, X0=X0), opts)  # W&B §3.8
@@ -117,30 +118,6 @@ def solve_interior_point(problem: Problem, batch: Batch, options: Optional[IPOpt
         iterations=out.iterations, history=history, costate=out.lam, multipliers=multipliers,
         method=method,
     )
-
-
-def state_guess(problem: Problem, batch: Batch):
-    """The states a solve starts from: the caller's ``X0``; else, where the problem has a state guess
-    ``X_init``, that guess for the instances that start from the problem's own controls ``u_init`` (the two go
-    together: a control step's shifted controls go with their rollout, not with the problem's waypoints) and the
-    rollout of ``U0`` for the others; else ``None`` (the rollout of ``U0``)."""
-    if batch.X0 is not None or problem.X_init is None:
-        return batch.X0
-    own = (batch.U0 == problem.u_init.to(batch.U0)).flatten(1).all(-1)
-    guess = problem.X_init.to(batch.x0).expand(batch.B, *problem.X_init.shape)
-    if bool(own.all()):
-        return guess
-    if not bool(own.any()):
-        return None
-    return where_rows(own, guess, rollout(problem.dynamics, batch.x0, batch.U0, batch.params))
-
-
-def start_states(problem: Problem, batch: Batch, opts: IPOptions) -> torch.Tensor:
-    """The states ``(B, N+1, nx)`` a solve starts from: :func:`state_guess`, else the rollout of ``U0``."""
-    X0 = state_guess(problem, batch)
-    if X0 is None:
-        X0 = rollout_kernel(opts.compile)(problem.dynamics, batch.x0, batch.U0, batch.params)
-    return X0
 
 
 def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] = None, method: str = "ipm"):
@@ -205,6 +182,8 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
 
     # compiled, with no test of the caller's nor crossover: the expansion, the tests and the barrier update one kernel
     opened_k = kernel_of(opened, opts, x0.device) if fused and hooks.leave is None and not crossing else None
+    whole_k = None if opened_k is None else kernel_on_call(whole_iteration, opts, x0.device)
+    corrects = opts.second_order_corrections > 0
 
     def expanded(params, it, base, status, iterations, budgeted, mu, tiny_steps, filt):  # (model, the rest or None)
         if opened_k is None:
@@ -237,7 +216,13 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 measures = (J, violation)
                 break
         budget_spent = budgeted and step < opts.iterations  # a budget (Hooks), or iterations a restoration took
-        model, head = expanded(params, it, base, status, iterations, budget_spent, mu, tiny_steps, filt)
+        ahead = None  # compiled: the iteration's step, first round and end, made with its start (whole_iteration)
+        if whole_k is not None and theta_max is not None and not (may_return or may_watch):
+            (model, *head), ahead = whole_k(problem, cons, params, it, opts, base, status, iterations, budget,
+                                            budget_spent, tol, mu, tiny_steps, filt, x0, floor, wd, last, theta_max,
+                                            theta_min, restoring, corrects)
+        else:
+            model, head = expanded(params, it, base, status, iterations, budget_spent, mu, tiny_steps, filt)
         if problem.linear_quadratic and base is None:  # the initial iterate's multipliers are zero
             base = Base(it.X, it.U, model)
         # W&B §3.6, then re-expanded; where the crossover starts from the unconstrained optimum, after it, for the
@@ -292,7 +277,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 tiny_steps = (v[keep] for v in (mu, status, last, floor, iterations, K, theta_max, theta_min, x0,
                                                 error, running, ceiling, budget, tiny_steps))
             params = param_rows(params, keep)
-            head = None  # the barrier update again, on the rows that stay
+            head = ahead = None  # the barrier update and all after it again, on the rows that stay
         if mehrotra:  # the affine-scaling predictor: complementarity S z = 0
             target_mu = torch.zeros_like(mu)
         else:
@@ -318,7 +303,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             # eager, the factorisation is kept for the second-order corrections (they solve the same system)
             return direction_k(*system, None, None, eager, opts.sweep, opts.terminal_rows)
 
-        d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager or fused)
+        d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager or fused,
+                                         first=None if ahead is None else ahead[0])
+        ahead = ahead if ahead is not None and d is ahead[0] else None  # (further attempts: the search made again)
         factored = running & d.ok
         lost = torch.zeros_like(running)
         concluded = None  # compiled: the iteration's end, made by the kernel of its line search's first round
@@ -342,10 +329,10 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             # a superset of the instances watched now, known at the last synchronisation (watched_step on an empty
             # mask changes nothing)
             watched = watching is not None and may_watch
-            pending, corrects = factored & ~watching if watched else factored, opts.second_order_corrections > 0
+            pending = factored & ~watching if watched else factored
             first = None
             if fused and not watched:  # where that round settles the search
-                first, settled_round, ls, concluded = first_round_k(
+                _, first, settled_round, concluded = ahead if ahead is not None else first_round_k(
                     problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, corrects, opts, wd,
                     delta_k, last, tol, restoring, tiny_steps, floor, running, lost, status, iterations)
                 first, concluded = (None, concluded) if bool(settled_round) else (first, None)
