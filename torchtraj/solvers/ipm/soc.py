@@ -21,7 +21,8 @@ correction's step with compiled kernels (``IPOptions.compile``). A round is the 
 kernel of the iteration's own step) and one function of the rest (:func:`correction_round`: compiled, one kernel):
 its boundary, its trial point, the iterate after it and the next round's right-hand sides. The rounds run on the
 instances that needed a correction (:func:`correction_of_rows` gathers them): eager, those that stopped masked;
-compiled on a batch, a later round on the instances still correcting alone.
+compiled on a batch, a later round on the instances still correcting alone. Compiled, the first round of a call
+whose every instance corrects is one kernel call with the start (:func:`started_round`).
 """
 
 from __future__ import annotations
@@ -124,6 +125,19 @@ def correction_round(problem: Problem, cons: Constraints, params, it: Iterate, s
     return next_rounds, corrected_values(model, it, c_soc), new, moved
 
 
+def started_round(problem: Problem, cons: Constraints, params, it: Iterate, model: Model, mu: Tensor, phi: Tensor,
+                  slope: Tensor, filt: Filter, theta_max: Tensor, theta_min: Tensor, need: Tensor, a_max: Tensor,
+                  first: tuple, delta: Tensor, x0: Tensor, opts: IPOptions) -> tuple:
+    """:func:`correction_start`, the first corrected step (:func:`~torchtraj.solvers.ipm.newton.newton_direction`,
+    regularised by ``δ_w`` ``delta (B,)``) and its :func:`correction_round` in one function: with compiled kernels
+    the first round's one kernel call where every instance of the call corrects (three calls before). Returns
+    :func:`correction_round`'s result."""
+    rounds, values = correction_start(model, it, need, first, a_max, mu, opts)
+    step = newton_direction(dataclasses.replace(model, **values), it, mu, x0, delta, opts.sweep, opts.terminal_rows)
+    return correction_round(problem, cons, params, it, dataclasses.replace(step, K=None), model, mu, phi, slope, filt,
+                            theta_max, theta_min, rounds, opts)
+
+
 def second_order_correction(problem: Problem, cons: Constraints, params, it: Iterate, d: Optional[Direction],
                             model: Model, mu: Tensor, phi: Tensor, slope: Tensor, filt: Filter, theta_max: Tensor,
                             theta_min: Tensor, need: Tensor, a_max: Tensor, first: tuple, lqr: Optional[LQR],
@@ -138,9 +152,15 @@ def second_order_correction(problem: Problem, cons: Constraints, params, it: Ite
     compiled = compiled_kernels(opts, it.X.device)
     kept = None if d is None else d.factor
     factor = None if compiled else kept if kept is not None else factorize_step(lqr, delta, opts)
-    rounds, values = kernel(correction_start, compiled)(model, it, need, first, a_max, mu, opts)
-    best = it  # the iterate after each instance's accepted step (where none is accepted it is not read)
-    for _ in range(opts.second_order_corrections):
+    started = 0  # compiled, where every instance of the call corrects: the first round with the start, one kernel
+    if compiled and opts.second_order_corrections > 0 and _round_rows(need) is None:
+        rounds, values, _, best = kernel(started_round, True)(problem, cons, params, it, model, mu, phi, slope, filt,
+                                                              theta_max, theta_min, need, a_max, first, delta, x0, opts)
+        started = 1
+    else:
+        rounds, values = kernel(correction_start, compiled)(model, it, need, first, a_max, mu, opts)
+        best = it  # the iterate after each instance's accepted step (where none is accepted it is not read)
+    for _ in range(opts.second_order_corrections - started):
         if not bool(rounds.active.any()):
             break
         if compiled:  # the step's kernel forms the system; the residuals laid out as the model's own (views of the
