@@ -160,3 +160,20 @@ def test_the_feasibility_is_the_largest_violation_to_the_last_bit(name):
         res = certificate.residuals(problem, X, U, multipliers, params, x0, c)
         violation = tt.kkt.largest_violation(problem, X, U, params, x0=x0, constraints=c)
         assert (violation > 0).all() and torch.equal(res.feasibility, violation)
+
+
+def test_a_compiled_solves_residuals_are_one_kernel_with_the_eager_values(dynamo_capture):
+    """A compiled solve certifies its answer in one kernel call (``compile=True``): Dynamo's capture of the residuals
+    is one graph with no break, and gives every bit of the eager computation (the capture runs the same operators;
+    inductor's kernels round their own way)."""
+    from torchtraj.core import compiled
+
+    problem, x0 = problems.get("car_3obs"), problems.sample_x0("car_3obs", 2, seed=0)
+    sol = tt.solve(problem, x0=x0, method="ipm")
+    c, params = Constraints.of(problem), problem.batched_params(2)
+    eager = certificate.residuals(problem, sol.X, sol.U, sol.multipliers, params, x0, c)
+    kernel = certificate.residuals(problem, sol.X, sol.U, sol.multipliers, params, x0, c, compile=True)
+    assert set(compiled._KERNELS) == {certificate._residuals}
+    assert not dict(dynamo_capture["graph_break"]) and dynamo_capture["stats"]["unique_graphs"] == 1
+    for key, value in eager.as_dict().items():
+        assert torch.equal(kernel.as_dict()[key], value), key

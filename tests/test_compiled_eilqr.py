@@ -25,6 +25,7 @@ from same_solutions import (
 import torchtraj as tt
 from torchtraj.core import compiled
 from torchtraj.core.batching import rollout
+from torchtraj.kkt import certificate
 from torchtraj.kkt import merit as answer
 from torchtraj.solvers.eilqr import globalization, merit, model, newton, verdicts
 
@@ -42,7 +43,7 @@ def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
     assert_one_graph_per_kernel(dynamo_capture, {
         verdicts.expanded, newton.direction_alone, merit.merit_at, globalization.corrected_step, rollout,
         globalization.first_tried, globalization.direction_and_first_trial, globalization.chosen_step,
-        verdicts.advanced, verdicts.advanced_ahead, answer.cost_and_violation})
+        verdicts.advanced, verdicts.advanced_ahead, answer.cost_and_violation, certificate._residuals})
     assert bool((solution.status == tt.Status.CONVERGED).all())
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "eilqr"), tol=1e-9, costate_rtol=1e-9)
 
@@ -72,7 +73,7 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     assert_one_graph_per_kernel(dynamo_capture, {
         verdicts.expanded, model.last_multipliers, newton.direction_alone, merit.merit_at,
         globalization.corrected_choice, globalization.direction_and_first_trial, verdicts.advanced,
-        verdicts.advanced_ahead, rollout, answer.cost_and_violation})
+        verdicts.advanced_ahead, rollout, answer.cost_and_violation, certificate._residuals})
 
 
 @pytest.mark.slow  # two batch sizes captured, a minute; the default run keeps the test above

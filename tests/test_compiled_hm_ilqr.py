@@ -15,6 +15,7 @@ from same_solutions import (
 )
 
 import torchtraj as tt
+from torchtraj.kkt import certificate
 from torchtraj.solvers.hm_ilqr import crls, solver, trials
 from torchtraj.solvers.hm_ilqr.objective import HybridObjective
 
@@ -31,7 +32,8 @@ def test_each_compiled_kernel_of_hm_ilqr_is_one_graph(dynamo_capture):
     solution = tt.solve(pendulum(), x0, "hm-ilqr", options=tt.HMILQROptions(compile=True))
     assert_one_graph_per_kernel(dynamo_capture, {
         HybridObjective.expand, HybridObjective.dynamics_curvature, crls.factorized, crls._solve_rhs,
-        trials.round_model, trials.ratio_test, trials.corrected_step, trials.start_residual, solver._measures})
+        trials.round_model, trials.ratio_test, trials.corrected_step, trials.start_residual, solver._measures,
+        certificate._residuals})
     assert bool((solution.status == tt.Status.CONVERGED).all())
     assert_close_solutions(solution, tt.solve(pendulum(), x0, "hm-ilqr"), tol=1e-9, costate_rtol=1e-9)
 

@@ -23,8 +23,19 @@ from same_solutions import (
 import torchtraj as tt
 from torchtraj.core import compiled
 from torchtraj.core.batching import rollout, rows_of
+from torchtraj.kkt import certificate
 from torchtraj.riccati import range_space
-from torchtraj.solvers.ipm import barrier, conclusion, expansion, line_search, newton, opening, soc, whole_iteration
+from torchtraj.solvers.ipm import (
+    barrier,
+    conclusion,
+    expansion,
+    line_search,
+    newton,
+    opening,
+    scaling,
+    soc,
+    whole_iteration,
+)
 from torchtraj.solvers.ipm import solver as ipm_solver
 from torchtraj.solvers.ipm.iterate import Iterate
 
@@ -197,6 +208,22 @@ def test_an_iteration_whose_host_reads_change_nothing_is_one_kernel_call(monkeyp
     assert_close_solutions(kernels, eager, tol=1e-10)
 
 
+def test_a_compiled_solves_objective_scale_is_one_kernel_with_the_eager_value(dynamo_capture):
+    """The objective's scale (W&B §3.8, the cost gradient's largest entry at the start) of a compiled solve is one
+    kernel call, one graph with no break, with every bit of the eager value, on starts whose scale is below 1."""
+    problem = tt.problems.get("cartpole")  # its cost gradient at the start is above 100: scaled
+    x0 = tt.problems.sample_x0("cartpole", 3, seed=0)
+    U = problem.u_init.expand(3, problem.N, -1)
+    params, options = problem.batched_params(3), tt.IPOptions()
+    X = rollout(problem.dynamics, x0, U, params)
+    eager = scaling.objective_scale(problem, X, U, params, options)
+    kernel = scaling.objective_scale(problem, X, U, params, dataclasses.replace(options, compile=True))
+    assert bool((eager < 1.0).any()), eager
+    assert torch.equal(kernel, eager)
+    assert set(compiled._KERNELS) == {scaling._largest_gradient}
+    assert not dict(dynamo_capture["graph_break"]) and dynamo_capture["stats"]["unique_graphs"] == 1
+
+
 def test_the_iterations_start_traced_is_its_eager_expansion_tests_and_barrier_update(monkeypatch):
     """The start of an iteration with compiled kernels, one kernel (opening.opened: the expansion, the tests that end
     an instance, the barrier update), traced by Dynamo on the arguments of a solve's third iteration: the values of
@@ -311,4 +338,5 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
         opening.opened, expansion.last_values, conclusion.first_round_concluded, newton.newton_direction,
-        range_space.formed, rollout, whole_iteration.whole_iteration})
+        range_space.formed, rollout, whole_iteration.whole_iteration, certificate._residuals,
+        scaling._largest_gradient})

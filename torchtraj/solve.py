@@ -170,8 +170,9 @@ def _certified(solver: Solver, problem: Problem, batch: Batch, opts, solution: S
     # a free start (eILQR's free_initial_state) has no initial defect; its own rows are the method's to meet
     x0 = batch.x0.detach() if solver.fixes_initial_state(opts) else None
     record = solver.kernel_setting(opts, "record", False)  # replayed residuals where the expansion is replayed
+    compile = bool(solver.kernel_setting(opts, "compile", False)) and not graphs_used(opts, batch.x0.device)
     status, residuals = certificate.certify(problem, solution.status, solution.X, solution.U, solution.multipliers,
-                                            params, x0, constraints, record=record)
+                                            params, x0, constraints, record=record, compile=compile)
     return dataclasses.replace(solution, status=status, kkt=residuals.as_dict())
 
 

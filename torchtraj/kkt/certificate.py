@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 from torch.func import grad
 
+from ..core.compiled import kernel
 from ..core.constraints import Constraints, stack_blocks
 from ..core.derivatives import stage_jacobian
 from ..core.problem import Problem
@@ -83,19 +84,22 @@ class KKTResiduals:
 
 
 def residuals(problem: Problem, X: Tensor, U: Tensor, multipliers: dict, params, x0: Optional[Tensor] = None,
-              constraints: Optional[Constraints] = None, record: Optional[bool] = False) -> KKTResiduals:
+              constraints: Optional[Constraints] = None, record: Optional[bool] = False,
+              compile: bool = False) -> KKTResiduals:
     """The KKT residuals of ``problem`` at ``X (B, N+1, nx)``, ``U (B, N, nu)`` with the per-block
     ``multipliers`` (:attr:`Solution.multipliers`; missing blocks count as zero); the initial defect ``x0 − x_0``
     counts where ``x0 (B, nx)`` is given. ``constraints`` default to the problem's own
     (``Constraints.of(problem, ignored=True)`` gives the unconstrained problem's KKT conditions). ``record``
     (``True``, ``None``: when it pays; ``False``: never): replayed from a recorded operator graph
-    (:mod:`~torchtraj.core.recorded`; the same numbers, fewer calls: a controller certifies every step)."""
+    (:mod:`~torchtraj.core.recorded`; the same numbers, fewer calls: a controller certifies every step);
+    ``compile``: one compiled kernel call instead (:func:`~torchtraj.core.compiled.kernel`; a compiled solve's)."""
     c = Constraints.of(problem) if constraints is None else constraints
     X, U = X.detach(), U.detach()
     given = {} if c.ignored else {k: v.detach() for k, v in multipliers.items() if k in _blocks(c)}
     x0 = None if x0 is None else x0.detach()
     rows = c.applied_ineq_rows + c.miN  # the inequality rows that apply somewhere (no host read: kernels call it)
-    return KKTResiduals(*_RECORDED_RESIDUALS.option(record)(problem, c, X, U, given, params, x0, rows))
+    evaluated = kernel(_residuals, True) if compile else _RECORDED_RESIDUALS.option(record)
+    return KKTResiduals(*evaluated(problem, c, X, U, given, params, x0, rows))
 
 
 def _residuals(problem: Problem, c: Constraints, X: Tensor, U: Tensor, given: dict, params, x0: Optional[Tensor],
@@ -168,11 +172,12 @@ def _blocks(c: Constraints) -> set:
 
 
 def certify(problem: Problem, status: Tensor, X: Tensor, U: Tensor, multipliers: dict, params, x0: Tensor,
-            constraints: Constraints, tolerances: Optional[Tolerances] = None, record: Optional[bool] = False):
+            constraints: Constraints, tolerances: Optional[Tolerances] = None, record: Optional[bool] = False,
+            compile: bool = False):
     """``(status, residuals)``: ``status`` with ``CONVERGED`` turned into ``STALLED`` wherever the point fails the
-    certificate (module docstring), and the residuals; ``record`` as :func:`residuals`'."""
+    certificate (module docstring), and the residuals; ``record`` and ``compile`` as :func:`residuals`'."""
     tol = Tolerances.for_dtype(X.dtype) if tolerances is None else tolerances
-    res = residuals(problem, X, U, multipliers, params, x0, constraints, record)
+    res = residuals(problem, X, U, multipliers, params, x0, constraints, record, compile)
     stalled = (status == int(Status.CONVERGED)) & ~res.within(tol)
     return torch.where(stalled, torch.full_like(status, int(Status.STALLED)), status), res
 

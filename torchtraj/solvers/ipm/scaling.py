@@ -46,10 +46,12 @@ import torch
 from torch import Tensor
 
 from ...core.batch import Batch
+from ...core.compiled import kernel
 from ...core.derivatives import stage_jacobian, terminal_jacobian
 from ...core.problem import Problem
 from ...core.recorded import Recorded
 from ...core.solution import History
+from .kernels import compiled_kernels
 from .options import IPOptions
 
 #: The parameter that carries ``s_f (B,)`` into the scaled problem's costs.
@@ -59,10 +61,12 @@ SCALE = "_objective_scale"
 def objective_scale(problem: Problem, X: Tensor, U: Tensor, params, opts: IPOptions) -> Tensor:
     """``s_f (B,)`` (module docstring) at the start ``X (B, N+1, nx)``, ``U (B, N, nu)``; 1 where the gradient is
     not finite (the iteration reports such a start) and everywhere with ``IPOptions.scaling == "none"``. The
-    gradient's norm replays from its record where ``IPOptions.record`` says so (a controller scales every step)."""
+    gradient's norm replays from its record where ``IPOptions.record`` says so (a controller scales every step), or
+    is one kernel call where the solve's kernels are compiled."""
     if opts.scaling == "none":
         return X.new_ones(X.shape[0])
-    largest = _RECORDED_LARGEST_GRADIENT.option(opts.record)(problem, X, U, params)
+    largest = (kernel(_largest_gradient, True) if compiled_kernels(opts, X.device)
+               else _RECORDED_LARGEST_GRADIENT.option(opts.record))(problem, X, U, params)
     scale = torch.clamp(opts.scaling_max_gradient / largest, min=opts.scaling_min_value, max=1.0)
     return torch.where(torch.isfinite(largest), scale, 1.0)
 
