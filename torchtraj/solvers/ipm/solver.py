@@ -25,7 +25,9 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 7. finished instances leave the batch being iterated (:mod:`~torchtraj.solvers.ipm.compaction`).
 
 Compiled, steps 1 and 3 are one kernel call (:mod:`~torchtraj.solvers.ipm.opening`), and the kernel of the line
-search's first round ends the iteration where it settles the search (:mod:`~torchtraj.solvers.ipm.conclusion`).
+search's first round ends the iteration where it settles the search (:mod:`~torchtraj.solvers.ipm.conclusion`);
+where none of the iteration's host reads changes its course, steps 1 to 5 are one kernel call
+(:mod:`~torchtraj.solvers.ipm.whole_iteration`).
 
 Where the iterations run out, the last iterate is expanded and tested as every other; with
 ``IPOptions.test_last_iterate`` off (the control steps), its values alone are evaluated: its cost and violation,
