@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 
 from ...core.batch import Batch
-from ...core.compiled import kernel
+from ...core.compiled import DYNAMIC_FROM, kernel
 from ...core.derivatives import stage_jacobian, terminal_jacobian
 from ...core.problem import Problem
 from ...core.recorded import Recorded
@@ -62,11 +62,15 @@ def objective_scale(problem: Problem, X: Tensor, U: Tensor, params, opts: IPOpti
     """``s_f (B,)`` (module docstring) at the start ``X (B, N+1, nx)``, ``U (B, N, nu)``; 1 where the gradient is
     not finite (the iteration reports such a start) and everywhere with ``IPOptions.scaling == "none"``. The
     gradient's norm replays from its record where ``IPOptions.record`` says so (a controller scales every step), or
-    is one kernel call where the solve's kernels are compiled."""
+    is one kernel call where the solve's kernels are compiled for a single instance."""
     if opts.scaling == "none":
         return X.new_ones(X.shape[0])
-    largest = (kernel(_largest_gradient, True) if compiled_kernels(opts, X.device)
-               else _RECORDED_LARGEST_GRADIENT.option(opts.record))(problem, X, U, params)
+    # compiled, a single instance's kernel (whose graph is static anyway): the stage derivatives read a concrete
+    # batch size, so that a batched kernel would be compiled again for every batch size
+    if compiled_kernels(opts, X.device) and X.shape[0] < DYNAMIC_FROM:
+        largest = kernel(_largest_gradient, True)(problem, X, U, params)
+    else:
+        largest = _RECORDED_LARGEST_GRADIENT.option(opts.record)(problem, X, U, params)
     scale = torch.clamp(opts.scaling_max_gradient / largest, min=opts.scaling_min_value, max=1.0)
     return torch.where(torch.isfinite(largest), scale, 1.0)
 
