@@ -52,8 +52,13 @@ def test_each_compiled_kernel_of_eilqr_is_one_graph(dynamo_capture):
 def test_the_kernels_compile_again_for_another_problem_and_a_later_trial_is_one_graph(dynamo_capture):
     """Kernels compiled for the car (its parameters hold obstacles) serve the cart-pole after it, compiled again
     (Dynamo's reason for compiling again once failed on a kernel given one tensor twice), and with two corrected
-    trials the second one's kernel (the cart-pole's) is one graph too; the answers are the eager ones."""
-    opts = tt.EILQROptions(second_order_trials=2)
+    trials the second one's kernel (the cart-pole's) is one graph too; the answers are the eager ones.
+
+    Neither goal is in reach in so few stages (the IPM ends both problems' instances locally infeasible): eILQR's
+    solves end stalled or at the most regularisation after 45 to 77 iterations, by which the captured graphs'
+    round-off has moved them apart (the car: 76 iterations against 77; the cart-pole: controls 1.9e-9 apart). So the
+    solves stop after 20 iterations, which capture every kernel, the cart-pole's second trial among them."""
+    opts = tt.EILQROptions(second_order_trials=2, iterations=20)
     for name in ("car_3obs", "cartpole"):
         problem = tt.problems.get(name).replace(horizon=8 if name == "car_3obs" else 10)
         x0 = tt.problems.sample_x0(name, 2, seed=2)
