@@ -209,23 +209,25 @@ def test_an_iteration_whose_host_reads_change_nothing_is_one_kernel_call(monkeyp
 
 
 def test_a_compiled_solves_objective_scale_is_one_kernel_with_the_eager_value(dynamo_capture):
-    """The objective's scale (W&B §3.8, the cost gradient's largest entry at the start) of a compiled solve of a
-    single instance is one kernel call, one graph with no break, with every bit of the eager value, at a start whose
-    scale is below 1; a batch's is eager (its stage derivatives read a concrete batch size)."""
+    """The objective's scale (W&B §3.8, the cost gradient's largest entry at the start) of a compiled solve is one
+    kernel call, one graph with no break, with every bit of the eager value, at starts whose scale is below 1: a
+    single instance's graph, and one graph for the batches of 2 and 3 (the scalar costs' gradients are pullbacks of
+    ones, which read no concrete batch size)."""
     problem = tt.problems.get("cartpole")  # its cost gradient at the start is above 100: scaled
-    x0 = problem.x0.expand(1, -1)
-    U = problem.u_init.expand(1, problem.N, -1)
-    params, options = problem.batched_params(1), tt.IPOptions()
-    X = rollout(problem.dynamics, x0, U, params)
-    eager = scaling.objective_scale(problem, X, U, params, options)
-    kernel = scaling.objective_scale(problem, X, U, params, dataclasses.replace(options, compile=True))
-    assert bool((eager < 1.0).any()), eager
-    assert torch.equal(kernel, eager)
+    options = tt.IPOptions()
+    graphs = {}
+    for B in (1, 2, 3):
+        x0 = problem.x0.expand(1, -1) if B == 1 else tt.problems.sample_x0("cartpole", B, seed=B)
+        U = problem.u_init.expand(B, problem.N, -1)
+        params = problem.batched_params(B)
+        X = rollout(problem.dynamics, x0, U, params)
+        eager = scaling.objective_scale(problem, X, U, params, options)
+        kernel = scaling.objective_scale(problem, X, U, params, dataclasses.replace(options, compile=True))
+        assert bool((eager < 1.0).all()), eager
+        assert torch.equal(kernel, eager), (B, kernel, eager)
+        graphs[B] = dynamo_capture["stats"]["unique_graphs"]
     assert set(compiled._KERNELS) == {scaling._largest_gradient}
-    assert not dict(dynamo_capture["graph_break"]) and dynamo_capture["stats"]["unique_graphs"] == 1
-    batch = scaling.objective_scale(problem, X.expand(2, -1, -1), U.expand(2, -1, -1), problem.batched_params(2),
-                                    dataclasses.replace(options, compile=True))
-    assert torch.equal(batch, eager.expand(2)) and dynamo_capture["stats"]["unique_graphs"] == 1
+    assert not dict(dynamo_capture["graph_break"]) and graphs == {1: 1, 2: 2, 3: 2}, graphs
 
 
 def test_the_iterations_start_traced_is_its_eager_expansion_tests_and_barrier_update(monkeypatch):
@@ -342,4 +344,5 @@ def test_a_control_steps_untested_last_iterate_is_a_kernel_of_its_own(dynamo_cap
     assert_compiled_steps_apply_eager_controls(short, tt.problems.sample_x0("pendulum", 2, seed=0), "ipm")
     assert_one_graph_per_kernel(dynamo_capture, {
         opening.opened, expansion.last_values, conclusion.first_round_concluded, newton.newton_direction,
-        range_space.formed, rollout, whole_iteration.whole_iteration, certificate._residuals})
+        range_space.formed, rollout, whole_iteration.whole_iteration, certificate._residuals,
+        scaling._largest_gradient})

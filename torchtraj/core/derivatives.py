@@ -21,13 +21,16 @@ measures several times slower than ``vmap(jacrev(·))`` on the problem set's mod
 for Hessians alike (``docs/benchmarks.md``, design choices). The results are the same to rounding.
 
 Traced by ``torch.compile`` (:mod:`torchtraj.core.compiled`, whose kernels take the batch size as a symbol),
-:func:`stage_jacobian`, :func:`terminal_jacobian`, :func:`stage_hessian` and :func:`terminal_hessian` differentiate
-the mapped function instead: its points are independent, so the pullback of the unit vector ``e_i`` on every
-point's output is row ``i`` of every point's Jacobian (:func:`_pullback_rows`; the Hessian is the same on the
-gradient, itself the pullback of ones). With PyTorch 2.13, ``jacrev`` inside ``vmap`` specialises the traced graph
-to the batch size: the batching rules of the backward operations (``slice_backward``, ``cat``) read concrete sizes.
-The pullbacks run outside ``vmap``, on the batch's tensors, and are the products ``jacrev`` forms (traced with
-Dynamo's eager backend, the same numbers to the last bit).
+:func:`stage_jacobian`, :func:`terminal_jacobian`, their scalar functions' :func:`stage_gradient` and
+:func:`terminal_gradient`, :func:`stage_hessian` and :func:`terminal_hessian` differentiate the mapped function
+instead: its points are independent, so the pullback of the unit vector ``e_i`` on every point's output is row ``i``
+of every point's Jacobian (:func:`_pullback_rows`), the pullback of ones a scalar function's gradient at every point
+(:func:`_pullback_gradient`), and the Hessian the rows of the gradient's pullbacks. With PyTorch 2.13, ``jacrev``
+inside ``vmap`` specialises the traced graph to the batch size: the batching rules of the backward operations
+(``slice_backward``, ``cat``) read concrete sizes. The pullbacks run outside ``vmap``, on the batch's tensors, and are
+the products ``jacrev`` forms (traced with Dynamo's eager backend, the same numbers to the last bit). A scalar
+function takes the gradient's functions: the rows' pullbacks would take its last batch dimension (the stages, or the
+instances at the terminal knot) for its rows, one pullback each, and read the batch size.
 """
 
 from __future__ import annotations
@@ -103,12 +106,19 @@ def _pullback_rows(F: Callable, Z: Tensor):
     return out, _rows(pull, out)
 
 
+def _pullback_gradient(F: Callable, Z: Tensor):
+    """Values ``(...)`` and gradients ``(..., n)`` of ``F: (..., n) -> (...)``, a scalar per-point function mapped
+    over the points ``Z``: the pullback of ones."""
+    value, pull = vjp(F, Z)
+    return value, pull(torch.ones_like(value))[0]
+
+
 def _pullback_hessian(F: Callable, Z: Tensor):
     """Values ``(...)``, gradients ``(..., n)`` and Hessians ``(..., n, n)`` of ``F: (..., n) -> (...)``, a scalar
     per-point function mapped over the points ``Z`` (:func:`_pullback_rows` of its gradient)."""
     def gradient(Z_):
-        value, pull = vjp(F, Z_)
-        return pull(torch.ones_like(value))[0], value
+        value, grad = _pullback_gradient(F, Z_)
+        return grad, value
 
     grad, pull, value = vjp(gradient, Z, has_aux=True)
     return value, grad, _rows(pull, grad)
@@ -138,6 +148,22 @@ def terminal_jacobian(fn: Callable, xN: Tensor, params: Params):
     """Values ``(B, m)`` and Jacobians ``(B, m, nx)`` of ``fn(x, p)`` at ``xN (B, nx)``."""
     if torch.compiler.is_compiling():
         return _pullback_rows(lambda X_: map_state(fn, X_, params), xN)
+    return map_state(_value_and_jacobian(fn), xN, params)
+
+
+def stage_gradient(fn: Callable, X: Tensor, U: Tensor, params: Params):
+    """Values ``(B, N)`` and gradients ``(B, N, nx+nu)`` of a scalar ``fn(x, u, p)`` at every stage."""
+    nx = X.shape[-1]
+    Z = _stage_points(X, U)
+    if torch.compiler.is_compiling():
+        return _pullback_gradient(lambda Z_: map_state(_on_z(fn, nx), Z_, params), Z)
+    return map_state(_value_and_jacobian(_on_z(fn, nx)), Z, params)
+
+
+def terminal_gradient(fn: Callable, xN: Tensor, params: Params):
+    """Value ``(B,)`` and gradient ``(B, nx)`` of a scalar ``fn(x, p)`` at ``xN (B, nx)``."""
+    if torch.compiler.is_compiling():
+        return _pullback_gradient(lambda X_: map_state(fn, X_, params), xN)
     return map_state(_value_and_jacobian(fn), xN, params)
 
 

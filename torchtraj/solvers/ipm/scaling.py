@@ -46,8 +46,8 @@ import torch
 from torch import Tensor
 
 from ...core.batch import Batch
-from ...core.compiled import DYNAMIC_FROM, kernel
-from ...core.derivatives import stage_jacobian, terminal_jacobian
+from ...core.compiled import kernel
+from ...core.derivatives import stage_gradient, terminal_gradient
 from ...core.problem import Problem
 from ...core.recorded import Recorded
 from ...core.solution import History
@@ -62,12 +62,10 @@ def objective_scale(problem: Problem, X: Tensor, U: Tensor, params, opts: IPOpti
     """``s_f (B,)`` (module docstring) at the start ``X (B, N+1, nx)``, ``U (B, N, nu)``; 1 where the gradient is
     not finite (the iteration reports such a start) and everywhere with ``IPOptions.scaling == "none"``. The
     gradient's norm replays from its record where ``IPOptions.record`` says so (a controller scales every step), or
-    is one kernel call where the solve's kernels are compiled for a single instance."""
+    is one kernel call where the solve's kernels are compiled."""
     if opts.scaling == "none":
         return X.new_ones(X.shape[0])
-    # compiled, a single instance's kernel (whose graph is static anyway): the stage derivatives read a concrete
-    # batch size, so that a batched kernel would be compiled again for every batch size
-    if compiled_kernels(opts, X.device) and X.shape[0] < DYNAMIC_FROM:
+    if compiled_kernels(opts, X.device):
         largest = kernel(_largest_gradient, True)(problem, X, U, params)
     else:
         largest = _RECORDED_LARGEST_GRADIENT.option(opts.record)(problem, X, U, params)
@@ -77,8 +75,8 @@ def objective_scale(problem: Problem, X: Tensor, U: Tensor, params, opts: IPOpti
 
 def _largest_gradient(problem: Problem, X: Tensor, U: Tensor, params) -> Tensor:
     """``‖∇J(X, U)‖_∞ (B,)``."""
-    _, stage = stage_jacobian(problem.stage_cost, X[:, :-1], U, params)
-    _, terminal = terminal_jacobian(problem.terminal_cost, X[:, -1], params)
+    _, stage = stage_gradient(problem.stage_cost, X[:, :-1], U, params)
+    _, terminal = terminal_gradient(problem.terminal_cost, X[:, -1], params)
     B = X.shape[0]
     return torch.cat([stage.reshape(B, -1).abs(), terminal.reshape(B, -1).abs()], -1).amax(-1)
 
