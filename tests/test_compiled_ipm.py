@@ -4,8 +4,8 @@ Default run: Dynamo's capture alone (its ``"eager"`` backend, no inductor): each
 break splits a kernel into pieces, each with its own call overhead) traced once (the second-order corrections reuse
 the kernels of the iteration's step and line search instead of specialisations of their own), and the solve is the
 eager one; the instances that need more work run alone with no kernel traced again; a control step's last iterate.
-``-m slow``: a later batch size captures no kernel again; finished instances left behind; the same solve compiled by
-inductor, against eager.
+``-m slow``: a later batch size captures no kernel again, in the iterations and in restoration phases; finished
+instances left behind; the same solve compiled by inductor, against eager.
 """
 
 import dataclasses
@@ -313,6 +313,27 @@ def test_one_capture_of_each_kernel_serves_every_batch_size(dynamo_capture):
         # same derivatives, rounded otherwise (the states agree to 2e-9 where the tolerance is 1e-8)
         assert_close_solutions(solution, tt.solve(pendulum(), x0, "ipm"), tol=1e-7)
     assert graphs[2] >= 5 and graphs[3] == len(first[3]), (graphs, first)
+
+
+@pytest.mark.slow  # two batches of restoration phases captured, a minute and a half
+def test_a_restoration_phase_captures_its_kernels_once_for_every_batch_size(dynamo_capture):
+    """The restoration problem's functions read no concrete batch size when traced (its dynamics join the clock to
+    the states by :func:`torchtraj.core.batching.concat`): with the pendulum's goal out of reach in 10 stages every
+    instance goes through a restoration phase, and a batch of 5 after one of 4 captures no graph, with the eager
+    answers. With ``torch.cat`` each new batch size captured three kernels again, and a batch of 1024, whose
+    restoration phases see many batch sizes, reached Dynamo's limit of specialisations. (Not 2 and 3: at B = 2 the
+    line search's trial kernel keeps a guard on a coincidence of two sizes, ``d.dX.stride(1) == 2 * len(alphas)``.)"""
+    problem = tt.problems.get("pendulum").replace(horizon=10)
+    graphs = {}
+    for B in (4, 5):
+        x0 = tt.problems.sample_x0("pendulum", B, seed=B)
+        before = dynamo_capture["stats"]["unique_graphs"]
+        solution = tt.solve(problem, x0, "ipm", options=tt.IPOptions(compile=True))
+        graphs[B] = dynamo_capture["stats"]["unique_graphs"] - before
+        assert bool((solution.status == tt.Status.LOCALLY_INFEASIBLE).all()), solution.status  # restoration's verdict
+        # the same iterations; the points, minimisers of the violation and flat there, agree to 4e-8
+        assert_close_solutions(solution, tt.solve(problem, x0, "ipm"), tol=1e-6)
+    assert graphs[4] >= 5 and graphs[5] == 0, graphs
 
 
 @pytest.mark.slow  # Dynamo traces for half a minute; the default run keeps the first two tests

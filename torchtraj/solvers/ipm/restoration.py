@@ -57,7 +57,7 @@ import torch
 from torch import Tensor
 
 from ...core.batch import Batch
-from ...core.batching import map_stage, param_rows
+from ...core.batching import concat, map_stage, param_rows
 from ...core.constraints import STATE_BLOCKS, Constraints
 from ...core.problem import Problem
 from ...core.status import Status
@@ -121,7 +121,7 @@ def _restoration_problem(problem: Problem, cons: Constraints, filter_size: int) 
 
     def dynamics(xt, ut, p):
         x, clock, u, pd, nd = parts(xt, ut)[:5]
-        return torch.cat([problem.dynamics(x, u, p) - pd + nd, (clock + 1).reshape(1)])
+        return concat([problem.dynamics(x, u, p) - pd + nd, (clock + 1).reshape(1)])  # traced: no batch size read
 
     def stage_eq(xt, ut, p):
         x, _, u, _, _, ph, nh, _, _ = parts(xt, ut)
