@@ -135,52 +135,52 @@ def _stage_points(X: Tensor, U: Tensor) -> Tensor:
     return torch.cat([X[:, : U.shape[1]], U], -1)
 
 
-def stage_jacobian(fn: Callable, X: Tensor, U: Tensor, params: Params):
-    """Values ``(B, N, m)`` and Jacobians ``(B, N, m, nx+nu)`` of ``fn(x, u, p)`` at every stage."""
+def _at_stages(fn: Callable, X: Tensor, U: Tensor, params: Params, traced: Callable, eager: Callable):
+    """``fn(x, u, p)`` differentiated at every stage point: when traced, ``traced`` (a pullback, module docstring) of
+    the mapped function; else the per-point transform ``eager`` mapped over the points."""
     nx = X.shape[-1]
     Z = _stage_points(X, U)
     if torch.compiler.is_compiling():
-        return _pullback_rows(lambda Z_: map_state(_on_z(fn, nx), Z_, params), Z)
-    return map_state(_value_and_jacobian(_on_z(fn, nx)), Z, params)
+        return traced(lambda Z_: map_state(_on_z(fn, nx), Z_, params), Z)
+    return map_state(eager(_on_z(fn, nx)), Z, params)
+
+
+def _at_terminal(fn: Callable, xN: Tensor, params: Params, traced: Callable, eager: Callable):
+    """``fn(x, p)`` differentiated at ``xN (B, nx)``, as :func:`_at_stages`."""
+    if torch.compiler.is_compiling():
+        return traced(lambda X_: map_state(fn, X_, params), xN)
+    return map_state(eager(fn), xN, params)
+
+
+def stage_jacobian(fn: Callable, X: Tensor, U: Tensor, params: Params):
+    """Values ``(B, N, m)`` and Jacobians ``(B, N, m, nx+nu)`` of ``fn(x, u, p)`` at every stage."""
+    return _at_stages(fn, X, U, params, _pullback_rows, _value_and_jacobian)
 
 
 def terminal_jacobian(fn: Callable, xN: Tensor, params: Params):
     """Values ``(B, m)`` and Jacobians ``(B, m, nx)`` of ``fn(x, p)`` at ``xN (B, nx)``."""
-    if torch.compiler.is_compiling():
-        return _pullback_rows(lambda X_: map_state(fn, X_, params), xN)
-    return map_state(_value_and_jacobian(fn), xN, params)
+    return _at_terminal(fn, xN, params, _pullback_rows, _value_and_jacobian)
 
 
 def stage_gradient(fn: Callable, X: Tensor, U: Tensor, params: Params):
-    """Values ``(B, N)`` and gradients ``(B, N, nx+nu)`` of a scalar ``fn(x, u, p)`` at every stage."""
-    nx = X.shape[-1]
-    Z = _stage_points(X, U)
-    if torch.compiler.is_compiling():
-        return _pullback_gradient(lambda Z_: map_state(_on_z(fn, nx), Z_, params), Z)
-    return map_state(_value_and_jacobian(_on_z(fn, nx)), Z, params)
+    """Values ``(B, N)`` and gradients ``(B, N, nx+nu)`` of a scalar ``fn(x, u, p)`` at every stage (eager, the
+    Jacobian's ``jacrev``, which gives a scalar's gradient)."""
+    return _at_stages(fn, X, U, params, _pullback_gradient, _value_and_jacobian)
 
 
 def terminal_gradient(fn: Callable, xN: Tensor, params: Params):
     """Value ``(B,)`` and gradient ``(B, nx)`` of a scalar ``fn(x, p)`` at ``xN (B, nx)``."""
-    if torch.compiler.is_compiling():
-        return _pullback_gradient(lambda X_: map_state(fn, X_, params), xN)
-    return map_state(_value_and_jacobian(fn), xN, params)
+    return _at_terminal(fn, xN, params, _pullback_gradient, _value_and_jacobian)
 
 
 def stage_hessian(fn: Callable, X: Tensor, U: Tensor, params: Params):
     """Value ``(B, N)``, gradient ``(B, N, nz)`` and Hessian ``(B, N, nz, nz)`` of a scalar ``fn(x, u, p)``."""
-    nx = X.shape[-1]
-    Z = _stage_points(X, U)
-    if torch.compiler.is_compiling():
-        return _pullback_hessian(lambda Z_: map_state(_on_z(fn, nx), Z_, params), Z)
-    return map_state(_value_gradient_hessian(_on_z(fn, nx)), Z, params)
+    return _at_stages(fn, X, U, params, _pullback_hessian, _value_gradient_hessian)
 
 
 def terminal_hessian(fn: Callable, xN: Tensor, params: Params):
     """Value ``(B,)``, gradient ``(B, nx)`` and Hessian ``(B, nx, nx)`` of a scalar ``fn(x, p)``."""
-    if torch.compiler.is_compiling():
-        return _pullback_hessian(lambda X_: map_state(fn, X_, params), xN)
-    return map_state(_value_gradient_hessian(fn), xN, params)
+    return _at_terminal(fn, xN, params, _pullback_hessian, _value_gradient_hessian)
 
 
 def _from_first_stage(X: Tensor, U: Tensor) -> Tensor:
