@@ -334,7 +334,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
             pending = factored & ~watching if watched else factored
             first = None
             if fused and not watched:  # where that round settles the search
-                _, first, settled_round, concluded = ahead if ahead is not None else first_round_k(
+                first, settled_round, _, concluded = ahead[1] if ahead is not None else first_round_k(
                     problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, pending, corrects, opts, wd,
                     delta_k, last, tol, restoring, tiny_steps, floor, running, lost, status, iterations)
                 first, concluded = (None, concluded) if bool(settled_round) else (first, None)

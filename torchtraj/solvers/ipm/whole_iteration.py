@@ -47,9 +47,9 @@ def whole_iteration(problem: Problem, cons: Constraints, params, it: Iterate, op
     arguments, then the initial ``x0 (B, nx)``, the floor ``δ_w`` ``(B,)`` of the first attempt, the watchdog's
     counts before the barrier update, the last ``δ_w`` that gave a positive definite system ``(B,)``, the filter's
     bounds ``θ_max``, ``θ_min`` ``(B,)``, whether the solve has a restoration phase and takes second-order
-    corrections. Returns ``(opening, (step, first round, settled, conclusion))``: ``opened``'s result, the Newton
-    step at the floor, and of :func:`~torchtraj.solvers.ipm.conclusion.first_round_concluded` all but the step of
-    the settled search (the conclusion holds it)."""
+    corrections. Returns ``(opening, (step, round))``: ``opened``'s result, the Newton step at the floor, and
+    :func:`~torchtraj.solvers.ipm.conclusion.first_round_concluded`'s result in its own order, ``(first round,
+    settled, None, conclusion)``, the step of the settled search left out (the conclusion holds it)."""
     opening = opened(problem, cons, params, it, opts, base, status, iterations, budget, budgeted, tol, mu, tiny_steps,
                      filt)
     model, _, _, (mu, filt, status, running, tiny_steps, changed) = opening
@@ -60,4 +60,4 @@ def whole_iteration(problem: Problem, cons: Constraints, params, it: Iterate, op
     first, settled, _, concluded = first_round_concluded(
         problem, cons, params, it, d, model, mu, filt, theta_max, theta_min, factored, corrects, opts, wd, floor,
         last, tol, restoring, tiny_steps, floor, running, lost, status, iterations)
-    return opening, (d, first, settled, concluded)
+    return opening, (d, (first, settled, None, concluded))
