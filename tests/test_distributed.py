@@ -25,6 +25,7 @@ import torch
 
 import torchtraj as tt
 from torchtraj import distributed
+from torchtraj.core.batch import Batch
 
 WORLD = 2
 COUNT = 8
@@ -267,3 +268,21 @@ def test_bench_scale_out_rows_and_speed_up(monkeypatch):
     args = scale_out.parser().parse_args(["--method", "ipm", "--compile"])
     assert scale_out._options(args).compile and not scale_out._options(
         scale_out.parser().parse_args(["--method", "ipm"])).compile
+
+
+def test_the_solver_takes_a_shard_at_the_start_of_its_own_storage():
+    """A rank's shard is a slice of the caller's batch, at a nonzero offset into its storage. The solver takes its
+    states and per-instance parameters as copies that start their storage (``Batch.for_solver``): a compiled kernel
+    guards on a nonzero storage offset, and the rows a solve gathers (finished instances left behind, a correction's
+    rows) start at zero, so that every kernel compiled twice on a rank whose shard did not start the batch (rank 1
+    of a compiled B = 1024 record compiled again inside its timed solve). A parameter that every instance shares
+    stays a view of stride 0."""
+    problem = tt.problems.get("pendulum")
+    rows = distributed.shard(8, 1, 2)
+    x0 = tt.problems.sample_x0("pendulum", 8, seed=0)[rows]
+    masses = torch.linspace(0.5, 1.5, 8, dtype=x0.dtype)[rows]
+    assert x0.storage_offset() > 0 and masses.storage_offset() > 0
+    batch = Batch.build(problem.replace(params={**problem.params, "mass": masses}), x0).for_solver()
+    assert batch.x0.storage_offset() == 0 and torch.equal(batch.x0, x0)
+    assert batch.params["mass"].storage_offset() == 0 and torch.equal(batch.params["mass"], masses)
+    assert batch.params["length"].stride(0) == 0

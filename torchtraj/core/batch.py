@@ -107,13 +107,20 @@ class Batch:
         return cls(x0=x0, U0=U0, X0=X0, params=problem.batched_params(B), duals=duals, B=B)
 
     def for_solver(self, detach: bool = False) -> "Batch":
-        """The inputs as a solver takes them: contiguous (the broadcast views made whole) and, with ``detach``, cut
-        from the caller's graph (a differentiable solve takes its gradients at the solution's KKT point, not
-        through the iterations)."""
+        """The inputs as a solver takes them: contiguous (the broadcast views made whole), each at the start of its
+        storage (a caller's slice, as a distributed rank's shard, copied: a compiled kernel guards on a nonzero
+        storage offset, and the rows that a solve gathers start at zero, so the kernels would compile once for each)
+        and, with ``detach``, cut from the caller's graph (a differentiable solve takes its gradients at the
+        solution's KKT point, not through the iterations)."""
         def own(t: Optional[Tensor]) -> Optional[Tensor]:
             if t is None:
                 return None
-            return (t.detach() if detach else t).contiguous()
+            t = t.detach() if detach else t
+            return t.contiguous() if t.storage_offset() == 0 else t.clone(memory_format=torch.contiguous_format)
 
-        params = {k: v.detach() for k, v in self.params.items()} if detach else self.params
+        def own_param(v):  # its layout kept (a parameter that every instance shares is a view of stride 0)
+            v = v.detach() if detach else v
+            return v if v.storage_offset() == 0 else v.clone()
+
+        params = {k: own_param(v) if isinstance(v, Tensor) else v for k, v in self.params.items()}
         return dataclasses.replace(self, x0=own(self.x0), U0=own(self.U0), X0=own(self.X0), params=params)
