@@ -120,6 +120,28 @@ def test_a_solve_of_one_instance_marks_nothing_and_a_batch_its_batch():
         assert _marked(fresh)
 
 
+def _masked_rows(rows: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
+    return rows * knots.sum()
+
+
+def test_a_batch_mark_lasts_for_its_call(dynamo_capture):
+    """A tensor that outlives a kernel's call, as a problem's knot mask ``(N, m)``, is marked where the batch's rows
+    happen to number N (the rows of a compacted batch); the mark comes off after the call (``compiled.unmark``), so
+    that a later call finds the graph compiled without it. It stayed before, and the next solve of the same batch
+    compiled four IPM kernels again."""
+    from torchtraj.core import compiled
+
+    knots = torch.ones(4, 2, dtype=torch.float64)  # N = 4
+    kernel = compiled.kernel(_masked_rows, True)
+    with batch_of(6):
+        kernel(torch.ones(6, 2, dtype=torch.float64), knots)
+        kernel(torch.ones(4, 2, dtype=torch.float64), knots)  # four rows: the mask marked for this call
+        assert not _marked(knots) and not hasattr(knots, "_has_dynamo_dim_marking")
+        before = dynamo_capture["stats"]["unique_graphs"]
+        kernel(torch.ones(5, 2, dtype=torch.float64), knots)
+    assert dynamo_capture["stats"]["unique_graphs"] == before
+
+
 def test_a_single_instance_calls_kernels_compiled_with_pooled_buffers(monkeypatch):
     """A kernel is compiled twice: with :data:`~torchtraj.core.compiled.SINGLE_OPTIONS` (inductor's pooled buffers)
     for the calls inside ``batch_of(1)``, and with the batched options for the others, told a batch or not; both with

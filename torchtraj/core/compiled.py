@@ -209,12 +209,18 @@ def _compile(fn: Callable) -> Callable:
         batch = _BATCH.get()
         if batch == 0:  # not told (outside tt.solve): the static sizes around this call
             with STATIC_SIZES():
-                mark_batch(args, kwargs)
-                return compiled(*args, **kwargs)
+                marked = mark_batch(args, kwargs)
+                try:
+                    return compiled(*args, **kwargs)
+                finally:
+                    unmark(marked)
         if batch < DYNAMIC_FROM:  # told a single instance: nothing to mark (mark_batch)
             return single(*args, **kwargs)
-        mark_batch(args, kwargs)
-        return compiled(*args, **kwargs)
+        marked = mark_batch(args, kwargs)
+        try:
+            return compiled(*args, **kwargs)
+        finally:
+            unmark(marked)
 
     return batch_dynamic
 
@@ -272,24 +278,46 @@ def mark_batch(*args) -> None:
     their tensors (bounds, default parameters, knot masks) are the problem's, shared by every instance. The batch
     size B is the most common dim 0 among them (the iterates, multipliers and parameters all have it); a tensor whose
     dim 0 is another size (a knot mask ``(N, m)``, a vector of step sizes) stays static. Where such a size equals B by
-    chance, its mark does no harm: a marked dim gets a symbol of its own (no duck shaping), which the kernel's first
-    use of it against a static size specialises, or which stays symbolic in a graph correct for any value.
+    chance, its mark does no harm in that call: a marked dim gets a symbol of its own (no duck shaping), which the
+    kernel's first use of it against a static size specialises, or which stays symbolic in a graph correct for any
+    value. Returns the tensors it marked, whose marks :func:`unmark` takes off after the call.
     """
     if 0 < _BATCH.get() < DYNAMIC_FROM:
-        return
+        return []
     tensors: list = []
     _collect(args, tensors, set())
     if not tensors:
-        return
+        return []
     counts: dict = {}
     for t in tensors:
         counts[t.shape[0]] = counts.get(t.shape[0], 0) + 1
     batch = max(counts, key=counts.__getitem__)
     if batch < DYNAMIC_FROM:
-        return
+        return []
+    marked = []
     for t in tensors:
-        if t.shape[0] == batch:
+        if t.shape[0] == batch and not hasattr(t, _MARK):
             torch._dynamo.maybe_mark_dynamic(t, 0)
+            marked.append(t)
+    return marked
+
+
+#: the attribute of a dim marked by ``maybe_mark_dynamic``, and Dynamo's other dim marks
+_MARK = "_dynamo_weak_dynamic_indices"
+_OTHER_MARKS = ("_dynamo_dynamic_indices", "_dynamo_unbacked_indices", "_dynamo_strict_unbacked_indices",
+                "_dynamo_static_indices")
+
+
+def unmark(tensors: list) -> None:
+    """The marks of :func:`mark_batch` taken off ``tensors`` after their call. A mark is an attribute of the tensor
+    object, and Dynamo guards on it: a tensor that outlives the call would carry it into later calls, where it need
+    not hold, and their kernels, compiled without it, would compile again. So it was with a problem's knot mask
+    ``(N, m)`` marked where the rows of a compacted batch happened to number N: four kernels compiled again in the
+    next solve of the same batch."""
+    for t in tensors:
+        delattr(t, _MARK)
+        if not any(hasattr(t, name) for name in _OTHER_MARKS):
+            delattr(t, "_has_dynamo_dim_marking")
 
 
 #: values that hold no tensor: skipped before a call (most attributes of an options object or an iterate are these)
