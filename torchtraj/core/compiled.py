@@ -310,10 +310,9 @@ _OTHER_MARKS = ("_dynamo_dynamic_indices", "_dynamo_unbacked_indices", "_dynamo_
 
 def unmark(tensors: list) -> None:
     """The marks of :func:`mark_batch` taken off ``tensors`` after their call. A mark is an attribute of the tensor
-    object, and Dynamo guards on it: a tensor that outlives the call would carry it into later calls, where it need
-    not hold, and their kernels, compiled without it, would compile again. So it was with a problem's knot mask
-    ``(N, m)`` marked where the rows of a compacted batch happened to number N: four kernels compiled again in the
-    next solve of the same batch."""
+    object, and Dynamo guards on it: a tensor that outlives the call (a problem's knot mask ``(N, m)``, marked where
+    the rows of a compacted batch happened to number N) would carry it into later calls, where it need not hold,
+    and kernels compiled without it would compile again."""
     for t in tensors:
         delattr(t, _MARK)
         if not any(hasattr(t, name) for name in _OTHER_MARKS):
