@@ -112,15 +112,12 @@ class Batch:
         storage offset, and the rows that a solve gathers start at zero, so the kernels would compile once for each)
         and, with ``detach``, cut from the caller's graph (a differentiable solve takes its gradients at the
         solution's KKT point, not through the iterations)."""
-        def own(t: Optional[Tensor]) -> Optional[Tensor]:
-            if t is None:
-                return None
+        def from_start(t: Tensor) -> Tensor:  # its layout kept (a parameter every instance shares: stride 0)
             t = t.detach() if detach else t
-            return t.contiguous() if t.storage_offset() == 0 else t.clone(memory_format=torch.contiguous_format)
+            return t if t.storage_offset() == 0 else t.clone()
 
-        def own_param(v):  # its layout kept (a parameter that every instance shares is a view of stride 0)
-            v = v.detach() if detach else v
-            return v if v.storage_offset() == 0 else v.clone()
+        def own(t: Optional[Tensor]) -> Optional[Tensor]:
+            return None if t is None else from_start(t).contiguous()
 
-        params = {k: own_param(v) if isinstance(v, Tensor) else v for k, v in self.params.items()}
+        params = {k: from_start(v) if isinstance(v, Tensor) else v for k, v in self.params.items()}
         return dataclasses.replace(self, x0=own(self.x0), U0=own(self.U0), X0=own(self.X0), params=params)

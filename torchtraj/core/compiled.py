@@ -209,20 +209,22 @@ def _compile(fn: Callable) -> Callable:
         batch = _BATCH.get()
         if batch == 0:  # not told (outside tt.solve): the static sizes around this call
             with STATIC_SIZES():
-                marked = mark_batch(args, kwargs)
-                try:
-                    return compiled(*args, **kwargs)
-                finally:
-                    unmark(marked)
+                return _marked_call(compiled, args, kwargs)
         if batch < DYNAMIC_FROM:  # told a single instance: nothing to mark (mark_batch)
             return single(*args, **kwargs)
-        marked = mark_batch(args, kwargs)
-        try:
-            return compiled(*args, **kwargs)
-        finally:
-            unmark(marked)
+        return _marked_call(compiled, args, kwargs)
 
     return batch_dynamic
+
+
+def _marked_call(compiled: Callable, args: tuple, kwargs: dict):
+    """``compiled(*args, **kwargs)`` with the batch's tensors marked for that call alone (:func:`mark_batch`,
+    :func:`unmark`)."""
+    marked = mark_batch(args, kwargs)
+    try:
+        return compiled(*args, **kwargs)
+    finally:
+        unmark(marked)
 
 
 #: How Dynamo names the sources of library globals: the modules of torchtraj and torch, ``dataclasses`` and the
