@@ -235,6 +235,39 @@ def test_a_round_made_again_after_a_further_attempt_goes_on_where_it_does_not_se
     assert_close_solutions(kernels, eager, tol=1e-10)
 
 
+def test_an_iteration_after_a_failed_first_attempt_makes_its_calls_in_turn(monkeypatch):
+    """The iteration in one call (whole_iteration) comes only after an iteration whose first attempt of the inertia
+    correction held for every running instance: where one failed, the next iteration makes its calls in turn (in a
+    large batch some instance's first attempt fails in most iterations, and the one call's line-search round would
+    be made again). With the kernels as plain functions (``torch.compile`` the identity), on two instances whose
+    first attempts fail in some iterations: both kinds of iteration occur, and the solve is eager's."""
+    monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
+    monkeypatch.setattr(compiled, "_KERNELS", {})
+    events, whole, regularized = [], ipm_solver.whole_iteration, ipm_solver.regularized_direction
+
+    def whole_spy(*args):
+        events.append("whole")
+        return whole(*args)
+
+    def regularized_spy(attempt, floor, *args, **kwargs):
+        d, delta = regularized(attempt, floor, *args, **kwargs)
+        events.append("held" if delta is floor else "failed")
+        return d, delta
+
+    monkeypatch.setattr(ipm_solver, "whole_iteration", whole_spy)
+    monkeypatch.setattr(ipm_solver, "regularized_direction", regularized_spy)
+    problem = tt.problems.get("pendulum")
+    x0 = tt.problems.sample_x0("pendulum", 1024, seed=0)[:2]
+    kernels = tt.solve(problem, x0, "ipm", options=tt.IPOptions(compile=True))
+    after = [events[i - 1] for i, event in enumerate(events) if event == "whole"]
+    assert after and set(after) == {"held"}, after  # (the first iterations have no filter bounds: no call)
+    next_to_failed = [b for a, b in zip(events, events[1:]) if a == "failed"]
+    assert next_to_failed and "whole" not in next_to_failed, events  # such iterations occur, and go on in turn
+    eager = tt.solve(problem, x0, "ipm")
+    assert torch.equal(kernels.iterations, eager.iterations)
+    assert_close_solutions(kernels, eager, tol=1e-10)
+
+
 def test_a_compiled_solves_objective_scale_is_one_kernel_with_the_eager_value(dynamo_capture):
     """The objective's scale (W&B §3.8, the cost gradient's largest entry at the start) of a compiled solve is one
     kernel call, one graph with no break, with every bit of the eager value, at starts whose scale is below 1: a

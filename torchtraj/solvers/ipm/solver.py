@@ -27,7 +27,7 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 Compiled, steps 1 and 3 are one kernel call (:mod:`~torchtraj.solvers.ipm.opening`), and the kernel of the line
 search's first round ends the iteration where it settles the search (:mod:`~torchtraj.solvers.ipm.conclusion`);
 where none of the iteration's host reads changes its course, steps 1 to 5 are one kernel call
-(:mod:`~torchtraj.solvers.ipm.whole_iteration`).
+(:mod:`~torchtraj.solvers.ipm.whole_iteration`), made after an iteration whose first attempt held for every instance.
 
 Where the iterations run out, the last iterate is expanded and tested as every other; with
 ``IPOptions.test_last_iterate`` off (the control steps), its values alone are evaluated: its cost and violation,
@@ -180,6 +180,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     ceiling = opts.mehrotra_mu_max_factor * average_complementarity(it.s, it.sN, it.z, it.zN, cons.ineq_knot_mask)
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     may_return = may_watch = False  # a watchdog runs / may start (known at the last iteration's synchronisation)
+    held = True  # the last iteration's first attempt factorised every running instance (whole_iteration)
     may_reset = opts.filter_reset_trigger <= 1  # a filter reset may come at this step (the same synchronisation)
 
     # compiled, with no test of the caller's nor crossover: the expansion, the tests and the barrier update one kernel
@@ -219,7 +220,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 break
         budget_spent = budgeted and step < opts.iterations  # a budget (Hooks), or iterations a restoration took
         ahead = None  # compiled: the iteration's step, first round and end, made with its start (whole_iteration)
-        if whole_k is not None and theta_max is not None and not (may_return or may_watch):
+        if whole_k is not None and theta_max is not None and held and not (may_return or may_watch):
             (model, *head), ahead = whole_k(problem, cons, params, it, opts, base, status, iterations, budget,
                                             budget_spent, tol, mu, tiny_steps, filt, x0, floor, wd, last, theta_max,
                                             theta_min, restoring, corrects)
@@ -308,6 +309,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager or fused,
                                          first=None if ahead is None else ahead[0])
         ahead = ahead if ahead is not None and d is ahead[0] else None  # (further attempts: the search made again)
+        held = delta is floor  # no further attempt (corrected_attempts): the next iteration may be one call
         factored = running & d.ok
         lost = torch.zeros_like(running)
         concluded = None  # compiled: the iteration's end, made by the kernel of its line search's first round
