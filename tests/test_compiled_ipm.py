@@ -236,11 +236,13 @@ def test_a_round_made_again_after_a_further_attempt_goes_on_where_it_does_not_se
 
 
 def test_an_iteration_after_a_failed_first_attempt_makes_its_calls_in_turn(monkeypatch):
-    """The iteration in one call (whole_iteration) comes only after an iteration whose first attempt of the inertia
-    correction held for every running instance: where one failed, the next iteration makes its calls in turn (in a
-    large batch some instance's first attempt fails in most iterations, and the one call's line-search round would
-    be made again). With the kernels as plain functions (``torch.compile`` the identity), on two instances whose
-    first attempts fail in some iterations: both kinds of iteration occur, and the solve is eager's."""
+    """For a batch, the iteration in one call (whole_iteration) comes only after an iteration whose first attempt of
+    the inertia correction held for every running instance: where one failed, the next iteration makes its calls in
+    turn (in a large batch some instance's first attempt fails in most iterations, and the one call's line-search
+    round would be made again). With the kernels as plain functions (``torch.compile`` the identity), on two
+    instances whose first attempts fail in some iterations: both kinds of iteration occur, and the solve is eager's.
+    A single instance (the pendulum's own start, whose first attempt also fails in some iterations) takes the one
+    call after such iterations too."""
     monkeypatch.setattr(torch, "compile", lambda fn, **kwargs: fn)
     monkeypatch.setattr(compiled, "_KERNELS", {})
     events, whole, regularized = [], ipm_solver.whole_iteration, ipm_solver.regularized_direction
@@ -266,6 +268,9 @@ def test_an_iteration_after_a_failed_first_attempt_makes_its_calls_in_turn(monke
     eager = tt.solve(problem, x0, "ipm")
     assert torch.equal(kernels.iterations, eager.iterations)
     assert_close_solutions(kernels, eager, tol=1e-10)
+    events.clear()
+    tt.solve(problem, None, "ipm", options=tt.IPOptions(compile=True))
+    assert "whole" in [b for a, b in zip(events, events[1:]) if a == "failed"], events
 
 
 def test_a_compiled_solves_objective_scale_is_one_kernel_with_the_eager_value(dynamo_capture):

@@ -27,7 +27,8 @@ system solved by a Riccati recursion generalised to stagewise equality constrain
 Compiled, steps 1 and 3 are one kernel call (:mod:`~torchtraj.solvers.ipm.opening`), and the kernel of the line
 search's first round ends the iteration where it settles the search (:mod:`~torchtraj.solvers.ipm.conclusion`);
 where none of the iteration's host reads changes its course, steps 1 to 5 are one kernel call
-(:mod:`~torchtraj.solvers.ipm.whole_iteration`), made after an iteration whose first attempt held for every instance.
+(:mod:`~torchtraj.solvers.ipm.whole_iteration`), for a batch after an iteration whose first attempt held for every
+instance.
 
 Where the iterations run out, the last iterate is expanded and tested as every other; with
 ``IPOptions.test_last_iterate`` off (the control steps), its values alone are evaluated: its cost and violation,
@@ -309,7 +310,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager or fused,
                                          first=None if ahead is None else ahead[0])
         ahead = ahead if ahead is not None and d is ahead[0] else None  # (further attempts: the search made again)
-        held = delta is floor  # no further attempt (corrected_attempts): the next iteration may be one call
+        # no further attempt (corrected_attempts), or a single instance, whose round made again costs less than the
+        # calls one call saves: the next iteration may be one call
+        held = delta is floor or running.shape[0] == 1
         factored = running & d.ok
         lost = torch.zeros_like(running)
         concluded = None  # compiled: the iteration's end, made by the kernel of its line search's first round

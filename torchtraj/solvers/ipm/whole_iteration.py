@@ -20,9 +20,10 @@ failed first attempt, the inertia correction's further attempts from it and the 
 unsettled round, the search goes on from it. Where a watchdog runs or may start, the loop takes its own path (the
 watchdog's step and its return need their host reads). Each instance's arithmetic is that of the three calls.
 
-The loop makes this call only after an iteration whose first attempt held for every running instance. In a large
-batch some instance's first attempt fails in most iterations, and the call's line-search round would be thrown away
-and made again for the whole batch; the answer of the last iteration is the host's best guess of this one's.
+For a batch, the loop makes this call only after an iteration whose first attempt held for every running instance.
+In a large batch some instance's first attempt fails in most iterations, and the call's line-search round would be
+thrown away and made again for the whole batch; the answer of the last iteration is the host's best guess of this
+one's. A single instance takes the call in every iteration: its round made again costs less than the calls saved.
 """
 
 from __future__ import annotations
