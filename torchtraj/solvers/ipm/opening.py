@@ -22,6 +22,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
+from ...core.compiled import batched_options
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...core.status import Status
@@ -53,6 +54,7 @@ def checked(it: Iterate, status: Tensor, running: Tensor, iterations: Tensor, bu
     return torch.where(diverged & (status == int(Status.RUNNING)), int(Status.DIVERGED), status)
 
 
+@batched_options(expand.batched_options)  # the expansion's loops are most of this kernel's
 def opened(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions, base: Optional[Base],
            status: Tensor, iterations: Tensor, budget: Tensor, budgeted: bool, tol: float, mu: Tensor,
            tiny_steps: Tensor, filt: Filter) -> tuple:

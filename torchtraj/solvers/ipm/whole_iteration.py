@@ -32,11 +32,12 @@ from typing import Optional
 
 from torch import Tensor
 
+from ...core.compiled import batched_options
 from ...core.constraints import Constraints
 from ...core.problem import Problem
 from ...globalization.filter import Filter
 from .conclusion import first_round_concluded
-from .expansion import Base
+from .expansion import Base, expand
 from .iterate import Iterate
 from .newton import newton_direction
 from .opening import opened
@@ -44,6 +45,7 @@ from .options import IPOptions
 from .watchdog import Watchdog
 
 
+@batched_options(expand.batched_options)  # as its start's kernel (opening.opened)
 def whole_iteration(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions, base: Optional[Base],
                     status: Tensor, iterations: Tensor, budget: Tensor, budgeted: bool, tol: float, mu: Tensor,
                     tiny_steps: Tensor, filt: Filter, x0: Tensor, floor: Tensor, wd: Watchdog, last: Tensor,
