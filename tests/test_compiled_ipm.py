@@ -273,6 +273,17 @@ def test_an_iteration_after_a_failed_first_attempt_makes_its_calls_in_turn(monke
     assert "whole" in [b for a, b in zip(events, events[1:]) if a == "failed"], events
 
 
+def test_the_kernels_that_hold_the_expansion_take_its_batched_options():
+    """The expansion's batched graphs are compiled without Inductor's masked tail vectors (``expand``'s
+    ``batched_options``); a kernel's options are read off its own function, so the kernels whose graphs hold the
+    expansion (the iteration's start, and the iteration in one call) carry them too (from b5b189a to aa588c3 they
+    did not, and a batch's iteration start ran at less than half its speed: docs/benchmarks.md)."""
+    wanted = expansion.expand.batched_options
+    assert wanted.get("cpp.enable_loop_tail_vec") is False, wanted
+    for kernel in (opening.opened, whole_iteration.whole_iteration):
+        assert getattr(kernel, "batched_options", None) == wanted, kernel
+
+
 def test_a_compiled_solves_objective_scale_is_one_kernel_with_the_eager_value(dynamo_capture):
     """The objective's scale (W&B §3.8, the cost gradient's largest entry at the start) of a compiled solve is one
     kernel call, one graph with no break, with every bit of the eager value, at starts whose scale is below 1: a

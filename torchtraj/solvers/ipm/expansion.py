@@ -183,7 +183,8 @@ def _linear_quadratic_values(problem: Problem, cons: Constraints, params, it: It
 
 
 # its loops run over the batch with the stages' few rows innermost, where Inductor's masked vectors of two or three
-# elements cost more than scalar code: 20 ms a call against 31 ms at B = 1024 (docs/benchmarks.md)
+# elements cost more than scalar code: 20 ms a call against 31 ms at B = 1024 (docs/benchmarks.md); the kernels that
+# hold the expansion take these options too (opening.opened, whole_iteration.whole_iteration)
 @batched_options({"cpp.enable_loop_tail_vec": False})
 def expand(problem: Problem, cons: Constraints, params, it: Iterate, opts: IPOptions,
            base: Optional[Base] = None) -> Model:
