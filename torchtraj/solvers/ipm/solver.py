@@ -182,6 +182,9 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
     index, final = None, None  # the rows of the full batch being iterated (None: all), and the others' results
     may_return = may_watch = False  # a watchdog runs / may start (known at the last iteration's synchronisation)
     held = True  # the last iteration's first attempt factorised every running instance (whole_iteration)
+    # a single instance takes the one call whatever `held`: its round made again costs less than the calls it saves
+    # (compiled, a batch never leaves fewer than two rows: `fewest`)
+    whole_always = B == 1
     may_reset = opts.filter_reset_trigger <= 1  # a filter reset may come at this step (the same synchronisation)
 
     # compiled, with no test of the caller's nor crossover: the expansion, the tests and the barrier update one kernel
@@ -221,7 +224,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
                 break
         budget_spent = budgeted and step < opts.iterations  # a budget (Hooks), or iterations a restoration took
         ahead = None  # compiled: the iteration's step, first round and end, made with its start (whole_iteration)
-        if whole_k is not None and theta_max is not None and held and not (may_return or may_watch):
+        if whole_k is not None and theta_max is not None and (held or whole_always) and not (may_return or may_watch):
             (model, *head), ahead = whole_k(problem, cons, params, it, opts, base, status, iterations, budget,
                                             budget_spent, tol, mu, tiny_steps, filt, x0, floor, wd, last, theta_max,
                                             theta_min, restoring, corrects)
@@ -310,9 +313,7 @@ def run(problem: Problem, batch: Batch, opts: IPOptions, hooks: Optional[Hooks] 
         d, delta = regularized_direction(attempt, floor, last, running, opts, by_rows=eager or fused,
                                          first=None if ahead is None else ahead[0])
         ahead = ahead if ahead is not None and d is ahead[0] else None  # (further attempts: the search made again)
-        # no further attempt (corrected_attempts), or a single instance, whose round made again costs less than the
-        # calls one call saves: the next iteration may be one call
-        held = delta is floor or running.shape[0] == 1
+        held = delta is floor  # no further attempt (corrected_attempts)
         factored = running & d.ok
         lost = torch.zeros_like(running)
         concluded = None  # compiled: the iteration's end, made by the kernel of its line search's first round
